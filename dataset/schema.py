@@ -1,0 +1,61 @@
+"""The sample table: one row per forward solve, as landed by the sweep.
+
+Units: lengths mm, moduli kPa, forces mN, time s, memory MiB.  The schema
+version and the units are written into every Parquet file's metadata
+(key ``elastimap.schema``, a JSON object), together with the elasticity-image
+shape and pixel size (key ``elastimap.image``).
+
+This module is the single definition of the columns; writers (``sweep``) and
+readers (``training``, ``camera``, ``gap``) import it.
+"""
+
+from __future__ import annotations
+
+import pyarrow as pa
+
+SCHEMA_VERSION = 1
+
+# name: (arrow type, unit, description)
+COLUMNS: dict[str, tuple[pa.DataType, str, str]] = {
+    "sample_id": (pa.string(), "", "stable id derived from the design, its seed and the sample index (or a hash of the row)"),
+    "tag": (pa.string(), "", "'design' for sampled points, 'phantom:<name>' for calibration-phantom inclusions, 'user' for --samples rows"),
+    "d": (pa.float64(), "mm", "inclusion diameter"),
+    "h": (pa.float64(), "mm", "depth of the inclusion centre below the tissue surface"),
+    "E": (pa.float64(), "kPa", "inclusion Young's modulus"),
+    "O1": (pa.float64(), "mm", "maximum of the difference elasticity image"),
+    "O2": (pa.float64(), "mm", "sum over pixels of the difference elasticity image"),
+    "O3": (pa.float64(), "mm^2", "area where the difference image exceeds the threshold"),
+    "force": (pa.float64(), "mN", "plate reaction force with the inclusion (full probe)"),
+    "force_ref": (pa.float64(), "mN", "plate reaction force of the reference solve (inclusion modulus = tissue modulus)"),
+    "image": (pa.list_(pa.float32()), "mm", "difference elasticity image, row-major, shape in metadata"),
+    "params_json": (pa.string(), "", "all solver inputs as JSON (tissue, probe, loading, discretisation, image spec)"),
+    "status": (pa.string(), "", "'ok' or 'failed'"),
+    "error": (pa.string(), "", "error message of a failed sample ('' when ok)"),
+    "ndofs": (pa.int64(), "", "degrees of freedom of one solve"),
+    "newton_iterations": (pa.int64(), "", "solver iterations, both solves"),
+    "seconds": (pa.float64(), "s", "wall time of the sample (both solves)"),
+    "peak_memory_mb": (pa.float64(), "MiB", "peak resident memory of the worker process"),
+    "code_version": (pa.string(), "", "elastimap version and git commit"),
+    "host": (pa.string(), "", "machine that ran the sample"),
+}
+
+FEATURES = ("O1", "O2", "O3")
+TARGETS = ("d", "h", "E")
+
+
+def arrow_schema(image_shape: tuple[int, int] | None = None, pixel: float | None = None) -> pa.Schema:
+    """Arrow schema with the version, units and image geometry in its metadata."""
+    import json
+
+    fields = [pa.field(name, typ) for name, (typ, _, _) in COLUMNS.items()]
+    meta = {
+        "elastimap.schema": json.dumps({
+            "version": SCHEMA_VERSION,
+            "units": {k: u for k, (_, u, _) in COLUMNS.items() if u},
+            "descriptions": {k: d for k, (_, _, d) in COLUMNS.items()},
+        }),
+    }
+    if image_shape is not None:
+        meta["elastimap.image"] = json.dumps({"shape": list(image_shape), "pixel_mm": pixel,
+                                              "order": "row-major, row 0 at y = -size/2"})
+    return pa.schema(fields, metadata=meta)

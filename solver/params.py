@@ -1,0 +1,256 @@
+"""Inputs and outputs of one forward solve, as plain dataclasses.
+
+Units everywhere: lengths in mm, moduli and pressures in kPa, forces in mN
+(kPa * mm^2 = mN).  Coordinates: x, y in the tissue surface plane with the
+probe centred on the origin, z upward, the chest wall at z = 0 and the tissue
+surface at z = thickness.
+
+All validation lives here so that every entry point (Python API, CLI, sweep)
+rejects the same bad input with the same one-line :class:`UserError`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from elastimap.errors import UserError, check_range
+
+MESH_LEVELS = ("tiny", "coarse", "default", "fine")
+INTERFACES = ("tied", "contact", "bonded")
+SYMMETRIES = ("quarter", "full")
+
+
+@dataclass(frozen=True)
+class Tissue:
+    """Tissue slab on a rigid chest wall (bottom face fixed)."""
+
+    size: float = 120.0        # mm, square side length
+    thickness: float = 20.0    # mm
+    E: float = 5.0             # kPa
+    nu: float = 0.49
+    skin_thickness: float = 0.0  # mm; > 0 adds a bonded skin layer of modulus skin_E (effect switch)
+    skin_E: float = 5.0          # kPa
+
+
+@dataclass(frozen=True)
+class Inclusion:
+    """Spherical (or ellipsoidal) inclusion bonded to the tissue.
+
+    ``h`` is the depth of the **centre** below the tissue surface.
+    ``aspect`` scales the vertical semi-axis (1 = sphere; the horizontal
+    diameter stays ``d``).  ``offset_x``/``offset_y`` move the centre off the
+    probe axis (breaks quarter symmetry: needs ``symmetry='full'``).
+    """
+
+    d: float = 8.0     # mm
+    h: float = 7.0     # mm, centre depth below the surface
+    E: float = 50.0    # kPa
+    nu: float = 0.49
+    aspect: float = 1.0
+    offset_x: float = 0.0  # mm
+    offset_y: float = 0.0  # mm
+
+
+@dataclass(frozen=True)
+class Probe:
+    """Soft three-layer PDMS waveguide; ``layers`` run from the tissue side up.
+
+    Each layer is ``(thickness mm, E kPa)``.  The top face is bonded to the
+    rigid glass plate.
+    """
+
+    size: float = 25.0
+    layers: tuple[tuple[float, float], ...] = ((2.0, 300.0), (3.0, 150.0), (5.0, 50.0))
+    nu: float = 0.49
+
+    @property
+    def height(self) -> float:
+        return float(sum(t for t, _ in self.layers))
+
+
+@dataclass(frozen=True)
+class Loading:
+    """Plate motion: an indentation ``delta`` (mm, downward) or a total ``force`` (mN).
+
+    When ``force`` is given it wins and ``delta`` is found by the solver
+    (linear interfaces scale exactly; the contact interface iterates).
+    """
+
+    delta: float = 3.0
+    force: float | None = None
+
+
+@dataclass(frozen=True)
+class Discretisation:
+    """Mesh level, element degree, interface model and symmetry."""
+
+    mesh: str = "default"
+    degree: int = 2
+    interface: str = "tied"
+    symmetry: str = "quarter"
+
+
+@dataclass(frozen=True)
+class ImageSpec:
+    """Pixel grid of the elasticity image over the full probe footprint.
+
+    ``threshold`` is the level (mm) above which a pixel of the difference
+    image counts as deformed for O3; the area is measured with sub-pixel
+    (bilinear, ``supersample``x) resolution so that it varies smoothly.
+    """
+
+    pixel: float = 0.5         # mm
+    threshold: float = 1e-3    # mm
+    supersample: int = 8
+
+
+@dataclass(frozen=True)
+class SolveParams:
+    inclusion: Inclusion = field(default_factory=Inclusion)
+    tissue: Tissue = field(default_factory=Tissue)
+    probe: Probe = field(default_factory=Probe)
+    loading: Loading = field(default_factory=Loading)
+    disc: Discretisation = field(default_factory=Discretisation)
+    image: ImageSpec = field(default_factory=ImageSpec)
+
+    def replace(self, **changes) -> "SolveParams":
+        return dataclasses.replace(self, **changes)
+
+    def with_inclusion(self, **changes) -> "SolveParams":
+        return dataclasses.replace(self, inclusion=dataclasses.replace(self.inclusion, **changes))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SolveParams":
+        probe = dict(d.get("probe", {}))
+        if "layers" in probe:
+            probe["layers"] = tuple(tuple(map(float, l)) for l in probe["layers"])
+        return cls(
+            inclusion=Inclusion(**d.get("inclusion", {})),
+            tissue=Tissue(**d.get("tissue", {})),
+            probe=Probe(**probe),
+            loading=Loading(**d.get("loading", {})),
+            disc=Discretisation(**d.get("disc", {})),
+            image=ImageSpec(**d.get("image", {})),
+        )
+
+    def validate(self) -> "SolveParams":
+        """Raise :class:`UserError` naming the first bad parameter; return self."""
+        t, inc, p, ld, ds, im = self.tissue, self.inclusion, self.probe, self.loading, self.disc, self.image
+        check_range("tissue.size", t.size, 0, lo_open=True, unit="mm")
+        check_range("tissue.thickness", t.thickness, 0, lo_open=True, unit="mm")
+        check_range("tissue.E", t.E, 0, lo_open=True, unit="kPa")
+        check_range("tissue.nu", t.nu, -1, 0.5, lo_open=True, hi_open=True)
+        check_range("tissue.skin_thickness", t.skin_thickness, 0, t.thickness / 2, unit="mm")
+        check_range("tissue.skin_E", t.skin_E, 0, lo_open=True, unit="kPa")
+        check_range("d", inc.d, 0, lo_open=True, unit="mm")
+        check_range("E", inc.E, 0, lo_open=True, unit="kPa")
+        check_range("inclusion.nu", inc.nu, -1, 0.5, lo_open=True, hi_open=True)
+        check_range("inclusion.aspect", inc.aspect, 0.2, 5.0)
+        half_height = inc.aspect * inc.d / 2
+        lo, hi = depth_range(inc.d, t.thickness, inc.aspect)
+        if not (lo <= inc.h <= hi):
+            if lo > hi:
+                raise UserError("d", f"an inclusion of diameter {inc.d:g} mm (vertical semi-axis {half_height:g} mm) "
+                                     f"does not fit in a {t.thickness:g} mm slab with 1 mm cover and 2 mm above the chest wall")
+            raise UserError("h", f"centre depth must be in [{lo:g}, {hi:g}] mm for d = {inc.d:g} mm "
+                                 f"(>= 1 mm below the surface, >= 2 mm above the chest wall; got {inc.h:g})")
+        if inc.h - half_height < t.skin_thickness:
+            raise UserError("h", "the inclusion must lie below the skin layer")
+        reach = max(abs(inc.offset_x), abs(inc.offset_y)) + inc.d / 2
+        if reach > t.size / 2 - 5:
+            raise UserError("inclusion.offset", f"the inclusion must stay >= 5 mm inside the slab (|offset| + d/2 <= {t.size / 2 - 5:g} mm)")
+        check_range("probe.size", p.size, 0, t.size, lo_open=True, unit="mm")
+        if len(p.layers) < 1:
+            raise UserError("probe.layers", "at least one (thickness, E) layer is required")
+        for i, (th, E) in enumerate(p.layers, 1):
+            check_range(f"probe.layer{i}.thickness", th, 0, lo_open=True, unit="mm")
+            check_range(f"probe.layer{i}.E", E, 0, lo_open=True, unit="kPa")
+        check_range("probe.nu", p.nu, -1, 0.5, lo_open=True, hi_open=True)
+        if ld.force is None:
+            check_range("delta", ld.delta, 0, min(p.height, t.thickness) / 2, lo_open=True, unit="mm")
+        else:
+            check_range("force", ld.force, 0, lo_open=True, unit="mN")
+        if ds.mesh not in MESH_LEVELS:
+            raise UserError("mesh", f"must be one of {', '.join(MESH_LEVELS)} (got {ds.mesh!r})")
+        if ds.degree not in (1, 2):
+            raise UserError("degree", f"must be 1 or 2 (got {ds.degree})")
+        if ds.interface not in INTERFACES:
+            raise UserError("interface", f"must be one of {', '.join(INTERFACES)} (got {ds.interface!r})")
+        if ds.symmetry not in SYMMETRIES:
+            raise UserError("symmetry", f"must be one of {', '.join(SYMMETRIES)} (got {ds.symmetry!r})")
+        if ds.symmetry == "quarter" and (inc.offset_x != 0 or inc.offset_y != 0):
+            raise UserError("symmetry", "an off-axis inclusion breaks quarter symmetry: use the full model")
+        check_range("pixel", im.pixel, 0, p.size / 4, lo_open=True, unit="mm")
+        n = p.size / im.pixel
+        if abs(n - round(n)) > 1e-9:
+            raise UserError("pixel", f"must divide the probe size {p.size:g} mm into a whole number of pixels (got {im.pixel:g})")
+        if ds.symmetry == "quarter" and round(n) % 2:
+            raise UserError("pixel", "the quarter model needs an even number of pixels across the probe")
+        check_range("threshold", im.threshold, 0, unit="mm")
+        if not (1 <= im.supersample <= 32):
+            raise UserError("supersample", f"must be in [1, 32] (got {im.supersample})")
+        return self
+
+
+def depth_range(d: float, thickness: float = 20.0, aspect: float = 1.0,
+                cover: float = 1.0, floor: float = 2.0) -> tuple[float, float]:
+    """Allowed centre depths (mm) keeping ``cover`` mm above and ``floor`` mm below the inclusion."""
+    half = aspect * d / 2
+    return cover + half, thickness - floor - half
+
+
+@dataclass
+class SolveResult:
+    """Output of one sample: features of the difference image, images, force and statistics.
+
+    ``image`` is the elasticity image used for features: the probe-bottom
+    deflection with the inclusion minus the same with the inclusion's modulus
+    set to the tissue's, on the same mesh (mm, shape ``(ny, nx)``, row 0 at
+    y = -size/2).  ``image_raw`` is the deflection itself (relative to the
+    plate motion: how much the probe is compressed, mm).
+    """
+
+    params: SolveParams
+    O1: float                  # mm, maximum of the difference image
+    O2: float                  # mm, sum over pixels of the difference image
+    O3: float                  # mm^2, area where the difference image exceeds the threshold
+    force: float               # mN, total plate reaction with the inclusion (full probe)
+    force_ref: float           # mN, same for the reference solve
+    delta: float               # mm, indentation actually applied
+    image: np.ndarray
+    image_raw: np.ndarray
+    pixel: float
+    ndofs: int
+    ncells: int
+    newton_iterations: int     # active-set / Newton iterations summed over both solves (1 per linear solve)
+    seconds: float
+    timings: dict[str, float]
+    peak_memory_mb: float
+    interface: dict[str, float] = field(default_factory=dict)  # interface diagnostics (tension check)
+
+    def features(self) -> dict[str, float]:
+        return {"O1": self.O1, "O2": self.O2, "O3": self.O3, "force": self.force}
+
+    def summary(self) -> dict:
+        """JSON-ready summary (no arrays)."""
+        inc = self.params.inclusion
+        out = {"d": inc.d, "h": inc.h, "E": inc.E, "O1": self.O1, "O2": self.O2, "O3": self.O3,
+               "force": self.force, "force_ref": self.force_ref, "delta": self.delta,
+               "ndofs": self.ndofs, "ncells": self.ncells, "newton_iterations": self.newton_iterations,
+               "seconds": self.seconds, "peak_memory_mb": self.peak_memory_mb,
+               "mesh": self.params.disc.mesh, "interface": self.params.disc.interface,
+               "symmetry": self.params.disc.symmetry, "pixel": self.pixel,
+               "image_shape": list(self.image.shape), "timings": self.timings,
+               "interface_check": self.interface}
+        return {k: (float(v) if isinstance(v, (np.floating,)) else v) for k, v in out.items()}
+
+
+def finite(x: float) -> bool:
+    return math.isfinite(x)
