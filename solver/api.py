@@ -1,0 +1,110 @@
+"""``solve(params) -> SolveResult``: geometry → mesh → two solves → elasticity image → features.
+
+One sample is two solves on the same mesh: with the inclusion (modulus E) and
+a reference with the inclusion's modulus set to the tissue's.  The raw image
+w(x, y) = u_z + δ of the probe bottom is dominated by the flat-punch edge
+singularity at the probe rim, so the features are taken from the difference
+image w_E − w_ref (see :mod:`solver.image`).
+"""
+
+from __future__ import annotations
+
+import resource
+import time
+
+import numpy as np
+
+from .params import SolveParams, SolveResult
+
+
+def _peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _solve_at(model, E_inc: float, p: SolveParams):
+    """Solve for one inclusion modulus under the loading of ``p``; returns (sol, diag, delta, force)."""
+    from .fem import SolverError
+
+    ld = p.loading
+    delta = ld.delta
+    sol, diag = model.solve(E_inc, delta)
+    force = model.plate_force(sol)
+    if ld.force is None:
+        return sol, diag, delta, force
+    if p.disc.interface != "contact":
+        # linear problem: displacements and force scale with δ
+        s = ld.force / force
+        sol.u *= s
+        sol.reaction *= s
+        for k in ("pressure_mean_kPa", "pressure_min_kPa", "pressure_max_kPa", "gap_min_mm"):
+            diag[k] *= s
+        return sol, diag, delta * s, ld.force
+    its = sol.iterations
+    for _ in range(20):  # secant on δ for the (mildly) nonlinear contact problem
+        if abs(force - ld.force) <= 1e-6 * ld.force:
+            break
+        delta = delta * ld.force / force
+        sol, diag = model.solve(E_inc, delta)
+        its += sol.iterations
+        force = model.plate_force(sol)
+    else:
+        raise SolverError(f"force control did not converge (target {ld.force:g} mN, got {force:g} mN)")
+    sol.iterations = its
+    return sol, diag, delta, force
+
+
+def solve(params: SolveParams) -> SolveResult:
+    """Run one sample.  Raises :class:`elastimap.errors.UserError` for bad input and
+    :class:`solver.SolverError` (message carries d, h, E) when the solve fails."""
+    from .fem import Model, SolverError
+    from .geometry import MeshError, build_mesh
+    from .image import features, mirror_quarter
+
+    p = params.validate()
+    t0 = time.perf_counter()
+    inc = p.inclusion
+    tag = f"(d={inc.d:g} mm, h={inc.h:g} mm, E={inc.E:g} kPa)"
+    try:
+        raw = build_mesh(p)
+        model = Model(raw, p)
+    except (MeshError, SolverError) as exc:
+        raise SolverError(f"mesh/setup failed for {tag}: {exc}") from exc
+    try:
+        sol, diag, delta, force = _solve_at(model, inc.E, p)
+        w = model.probe_bottom_w(sol, delta)
+        sol_ref, diag_ref, delta_ref, force_ref = _solve_at(model, p.tissue.E, p)
+        w_ref = model.probe_bottom_w(sol_ref, delta_ref)
+    except SolverError as exc:
+        raise SolverError(f"solve failed for {tag}: {exc}") from exc
+    finally:
+        model.destroy()
+    if p.disc.symmetry == "quarter":
+        w, w_ref = mirror_quarter(w), mirror_quarter(w_ref)
+    diff = w - w_ref
+    O1, O2, O3 = features(diff, p.image.pixel, p.image.threshold, p.image.supersample)
+    timings = dict(model.timings)
+    timings["mesh"] = raw.seconds
+    seconds = time.perf_counter() - t0
+    return SolveResult(
+        params=p, O1=O1, O2=O2, O3=O3, force=force, force_ref=force_ref, delta=delta,
+        image=diff.astype(np.float32), image_raw=w.astype(np.float32), pixel=p.image.pixel,
+        ndofs=model.ndofs, ncells=model.ncells,
+        newton_iterations=sol.iterations + sol_ref.iterations, seconds=seconds,
+        timings={k: round(v, 4) for k, v in timings.items()}, peak_memory_mb=_peak_mb(),
+        interface={**diag, "reference_tension_patch_fraction": diag_ref["tension_patch_fraction"]},
+    )
+
+
+def warmup(params: SolveParams | None = None) -> float:
+    """Compile the DOLFINx forms once (into the JIT cache) with a tiny solve; returns seconds.
+
+    Call it in a sweep driver before fanning out to workers.
+    """
+    from .params import Discretisation
+
+    t0 = time.perf_counter()
+    p = params or SolveParams()
+    p = p.replace(disc=Discretisation(mesh="tiny", degree=p.disc.degree, interface="tied", symmetry="quarter"))
+    p = p.with_inclusion(offset_x=0.0, offset_y=0.0)
+    solve(p)
+    return time.perf_counter() - t0

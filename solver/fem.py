@@ -1,0 +1,375 @@
+"""Linear-elastic finite-element model of the probe pressing the tissue (DOLFINx 0.11).
+
+Bodies Ω = Ω_tissue ∪ Ω_inclusion ∪ Ω_skin (one tissue body) and Ω_probe (three
+PDMS layers) are linear, isotropic and bonded internally.  For the
+displacement u (mm) with test function v:
+
+    a(u, v) = ∫_Ω σ(u) : ε(v) dx,     ε(u) = ½(∇u + ∇uᵀ),
+    σ(u)   = 2 μ ε(u) + λ tr ε(u) I,  μ = E / (2(1+ν)),  λ = E ν / ((1+ν)(1−2ν))
+
+with E in kPa, so σ is in kPa and nodal forces in kPa·mm² = mN.  P2
+(quadratic) tetrahedra are used by default because P1 locks at ν = 0.49.
+
+Boundary conditions: u = 0 on the chest wall z = 0; u = (0, 0, −δ) on the
+probe top (bonded to the rigid plate); u·n = 0 on the symmetry planes of the
+quarter model; the tissue surface outside the probe is traction-free.
+
+Probe–tissue interface Γ (the footprint).  The mesh carries coincident node
+pairs (t_i on the tissue, p_i on the probe) on Γ, so the conditions are
+imposed exactly on the discrete pairs, with no penalty parameter:
+
+* ``tied``    (default) frictionless, closed: u_z(t_i) = u_z(p_i); tangential
+  components independent (zero shear traction).  Valid while the contact
+  pressure stays compressive; this is checked after every solve.
+* ``contact`` frictionless unilateral contact: u_z(t_i) ≤ u_z(p_i) with
+  contact pressure p_i ≥ 0 and p_i·gap_i = 0, solved by a primal–dual active
+  set iteration (each iteration is one linear solve).
+* ``bonded``  all three components tied (a glued probe; wrong for the sensor,
+  offered for comparison).
+
+Constraints are applied by elimination: u = P ū + u_D, where P maps the free
+unknowns ū to all nodal values (a tied tissue value copies its probe
+partner) and u_D carries the prescribed values.  The reduced system
+Pᵀ A P ū = −Pᵀ A u_D is factorised with MUMPS.  The contact pressure p on Γ
+is recovered from the nodal reaction r = A u by the consistent surface mass
+matrix, M_Γ p = −r_Γ.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+from . import _boot  # noqa: F401  (must precede dolfinx)
+
+import numpy as np
+import scipy.sparse as sp
+import ufl
+from dolfinx import fem, geometry, mesh as dmesh
+from dolfinx.fem import petsc as fpetsc
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from .geometry import INCLUSION, PROBE_LAYER0, SKIN, TISSUE, RawMesh
+from .params import SolveParams
+
+
+class SolverError(RuntimeError):
+    """A solve failed (no convergence, singular system, bad mesh); carries the parameters."""
+
+
+def epsilon(u):
+    """Small-strain tensor ε(u) = ½(∇u + ∇uᵀ) (dimensionless)."""
+    return ufl.sym(ufl.grad(u))
+
+
+def sigma(u, E, nu):
+    """Linear isotropic stress σ = 2μ ε + λ tr(ε) I (kPa) for E in kPa."""
+    mu = E / (2 * (1 + nu))
+    lmbda = E * nu / ((1 + nu) * (1 - 2 * nu))
+    return 2 * mu * epsilon(u) + lmbda * ufl.tr(epsilon(u)) * ufl.Identity(len(u))
+
+
+@dataclass
+class LinearSolution:
+    u: np.ndarray          # all nodal values, flat (3 per node)
+    reaction: np.ndarray   # r = A u (mN), flat
+    iterations: int
+
+
+class Model:
+    """One mesh, its function space, operators and constraint bookkeeping.
+
+    Built once per sample and reused by the inclusion solve and the reference
+    solve (same mesh, same sparsity, same symbolic factorisation when the
+    interface set does not change).
+    """
+
+    def __init__(self, raw: RawMesh, p: SolveParams):
+        t0 = time.perf_counter()
+        self.p = p
+        comm = MPI.COMM_SELF
+        coord_el = ufl.Mesh(__import__("basix").ufl.element("Lagrange", "tetrahedron", 1, shape=(3,)))
+        self.mesh = dmesh.create_mesh(comm, raw.cells, coord_el, raw.x)
+        msh = self.mesh
+        tdim = 3
+        self.markers = raw.markers[msh.topology.original_cell_index].astype(np.int32)
+        ncells = msh.topology.index_map(tdim).size_local
+        self.ncells = ncells
+        V = fem.functionspace(msh, ("Lagrange", p.disc.degree, (3,)))
+        self.V = V
+        Q = fem.functionspace(msh, ("DG", 0))
+        self.E = fem.Function(Q, name="E")
+        self.nu = fem.Function(Q, name="nu")
+        self._set_materials(p.inclusion.E)
+        u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+        self.a = fem.form(ufl.inner(sigma(u, self.E, self.nu), epsilon(v)) * ufl.dx)
+
+        # ---- dof classification (block = node of the P2 space) ----------------
+        X = V.tabulate_dof_coordinates()
+        nb = X.shape[0]
+        self.nblocks = nb
+        self.X = X
+        cell_dofs = V.dofmap.list
+        probe_cell = self.markers >= PROBE_LAYER0
+        self.probe_cells = np.flatnonzero(probe_cell).astype(np.int32)
+        is_probe = np.zeros(nb, dtype=bool)
+        is_probe[np.unique(cell_dofs[probe_cell])] = True
+        self.is_probe = is_probe
+        T, H, P = p.tissue.thickness, p.probe.height, p.probe.size
+        tol = 1e-6 * max(T, P)
+        x, y, z = X[:, 0], X[:, 1], X[:, 2]
+        self.top = np.flatnonzero(is_probe & (np.abs(z - (T + H)) < tol))
+        self.bottom = np.flatnonzero(~is_probe & (np.abs(z) < tol))
+        self.sym_x = np.flatnonzero(np.abs(x) < tol) if p.disc.symmetry == "quarter" else np.empty(0, int)
+        self.sym_y = np.flatnonzero(np.abs(y) < tol) if p.disc.symmetry == "quarter" else np.empty(0, int)
+        on_gamma = (np.abs(z - T) < tol) & (np.abs(x) <= P / 2 + tol) & (np.abs(y) <= P / 2 + tol)
+        gp = np.flatnonzero(on_gamma & is_probe)
+        gt = np.flatnonzero(on_gamma & ~is_probe)
+        if len(gp) != len(gt) or len(gp) == 0:
+            raise SolverError(f"interface node pairing failed ({len(gp)} probe vs {len(gt)} tissue nodes)")
+        kp = np.lexsort(np.round(X[gp, :2] / tol).T[::-1])
+        kt = np.lexsort(np.round(X[gt, :2] / tol).T[::-1])
+        gp, gt = gp[kp], gt[kt]
+        if np.max(np.abs(X[gp] - X[gt])) > 10 * tol:
+            raise SolverError("interface node pairs do not coincide")
+        self.pair_probe, self.pair_tissue = gp, gt
+
+        # ---- consistent surface mass matrix on the tissue side of Γ ----------
+        fdim = 2
+        msh.topology.create_connectivity(fdim, tdim)
+        facets = dmesh.locate_entities_boundary(
+            msh, fdim, lambda xx: (np.abs(xx[2] - T) < tol) & (np.abs(xx[0]) <= P / 2 + tol) & (np.abs(xx[1]) <= P / 2 + tol))
+        f2c = msh.topology.connectivity(fdim, tdim)
+        tissue_facets = np.array([f for f in facets if not probe_cell[f2c.links(f)[0]]], dtype=np.int32)
+        ft = dmesh.meshtags(msh, fdim, np.sort(tissue_facets), np.ones(len(tissue_facets), dtype=np.int32))
+        ds = ufl.Measure("ds", domain=msh, subdomain_data=ft)
+        m_form = fem.form(u[2] * v[2] * ds(1))
+        M = fpetsc.assemble_matrix(m_form)
+        M.assemble()
+        Mi, Mj, Mv = M.getValuesCSR()
+        Mfull = sp.csr_matrix((Mv, Mj, Mi), shape=M.getSize())
+        M.destroy()
+        idx = 3 * gt + 2
+        self.M_gamma = sp.csc_matrix(Mfull[idx][:, idx])
+        # patch incidence: S_ij = 1 when interface nodes i and j share a facet
+        self.S_patch = (abs(self.M_gamma) > 0).astype(float).tocsr()
+
+        # ---- image sampling points on the probe bottom ------------------------
+        from .image import pixel_centres
+        c = pixel_centres(P, p.image.pixel)
+        if p.disc.symmetry == "quarter":
+            c = c[c > 0]
+        gx, gy = np.meshgrid(c, c)   # rows = y, cols = x
+        pts = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, T)])
+        tree = geometry.bb_tree(msh, tdim, entities=self.probe_cells)
+        cand = geometry.compute_collisions_points(tree, pts)
+        cells = geometry.compute_colliding_cells(msh, cand, pts)
+        owner = np.array([cells.links(i)[0] if len(cells.links(i)) else -1 for i in range(len(pts))], dtype=np.int32)
+        if np.any(owner < 0):
+            raise SolverError("image pixels fall outside the probe mesh")
+        self.img_pts, self.img_cells, self.img_shape = pts, owner, gx.shape
+
+        self.A = fpetsc.create_matrix(self.a)
+        self.ndofs = 3 * nb
+        self._ksp = None
+        self._K = None
+        self._P = None
+        self._P_key = None
+        self.timings = {"setup": time.perf_counter() - t0}
+
+    # ------------------------------------------------------------------------
+    def _set_materials(self, E_inclusion: float) -> None:
+        p = self.p
+        E = np.empty(len(self.markers))
+        nu = np.empty(len(self.markers))
+        E[self.markers == TISSUE], nu[self.markers == TISSUE] = p.tissue.E, p.tissue.nu
+        E[self.markers == SKIN], nu[self.markers == SKIN] = p.tissue.skin_E, p.tissue.nu
+        E[self.markers == INCLUSION], nu[self.markers == INCLUSION] = E_inclusion, p.inclusion.nu
+        for i, (_th, El) in enumerate(p.probe.layers):
+            sel = self.markers == PROBE_LAYER0 + i
+            E[sel], nu[sel] = El, p.probe.nu
+        self.E.x.array[: len(E)] = E
+        self.nu.x.array[: len(nu)] = nu
+
+    def _tick(self, key: str, t0: float) -> float:
+        t = time.perf_counter()
+        self.timings[key] = self.timings.get(key, 0.0) + t - t0
+        return t
+
+    def _constraints(self, delta: float, active: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Column of every flat dof in ū (−1 for prescribed) and the prescribed values u_D."""
+        n = 3 * self.nblocks
+        fixed = np.zeros(n, dtype=bool)
+        uD = np.zeros(n)
+        for comp in range(3):
+            fixed[3 * self.bottom + comp] = True
+            fixed[3 * self.top + comp] = True
+        uD[3 * self.top + 2] = -delta
+        fixed[3 * self.sym_x + 0] = True
+        fixed[3 * self.sym_y + 1] = True
+        master = np.arange(n)
+        comps = (0, 1, 2) if self.p.disc.interface == "bonded" else (2,)
+        for comp in comps:
+            s = 3 * self.pair_tissue[active] + comp
+            m = 3 * self.pair_probe[active] + comp
+            fixed[s] |= fixed[m]
+            master[s[~fixed[s]]] = m[~fixed[s]]
+        free = ~fixed & (master == np.arange(n))
+        col = np.full(n, -1, dtype=np.int64)
+        col[free] = np.arange(np.count_nonzero(free))
+        slave = ~fixed & ~free
+        col[slave] = col[master[slave]]
+        return col, uD, fixed
+
+    def solve_linear(self, E_inclusion: float, delta: float, active: np.ndarray | None = None) -> LinearSolution:
+        """One linear solve with the pairs in ``active`` tied (all pairs when None)."""
+        t = time.perf_counter()
+        if active is None:
+            active = np.ones(len(self.pair_tissue), dtype=bool)
+        self._set_materials(E_inclusion)
+        self.A.zeroEntries()
+        fpetsc.assemble_matrix(self.A, self.a)
+        self.A.assemble()
+        t = self._tick("assemble", t)
+
+        key = active.tobytes()
+        col, uD, fixed = self._constraints(delta, active)
+        n = len(col)
+        rows = np.flatnonzero(col >= 0)
+        nfree = int(col.max()) + 1
+        if self._P_key != key:
+            Pcsr = sp.csr_matrix((np.ones(len(rows)), (rows, col[rows])), shape=(n, nfree))
+            if self._P is not None:
+                self._P.destroy()
+            self._P = PETSc.Mat().createAIJ(size=(n, nfree), csr=(Pcsr.indptr.astype(PETSc.IntType),
+                                                                  Pcsr.indices.astype(PETSc.IntType), Pcsr.data),
+                                            comm=MPI.COMM_SELF)
+            self._P.assemble()
+            if self._K is not None:
+                self._K.destroy()
+            self._K = self.A.ptap(self._P)
+            new_pattern = True
+        else:
+            self.A.ptap(self._P, result=self._K)
+            new_pattern = False
+        self._P_key = key
+        Pm, K = self._P, self._K
+        vD = PETSc.Vec().createWithArray(uD, comm=MPI.COMM_SELF)
+        AuD = self.A.createVecLeft()
+        self.A.mult(vD, AuD)
+        f = K.createVecRight()
+        Pm.multTranspose(AuD, f)
+        f.scale(-1.0)
+        t = self._tick("ptap", t)
+
+        if self._ksp is None:
+            ksp = PETSc.KSP().create(MPI.COMM_SELF)
+            ksp.setType("preonly")
+            pc = ksp.getPC()
+            pc.setType("lu")
+            pc.setFactorSolverType("mumps")
+            ksp.setOptionsPrefix(f"elastimap_{id(self)}_")
+            opts = PETSc.Options()
+            opts[f"elastimap_{id(self)}_mat_mumps_icntl_14"] = 80  # workspace margin (%)
+            ksp.setFromOptions()
+            self._ksp = ksp
+        if new_pattern:
+            self._ksp.reset()  # new constraint set: new symbolic factorisation
+        self._ksp.setOperators(K)  # same pattern as last time: numeric refactorisation only
+        self._ksp.setFromOptions()
+        ubar = K.createVecRight()
+        self._ksp.solve(f, ubar)
+        reason = self._ksp.getConvergedReason()
+        if reason < 0:
+            raise SolverError(f"linear solve failed (PETSc reason {reason})")
+        t = self._tick("factor_solve", t)
+
+        u_vec = AuD.duplicate()
+        Pm.mult(ubar, u_vec)
+        u = u_vec.getArray().copy() + uD
+        r_vec = AuD.duplicate()
+        self.A.mult(PETSc.Vec().createWithArray(u, comm=MPI.COMM_SELF), r_vec)
+        r = r_vec.getArray().copy()
+        for vec in (vD, AuD, f, ubar, u_vec, r_vec):
+            vec.destroy()
+        if not np.all(np.isfinite(u)):
+            raise SolverError("the solve produced non-finite displacements")
+        self._tick("post", t)
+        return LinearSolution(u=u, reaction=r, iterations=1)
+
+    # ------------------------------------------------------------------------
+    def contact_pressure(self, sol: LinearSolution) -> np.ndarray:
+        """Normal contact pressure (kPa, compressive > 0) at the tissue-side interface nodes."""
+        from scipy.sparse.linalg import spsolve
+
+        r = sol.reaction[3 * self.pair_tissue + 2]
+        return -spsolve(self.M_gamma, r)
+
+    def patch_force(self, sol: LinearSolution) -> np.ndarray:
+        """Compressive normal force (mN) on each interface node's patch of facets.
+
+        The patch sum of nodal forces is a positive-weighted average of the
+        pressure around the node, so its sign is robust to the oscillation of
+        the recovered pressure next to the flat-punch edge singularity.  It is
+        the tension criterion of the active set and of the tied-interface check.
+        """
+        return self.S_patch @ (-sol.reaction[3 * self.pair_tissue + 2])
+
+    def gap(self, sol: LinearSolution) -> np.ndarray:
+        """Normal gap u_z(probe) − u_z(tissue) at the interface pairs (mm, ≥ 0 = no penetration)."""
+        return sol.u[3 * self.pair_probe + 2] - sol.u[3 * self.pair_tissue + 2]
+
+    def plate_force(self, sol: LinearSolution) -> float:
+        """Total force (mN) the plate applies on the probe, compressive positive, full probe."""
+        f = -float(np.sum(sol.reaction[3 * self.top + 2]))
+        return 4 * f if self.p.disc.symmetry == "quarter" else f
+
+    def probe_bottom_w(self, sol: LinearSolution, delta: float) -> np.ndarray:
+        """Deflection of the probe bottom relative to the plate, u_z + δ (mm), on the pixel grid."""
+        t = time.perf_counter()
+        uf = fem.Function(self.V)
+        uf.x.array[: len(sol.u)] = sol.u
+        vals = uf.eval(self.img_pts, self.img_cells)[:, 2]
+        self._tick("image", t)
+        return vals.reshape(self.img_shape) + delta
+
+    def solve(self, E_inclusion: float, delta: float, max_iter: int = 30) -> tuple[LinearSolution, dict]:
+        """Solve with the configured interface; returns the solution and interface diagnostics."""
+        mode = self.p.disc.interface
+        npairs = len(self.pair_tissue)
+        active = np.ones(npairs, dtype=bool)
+        its = 0
+        while True:
+            sol = self.solve_linear(E_inclusion, delta, active)
+            its += 1
+            pf = self.patch_force(sol)
+            if mode != "contact":
+                break
+            fscale = max(float(np.mean(np.abs(pf))), 1e-300)
+            g = self.gap(sol)
+            new = (active & (pf > -1e-6 * fscale)) | (~active & (g < -1e-9 * max(delta, 1e-12)))
+            if np.array_equal(new, active):
+                break
+            if its >= max_iter:
+                raise SolverError(f"contact active set did not settle in {max_iter} iterations")
+            active = new
+        sol.iterations = its
+        pres = self.contact_pressure(sol)
+        pc = pres[active] if active.any() else np.zeros(1)
+        diag = {
+            "pressure_mean_kPa": float(np.mean(pc)),
+            "pressure_min_kPa": float(np.min(pres)),
+            "pressure_max_kPa": float(np.max(pres)),
+            # patches whose net normal force is tensile (> 1e-6 of the mean patch force)
+            "tension_patch_fraction": float(np.mean(pf < -1e-6 * max(float(np.mean(np.abs(pf))), 1e-300))),
+            "open_pair_fraction": float(np.mean(~active)),
+            "gap_min_mm": float(np.min(self.gap(sol))),
+        }
+        return sol, diag
+
+    def destroy(self) -> None:
+        for obj in (self._ksp, self._K, self._P, self.A):
+            if obj is not None:
+                obj.destroy()
+        self._ksp = self._K = self._P = None

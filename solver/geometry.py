@@ -1,0 +1,203 @@
+"""Parametric geometry and mesh: tissue slab, inclusion, three-layer probe (gmsh, OpenCASCADE).
+
+The model (all lengths mm)::
+
+        z = T + H   +-----------+        rigid glass plate, moves down by delta
+                    |  layer 3  |        softest PDMS
+                    |  layer 2  |
+        z = T       |__layer 1__|        hardest PDMS, frictionless on the tissue
+    +---------------------------------+  tissue surface (free outside the probe)
+    |        (skin layer, optional)   |
+    |              ( o )  inclusion   |  centre at depth h below the surface
+    |                                 |
+    +---------------------------------+  z = 0, rigid chest wall (fixed)
+
+The quarter model keeps x >= 0, y >= 0 (symmetry planes x = 0 and y = 0).
+
+The probe and the tissue are meshed conformingly (fragmented OCC volumes) and
+then **split along the probe footprint**: the probe's cells get their own
+copies of the footprint nodes.  The result is one mesh with two disconnected
+bodies whose footprint nodes coincide pairwise; the interface conditions
+(tied normal, unilateral contact, bonded) are imposed on those node pairs by
+:mod:`solver.fem`.
+
+Mesh size is a function of position: ``h0`` inside the probe and the upper
+tissue under it, ``h_inc`` on and near the inclusion, growing linearly with
+distance (``grading``) up to ``h_max``.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from .params import SolveParams
+
+# cell markers
+TISSUE, INCLUSION, SKIN = 1, 2, 3
+PROBE_LAYER0 = 10  # layer i (0 = tissue side) gets PROBE_LAYER0 + i
+
+# mesh levels: (h0 probe/footprint mm, h_max mm, grading, inclusion resolution = elements per diameter)
+LEVELS = {
+    "tiny": (3.2, 20.0, 0.6, 3.0),
+    "coarse": (2.0, 14.0, 0.45, 5.0),
+    "default": (1.4, 12.0, 0.35, 7.0),
+    "fine": (1.0, 9.0, 0.28, 10.0),
+}
+
+_gmsh_lock = threading.Lock()
+
+
+class MeshError(RuntimeError):
+    """gmsh could not build the mesh for these parameters."""
+
+
+@dataclass
+class RawMesh:
+    """A tetrahedral mesh as plain arrays (P1 geometry).
+
+    ``x`` (N, 3) node coordinates; ``cells`` (M, 4) node indices; ``markers``
+    (M,) cell markers (TISSUE, INCLUSION, SKIN, PROBE_LAYER0 + i).  Probe
+    cells reference their own copies of the footprint nodes.
+    """
+
+    x: np.ndarray
+    cells: np.ndarray
+    markers: np.ndarray
+    seconds: float
+
+
+def _sizes(p: SolveParams) -> tuple[float, float, float, float]:
+    h0, hmax, grading, per_d = LEVELS[p.disc.mesh]
+    inc = p.inclusion
+    h_inc = min(h0, max(inc.d * min(1.0, inc.aspect) / per_d, 0.25))
+    return h0, hmax, grading, h_inc
+
+
+def build_mesh(p: SolveParams) -> RawMesh:
+    """Mesh the geometry of ``p`` with gmsh and split the probe from the tissue."""
+    import time
+
+    import gmsh
+
+    t0 = time.perf_counter()
+    T, L = p.tissue.thickness, p.tissue.size
+    P, H = p.probe.size, p.probe.height
+    inc = p.inclusion
+    quarter = p.disc.symmetry == "quarter"
+    x0 = 0.0 if quarter else -L / 2
+    px0 = 0.0 if quarter else -P / 2
+    cx, cy, cz = inc.offset_x, inc.offset_y, T - inc.h
+    r = inc.d / 2
+    h0, hmax, grading, h_inc = _sizes(p)
+
+    with _gmsh_lock:
+        in_main = threading.current_thread() is threading.main_thread()
+        gmsh.initialize(interruptible=in_main)
+        try:
+            gmsh.option.setNumber("General.Terminal", 0)
+            gmsh.option.setNumber("General.NumThreads", 1)
+            gmsh.option.setNumber("Mesh.Algorithm3D", 1)  # Delaunay
+            gmsh.model.add("elastimap")
+            occ = gmsh.model.occ
+            tissue = occ.addBox(x0, x0, 0, L / 2 - x0, L / 2 - x0, T)
+            parts = [(3, tissue)]
+            if p.tissue.skin_thickness > 0:
+                s = p.tissue.skin_thickness
+                parts.append((3, occ.addBox(x0, x0, T - s, L / 2 - x0, L / 2 - x0, s)))
+            sph = occ.addSphere(cx, cy, cz, r)
+            if inc.aspect != 1.0:
+                occ.dilate([(3, sph)], cx, cy, cz, 1.0, 1.0, inc.aspect)
+            if quarter:
+                clip = occ.addBox(0, 0, 0, L / 2, L / 2, T)
+                sph_parts, _ = occ.intersect([(3, sph)], [(3, clip)])
+            else:
+                sph_parts = [(3, sph)]
+            parts += sph_parts
+            z = T
+            for th, _E in p.probe.layers:
+                parts.append((3, occ.addBox(px0, px0, z, P / 2 - px0, P / 2 - px0, th)))
+                z += th
+            occ.fragment(parts[:1], parts[1:])
+            occ.synchronize()
+
+            # classify volumes by their centre of mass
+            vols = gmsh.model.getEntities(3)
+            layer_tops = np.cumsum([0.0] + [th for th, _ in p.probe.layers]) + T
+            vol_marker = {}
+            for dim, tag in vols:
+                c = np.array(occ.getCenterOfMass(dim, tag))
+                if c[2] > T:
+                    k = int(np.searchsorted(layer_tops, c[2]) - 1)
+                    vol_marker[tag] = PROBE_LAYER0 + k
+                else:
+                    rel = (c - np.array([cx, cy, cz])) / np.array([r, r, r * inc.aspect])
+                    if quarter:
+                        # the centre of mass of a quarter sphere is off-centre but inside it
+                        pass
+                    if float(np.sum(rel ** 2)) < 1.0 and occ.getMass(dim, tag) < 1.01 * (4 / 3) * math.pi * r ** 3 * inc.aspect:
+                        vol_marker[tag] = INCLUSION
+                    elif p.tissue.skin_thickness > 0 and c[2] > T - p.tissue.skin_thickness:
+                        vol_marker[tag] = SKIN
+                    else:
+                        vol_marker[tag] = TISSUE
+            if INCLUSION not in vol_marker.values():
+                raise MeshError("the inclusion volume was lost in the boolean fragment")
+
+            half = P / 2
+
+            def size(dim, tag, x, y, zz, lc):
+                # distance to the probe footprint region (probe + tissue right under it)
+                dx = max(abs(x) - half, 0.0)
+                dy = max(abs(y) - half, 0.0)
+                dz = max(T - 2.0 - zz, 0.0)
+                s = h0 + grading * math.sqrt(dx * dx + dy * dy + dz * dz)
+                rr = math.sqrt((x - cx) ** 2 + (y - cy) ** 2 + ((zz - cz) / inc.aspect) ** 2)
+                s = min(s, h_inc + grading * abs(rr - r))
+                return min(s, hmax)
+
+            gmsh.model.mesh.setSizeCallback(size)
+            gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+            gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+            gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+            gmsh.model.mesh.generate(3)
+
+            node_tags, coords, _ = gmsh.model.mesh.getNodes()
+            x = coords.reshape(-1, 3)
+            index = np.zeros(int(node_tags.max()) + 1, dtype=np.int64)
+            index[node_tags.astype(np.int64)] = np.arange(node_tags.size)
+            cells, markers = [], []
+            for _dim, tag in vols:
+                etypes, _etags, enodes = gmsh.model.mesh.getElements(3, tag)
+                for et, en in zip(etypes, enodes):
+                    if et != 4:  # 4-node tetrahedron
+                        continue
+                    c = index[en.astype(np.int64)].reshape(-1, 4)
+                    cells.append(c)
+                    markers.append(np.full(len(c), vol_marker[tag], dtype=np.int32))
+        except MeshError:
+            raise
+        except Exception as exc:  # gmsh raises bare Exceptions
+            raise MeshError(f"gmsh failed: {exc}") from exc
+        finally:
+            gmsh.finalize()
+
+    cells = np.concatenate(cells)
+    markers = np.concatenate(markers)
+    x, cells = split_probe(x, cells, markers >= PROBE_LAYER0)
+    return RawMesh(x=x, cells=cells, markers=markers, seconds=time.perf_counter() - t0)
+
+
+def split_probe(x: np.ndarray, cells: np.ndarray, is_probe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Give the probe cells their own copies of the nodes they share with the tissue."""
+    probe_nodes = np.unique(cells[is_probe])
+    other_nodes = np.unique(cells[~is_probe])
+    shared = np.intersect1d(probe_nodes, other_nodes)
+    remap = np.arange(len(x))
+    remap[shared] = len(x) + np.arange(len(shared))
+    cells = cells.copy()
+    cells[is_probe] = remap[cells[is_probe]]
+    return np.concatenate([x, x[shared]]), cells
