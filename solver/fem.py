@@ -77,6 +77,39 @@ class LinearSolution:
     iterations: int
 
 
+def active_set(solve_with, patch_force, gap, active0: np.ndarray, *, gap_tol: float,
+               force_tol: float = 1e-6, max_iter: int = 30):
+    """Primal–dual active-set iteration for frictionless unilateral contact at node pairs.
+
+    ``solve_with(active)`` solves with the ``active`` nodes closed (normal
+    displacement tied or prescribed); ``patch_force(sol)`` is the compressive
+    normal force on each node's facet patch (mN); ``gap(sol)`` the normal gap
+    (mm, negative = penetration).  A closed node opens when its patch force
+    is tensile (below ``-force_tol`` times the mean |patch force|), an open
+    node closes when it penetrates by more than ``gap_tol``.  Stops when the
+    set no longer changes (a cycle closes the union of the cycling sets); returns
+    (solution, active set, iterations).
+    """
+    active = active0.copy()
+    seen = {active.tobytes()}
+    for its in range(1, max_iter + 1):
+        sol = solve_with(active)
+        pf = patch_force(sol)
+        fscale = max(float(np.mean(np.abs(pf))), 1e-300)
+        g = gap(sol)
+        new = (active & (pf > -force_tol * fscale)) | (~active & (g < -gap_tol))
+        if np.array_equal(new, active):
+            return sol, active, its
+        if new.tobytes() in seen:
+            # a cycle (a node chattering at the contact edge within tolerance):
+            # close the union, which admits no penetration, and stop
+            active = active | new
+            return solve_with(active), active, its + 1
+        seen.add(new.tobytes())
+        active = new
+    raise SolverError(f"contact active set did not settle in {max_iter} iterations")
+
+
 class Model:
     """One mesh, its function space, operators and constraint bookkeeping.
 
@@ -336,24 +369,15 @@ class Model:
 
     def solve(self, E_inclusion: float, delta: float, max_iter: int = 30) -> tuple[LinearSolution, dict]:
         """Solve with the configured interface; returns the solution and interface diagnostics."""
-        mode = self.p.disc.interface
         npairs = len(self.pair_tissue)
-        active = np.ones(npairs, dtype=bool)
-        its = 0
-        while True:
-            sol = self.solve_linear(E_inclusion, delta, active)
-            its += 1
-            pf = self.patch_force(sol)
-            if mode != "contact":
-                break
-            fscale = max(float(np.mean(np.abs(pf))), 1e-300)
-            g = self.gap(sol)
-            new = (active & (pf > -1e-6 * fscale)) | (~active & (g < -1e-9 * max(delta, 1e-12)))
-            if np.array_equal(new, active):
-                break
-            if its >= max_iter:
-                raise SolverError(f"contact active set did not settle in {max_iter} iterations")
-            active = new
+        if self.p.disc.interface == "contact":
+            sol, active, its = active_set(
+                lambda act: self.solve_linear(E_inclusion, delta, act), self.patch_force, self.gap,
+                np.ones(npairs, dtype=bool), gap_tol=1e-9 * delta, max_iter=max_iter)
+        else:
+            active = np.ones(npairs, dtype=bool)
+            sol, its = self.solve_linear(E_inclusion, delta, active), 1
+        pf = self.patch_force(sol)
         sol.iterations = its
         pres = self.contact_pressure(sol)
         pc = pres[active] if active.any() else np.zeros(1)
