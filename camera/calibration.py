@@ -1,0 +1,360 @@
+"""FEM <-> camera calibration (paper section 3.3).
+
+The FEM measures probe deformation (mm); the camera measures scattered light.
+Nine calibration inclusions (three phantoms: size, depth, hardness; three
+inclusions each; background 5 kPa, 20 mm tall; ``dataset/phantoms.csv``) are
+both simulated (FEM features) and imaged (camera features), and each feature
+gets its own straight line fitted by least squares::
+
+    O_FEM^k = a_k * O_cam^k + b_k        k = 1, 2, 3
+
+The calibration file (JSON) stores a, b, R^2, the residuals, the ranges of
+both feature sets over the nine phantoms (inputs outside them are flagged at
+inference), the camera-feature settings and, for synthetic calibrations, the
+sensor model, so that inference computes camera features the same way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from elastimap.errors import UserError
+
+FEATURES = ("O1", "O2", "O3")
+FEM_UNITS = {"O1": "mm", "O2": "mm", "O3": "mm^2"}
+DEFAULT_PHANTOMS = Path(__file__).resolve().parent.parent / "dataset" / "phantoms.csv"
+CALIBRATION_VERSION = 1
+
+
+def load_phantoms(path: str | os.PathLike | None = None):
+    """The calibration-phantom spec as a DataFrame (columns name, d, h, E, and optional
+    phantom, tissue_E, tissue_thickness).  Lines starting with ``#`` are comments."""
+    import pandas as pd
+
+    p = Path(path) if path is not None else DEFAULT_PHANTOMS
+    if not p.exists():
+        raise UserError("phantoms", f"{p}: no such file (a CSV with columns name,d,h,E)")
+    try:
+        df = pd.read_csv(p, comment="#", skipinitialspace=True)
+    except Exception as exc:  # pandas raises several types for bad CSV
+        raise UserError("phantoms", f"{p}: not a readable CSV ({exc})") from None
+    missing = [c for c in ("name", "d", "h", "E") if c not in df.columns]
+    if missing:
+        raise UserError("phantoms", f"{p}: missing column(s) {', '.join(missing)}")
+    if len(df) < 3:
+        raise UserError("phantoms", f"{p}: need at least 3 inclusions to fit a line (got {len(df)})")
+    if df["name"].duplicated().any():
+        raise UserError("phantoms", f"{p}: duplicate names {sorted(set(df['name'][df['name'].duplicated()]))}")
+    for c in ("d", "h", "E"):
+        v = pd.to_numeric(df[c], errors="coerce")
+        if v.isna().any() or (v <= 0).any():
+            raise UserError("phantoms", f"{p}: column {c} must be positive numbers")
+        df[c] = v.astype(float)
+    df["name"] = df["name"].astype(str)
+    return df.reset_index(drop=True)
+
+
+@dataclass
+class LineFit:
+    slope: float
+    intercept: float
+    r2: float
+    residuals: list[float]          # O_FEM - (a O_cam + b), per phantom, FEM units
+    rmse: float
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def fit_line(x_cam: np.ndarray, y_fem: np.ndarray, name: str = "feature") -> LineFit:
+    """Least-squares y = a x + b with R^2 and residuals."""
+    x = np.asarray(x_cam, dtype=float)
+    y = np.asarray(y_fem, dtype=float)
+    if x.shape != y.shape or x.ndim != 1 or x.size < 2:
+        raise UserError(name, "needs matching 1-D camera and FEM values for at least 2 phantoms")
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        raise UserError(name, "camera or FEM features contain NaN/inf")
+    if np.ptp(x) == 0:
+        raise UserError(name, "camera features are identical for all phantoms: cannot fit a line")
+    a, b = np.polyfit(x, y, 1)
+    res = y - (a * x + b)
+    ss_tot = float(np.sum((y - y.mean()) ** 2))
+    r2 = 1.0 - float(np.sum(res ** 2)) / ss_tot if ss_tot > 0 else float("nan")
+    return LineFit(float(a), float(b), r2, [float(r) for r in res], float(np.sqrt(np.mean(res ** 2))))
+
+
+@dataclass
+class Calibration:
+    fits: dict[str, LineFit]
+    names: list[str]
+    phantoms: list[dict]                 # name, d, h, E of each calibration inclusion
+    fem: np.ndarray                      # (n, 3) FEM features
+    cam: np.ndarray                      # (n, 3) camera features
+    feature_settings: dict
+    sensor: dict | None = None           # the synthetic sensor model (None for real images)
+    synthetic: bool = True
+    meta: dict = field(default_factory=dict)
+
+    # ranges over the calibration set
+    @property
+    def cam_range(self) -> np.ndarray:
+        return np.vstack([self.cam.min(axis=0), self.cam.max(axis=0)])
+
+    @property
+    def fem_range(self) -> np.ndarray:
+        return np.vstack([self.fem.min(axis=0), self.fem.max(axis=0)])
+
+    @property
+    def slopes(self) -> np.ndarray:
+        return np.array([self.fits[k].slope for k in FEATURES])
+
+    @property
+    def intercepts(self) -> np.ndarray:
+        return np.array([self.fits[k].intercept for k in FEATURES])
+
+    def apply(self, cam: np.ndarray) -> np.ndarray:
+        """Camera features (n, 3) or (3,) -> calibrated FEM features, same shape."""
+        c = np.asarray(cam, dtype=float)
+        return c * self.slopes + self.intercepts
+
+    def outside(self, cam: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Boolean (n, 3): camera feature outside the calibration range (widened by ``margin`` x span)."""
+        c = np.atleast_2d(np.asarray(cam, dtype=float))
+        lo, hi = self.cam_range
+        span = hi - lo
+        return (c < lo - margin * span) | (c > hi + margin * span)
+
+    # ------------------------------------------------------------------ io
+    def to_dict(self) -> dict:
+        return {
+            "kind": "elastimap.camera.calibration",
+            "version": CALIBRATION_VERSION,
+            "synthetic": self.synthetic,
+            "model": "O_FEM = slope * O_cam + intercept, per feature",
+            "units": {"fem": FEM_UNITS, "camera": {"O1": "FS", "O2": "FS mm^2", "O3": "mm^2"}},
+            "fits": {k: self.fits[k].to_dict() for k in FEATURES},
+            "phantoms": [dict(p, **{f"fem_{k}": float(self.fem[i, j]) for j, k in enumerate(FEATURES)},
+                              **{f"cam_{k}": float(self.cam[i, j]) for j, k in enumerate(FEATURES)})
+                         for i, p in enumerate(self.phantoms)],
+            "cam_range": self.cam_range.tolist(),
+            "fem_range": self.fem_range.tolist(),
+            "feature_settings": self.feature_settings,
+            "sensor": self.sensor,
+            "meta": self.meta,
+        }
+
+    def save(self, path: str | os.PathLike) -> None:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "w") as fh:
+            json.dump(self.to_dict(), fh, indent=2)
+            fh.write("\n")
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Calibration":
+        p = str(path)
+        if not os.path.exists(p):
+            raise UserError("calibration", f"{p}: no such file")
+        try:
+            with open(p) as fh:
+                d = json.load(fh)
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise UserError("calibration", f"{p}: not a valid JSON file ({exc})") from None
+        if not isinstance(d, dict) or d.get("kind") != "elastimap.camera.calibration":
+            raise UserError("calibration", f"{p}: not an elastimap camera calibration file")
+        if d.get("version") != CALIBRATION_VERSION:
+            raise UserError("calibration", f"{p}: calibration version {d.get('version')} not supported "
+                                           f"(expected {CALIBRATION_VERSION})")
+        try:
+            fits = {k: LineFit(**d["fits"][k]) for k in FEATURES}
+            ph = d["phantoms"]
+            fem = np.array([[r[f"fem_{k}"] for k in FEATURES] for r in ph], dtype=float)
+            cam = np.array([[r[f"cam_{k}"] for k in FEATURES] for r in ph], dtype=float)
+            phantoms = [{k: r[k] for k in r if not k.startswith(("fem_", "cam_"))} for r in ph]
+        except (KeyError, TypeError) as exc:
+            raise UserError("calibration", f"{p}: malformed calibration file (missing {exc})") from None
+        return cls(fits, [str(r["name"]) for r in phantoms], phantoms, fem, cam,
+                   d.get("feature_settings", {}), d.get("sensor"), bool(d.get("synthetic", False)),
+                   d.get("meta", {}))
+
+    def report(self) -> str:
+        lines = [f"calibration ({'SYNTHETIC camera' if self.synthetic else 'camera images'}), "
+                 f"{len(self.names)} phantoms: O_FEM = a * O_cam + b"]
+        for k in FEATURES:
+            f = self.fits[k]
+            lines.append(f"  {k}: a = {f.slope:.6g}  b = {f.intercept:.6g} {FEM_UNITS[k]}  R^2 = {f.r2:.5f}  "
+                         f"rmse = {f.rmse:.3g} {FEM_UNITS[k]}")
+        lines.append("  residuals (FEM units):")
+        for i, n in enumerate(self.names):
+            lines.append("    " + f"{n:14s}" + "  ".join(f"{k}={self.fits[k].residuals[i]:+.3g}" for k in FEATURES))
+        return "\n".join(lines)
+
+
+def fit_calibration(phantoms, fem: np.ndarray, cam: np.ndarray, feature_settings: dict,
+                    sensor: dict | None = None, synthetic: bool = True, meta: dict | None = None) -> Calibration:
+    fem = np.asarray(fem, dtype=float)
+    cam = np.asarray(cam, dtype=float)
+    n = len(phantoms)
+    if fem.shape != (n, 3) or cam.shape != (n, 3):
+        raise UserError("calibration", f"need (n, 3) FEM and camera features for the {n} phantoms "
+                                       f"(got {fem.shape} and {cam.shape})")
+    fits = {k: fit_line(cam[:, j], fem[:, j], k) for j, k in enumerate(FEATURES)}
+    recs = [{"name": str(r["name"]), "d": float(r["d"]), "h": float(r["h"]), "E": float(r["E"])}
+            for _, r in phantoms.iterrows()]
+    m = {"created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
+    try:
+        from elastimap.provenance import code_version
+        m["code_version"] = code_version()
+    except Exception:
+        pass
+    m.update(meta or {})
+    return Calibration(fits, [r["name"] for r in recs], recs, fem, cam, feature_settings, sensor, synthetic, m)
+
+
+def plot_calibration(cal: Calibration, path: str | os.PathLike) -> None:
+    """PNG of the three fits (camera feature vs FEM feature, with the fitted line)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
+    cam_units = {"O1": "FS", "O2": "FS mm²", "O3": "mm²"}
+    fem_units = {"O1": "mm", "O2": "mm", "O3": "mm²"}
+    for j, (k, ax) in enumerate(zip(FEATURES, axes)):
+        f = cal.fits[k]
+        x, y = cal.cam[:, j], cal.fem[:, j]
+        ax.scatter(x, y, c="C0", zorder=3)
+        for xi, yi, n in zip(x, y, cal.names):
+            ax.annotate(n, (xi, yi), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        xs = np.linspace(x.min(), x.max(), 50)
+        ax.plot(xs, f.slope * xs + f.intercept, "C1-",
+                label=f"a={f.slope:.4g}, b={f.intercept:.3g}\nR²={f.r2:.4f}")
+        ax.set_xlabel(f"camera {k} ({cam_units[k]})")
+        ax.set_ylabel(f"FEM {k} ({fem_units[k]})")
+        ax.legend(fontsize=8, loc="upper left")
+        ax.grid(alpha=0.3)
+    title = "FEM ↔ camera calibration, nine phantoms"
+    if cal.synthetic:
+        title = "SYNTHETIC camera — " + title
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------- simulation
+def default_fem(mesh: str = "coarse", delta: float = 3.0):
+    """A function (d, h, E, tissue_E, thickness) -> SolveResult using the DOLFINx solver (imported lazily)."""
+    def fem(d: float, h: float, E: float, tissue_E: float = 5.0, thickness: float = 20.0):
+        from solver import solve  # noqa: PLC0415 - keeps DOLFINx out of import time
+        from solver.params import Discretisation, Loading, SolveParams, Tissue
+
+        p = SolveParams(tissue=Tissue(E=tissue_E, thickness=thickness), loading=Loading(delta=delta),
+                        disc=Discretisation(mesh=mesh)).with_inclusion(d=d, h=h, E=E)
+        return solve(p)
+    return fem
+
+
+def simulate_phantoms(phantoms, fem_fn, sensor=None, settings=None, frames: int = 30,
+                      seed: int = 0, write_dir: str | os.PathLike | None = None, fmt: str = "png",
+                      progress=None):
+    """FEM features and SYNTHETIC camera features of each phantom.
+
+    ``fem_fn(d, h, E, tissue_E, thickness)`` returns an object with ``image``,
+    ``image_raw``, ``pixel``, ``O1``, ``O2``, ``O3`` (a SolveResult).  With
+    ``write_dir`` the frames are also written there as images.
+    Returns (fem (n,3), cam (n,3), results list).
+    """
+    from .features import FeatureSettings, camera_features
+    from .frames import write_frames
+    from .optics import SensorModel, render_pair
+
+    sensor = (sensor or SensorModel()).validate()
+    settings = settings or FeatureSettings()
+    rng = np.random.default_rng(seed)
+    fem, cam, results = [], [], []
+    for _, r in phantoms.iterrows():
+        kw = {}
+        if "tissue_E" in r and np.isfinite(r["tissue_E"]):
+            kw["tissue_E"] = float(r["tissue_E"])
+        if "tissue_thickness" in r and np.isfinite(r["tissue_thickness"]):
+            kw["thickness"] = float(r["tissue_thickness"])
+        res = fem_fn(float(r["d"]), float(r["h"]), float(r["E"]), **kw)
+        F, B = render_pair(sensor, res.image_raw, res.image, res.pixel, frames, rng)
+        if write_dir is not None:
+            meta = {"phantom": str(r["name"]), "d": float(r["d"]), "h": float(r["h"]), "E": float(r["E"]),
+                    "sensor": sensor.to_dict()}
+            write_frames(F, write_dir, f"synthetic_{r['name']}", fmt, dict(meta, frame="lesion"))
+            write_frames(B, write_dir, f"synthetic_{r['name']}_background", fmt, dict(meta, frame="background"))
+        cf = camera_features(F, B, sensor.full_scale, sensor.window, sensor.pixel_mm, settings)
+        fem.append([res.O1, res.O2, res.O3])
+        cam.append(cf.values)
+        results.append(res)
+        if progress:
+            progress(str(r["name"]), fem[-1], cam[-1])
+    return np.array(fem), np.array(cam), results
+
+
+def camera_features_from_csv(path: str | os.PathLike, phantoms, sensor=None, settings=None):
+    """Camera features of the phantoms from the user's images.
+
+    The CSV has columns ``name`` (matching the phantom spec), ``images`` and
+    ``background`` (each a ';'-separated list of files or glob patterns,
+    relative to the CSV's folder).  Returns (n, 3) in the phantom order.
+    """
+    import pandas as pd
+
+    from .features import features_from_files
+    from .frames import expand
+
+    p = Path(path)
+    if not p.exists():
+        raise UserError("camera-csv", f"{p}: no such file")
+    df = pd.read_csv(p, comment="#", skipinitialspace=True)
+    for c in ("name", "images", "background"):
+        if c not in df.columns:
+            raise UserError("camera-csv", f"{p}: missing column {c!r} (need name, images, background)")
+    df["name"] = df["name"].astype(str)
+    rows = {r["name"]: r for _, r in df.iterrows()}
+    out = []
+    for name in phantoms["name"]:
+        if name not in rows:
+            raise UserError("camera-csv", f"{p}: no images for phantom {name!r}")
+        r = rows[name]
+        imgs = expand(str(r["images"]), p.parent)
+        bg = expand(str(r["background"]), p.parent)
+        out.append(features_from_files(imgs, bg, sensor, settings).values)
+    return np.array(out)
+
+
+def fem_features_from_csv(path: str | os.PathLike, phantoms) -> np.ndarray:
+    """FEM features of the phantoms from a CSV (name, O1, O2, O3), e.g. from the sweep's phantom rows."""
+    import pandas as pd
+
+    p = Path(path)
+    if not p.exists():
+        raise UserError("fem-features", f"{p}: no such file")
+    if p.suffix == ".parquet":
+        df = pd.read_parquet(p)
+        if "name" not in df.columns and "tag" in df.columns:
+            df = df[df["tag"].astype(str).str.startswith("phantom:")].copy()
+            df["name"] = df["tag"].str.slice(len("phantom:"))
+    else:
+        df = pd.read_csv(p, comment="#", skipinitialspace=True)
+    for c in ("name", "O1", "O2", "O3"):
+        if c not in df.columns:
+            raise UserError("fem-features", f"{p}: missing column {c!r}")
+    df["name"] = df["name"].astype(str)
+    rows = {r["name"]: r for _, r in df.iterrows()}
+    out = []
+    for name in phantoms["name"]:
+        if name not in rows:
+            raise UserError("fem-features", f"{p}: no FEM features for phantom {name!r}")
+        out.append([float(rows[name][k]) for k in FEATURES])
+    return np.array(out)

@@ -1,0 +1,301 @@
+"""Camera-side command line: ``python -m camera.cli {synth,features,calibrate,infer,detect}``.
+
+Console scripts (to be registered): ``camera = camera.cli:main`` (all
+subcommands), ``calibrate = camera.cli:calibrate_main``,
+``infer = camera.cli:infer_main``.  User errors end as one ``error: ...``
+line and exit code 2 (:func:`elastimap.cli_util.run`); warnings about frames
+(saturation, blank, colour) print as ``warning: ...`` lines.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import warnings
+
+import click
+import numpy as np
+
+from elastimap.cli_util import run
+from elastimap.errors import UserError
+
+FEAT = ("O1", "O2", "O3")
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    click.echo(f"warning: {message}", err=True)
+
+
+warnings.showwarning = _show_warning
+
+
+def _sensor(sensor_json: str | None, **overrides):
+    from .optics import SensorModel
+
+    base = {}
+    if sensor_json:
+        try:
+            with open(sensor_json) as fh:
+                base = json.load(fh)
+        except FileNotFoundError:
+            raise UserError("sensor", f"{sensor_json}: no such file") from None
+        except json.JSONDecodeError as exc:
+            raise UserError("sensor", f"{sensor_json}: not valid JSON ({exc})") from None
+        if not isinstance(base, dict):
+            raise UserError("sensor", f"{sensor_json}: must hold a JSON object of SensorModel parameters")
+    base.update({k: v for k, v in overrides.items() if v is not None})
+    return SensorModel.from_dict(base)
+
+
+def sensor_options(f):
+    for opt in reversed([
+        click.option("--sensor", "sensor_json", type=click.Path(dir_okay=False),
+                     help="JSON object of SensorModel parameters (camera geometry, optics, noise)."),
+        click.option("--seed", type=int, default=None, help="Noise seed (default 0)."),
+        click.option("--noise-scale", type=float, default=None, help="Multiply shot + read noise (0 = noise-free)."),
+        click.option("--bits", type=click.Choice(["8", "16"]), default=None, help="Bit depth of frames."),
+        click.option("--binning", type=int, default=None, help="Software binning of the 1392x1042 sensor (default 10)."),
+    ]):
+        f = opt(f)
+    return f
+
+
+def feature_options(f):
+    for opt in reversed([
+        click.option("--threshold", type=float, default=None, help="O3 threshold, fraction of full scale (default 0.0012)."),
+        click.option("--smooth-px", type=float, default=None, help="Gaussian denoising sigma, camera pixels (default 1.5)."),
+        click.option("--combine", type=click.Choice(["mean-image", "mean-features"]), default=None),
+    ]):
+        f = opt(f)
+    return f
+
+
+def _settings(threshold=None, smooth_px=None, combine=None):
+    from .features import FeatureSettings
+
+    kw = {k: v for k, v in dict(threshold=threshold, smooth_px=smooth_px, combine=combine).items() if v is not None}
+    return FeatureSettings(**kw).validate()
+
+
+def _model_kw(seed, noise_scale, bits, binning):
+    return dict(seed=seed, noise_scale=noise_scale, bits=None if bits is None else int(bits), binning=binning)
+
+
+@click.group()
+def main():
+    """Camera side of elastimap: SYNTHETIC TIR camera, camera features, calibration, inference, detection."""
+
+
+# -------------------------------------------------------------------- synth
+@main.command()
+@click.option("--d", "d", type=float, required=True, help="Inclusion diameter, mm.")
+@click.option("--h", "h", type=float, required=True, help="Centre depth below the surface, mm.")
+@click.option("--E", "E", type=float, required=True, help="Inclusion modulus, kPa.")
+@click.option("--tissue-E", type=float, default=5.0, show_default=True)
+@click.option("--delta", type=float, default=3.0, show_default=True, help="Indentation, mm.")
+@click.option("--mesh", default="default", show_default=True)
+@click.option("--frames", type=int, default=30, show_default=True)
+@click.option("--out", type=click.Path(file_okay=False), required=True)
+@click.option("--name", default=None, help="File-name stem (default d<d>_h<h>_E<E>).")
+@click.option("--format", "fmt", type=click.Choice(["png", "tiff"]), default="png", show_default=True)
+@sensor_options
+def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, seed, noise_scale, bits, binning):
+    """Render SYNTHETIC camera frames of one inclusion and its background press (runs the FEM)."""
+    from .calibration import default_fem
+    from .frames import write_frames
+    from .optics import render_pair
+
+    model = _sensor(sensor_json, **_model_kw(seed, noise_scale, bits, binning))
+    if frames < 1:
+        raise UserError("frames", f"must be >= 1 (got {frames})")
+    res = default_fem(mesh, delta)(d, h, E, tissue_E=tissue_e)
+    F, B = render_pair(model, res.image_raw, res.image, res.pixel, frames)
+    stem = name or f"d{d:g}_h{h:g}_E{E:g}"
+    meta = {"d": d, "h": h, "E": E, "tissue_E": tissue_e, "delta": delta, "mesh": mesh,
+            "fem_O1": res.O1, "fem_O2": res.O2, "fem_O3": res.O3, "sensor": model.to_dict()}
+    pl = write_frames(F, out, f"synthetic_{stem}", fmt, dict(meta, frame="lesion"))
+    pb = write_frames(B, out, f"synthetic_{stem}_background", fmt, dict(meta, frame="background"))
+    with open(os.path.join(out, f"synthetic_{stem}.json"), "w") as fh:
+        json.dump(dict(meta, synthetic=True, lesion_frames=pl, background_frames=pb), fh, indent=2)
+    click.echo(f"{model.describe()}\nwrote {len(pl)} lesion + {len(pb)} background SYNTHETIC frames to {out}/ "
+               f"(FEM O1={res.O1:.4g} mm O2={res.O2:.4g} mm O3={res.O3:.4g} mm^2)")
+
+
+# ----------------------------------------------------------------- features
+@main.command()
+@click.option("--images", multiple=True, required=True, help="Lesion frames (files or globs; repeatable).")
+@click.option("--background", multiple=True, required=True, help="Background frames (files or globs).")
+@click.option("--sensor", "sensor_json", type=click.Path(dir_okay=False), help="Camera geometry (SensorModel JSON).")
+@feature_options
+@click.option("--json", "as_json", is_flag=True)
+def features(images, background, sensor_json, threshold, smooth_px, combine, as_json):
+    """Camera features O1 (FS), O2 (FS mm^2), O3 (mm^2) of one lesion's frames."""
+    from .features import features_from_files
+    from .frames import expand
+
+    cf = features_from_files(expand(list(images)), expand(list(background)), _sensor(sensor_json),
+                             _settings(threshold, smooth_px, combine))
+    if as_json:
+        click.echo(json.dumps(cf.to_dict(), indent=2))
+    else:
+        click.echo(f"O1 = {cf.O1:.6g} FS  O2 = {cf.O2:.6g} FS mm^2  O3 = {cf.O3:.6g} mm^2  "
+                   f"({cf.n_frames} frames, {cf.n_background} background)")
+
+
+# ---------------------------------------------------------------- calibrate
+@main.command()
+@click.option("--phantoms", type=click.Path(dir_okay=False), default=None,
+              help="Phantom spec CSV (name,d,h,E[,tissue_E,tissue_thickness]); default dataset/phantoms.csv.")
+@click.option("--camera-csv", type=click.Path(dir_okay=False), default=None,
+              help="CSV name,images,background of YOUR phantom images; without it the camera is SYNTHETIC.")
+@click.option("--fem-features", type=click.Path(dir_okay=False), default=None,
+              help="Take FEM features from a CSV/Parquet (name or tag 'phantom:<name>', O1,O2,O3) instead of solving.")
+@click.option("--mesh", default="default", show_default=True)
+@click.option("--delta", type=float, default=3.0, show_default=True)
+@click.option("--frames", type=int, default=30, show_default=True)
+@click.option("--write-frames", type=click.Path(file_okay=False), default=None, help="Also save the synthetic frames here.")
+@click.option("--format", "fmt", type=click.Choice(["png", "tiff"]), default="png")
+@click.option("--out", type=click.Path(dir_okay=False), required=True, help="Calibration JSON to write.")
+@click.option("--plot", type=click.Path(dir_okay=False), default=None, help="PNG of the three fits (default <out>.png).")
+@sensor_options
+@feature_options
+def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_frames, fmt, out, plot,
+              sensor_json, seed, noise_scale, bits, binning, threshold, smooth_px, combine):
+    """Fit O_FEM = a O_cam + b per feature on the nine calibration phantoms (paper 3.3)."""
+    from . import calibration as C
+
+    model = _sensor(sensor_json, **_model_kw(seed, noise_scale, bits, binning))
+    settings = _settings(threshold, smooth_px, combine)
+    ph = C.load_phantoms(phantoms)
+    synthetic = camera_csv is None
+    fem_fn = C.default_fem(mesh, delta)
+    if synthetic:
+        def progress(name, f, c):
+            click.echo(f"  {name:14s} FEM {f[0]:.4g} {f[1]:.4g} {f[2]:.4g}   camera {c[0]:.4g} {c[1]:.4g} {c[2]:.4g}",
+                       err=True)
+        fem, cam, _ = C.simulate_phantoms(ph, fem_fn, model, settings, frames, model.seed, write_frames, fmt, progress)
+        if fem_features:
+            fem = C.fem_features_from_csv(fem_features, ph)
+    else:
+        cam = C.camera_features_from_csv(camera_csv, ph, model, settings)
+        if fem_features:
+            fem = C.fem_features_from_csv(fem_features, ph)
+        else:
+            fem = np.array([[r.O1, r.O2, r.O3] for r in
+                            (fem_fn(float(x["d"]), float(x["h"]), float(x["E"])) for _, x in ph.iterrows())])
+    cal = C.fit_calibration(ph, fem, cam, settings.to_dict(), model.to_dict(), synthetic,
+                            {"mesh": mesh, "delta": delta, "frames": frames,
+                             "phantoms_file": str(phantoms or C.DEFAULT_PHANTOMS),
+                             "camera_csv": camera_csv, "fem_features": fem_features})
+    cal.save(out)
+    png = plot or os.path.splitext(out)[0] + ".png"
+    C.plot_calibration(cal, png)
+    click.echo(cal.report())
+    click.echo(f"wrote {out} and {png}")
+
+
+# -------------------------------------------------------------------- infer
+@main.command()
+@click.option("--model", "model_dir", type=click.Path(), required=True, help="Trained ensemble directory.")
+@click.option("--calibration", type=click.Path(dir_okay=False), required=True)
+@click.option("--features", "feats", type=float, nargs=3, default=None, help="Camera features O1 O2 O3.")
+@click.option("--images", multiple=True, help="Lesion frames (files or globs; repeatable).")
+@click.option("--background", multiple=True, help="Background frames for --images.")
+@click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None,
+              help="Batch: CSV with id and O1,O2,O3 or images,background.")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
+@click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also write .csv or .json here.")
+def infer(model_dir, calibration, feats, images, background, csv_path, as_json, out):
+    """Estimate (d, h, E) with ensemble uncertainty; out-of-range inputs are flagged."""
+    from .calibration import Calibration
+    from .frames import expand
+    from .infer import estimate, features_of_images, load_ensemble, read_lesions_csv
+
+    given = sum(x for x in (feats is not None, bool(images), csv_path is not None))
+    if given != 1:
+        raise UserError("input", "give exactly one of --features O1 O2 O3, --images ... --background ..., --csv FILE")
+    cal = Calibration.load(calibration)
+    if images:
+        if not background:
+            raise UserError("background", "--images needs --background frames (the same press without the lesion)")
+        ids, cam = ["1"], features_of_images(expand(list(images)), expand(list(background)), cal).values[None]
+    elif csv_path:
+        ids, cam = read_lesions_csv(csv_path, cal)
+    else:
+        ids, cam = ["1"], np.array([feats])
+    ens = load_ensemble(model_dir)
+    rows = [e.to_dict() for e in estimate(cam, cal, ens, ids)]
+    if out:
+        if out.endswith(".json"):
+            with open(out, "w") as fh:
+                json.dump(rows, fh, indent=2)
+        else:
+            import pandas as pd
+            pd.DataFrame(rows).to_csv(out, index=False)
+    if as_json:
+        click.echo(json.dumps(rows, indent=2))
+    else:
+        for r in rows:
+            click.echo(f"{r['id']}: d = {r['d']:.3g} ± {r['d_sd']:.2g} mm   h = {r['h']:.3g} ± {r['h_sd']:.2g} mm   "
+                       f"E = {r['E']:.3g} ± {r['E_sd']:.2g} kPa   "
+                       + ("ok" if r["ok"] else f"FLAGGED: {r['flags']}"))
+    if cal.synthetic:
+        click.echo("note: the calibration was made with the SYNTHETIC camera", err=True)
+
+
+# ------------------------------------------------------------------- detect
+@main.command()
+@click.option("--mesh", default="default", show_default=True)
+@click.option("--repeats", type=int, default=1, show_default=True, help="Scans per inclusion (and clean scans).")
+@click.option("--clutter-mm", type=float, default=None, help="Tissue heterogeneity sd, mm (default 0.002).")
+@click.option("--press-jitter", type=float, default=None)
+@click.option("--out", type=click.Path(file_okay=False), required=True)
+@click.option("--noise-scales", default=None, help="Comma list: also report AUC at these noise scales.")
+@sensor_options
+def detect(mesh, repeats, clutter_mm, press_jitter, out, noise_scales, sensor_json, seed, noise_scale, bits, binning):
+    """SYNTHETIC detection study (paper 5.3): sensitivity, specificity, ROC, AUC with bootstrap CI."""
+    from .calibration import default_fem
+    from .detection import DETECTION_INCLUSIONS, PAPER, DetectionSettings, plot_roc, run_detection
+
+    model = _sensor(sensor_json, **_model_kw(seed, noise_scale, bits, binning))
+    kw = {k: v for k, v in dict(clutter_mm=clutter_mm, press_jitter=press_jitter).items() if v is not None}
+    s = DetectionSettings(repeats=repeats, seed=model.seed, **kw)
+    fem = default_fem(mesh)
+    results = [fem(d, h, E) for d, h, E in DETECTION_INCLUSIONS]
+    os.makedirs(out, exist_ok=True)
+    scales = [model.noise_scale] + ([float(x) for x in noise_scales.split(",")] if noise_scales else [])
+    table = []
+    for ns in scales:
+        r = run_detection(results, model.replace(noise_scale=ns), s)
+        table.append(r)
+        tag = f"noise{ns:g}"
+        plot_roc(r, os.path.join(out, f"synthetic_roc_{tag}.png"))
+        with open(os.path.join(out, f"synthetic_detection_{tag}.json"), "w") as fh:
+            json.dump(r, fh, indent=2)
+    click.echo(f"SYNTHETIC detection, {table[0]['n_pos']} inclusion + {table[0]['n_neg']} clean scans, "
+               f"clutter {s.clutter_mm:g} mm, press jitter {s.press_jitter:g}, mesh {mesh}")
+    click.echo(f"{'noise x':>8} {'sens':>7} {'spec':>7} {'AUC':>6}  95% CI")
+    for r in table:
+        click.echo(f"{r['noise_scale']:8g} {100 * r['sensitivity']:6.1f}% {100 * r['specificity']:6.1f}% "
+                   f"{r['auc']:6.3f}  [{r['auc_ci95'][0]:.3f}, {r['auc_ci95'][1]:.3f}]")
+    click.echo(f"{'paper':>8} {100 * PAPER['sensitivity']:6.1f}% {100 * PAPER['specificity']:6.1f}% "
+               f"{PAPER['auc']:6.3f}  (8 + 8 scans, MammaCare phantom)")
+    click.echo(f"wrote {out}/")
+
+
+def calibrate_main():
+    run(calibrate, prog_name="calibrate")
+
+
+def infer_main():
+    run(infer, prog_name="infer")
+
+
+def camera_main():
+    run(main, prog_name="camera")
+
+
+if __name__ == "__main__":
+    run(main, prog_name="python -m camera.cli")
+    sys.exit(0)

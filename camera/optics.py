@@ -1,0 +1,265 @@
+"""Synthetic TIR camera: probe deformation -> raw camera frames (SYNTHETIC).
+
+The real sensor (paper section 2) is a PDMS waveguide lit from its four sides
+by LEDs so that light is totally internally reflected; where the contact layer
+is pressed and deformed, light escapes the waveguide, is scattered downwards
+and reaches a cooled mono camera (1392 x 1042 pixels, 4.65 um) below the
+glass plate.  This module is a *documented stand-in* for that optics, used to
+exercise the camera chain end to end.  It is not a ray-optics simulation.
+
+Model, per camera pixel (electrons, for one frame)::
+
+    e(x, y) = b^2 * FW * ( stray * L(x, y) + level * L(x, y) * s(w(x, y)) )
+    s(w)    = 1 - exp(-max(w, 0) / w_sat)            (monotone, saturating)
+    L(x, y) = vignette(x, y) * sum_k p_k / (1 + (r_k / r0)^2), normalised to mean 1
+    frame   = clip(round((dark + e + shot + read) / (e per DN)), 0, 2^bits - 1)
+
+* ``w`` is the raw probe-bottom deflection of the FEM (``SolveResult.image_raw``,
+  mm of probe compression *including* the flat-punch edge peaks), bilinearly
+  resampled onto the camera pixels.  The camera sees the whole deformation;
+  the inclusion is isolated later by subtracting a *background frame*: the
+  same press with no inclusion (``image_raw - image`` of the same solve).
+* ``L`` is the illumination of four side LEDs at the middle of each side,
+  ``led_gap`` mm outside the footprint, relative powers ``led_power``
+  (left, right, bottom, top) and radial fall-off ``r0``, times a quadratic
+  lens vignetting ``1 - vignetting * (r / R)^2``.
+* ``b`` is the software binning: the default frame is the full sensor
+  averaged in ``binning x binning`` blocks (104 x 139 pixels for b = 10), so a
+  binned pixel collects b^2 native pixels' electrons (shot noise and read
+  noise add accordingly: the noise of the average, not of one pixel).
+* shot noise is Poisson in the electrons; read noise is Gaussian
+  (``read_noise_e`` per native pixel, so ``b * read_noise_e`` per binned one);
+  ``noise_scale`` multiplies both noise terms (0 = noise-free; >1 for
+  harder detection studies).  The ADC maps ``b^2 * FW`` to full scale
+  ``2^bits - 1`` and adds ``dark_e`` electrons of offset.
+
+Geometry: the 25 x 25 mm probe footprint is imaged onto a centred square
+window of ``window_native`` native pixels (1000 by default: 25 um per native
+pixel on the probe, magnification 0.186); binned, that is
+``window_native // binning`` pixels (100 at b = 10, 0.25 mm each).  Frames
+keep the FEM image orientation (row 0 at y = -size/2, column 0 at
+x = -size/2); a real camera below the plate sees a mirror image, flip real
+frames before use if the inclusion position matters (features do not care).
+
+Every parameter lives in :class:`SensorModel`; randomness comes only from the
+``numpy.random.Generator`` passed in (or the ``seed``).  Pure numpy/scipy:
+no solver is imported.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from elastimap.errors import UserError, check_range
+
+SENSOR_ROWS = 1042
+SENSOR_COLS = 1392
+PIXEL_UM = 4.65
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """All parameters of the synthetic TIR camera (see the module docstring)."""
+
+    # camera (paper section 2.1)
+    sensor_rows: int = SENSOR_ROWS
+    sensor_cols: int = SENSOR_COLS
+    pixel_um: float = PIXEL_UM
+    binning: int = 10               # software binning (downsampled default); 1 = full resolution
+    window_native: int = 1000       # native pixels spanned by the probe footprint (centred)
+    footprint_mm: float = 25.0
+    # optics of the waveguide
+    w_sat: float = 0.5              # mm of probe compression at which scattering reaches 63 % of its maximum
+    level: float = 0.7              # full-scattering signal as a fraction of full well (unit illumination)
+    stray: float = 0.02             # light reaching the camera with no deformation (fraction of full well)
+    led_power: tuple[float, float, float, float] = (1.0, 0.85, 1.1, 0.95)  # left, right, bottom, top
+    led_gap: float = 3.0            # mm from the footprint edge to each LED
+    led_r0: float = 15.0            # mm, LED fall-off radius
+    vignetting: float = 0.15        # relative fall-off at the window corner
+    # sensor noise
+    full_well_e: float = 9000.0     # electrons per native pixel at full scale
+    read_noise_e: float = 10.0      # electrons rms per native pixel
+    dark_e: float = 100.0           # offset electrons per native pixel
+    bits: int = 16                  # 8 or 16
+    noise_scale: float = 1.0        # multiplies shot + read noise; 0 = noise-free
+    seed: int = 0
+
+    # ---------------------------------------------------------------- checks
+    def validate(self) -> "SensorModel":
+        if self.bits not in (8, 16):
+            raise UserError("bits", f"must be 8 or 16 (got {self.bits})")
+        if not (1 <= self.binning <= 64):
+            raise UserError("binning", f"must be in [1, 64] (got {self.binning})")
+        if not (8 <= self.window_native <= min(self.sensor_rows, self.sensor_cols)):
+            raise UserError("window_native", f"must be in [8, {min(self.sensor_rows, self.sensor_cols)}] "
+                                             f"native pixels (got {self.window_native})")
+        if self.window_native // self.binning < 4:
+            raise UserError("binning", "leaves fewer than 4 pixels across the footprint")
+        check_range("footprint_mm", self.footprint_mm, 0, lo_open=True, unit="mm")
+        check_range("w_sat", self.w_sat, 0, lo_open=True, unit="mm")
+        check_range("level", self.level, 0, 1, lo_open=True)
+        check_range("stray", self.stray, 0, 1)
+        if len(self.led_power) != 4 or any(p < 0 for p in self.led_power) or sum(self.led_power) <= 0:
+            raise UserError("led_power", "needs four non-negative powers (left, right, bottom, top), not all 0")
+        check_range("led_gap", self.led_gap, 0, unit="mm")
+        check_range("led_r0", self.led_r0, 0, lo_open=True, unit="mm")
+        check_range("vignetting", self.vignetting, 0, 0.9)
+        check_range("full_well_e", self.full_well_e, 1)
+        check_range("read_noise_e", self.read_noise_e, 0)
+        check_range("dark_e", self.dark_e, 0)
+        check_range("noise_scale", self.noise_scale, 0)
+        return self
+
+    def replace(self, **changes) -> "SensorModel":
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["led_power"] = list(self.led_power)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SensorModel":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise UserError("sensor", f"unknown sensor parameter(s): {', '.join(sorted(unknown))}")
+        d = dict(d)
+        if "led_power" in d:
+            d["led_power"] = tuple(float(p) for p in d["led_power"])
+        return cls(**d).validate()
+
+    # ------------------------------------------------------------- geometry
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Frame shape (rows, cols) after binning."""
+        return self.sensor_rows // self.binning, self.sensor_cols // self.binning
+
+    @property
+    def window(self) -> tuple[int, int, int]:
+        """(row0, col0, n): the footprint occupies ``frame[row0:row0+n, col0:col0+n]``."""
+        n = self.window_native // self.binning
+        rows, cols = self.shape
+        return (rows - n) // 2, (cols - n) // 2, n
+
+    @property
+    def pixel_mm(self) -> float:
+        """Side of one (binned) camera pixel on the probe, mm."""
+        return self.footprint_mm / self.window[2]
+
+    @property
+    def full_scale(self) -> int:
+        return 2 ** self.bits - 1
+
+    @property
+    def e_per_dn(self) -> float:
+        return self.binning ** 2 * self.full_well_e / self.full_scale
+
+    def window_centres(self) -> np.ndarray:
+        """Coordinates (mm) of the window pixel centres along one axis."""
+        n = self.window[2]
+        return -self.footprint_mm / 2 + self.pixel_mm * (np.arange(n) + 0.5)
+
+    # --------------------------------------------------------------- optics
+    def illumination(self) -> np.ndarray:
+        """Relative illumination L over the full frame (mean 1 over the window)."""
+        rows, cols = self.shape
+        r0, c0, n = self.window
+        p = self.pixel_mm
+        y = -self.footprint_mm / 2 + p * (np.arange(rows) - r0 + 0.5)
+        x = -self.footprint_mm / 2 + p * (np.arange(cols) - c0 + 0.5)
+        X, Y = np.meshgrid(x, y)
+        a = self.footprint_mm / 2 + self.led_gap
+        leds = ((-a, 0.0), (a, 0.0), (0.0, -a), (0.0, a))
+        L = np.zeros_like(X)
+        for (lx, ly), pk in zip(leds, self.led_power):
+            L += pk / (1.0 + ((X - lx) ** 2 + (Y - ly) ** 2) / self.led_r0 ** 2)
+        R = math.hypot(self.footprint_mm / 2, self.footprint_mm / 2)
+        L *= np.clip(1.0 - self.vignetting * (X ** 2 + Y ** 2) / R ** 2, 0.0, None)
+        L /= L[r0:r0 + n, c0:c0 + n].mean()
+        return L
+
+    def scatter(self, w: np.ndarray) -> np.ndarray:
+        """Saturating monotone response s(w) in [0, 1) of the probe compression w (mm)."""
+        return -np.expm1(-np.clip(w, 0.0, None) / self.w_sat)
+
+    def deformation_on_frame(self, w_img: np.ndarray, pixel: float) -> np.ndarray:
+        """Resample a deflection image (mm, square pixels of ``pixel`` mm over the footprint,
+        row 0 at y = -size/2) onto the camera frame; 0 outside the footprint."""
+        w_img = np.asarray(w_img, dtype=float)
+        if w_img.ndim != 2 or w_img.size == 0 or not np.all(np.isfinite(w_img)):
+            raise UserError("deflection", f"must be a finite non-empty 2-D image (got shape {w_img.shape})")
+        c = self.window_centres()
+        fy = (c + self.footprint_mm / 2) / pixel - 0.5   # fractional index into the FEM image
+        fx = fy
+        FY, FX = np.meshgrid(fy, fx, indexing="ij")
+        win = ndimage.map_coordinates(w_img, [FY, FX], order=1, mode="nearest")
+        out = np.zeros(self.shape)
+        r0, c0, n = self.window
+        out[r0:r0 + n, c0:c0 + n] = win
+        return out
+
+    def expected_electrons(self, w_img: np.ndarray, pixel: float) -> np.ndarray:
+        """Noise-free electrons per (binned) pixel, without the dark offset."""
+        w = self.deformation_on_frame(w_img, pixel)
+        inside = np.zeros(self.shape, dtype=bool)
+        r0, c0, n = self.window
+        inside[r0:r0 + n, c0:c0 + n] = True
+        L = self.illumination()
+        rel = self.stray * L + self.level * L * self.scatter(w) * inside
+        return self.binning ** 2 * self.full_well_e * rel
+
+    def expected(self, w_img: np.ndarray, pixel: float) -> np.ndarray:
+        """Noise-free, unquantised frame in DN (float): the reference for noise tests."""
+        e = self.expected_electrons(w_img, pixel) + self.binning ** 2 * self.dark_e
+        return np.clip(e / self.e_per_dn, 0.0, self.full_scale)
+
+    def render(self, w_img: np.ndarray, pixel: float, frames: int = 1,
+               rng: np.random.Generator | None = None) -> np.ndarray:
+        """``frames`` independent noisy, quantised frames: array (frames, rows, cols) of uint8/uint16."""
+        self.validate()
+        if frames < 1:
+            raise UserError("frames", f"must be >= 1 (got {frames})")
+        rng = np.random.default_rng(self.seed) if rng is None else rng
+        e = self.expected_electrons(w_img, pixel)
+        dark = self.binning ** 2 * self.dark_e
+        read_sd = self.binning * self.read_noise_e * self.noise_scale
+        dtype = np.uint8 if self.bits == 8 else np.uint16
+        out = np.empty((frames,) + self.shape, dtype=dtype)
+        for i in range(frames):
+            if self.noise_scale > 0:
+                shot = rng.poisson(e) - e
+                sig = e + self.noise_scale * shot + rng.normal(0.0, read_sd, e.shape)
+            else:
+                sig = e
+            dn = np.rint((sig + dark) / self.e_per_dn)
+            out[i] = np.clip(dn, 0, self.full_scale).astype(dtype)
+        return out
+
+    def describe(self) -> str:
+        rows, cols = self.shape
+        r0, c0, n = self.window
+        return (f"SYNTHETIC TIR camera: {cols}x{rows} px (sensor {self.sensor_cols}x{self.sensor_rows} "
+                f"at {self.pixel_um} um, binning {self.binning}), footprint window {n}x{n} px at "
+                f"({r0},{c0}), {self.pixel_mm:.4g} mm/px, {self.bits}-bit, noise_scale {self.noise_scale:g}, "
+                f"seed {self.seed}")
+
+
+def background_deflection(image_raw: np.ndarray, image_diff: np.ndarray) -> np.ndarray:
+    """The same press with no inclusion: raw deflection minus the difference image."""
+    return np.asarray(image_raw, dtype=float) - np.asarray(image_diff, dtype=float)
+
+
+def render_pair(model: SensorModel, image_raw: np.ndarray, image_diff: np.ndarray, pixel: float,
+                frames: int = 30, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Frames of the lesion press and of the background press (no inclusion), independent noise."""
+    rng = np.random.default_rng(model.seed) if rng is None else rng
+    lesion = model.render(image_raw, pixel, frames, rng)
+    bg = model.render(background_deflection(image_raw, image_diff), pixel, frames, rng)
+    return lesion, bg
+
