@@ -37,7 +37,15 @@ COLUMNS: dict[str, tuple[pa.DataType, str, str]] = {
     "peak_memory_mb": (pa.float64(), "MiB", "peak resident memory of the worker process"),
     "code_version": (pa.string(), "", "elastimap version and git commit"),
     "host": (pa.string(), "", "machine that ran the sample"),
+    # added by the sweep (additive; readers that ignore it are unaffected)
+    "landed_at": (pa.float64(), "s", "unix time the row was written; the newest row of a sample id wins (an 'ok' row always beats a 'failed' one)"),
 }
+
+# Columns every conforming file must have (the original version-1 set); ``landed_at`` is optional
+# so that files written before it existed still read.
+REQUIRED = tuple(k for k in COLUMNS if k != "landed_at")
+SCHEMA_KEY = "elastimap.schema"
+IMAGE_KEY = "elastimap.image"
 
 FEATURES = ("O1", "O2", "O3")
 TARGETS = ("d", "h", "E")

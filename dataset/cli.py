@@ -1,0 +1,101 @@
+"""``dataset``: look at, plot, export and compact sample datasets.
+
+    dataset inspect sweeps/default-tied-lhs512-s0
+    dataset plot sweeps/default-tied-lhs512-s0 --out figs/
+    dataset export sweeps/default-tied-lhs512-s0 --csv table.csv
+    dataset compact sweeps/default-tied-lhs512-s0
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import click
+
+from elastimap.cli_util import run as run_cli
+from elastimap.errors import UserError
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def cli():
+    """Sample datasets landed by `sweep run` (see docs/dataset.md)."""
+
+
+@cli.command("inspect")
+@click.argument("path")
+@click.option("--json", "as_json", is_flag=True, help="print the report as JSON")
+@click.option("--top", default=5, show_default=True, help="how many slowest samples / failures to list")
+def inspect_cmd(path, as_json, top):
+    """Schema, counts by status, parameter/feature ranges, NaN check, slowest samples, failures."""
+    from .inspect import format_report, report
+
+    rep = report(path, top=top)
+    click.echo(json.dumps(rep, indent=1, default=str) if as_json else format_report(rep))
+    return 0
+
+
+@cli.command("plot")
+@click.argument("path")
+@click.option("--out", "out_dir", required=True, help="directory for the PNG figures")
+@click.option("--images", default=12, show_default=True, help="example images in the grid")
+def plot_cmd(path, out_dir, images):
+    """PNG figures: the paper's 3-D scatter per feature, features vs parameters, example images."""
+    from .plot import plot_all
+
+    for f in plot_all(path, out_dir, n_images=images):
+        click.echo(str(f))
+    return 0
+
+
+@cli.command("export")
+@click.argument("path")
+@click.option("--csv", "csv_path", default=None,
+              help="CSV file to write (default: <PATH>.csv next to the dataset); '-' for stdout")
+@click.option("--status", type=click.Choice(["ok", "failed", "all"]), default="all", show_default=True)
+@click.option("--images/--no-images", default=False, show_default=True,
+              help="include the image as one column of space-separated values")
+def export_cmd(path, csv_path, status, images):
+    """One CSV table for spreadsheets (one row per sample, parameters, features, status, statistics)."""
+    from . import io
+
+    df = io.read_samples(path, status=None if status == "all" else status)
+    if images:
+        df["image"] = [" ".join(f"{x:.6g}" for x in v) if v is not None else "" for v in df["image"]]
+    else:
+        df = df.drop(columns=["image"])
+    src = Path(path).resolve()
+    target = csv_path or str(src.with_suffix(".csv") if src.is_file() else src.with_name(src.name + ".csv"))
+    if target == "-":
+        click.echo(df.to_csv(index=False), nl=False)
+        return 0
+    t = Path(target)
+    if not t.parent.is_dir():
+        raise UserError("--csv", f"directory {t.parent} does not exist")
+    df.to_csv(t, index=False)
+    click.echo(f"wrote {len(df)} rows to {t}")
+    return 0
+
+
+@cli.command("compact")
+@click.argument("path")
+@click.option("--batch-rows", default=256, show_default=True, help="rows per batch file")
+def compact_cmd(path, batch_rows):
+    """Merge a dataset's files into batch files, dropping superseded rows (safe to interrupt)."""
+    from . import io
+
+    if (Path(path) / ".sweep.lock").exists():
+        raise UserError("path", f"a sweep is running on {path} (or was killed: then remove {path}/.sweep.lock)")
+    r = io.compact(path, batch_rows)
+    click.echo(f"{path}: {r['files_before']} files -> {r['files_after']}, {r['rows']} rows, "
+               f"{r['dropped']} superseded rows dropped")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> None:
+    run_cli(cli, argv, prog_name="dataset")
+
+
+if __name__ == "__main__":
+    main()

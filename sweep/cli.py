@@ -1,0 +1,99 @@
+"""``sweep``: run a batch of forward solves into a Parquet dataset.
+
+    sweep run --n 512 --jobs 2                 # 512 LHS samples, default ranges, default mesh
+    sweep run --n 64 --mesh tiny --phantoms    # + the nine calibration-phantom inclusions
+    sweep run --samples table.csv --out sweeps/mine
+    sweep bench --n 16 --mesh tiny             # samples/min at --jobs 1 and 2, driver overhead
+
+Rerunning the same command resumes: only samples with no landed row run.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from elastimap.cli_util import run as run_cli
+from solver.params import INTERFACES, MESH_LEVELS
+
+from . import design as dsg
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def cli():
+    """Batch sweeps of the forward model into Parquet datasets (see docs/sweep.md)."""
+
+
+def _common(f):
+    opts = [
+        click.option("--n", "n", type=int, default=None,
+                     help="design samples (default 512; 0 with --samples unless given)"),
+        click.option("--seed", type=int, default=0, show_default=True, help="seed of the design"),
+        click.option("--mesh", default="default", show_default=True, help=f"mesh level: {', '.join(MESH_LEVELS)}"),
+        click.option("--interface", default="tied", show_default=True, help=f"probe/tissue interface: {', '.join(INTERFACES)}"),
+        click.option("--design", default="lhs", show_default=True, help="lhs (Latin hypercube) or sobol (scrambled)"),
+        click.option("--ranges", default=None,
+                     help=f"NAME=LO:HI[:log] for d (mm), h (centre depth, mm or 'auto'), E (kPa); default {dsg.DEFAULT_RANGES}"),
+        click.option("--samples", type=str, default=None,
+                     help="CSV/Parquet table of samples (columns d, h, E; optional sample_id, tissue_E, tissue_thickness)"),
+        click.option("--phantoms", is_flag=True, help="add the nine calibration-phantom inclusions of dataset/phantoms.csv"),
+    ]
+    for o in reversed(opts):
+        f = o(f)
+    return f
+
+
+@cli.command("run")
+@_common
+@click.option("--jobs", type=int, default=2, show_default=True, help="local worker processes (one solve each)")
+@click.option("--out", type=str, default=None, help="dataset directory (default sweeps/<mesh>-<interface>-<design><n>-s<seed>)")
+@click.option("--retry-failed", is_flag=True, help="run samples that landed as failed again")
+@click.option("--scheduler", type=str, default=None,
+              help="address of a running dask scheduler (tcp://host:8786) instead of a local cluster")
+@click.option("--batch-rows", type=int, default=256, show_default=True, help="rows per merged batch file")
+@click.option("--no-progress", is_flag=True, help="no progress bar")
+def run_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, jobs, out, retry_failed, scheduler,
+            batch_rows, no_progress):
+    """Run one solve per sample (resumable) and land the rows in OUT."""
+    from .run import SweepConfig, format_summary, make_plan, run
+
+    cfg = SweepConfig(n=n, jobs=jobs, seed=seed, out=out, mesh=mesh, interface=interface, design=design,
+                      ranges=ranges, samples=samples, phantoms=phantoms, retry_failed=retry_failed,
+                      scheduler=scheduler, batch_rows=batch_rows, progress=not no_progress, argv=sys.argv[1:])
+    plan = make_plan(cfg)
+    if scheduler and jobs != 2:
+        click.echo("note: --jobs is ignored with --scheduler (the cluster decides the workers)", err=True)
+    summary = run(cfg, plan)
+    click.echo(format_summary(summary))
+    if summary["interrupted"]:
+        click.echo("interrupted: landed rows are kept; rerun the same command to resume", err=True)
+        return 130
+    return 0
+
+
+@cli.command("bench")
+@_common
+@click.option("--jobs-list", default="1,2", show_default=True, help="comma-separated worker counts to time")
+@click.option("--out", type=str, default=None, help="keep the datasets under OUT/jobs<k> (default: a temporary dir)")
+def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, jobs_list, out):
+    """Time the same sweep at several --jobs: samples/min, speed-up, driver overhead per sample."""
+    from .bench import bench, format_bench
+
+    try:
+        counts = [int(x) for x in jobs_list.split(",") if x.strip()]
+    except ValueError:
+        from elastimap.errors import UserError
+        raise UserError("--jobs-list", f"expected integers like 1,2 (got {jobs_list!r})") from None
+    res = bench(counts, n=16 if n is None and not samples else n, seed=seed, mesh=mesh, interface=interface,
+                design=design, ranges=ranges, samples=samples, phantoms=phantoms, out=out)
+    click.echo(format_bench(res))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> None:
+    run_cli(cli, argv, prog_name="sweep")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,113 @@
+"""One sample as one job: sample dict -> SolveParams -> ``solve`` -> one landed row.
+
+The sweep never knows how a solve is done: it imports a *solver module* that
+provides ``solve(SolveParams) -> SolveResult`` and optionally
+``warmup(SolveParams)``.  That module is :mod:`solver` unless the environment
+variable ``ELASTIMAP_SWEEP_SOLVER`` names another one (a test-only hook: the
+suite points it at :mod:`sweep.testing`, a fast fake that can also crash on
+purpose).  The variable is inherited by the worker processes.
+
+:func:`run_sample` runs in a dask worker.  It lands its row itself
+(atomically, see :mod:`dataset.io`) before returning, so a result exists on
+disk as soon as its solve ends and nothing is held only in memory; it returns
+a small summary (no image) to the driver.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import json
+import math
+import os
+import resource
+import time
+
+import numpy as np
+
+from dataset import io
+from elastimap.provenance import code_version, host
+from solver.params import SolveParams
+
+SOLVER_ENV = "ELASTIMAP_SWEEP_SOLVER"
+
+
+def solver_module():
+    return importlib.import_module(os.environ.get(SOLVER_ENV) or "solver")
+
+
+def sample_params(sample: dict, base: SolveParams) -> SolveParams:
+    """The solve inputs of one sample: ``base`` with the sample's inclusion (and tissue overrides)."""
+    p = base.with_inclusion(d=float(sample["d"]), h=float(sample["h"]), E=float(sample["E"]))
+    tissue = {}
+    if sample.get("tissue_E") is not None:
+        tissue["E"] = float(sample["tissue_E"])
+    if sample.get("tissue_thickness") is not None:
+        tissue["thickness"] = float(sample["tissue_thickness"])
+    if tissue:
+        p = p.replace(tissue=dataclasses.replace(p.tissue, **tissue))
+    return p
+
+
+def expected_image_shape(p: SolveParams) -> tuple[int, int]:
+    n = int(round(p.probe.size / p.image.pixel))
+    return (n, n)
+
+
+def _peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _base_row(sample: dict, p: SolveParams) -> dict:
+    return {"sample_id": sample["sample_id"], "tag": sample.get("tag", "design"),
+            "d": float(sample["d"]), "h": float(sample["h"]), "E": float(sample["E"]),
+            "params_json": json.dumps(p.to_dict(), sort_keys=True),
+            "code_version": code_version(), "host": host()}
+
+
+def failed_row(sample: dict, p: SolveParams, error: str, seconds: float = float("nan")) -> dict:
+    row = _base_row(sample, p)
+    nan = float("nan")
+    row.update(O1=nan, O2=nan, O3=nan, force=nan, force_ref=nan, image=None, status="failed",
+               error=error, ndofs=None, newton_iterations=None, seconds=seconds,
+               peak_memory_mb=_peak_mb())
+    return row
+
+
+def result_row(sample: dict, p: SolveParams, res, seconds: float) -> dict:
+    img = np.asarray(res.image, dtype=np.float32)
+    row = _base_row(sample, p)
+    row.update(O1=float(res.O1), O2=float(res.O2), O3=float(res.O3), force=float(res.force),
+               force_ref=float(res.force_ref), image=img.ravel(), status="ok", error="",
+               ndofs=int(res.ndofs), newton_iterations=int(res.newton_iterations), seconds=float(seconds),
+               peak_memory_mb=float(getattr(res, "peak_memory_mb", None) or _peak_mb()))
+    bad = [k for k in ("O1", "O2", "O3", "force", "force_ref") if not math.isfinite(row[k])]
+    if bad or not np.all(np.isfinite(img)):
+        row.update(status="failed", error=f"non-finite result ({', '.join(bad) or 'image'})")
+    return row
+
+
+def run_sample(sample: dict, base: dict, out_dir: str) -> dict:
+    """Solve one sample and land its row in ``out_dir``; return ``{sample_id, status, seconds, error}``."""
+    p = sample_params(sample, SolveParams.from_dict(base))
+    shape = pixel = None  # a failed row has no image: its file carries no image geometry
+    t0 = time.perf_counter()
+    try:
+        res = solver_module().solve(p)
+        seconds = time.perf_counter() - t0
+        row = result_row(sample, p, res, seconds)
+        if row["status"] == "ok":
+            shape, pixel = tuple(np.shape(res.image)), float(res.pixel)
+    except Exception as exc:  # a failing sample is data, not a crash of the sweep
+        seconds = time.perf_counter() - t0
+        msg = str(exc).strip().replace("\n", " ")
+        row = failed_row(sample, p, f"{type(exc).__name__}: {msg}"[:2000], seconds)
+    io.land_rows(out_dir, [row], shape, pixel)
+    return {"sample_id": row["sample_id"], "status": row["status"], "seconds": row["seconds"],
+            "error": row["error"]}
+
+
+def land_failure(sample: dict, base: dict, out_dir: str, error: str) -> None:
+    """Record a sample whose job never returned (worker crashed twice) — run by the driver."""
+    p = sample_params(sample, SolveParams.from_dict(base))
+    io.land_rows(out_dir, [failed_row(sample, p, error)])

@@ -1,0 +1,337 @@
+"""The sweep driver: plan samples, skip what has landed, fan out one job per sample, summarise.
+
+Order of work (nothing is written before step 3, so bad input leaves no trace):
+
+1. parse and check every option (``UserError`` names the flag);
+2. build the sample list (design + ``--samples`` + ``--phantoms``) and validate
+   every sample's solve inputs;
+3. lock the output directory, check/extend its manifest (``sweep.json``),
+   read the ids that have landed, and keep the missing (and, with
+   ``--retry-failed``, the failed) samples;
+4. compile the solver's forms once here (``warmup``), start a dask
+   ``LocalCluster`` (processes, one thread each) or connect to ``--scheduler``,
+   submit one task per sample (each lands its own row), collect results with
+   a progress bar, record worker crashes as failed rows, merge row files into
+   batches as they accumulate;
+5. stop the cluster, compact, print the summary.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import logging
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from dataset import io
+from elastimap.errors import UserError
+from elastimap.provenance import code_version, host
+from solver.params import Discretisation, SolveParams
+
+from . import design as dsg
+from . import jobs
+
+LOCK = ".sweep.lock"
+MAX_JOBS = 256
+
+
+@dataclass
+class SweepConfig:
+    n: int | None = None            # None: 512, or 0 when --samples is given
+    jobs: int = 2
+    seed: int = 0
+    out: str | None = None
+    mesh: str = "default"
+    interface: str = "tied"
+    design: str = "lhs"
+    ranges: str | None = None
+    samples: str | None = None
+    phantoms: bool = False
+    retry_failed: bool = False
+    scheduler: str | None = None
+    batch_rows: int = io.BATCH_ROWS
+    progress: bool = True
+    compact: bool = True
+    argv: list[str] = field(default_factory=list)
+
+
+@dataclass
+class Plan:
+    cfg: SweepConfig
+    base: SolveParams
+    samples: list[dict]
+    out: Path
+    ranges: dict
+
+
+def default_out(cfg: SweepConfig, n: int) -> str:
+    parts = [cfg.mesh, cfg.interface]
+    if cfg.samples:
+        parts.append(Path(cfg.samples).stem)
+    if n:
+        parts.append(f"{cfg.design}{n}-s{cfg.seed}")
+    if cfg.phantoms:
+        parts.append("phantoms")
+    return str(Path("sweeps") / "-".join(parts))
+
+
+def _jsonable(d: dict) -> dict:
+    return json.loads(json.dumps(d))
+
+
+def make_plan(cfg: SweepConfig) -> Plan:
+    """Check everything and list the samples; writes nothing."""
+    if cfg.jobs is None or cfg.jobs < 1 or cfg.jobs > MAX_JOBS:
+        raise UserError("--jobs", f"must be an integer in [1, {MAX_JOBS}] (got {cfg.jobs})")
+    if cfg.batch_rows < 1:
+        raise UserError("--batch-rows", f"must be >= 1 (got {cfg.batch_rows})")
+    n = cfg.n if cfg.n is not None else (0 if cfg.samples else 512)
+    dsg.check_n(n)
+    if cfg.design not in dsg.DESIGNS:
+        raise UserError("--design", f"must be one of {', '.join(dsg.DESIGNS)} (got {cfg.design!r})")
+    base = SolveParams(disc=Discretisation(mesh=cfg.mesh, interface=cfg.interface))
+    try:
+        base.validate()
+    except UserError as exc:
+        raise UserError(f"--{exc.param}" if exc.param in ("mesh", "interface") else exc.param, exc.message) from None
+    ranges = dsg.parse_ranges(cfg.ranges, base.tissue.thickness)
+    samples = dsg.design_points(n, cfg.design, cfg.seed, ranges, base.tissue.thickness)
+    if cfg.samples:
+        samples += dsg.load_samples(cfg.samples)
+    if cfg.phantoms:
+        samples += dsg.load_phantoms()
+    if not samples:
+        raise UserError("--n", "nothing to run (--n 0 without --samples or --phantoms)")
+    seen: dict[str, dict] = {}
+    for s in samples:
+        if s["sample_id"] in seen:
+            raise UserError("--samples", f"sample id {s['sample_id']!r} occurs twice (in the design/phantoms and the table?)")
+        seen[s["sample_id"]] = s
+        try:
+            jobs.sample_params(s, base).validate()
+        except UserError as exc:
+            where = "--samples" if s["tag"] == "user" else ("--phantoms" if s["tag"].startswith("phantom") else "--ranges")
+            raise UserError(where, f"sample {s['sample_id']} (d={s['d']:g} mm, h={s['h']:g} mm, E={s['E']:g} kPa) "
+                                   f"is not a valid solve: {exc}") from None
+    out = Path(cfg.out or default_out(cfg, n))
+    if out.exists() and not out.is_dir():
+        raise UserError("--out", f"{out} exists and is not a directory")
+    if out.is_dir():
+        man = io.read_manifest(out)
+        if man is None and any(out.iterdir()):
+            raise UserError("--out", f"{out} is not empty and holds no sweep manifest ({io.MANIFEST}); choose another --out")
+        if man is not None and man.get("base_params") != _jsonable(base.to_dict()):
+            old = man.get("base_params", {}).get("disc", {})
+            raise UserError("--out", f"{out} holds a sweep with other solver settings (mesh={old.get('mesh')}, "
+                                     f"interface={old.get('interface')}); use the same settings to resume, or another --out")
+    return Plan(cfg, base, samples, out, ranges)
+
+
+# ----------------------------------------------------------------------------- lock
+
+def _acquire_lock(out: Path) -> Path:
+    import psutil
+
+    lock = out / LOCK
+    me = {"pid": os.getpid(), "host": host(), "created": psutil.Process().create_time()}
+    for _ in range(3):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                other = json.loads(lock.read_text() or "{}")
+            except (OSError, ValueError):
+                other = {}
+            alive = False
+            if other.get("host") == me["host"] and other.get("pid"):
+                try:
+                    alive = abs(psutil.Process(other["pid"]).create_time() - other.get("created", 0)) < 1.0
+                except psutil.Error:
+                    alive = False
+            elif other.get("host"):
+                alive = True  # another machine: cannot check, assume it is running
+            if alive:
+                raise UserError("--out", f"{out} is being written by another sweep (pid {other.get('pid')} on "
+                                         f"{other.get('host')}); if that is wrong, remove {lock}")
+            try:
+                lock.unlink()
+            except FileNotFoundError:
+                pass
+            continue
+        with os.fdopen(fd, "w") as fh:
+            json.dump(me, fh)
+        return lock
+    raise UserError("--out", f"cannot take the lock {lock}")
+
+
+# ----------------------------------------------------------------------------- run
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _start_client(cfg: SweepConfig):
+    import dask
+    from distributed import Client, LocalCluster
+
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")  # workers inherit: one core per solve
+    # a task whose worker dies is retried once, then fails with KilledWorker (set before the
+    # scheduler starts; a remote scheduler needs it in its own config, see workflows/)
+    dask.config.set({"distributed.scheduler.allowed-failures": 1})
+    if cfg.scheduler:
+        try:
+            client = Client(cfg.scheduler, timeout="20s")
+        except Exception as exc:
+            raise UserError("--scheduler", f"cannot connect to {cfg.scheduler} ({type(exc).__name__}: {exc})") from None
+        return client, None
+    cluster = LocalCluster(n_workers=cfg.jobs, threads_per_worker=1, processes=True,
+                           dashboard_address=None, silence_logs=logging.CRITICAL)
+    return Client(cluster), cluster
+
+
+def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
+    """Run a sweep; returns the summary dict (also stored in the manifest's run log)."""
+    t_start = time.perf_counter()
+    plan = plan or make_plan(cfg)
+    out = plan.out
+    out.mkdir(parents=True, exist_ok=True)
+    lock = _acquire_lock(out)
+    summary = {"out": str(out), "planned": len(plan.samples), "done": 0, "ok": 0, "failed": 0, "skipped": 0,
+               "todo": 0, "interrupted": False}
+    try:
+        io.remove_stale_tmp(out)
+        landed = io.landed_status(out)
+        todo = [s for s in plan.samples
+                if s["sample_id"] not in landed or (cfg.retry_failed and landed[s["sample_id"]] != "ok")]
+        summary["skipped"] = len(plan.samples) - len(todo)
+        summary["todo"] = len(todo)
+        man = io.read_manifest(out) or {"format": "elastimap-sweep", "schema_version": io.SCHEMA_VERSION,
+                                        "created": _now(), "base_params": _jsonable(plan.base.to_dict()),
+                                        "planned": [], "runs": []}
+        known = set(man["planned"])
+        man["planned"] += [s["sample_id"] for s in plan.samples if s["sample_id"] not in known]
+        run_log = {"started": _now(), "argv": cfg.argv, "n": cfg.n, "design": cfg.design, "seed": cfg.seed,
+                   "ranges": dsg.ranges_text(plan.ranges), "samples": cfg.samples, "phantoms": cfg.phantoms,
+                   "jobs": cfg.jobs, "scheduler": cfg.scheduler, "code_version": code_version(), "host": host()}
+        man["runs"].append(run_log)
+        io.write_manifest(out, man)
+        if todo:
+            _fan_out(cfg, plan, todo, summary)
+    except KeyboardInterrupt:
+        summary["interrupted"] = True  # landed rows stay; the caller reports and exits 130
+    finally:
+        try:
+            if cfg.compact and any(out.glob("r-*.parquet")) and not summary["interrupted"]:
+                summary["compaction"] = io.compact(out, cfg.batch_rows)
+            final = io.landed_status(out)
+            planned_ids = {s["sample_id"] for s in plan.samples}
+            summary["dataset_ok"] = sum(1 for k, v in final.items() if k in planned_ids and v == "ok")
+            summary["dataset_failed"] = sum(1 for k, v in final.items() if k in planned_ids and v != "ok")
+            summary["missing"] = len(planned_ids - set(final))
+            summary["wall_s"] = time.perf_counter() - t_start
+            summary["samples_per_min"] = 60.0 * summary["done"] / summary["wall_s"] if summary["wall_s"] > 0 else 0.0
+            man = io.read_manifest(out)
+            if man and man.get("runs"):
+                man["runs"][-1].update(finished=_now(), summary={k: v for k, v in summary.items() if k != "errors"})
+                io.write_manifest(out, man)
+        finally:
+            lock.unlink(missing_ok=True)
+    return summary
+
+
+def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict) -> None:
+    from distributed import as_completed
+    from tqdm import tqdm
+
+    base = plan.base.to_dict()
+    out = str(plan.out.resolve())
+    mod = jobs.solver_module()
+    t0 = time.perf_counter()
+    if hasattr(mod, "warmup"):
+        first = jobs.sample_params(todo[0], plan.base)
+        mod.warmup(first)
+    summary["warmup_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    client, cluster = _start_client(cfg)
+    summary["cluster_start_s"] = time.perf_counter() - t0
+    summary["workers"] = len(client.scheduler_info(n_workers=-1)["workers"]) if cluster is None else cfg.jobs
+    errors: list[tuple[str, str]] = []
+    solve_seconds = 0.0
+    try:
+        t_fan = time.perf_counter()
+        cpu0 = time.process_time()
+        by_future = {}
+        for s in todo:
+            fut = client.submit(jobs.run_sample, s, base, out, key=f"sample-{s['sample_id']}-{time.time_ns()}",
+                                pure=False)
+            by_future[fut] = s
+        tty = sys.stderr.isatty()
+        bar = tqdm(total=len(todo), desc="sweep", unit="sample", file=sys.stderr, disable=not cfg.progress,
+                   mininterval=0.5 if tty else 15.0, dynamic_ncols=True, smoothing=0.1)
+        since_compact = 0
+        for fut in as_completed(list(by_future)):
+            s = by_future.pop(fut)
+            try:
+                r = fut.result()
+            except Exception as exc:  # KilledWorker (crashed twice) or a bug in the job itself
+                name = type(exc).__name__
+                msg = (f"worker crashed twice on this sample (segfault, abort or out of memory): {name}"
+                       if name == "KilledWorker" else f"{name}: {exc}")
+                jobs.land_failure(s, base, out, msg[:2000])
+                r = {"sample_id": s["sample_id"], "status": "failed", "seconds": float("nan"), "error": msg}
+            fut.release()
+            summary["done"] += 1
+            if r["status"] == "ok":
+                summary["ok"] += 1
+                solve_seconds += r["seconds"]
+            else:
+                summary["failed"] += 1
+                errors.append((r["sample_id"], r["error"]))
+            bar.set_postfix(ok=summary["ok"], failed=summary["failed"], refresh=False)
+            bar.update(1)
+            since_compact += 1
+            if cfg.compact and since_compact >= cfg.batch_rows:
+                io.compact(plan.out, cfg.batch_rows, only_rows=True)
+                since_compact = 0
+        bar.close()
+        fan_wall = time.perf_counter() - t_fan
+        summary["fan_out_s"] = fan_wall
+        summary["driver_cpu_ms_per_sample"] = 1000.0 * (time.process_time() - cpu0) / max(summary["done"], 1)
+        summary["mean_solve_s"] = solve_seconds / summary["ok"] if summary["ok"] else float("nan")
+        if fan_wall > 0 and summary["ok"]:
+            summary["worker_utilisation"] = solve_seconds / (fan_wall * max(summary["workers"], 1))
+    finally:
+        summary["errors"] = errors
+        try:
+            client.close()
+        finally:
+            if cluster is not None:
+                cluster.close()
+
+
+def format_summary(s: dict) -> str:
+    lines = [f"sweep: {s['out']}: {s['done']} done this run (ok {s['ok']}, failed {s['failed']}), "
+             f"{s['skipped']} skipped (already landed), wall {s['wall_s']:.1f} s, "
+             f"{s['samples_per_min']:.1f} samples/min"]
+    if s["done"]:
+        extra = [f"warm-up {s.get('warmup_s', 0):.1f} s", f"cluster start {s.get('cluster_start_s', 0):.1f} s"]
+        if s.get("mean_solve_s") == s.get("mean_solve_s") and "mean_solve_s" in s:
+            extra.append(f"mean solve {s['mean_solve_s']:.2f} s")
+        if "worker_utilisation" in s:
+            extra.append(f"worker utilisation {100 * s['worker_utilisation']:.0f} %")
+        extra.append(f"driver CPU {s.get('driver_cpu_ms_per_sample', 0):.1f} ms/sample")
+        lines.append("       " + ", ".join(extra))
+    lines.append(f"       dataset: {s['dataset_ok']} ok, {s['dataset_failed']} failed, {s['missing']} missing "
+                 f"of {s['planned']} planned")
+    for sid, err in s.get("errors", [])[:10]:
+        lines.append(f"       failed {sid}: {err[:200]}")
+    if len(s.get("errors", [])) > 10:
+        lines.append(f"       ... and {len(s['errors']) - 10} more (dataset inspect {s['out']})")
+    if s["dataset_failed"]:
+        lines.append("       rerun with --retry-failed to run the failed samples again")
+    return "\n".join(lines)
