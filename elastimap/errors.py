@@ -25,8 +25,8 @@ def check_range(param: str, value: float, lo: float | None = None, hi: float | N
     """
     v = float(value)
     u = f" {unit}" if unit else ""
-    lo_s = "(" if lo_open else "["
-    hi_s = ")" if hi_open else "]"
+    lo_s = "(" if (lo_open or lo is None) else "["
+    hi_s = ")" if (hi_open or hi is None) else "]"
     lo_v = "-inf" if lo is None else f"{lo:g}"
     hi_v = "inf" if hi is None else f"{hi:g}"
     bad = v != v  # NaN

@@ -56,6 +56,29 @@ def _solve_at(model, E_inc: float, p: SolveParams):
 def solve(params: SolveParams) -> SolveResult:
     """Run one sample.  Raises :class:`elastimap.errors.UserError` for bad input and
     :class:`solver.SolverError` (message carries d, h, E) when the solve fails."""
+    return _solve(params)
+
+
+def solve_with_fields(params: SolveParams, vtx_path: str) -> SolveResult:
+    """As :func:`solve`, and write both displacement fields (``u`` with the inclusion,
+    ``u_ref`` of the reference solve, mm) to an ADIOS2 ``.bp`` folder for ParaView."""
+    return _solve(params, vtx_path)
+
+
+def _write_vtx(model, path: str, fields: dict) -> None:
+    from dolfinx import fem
+    from dolfinx.io import VTXWriter
+
+    funcs = []
+    for name, u in fields.items():
+        f = fem.Function(model.V, name=name)
+        f.x.array[: len(u)] = u
+        funcs.append(f)
+    with VTXWriter(model.mesh.comm, path, funcs, engine="BP4") as w:
+        w.write(0.0)
+
+
+def _solve(params: SolveParams, vtx_path: str | None = None) -> SolveResult:
     from .fem import Model, SolverError
     from .geometry import MeshError, build_mesh
     from .image import features, mirror_quarter
@@ -74,12 +97,19 @@ def solve(params: SolveParams) -> SolveResult:
         w = model.probe_bottom_w(sol, delta)
         sol_ref, diag_ref, delta_ref, force_ref = _solve_at(model, p.tissue.E, p)
         w_ref = model.probe_bottom_w(sol_ref, delta_ref)
+        if vtx_path:
+            _write_vtx(model, vtx_path, {"u": sol.u, "u_ref": sol_ref.u})
     except SolverError as exc:
         raise SolverError(f"solve failed for {tag}: {exc}") from exc
     finally:
         model.destroy()
     if p.disc.symmetry == "quarter":
         w, w_ref = mirror_quarter(w), mirror_quarter(w_ref)
+    if p.disc.interface == "tied" and diag["tension_patch_fraction"] > 0:
+        import warnings
+        warnings.warn(f"tied interface carries tension on {100 * diag['tension_patch_fraction']:.2g} % of the "
+                      f"footprint patches for {tag}: the probe would lift off there; use interface='contact'",
+                      RuntimeWarning, stacklevel=2)
     diff = w - w_ref
     O1, O2, O3 = features(diff, p.image.pixel, p.image.threshold, p.image.supersample)
     timings = dict(model.timings)

@@ -42,10 +42,10 @@ PROBE_LAYER0 = 10  # layer i (0 = tissue side) gets PROBE_LAYER0 + i
 
 # mesh levels: (h0 probe/footprint mm, h_max mm, grading, inclusion resolution = elements per diameter)
 LEVELS = {
-    "tiny": (3.2, 20.0, 0.6, 3.0),
-    "coarse": (2.0, 14.0, 0.45, 5.0),
-    "default": (1.4, 12.0, 0.35, 7.0),
-    "fine": (1.0, 9.0, 0.28, 10.0),
+    "tiny": (3.2, 20.0, 0.6, 6.0),
+    "coarse": (2.0, 14.0, 0.45, 10.0),
+    "default": (1.6, 12.0, 0.35, 12.0),
+    "fine": (1.1, 9.0, 0.28, 16.0),
 }
 
 _gmsh_lock = threading.Lock()

@@ -1,0 +1,111 @@
+"""``solve``: one forward sample from the command line."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import click
+
+from elastimap.cli_util import run
+
+from .params import INTERFACES, MESH_LEVELS, Discretisation, ImageSpec, Inclusion, Loading, Probe, SolveParams, Tissue
+
+
+def _layers(text: str | None):
+    if text is None:
+        return Probe().layers
+    from elastimap.errors import UserError
+    try:
+        out = tuple(tuple(float(v) for v in part.split(":")) for part in text.split(","))
+    except ValueError:
+        out = ()
+    if not out or any(len(l) != 2 for l in out):
+        raise UserError("--layers", f"expected THICK:E,THICK:E,... in mm:kPa from the tissue side (got {text!r})")
+    return out
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.option("--d", "d", type=float, default=8.0, show_default=True, help="Inclusion diameter (mm).")
+@click.option("--h", "h", type=float, default=7.0, show_default=True,
+              help="Depth of the inclusion centre below the tissue surface (mm); the sphere must stay >= 1 mm "
+                   "below the surface and >= 2 mm above the chest wall.")
+@click.option("--E", "E", type=float, default=50.0, show_default=True, help="Inclusion Young's modulus (kPa).")
+@click.option("--mesh", type=click.Choice(MESH_LEVELS), default="default", show_default=True,
+              help="Mesh level (tiny is for tests only).")
+@click.option("--interface", type=click.Choice(INTERFACES), default="tied", show_default=True,
+              help="Probe-tissue interface: tied = frictionless closed (normal tied, tangentially free); "
+                   "contact = frictionless unilateral contact (active set); bonded = glued (comparison only).")
+@click.option("--full", is_flag=True, help="Full model instead of the quarter-symmetry model.")
+@click.option("--delta", type=float, default=3.0, show_default=True, help="Plate indentation (mm).")
+@click.option("--force", type=float, default=None, help="Prescribe the total plate force (mN) instead of --delta.")
+@click.option("--tissue-E", "tissue_E", type=float, default=5.0, show_default=True, help="Tissue modulus (kPa).")
+@click.option("--thickness", type=float, default=20.0, show_default=True, help="Tissue thickness (mm).")
+@click.option("--nu", type=float, default=0.49, show_default=True, help="Poisson ratio of tissue, inclusion and probe.")
+@click.option("--layers", default=None, help="Probe layers THICK:E,... (mm:kPa) from the tissue side "
+                                             "[default: 2:300,3:150,5:50].")
+@click.option("--pixel", type=float, default=0.5, show_default=True, help="Image pixel size (mm).")
+@click.option("--threshold", type=float, default=1e-3, show_default=True, help="O3 threshold on the difference image (mm).")
+@click.option("--degree", type=click.IntRange(1, 2), default=2, show_default=True, help="Lagrange degree (P1 locks at nu=0.49).")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object (features, force, ndofs, seconds, ...).")
+@click.option("--image", "image_png", type=click.Path(dir_okay=False, writable=True), default=None,
+              help="Write a PNG of the difference elasticity image (and the raw deflection) with colour bars.")
+@click.option("--image-npy", type=click.Path(dir_okay=False, writable=True), default=None,
+              help="Write the difference image as a .npy array (mm).")
+@click.option("--vtx", type=click.Path(file_okay=True, dir_okay=True), default=None,
+              help="Write the displacement field of the inclusion solve for ParaView (ADIOS2 .bp folder).")
+def command(d, h, E, mesh, interface, full, delta, force, tissue_E, thickness, nu, layers, pixel, threshold, degree,
+            as_json, image_png, image_npy, vtx):
+    """Simulate the sensor pressing tissue that holds a stiff spherical inclusion.
+
+    Runs the inclusion solve and a reference solve (inclusion modulus set to the
+    tissue's) on the same mesh and reports the paper's features of the difference
+    elasticity image: O1 maximum (mm), O2 total (mm), O3 deformed area (mm^2), plus
+    the plate force (mN).  Units: mm, kPa, mN.
+
+    Example: solve --d 8 --h 7 --E 50 --json --image inclusion.png
+    """
+    p = SolveParams(
+        inclusion=Inclusion(d=d, h=h, E=E, nu=nu),
+        tissue=Tissue(E=tissue_E, thickness=thickness, nu=nu),
+        probe=Probe(layers=_layers(layers), nu=nu),
+        loading=Loading(delta=delta, force=force),
+        disc=Discretisation(mesh=mesh, degree=degree, interface=interface, symmetry="full" if full else "quarter"),
+        image=ImageSpec(pixel=pixel, threshold=threshold),
+    ).validate()
+    from .api import solve
+
+    if vtx:
+        from .api import solve_with_fields
+        res = solve_with_fields(p, vtx)
+    else:
+        res = solve(p)
+    if image_png:
+        from .plot import save_image_png
+        save_image_png(image_png, res.image, res.pixel,
+                       f"difference image d={d:g} mm h={h:g} mm E={E:g} kPa\nO1={res.O1:.4g} mm O2={res.O2:.4g} mm O3={res.O3:.4g} mm²",
+                       raw=res.image_raw)
+    if image_npy:
+        import numpy as np
+        np.save(image_npy, res.image)
+    if as_json:
+        click.echo(json.dumps(res.summary()))
+    else:
+        s = res.summary()
+        click.echo(f"d = {d:g} mm, h = {h:g} mm, E = {E:g} kPa  ({mesh} mesh, {interface} interface, "
+                   f"{'full' if full else 'quarter'} model, {res.ndofs} dofs)")
+        click.echo(f"O1 = {res.O1:.6g} mm   O2 = {res.O2:.6g} mm   O3 = {res.O3:.6g} mm^2")
+        click.echo(f"plate force = {res.force:.6g} mN (reference {res.force_ref:.6g} mN) at delta = {res.delta:.6g} mm")
+        click.echo(f"interface: min patch tension fraction {s['interface_check']['tension_patch_fraction']:.3g}, "
+                   f"open pairs {s['interface_check']['open_pair_fraction']:.3g}")
+        click.echo(f"{res.seconds:.2f} s, peak memory {res.peak_memory_mb:.0f} MiB; " +
+                   ", ".join(f"{k} {v:.2f}s" for k, v in res.timings.items()))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> None:
+    run(command, argv, prog_name="solve")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
