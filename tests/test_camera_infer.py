@@ -178,3 +178,34 @@ def test_infer_api_does_not_import_solver_fem():
             "print(bad); sys.exit(1 if bad else 0)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+@pytest.mark.slow
+def test_end_to_end_with_trained_ensemble_cli_images(chain, tmp_path):
+    """Train a small real ensemble (training.api.fit_ensemble, LM) on the TOY table, save it, and run
+    ``infer --images`` on 30 SYNTHETIC frames of a lesion not in the table.  Same tolerances as above."""
+    api = pytest.importorskip("training.api", reason="training.api not available")
+    import pandas as pd
+
+    tab = toy_table()
+    ens = api.fit_ensemble(pd.DataFrame(tab, columns=["d", "h", "E", "O1", "O2", "O3"]), algo="lm",
+                           repeats=2, epochs=60, seed=0)
+    ens.save(str(tmp_path / "model"))
+    m = chain["sensor"].replace(seed=7)
+    r = toy_solve(*TRUTH)
+    F, B = render_pair(m, r.image_raw, r.image, r.pixel, 30)
+    write_frames(F, tmp_path / "f", "lesion", "tiff")
+    write_frames(B, tmp_path / "f", "lesion_background", "tiff")
+    out = tmp_path / "est.json"
+    cmd = [sys.executable, "-m", "camera.cli", "infer", "--model", str(tmp_path / "model"),
+           "--calibration", str(chain["dir"] / "cal.json"),
+           "--images", str(tmp_path / "f" / "synthetic_lesion_f*.tif"),
+           "--background", str(tmp_path / "f" / "synthetic_lesion_background_f*.tif"), "--out", str(out)]
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert res.returncode == 0, res.stderr
+    [row] = json.loads(out.read_text())
+    d, h, E = TRUTH
+    assert row["ok"], row
+    assert row["d"] == pytest.approx(d, rel=0.10), row
+    assert row["h"] == pytest.approx(h, rel=0.15), row
+    assert row["E"] == pytest.approx(E, rel=0.35), row
