@@ -3,7 +3,7 @@
 Layout of a dataset directory (written by ``sweep run``)::
 
     sweeps/NAME/
-        sweep.json                 manifest: solver settings, planned sample ids, run log
+        _sweep.json                manifest: solver settings, planned sample ids, run log
         r-<ns>-<rand>.parquet      one row, landed by a worker right after its solve
         b-<ns>-<rand>.parquet      a batch of up to ``BATCH_ROWS`` rows (compaction of r- files)
         .*.tmp                     a file being written (ignored; removed by the next run)
@@ -41,7 +41,7 @@ from elastimap.errors import UserError
 from .schema import COLUMNS, IMAGE_KEY, REQUIRED, SCHEMA_KEY, SCHEMA_VERSION, arrow_schema
 
 BATCH_ROWS = 256
-MANIFEST = "sweep.json"
+MANIFEST = "_sweep.json"  # leading _ : pyarrow.dataset / pandas.read_parquet(dir) skip it
 _KEY_COLS = ("sample_id", "status", "landed_at")
 
 

@@ -5,7 +5,7 @@ Order of work (nothing is written before step 3, so bad input leaves no trace):
 1. parse and check every option (``UserError`` names the flag);
 2. build the sample list (design + ``--samples`` + ``--phantoms``) and validate
    every sample's solve inputs;
-3. lock the output directory, check/extend its manifest (``sweep.json``),
+3. lock the output directory, check/extend its manifest (``_sweep.json``),
    read the ids that have landed, and keep the missing (and, with
    ``--retry-failed``, the failed) samples;
 4. compile the solver's forms once here (``warmup``), start a dask

@@ -151,6 +151,9 @@ def test_fake_sweep_phantoms_user_rows_and_resume(tmp_path):
     assert set(df.loc[df.tag == "user", "sample_id"]) == {"mine-1"}
     assert io.read_image_meta(out) == ((50, 50), 0.5)
     assert [f.name[:2] for f in out.glob("*.parquet")] == ["b-"]  # compacted at the end
+    import pyarrow.dataset as pads  # plain pyarrow readers (training) see the same rows, manifest skipped
+
+    assert pads.dataset(out, format="parquet").to_table(columns=["sample_id"]).num_rows == 16
     r = _sweep(args, _fake())
     assert r.returncode == 0 and "0 done this run" in r.stdout and "16 skipped" in r.stdout
     # other solver settings into the same directory are refused
@@ -225,3 +228,16 @@ def test_sigkill_driver_then_rerun_exactly_n_ok_real_solves(tmp_path):
     assert len(df) == n and df["sample_id"].is_unique and (df["status"] == "ok").all()
     assert (df["ndofs"] > 0).all() and io.read_image_meta(out)[0] == (50, 50)
     assert np.isfinite(df[["O1", "O2", "O3", "force"]].to_numpy()).all()
+
+
+def test_external_scheduler_real_solves(tmp_path, monkeypatch):
+    from distributed import LocalCluster
+
+    monkeypatch.delenv("ELASTIMAP_SWEEP_SOLVER", raising=False)  # the workers inherit this process's env
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        out = tmp_path / "ds"
+        r = _sweep(["run", "--n", "3", "--mesh", "tiny", "--out", str(out), "--scheduler", cluster.scheduler_address],
+                   _env())
+    assert r.returncode == 0, r.stderr
+    df = io.read_samples(out)
+    assert len(df) == 3 and (df["ndofs"] > 0).all()
