@@ -1,0 +1,36 @@
+"""Process-level performance settings for long training runs (CLI and benchmark only).
+
+Batched training allocates and frees the same few large temporaries every
+epoch.  With glibc's defaults, blocks above the (dynamic) mmap threshold go
+back to the kernel on ``free`` and come back as fresh zero pages, and the
+page faults cost more than the arithmetic.  :func:`tune_malloc` raises the
+mmap and trim thresholds so freed blocks are reused (measured ~1.5x faster
+Gauss–Newton matrices on the 2-core development machine).  It only changes
+allocator policy, never results, and is a no-op off glibc.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+
+
+def tune_malloc() -> bool:
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    M_TRIM_THRESHOLD, M_TOP_PAD, M_MMAP_THRESHOLD = -1, -2, -3
+    ok = bool(mallopt(M_MMAP_THRESHOLD, 32 << 20))   # glibc's maximum
+    ok &= bool(mallopt(M_TRIM_THRESHOLD, 1 << 30))
+    ok &= bool(mallopt(M_TOP_PAD, 64 << 20))
+    return ok
+
+
+def set_threads(threads: int | None) -> int:
+    import torch
+
+    if threads:
+        torch.set_num_threads(int(threads))
+    return torch.get_num_threads()

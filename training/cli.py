@@ -1,0 +1,152 @@
+"""``train``: validate the inverse MLP (HOV / LOOCV, LM / SCG) and save the ensemble.
+
+    train --data runs/sweep512 --algo all --validate all --repeats 10 --out runs/train
+
+Writes to ``--out``: ``results.csv``, ``results.md`` (also printed),
+``curves-<algo>-<validation>.png``, ``run.json`` and, per algorithm,
+``model-<algo>/`` -- the ensemble of ``--repeats`` networks trained on all
+non-test rows (all rows unless only HOV was asked for), loadable with
+:meth:`training.model.Ensemble.load`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import click
+
+from elastimap.cli_util import run
+from elastimap.errors import UserError, check_range
+
+ALGO_CHOICES = ("lm", "scg", "all")
+VALIDATE_CHOICES = ("hov", "loocv", "all")
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--data", "data", type=str, default=None, help="Parquet file or directory of the sample table.")
+@click.option("--synthetic", type=int, default=None, metavar="N",
+              help="Use the SYNTHETIC analytic toy table with N rows instead of --data (development only).")
+@click.option("--algo", default="scg", show_default=True, help="lm, scg or all.")
+@click.option("--validate", default="hov", show_default=True, help="hov, loocv or all.")
+@click.option("--repeats", default=10, show_default=True, type=int, help="Independent random initialisations.")
+@click.option("--epochs", default=100, show_default=True, type=int)
+@click.option("--hidden", default="25,10", show_default=True,
+              help="Hidden layer sizes; per-layer transfer function with ':', e.g. 25,10,7:purelin.")
+@click.option("--activation", default="tansig", show_default=True, help="Hidden transfer function: tansig or logsig.")
+@click.option("--feature-noise", default=0.0, show_default=True, type=float,
+              help="Relative Gaussian noise on O1..O3 (0.01 = 1 %), drawn per network.")
+@click.option("--test-split", default=None, type=float,
+              help="HOV: random test fraction instead of the phantom rows.")
+@click.option("--val-fraction", default=0.0, show_default=True, type=float,
+              help="Validation rows per network for early stopping (6 failures); 0 = none.")
+@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--out", "out", default="runs/train", show_default=True, help="Output directory.")
+@click.option("--device", default=None, help="cpu or cuda (default: cuda when available).")
+@click.option("--threads", default=0, type=int, help="Torch CPU threads (0 = torch default).")
+@click.option("--float32", "float32", is_flag=True, help="Single precision (faster, less faithful LM).")
+@click.option("--no-model", is_flag=True, help="Skip training the saved ensemble.")
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def train(data, synthetic, algo, validate, repeats, epochs, hidden, activation, feature_noise, test_split,
+          val_fraction, seed, out, device, threads, float32, no_model, quiet):
+    """Train and validate the inverse MLP (O1, O2, O3) -> (d, h, E)."""
+    import torch
+
+    from ._perf import set_threads, tune_malloc
+    from .api import fit_ensemble
+    from .data import data_hash, load_samples, prepare, synthetic_table
+    from .experiment import ALGOS, VALIDATIONS, TrainConfig, run_validation
+    from .net import parse_hidden
+    from .report import markdown, plot_curves, table
+
+    if algo not in ALGO_CHOICES:
+        raise UserError("--algo", f"must be one of {', '.join(ALGO_CHOICES)} (got {algo!r})")
+    if validate not in VALIDATE_CHOICES:
+        raise UserError("--validate", f"must be one of {', '.join(VALIDATE_CHOICES)} (got {validate!r})")
+    if repeats < 1:
+        raise UserError("--repeats", f"must be >= 1 (got {repeats})")
+    if epochs < 0:
+        raise UserError("--epochs", f"must be >= 0 (got {epochs})")
+    check_range("--feature-noise", feature_noise, 0, 1)
+    check_range("--val-fraction", val_fraction, 0, 1, hi_open=True)
+    if test_split is not None:
+        check_range("--test-split", test_split, 0, 1, lo_open=True, hi_open=True)
+    if (data is None) == (synthetic is None):
+        raise UserError("--data", "give exactly one of --data PATH or --synthetic N")
+    if device not in (None, "cpu", "cuda") and not str(device).startswith("cuda:"):
+        raise UserError("--device", f"must be cpu or cuda (got {device!r})")
+    if device and device.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError("--device", "cuda requested but no GPU is available")
+    hidden_t = parse_hidden(hidden, activation)
+
+    tune_malloc()
+    nthreads = set_threads(threads)
+    if synthetic is not None:
+        if synthetic < 10:
+            raise UserError("--synthetic", f"need at least 10 rows (got {synthetic})")
+        samples = prepare(synthetic_table(synthetic, seed=seed), source=f"SYNTHETIC toy table (n={synthetic})")
+    else:
+        samples = load_samples(data)
+    algos = list(ALGOS) if algo == "all" else [algo]
+    vals = list(VALIDATIONS) if validate == "all" else [validate]
+    cfg = TrainConfig(hidden=hidden_t, epochs=epochs, feature_noise=feature_noise, val_fraction=val_fraction,
+                      device=device, dtype=torch.float32 if float32 else torch.float64, progress=not quiet)
+    os.makedirs(out, exist_ok=True)
+    click.echo(samples.report(), err=True)
+    click.echo(f"network {cfg.arch.describe()} ({cfg.arch.n_params} weights), device "
+               f"{cfg.resolved_device()}, {nthreads} thread(s)", err=True)
+
+    results = []
+    t0 = time.perf_counter()
+    for v in vals:
+        for a in algos:
+            r = run_validation(samples, a, v, repeats, cfg, seed=seed, test_split=test_split)
+            results.append(r)
+            plot_curves(r, os.path.join(out, f"curves-{a}-{v}.png"))
+            click.echo(f"{a} {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s "
+                       f"({r.row['trainings_per_s']:.2f}/s); stops {r.row['stops']}", err=True)
+    df = table(results)
+    df.insert(0, "data_sha256", data_hash(samples.df))
+    df.insert(0, "data", samples.source)
+    df.to_csv(os.path.join(out, "results.csv"), index=False)
+    title = (f"Test errors, {samples.source}, {cfg.arch.describe()}, {epochs} epochs, feature noise "
+             f"{feature_noise:g}; mean [2.5 %, 97.5 %] over {repeats} repeat(s). MSE×100 is paper eq. (1) "
+             f"on mapminmax [-1, 1]-scaled targets.")
+    md = markdown(df, title)
+    with open(os.path.join(out, "results.md"), "w") as f:
+        f.write(md)
+    click.echo(md)
+
+    models = {}
+    if not no_model:
+        drop_test = vals == ["hov"]
+        for a in algos:
+            s = samples
+            if drop_test:
+                from .experiment import rng_for, split_rows
+                test_rows, _ = split_rows(samples, "hov", test_split, rng_for(seed, "hov")[0])
+                s = prepare(samples.df[~test_rows], source=samples.source)
+                s.n_failed = samples.n_failed
+            ens = fit_ensemble(s, algo=a, repeats=repeats, epochs=epochs, hidden=hidden_t, seed=seed,
+                               feature_noise=feature_noise, val_fraction=val_fraction, device=device,
+                               progress=not quiet, dtype=cfg.dtype)
+            path = ens.save(os.path.join(out, f"model-{a}"))
+            models[a] = path
+            click.echo(f"saved {ens.n_members}-member {a} ensemble ({s.n} training rows) to {path}", err=True)
+    with open(os.path.join(out, "run.json"), "w") as f:
+        json.dump({"data": samples.source, "n_samples": samples.n, "n_failed_excluded": samples.n_failed,
+                   "data_sha256": data_hash(samples.df), "algo": algos, "validate": vals, "repeats": repeats,
+                   "epochs": epochs, "hidden": hidden, "activation": activation, "feature_noise": feature_noise,
+                   "test_split": test_split, "val_fraction": val_fraction, "seed": seed,
+                   "device": str(cfg.resolved_device()), "threads": nthreads, "dtype": str(cfg.dtype),
+                   "wall_s": round(time.perf_counter() - t0, 3), "models": models}, f, indent=2)
+    return 0
+
+
+def main() -> None:
+    run(train, prog_name="train")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,332 @@
+"""Hold-out and leave-one-out validation with repeats, as one batched training problem.
+
+* **HOV** -- the test set is the calibration-phantom rows (tag ``phantom:*``,
+  the paper's 9 inclusions) or, with ``test_split``, a random fraction of the
+  rows.  ``repeats`` networks (independent initialisations) train on the
+  remaining rows.
+* **LOOCV** -- ``n`` folds, one held-out sample each; ``n x repeats``
+  networks, all trained at once.
+
+Every network gets its own ``mapminmax`` scaling fitted on its own training
+fold (noise-free features; rows of an optional validation split included, as
+MATLAB does), and its own feature-noise draw when ``feature_noise > 0``
+(multiplicative: ``O_k (1 + feature_noise * N(0, 1))`` on every row the
+network sees, training and test).
+
+Metrics per output ``j`` and per repeat, pooled over the repeat's test
+predictions ``i`` (HOV: the test rows; LOOCV: the ``n`` held-out samples):
+
+* ``mse100`` -- paper eq. (1), ``(1/n) Σ_i (T_ij − Y_ij)² × 100`` in %, with
+  ``T`` and ``Y`` in the network's ``mapminmax`` ``[-1, 1]`` target scaling;
+* ``mre`` -- mean relative error ``(1/n) Σ_i |Y_ij − T_ij| / |T_ij| × 100`` in %
+  (physical units);
+* ``rmse`` -- root-mean-square error in physical units (mm, mm, kPa).
+
+Across repeats we report the mean, the 2.5/97.5 % percentiles of the repeat
+values (``lo``/``hi``: the 95 % interval of one training run's outcome),
+the standard deviation and a Student-t 95 % confidence interval of the mean
+(``ci_lo``/``ci_hi``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from elastimap.errors import UserError
+
+from . import net as _net
+from .data import FEATURES, PHANTOM_PREFIX, TARGETS, Samples
+from .net import Arch
+from .optim import TrainResult, train_lm, train_scg
+from .problem import NetObjective, mapminmax_apply, mapminmax_fit, mapminmax_reverse
+
+ALGOS = ("lm", "scg")
+VALIDATIONS = ("hov", "loocv")
+METRICS = ("mse100", "mre", "rmse")
+METRIC_LABEL = {"mse100": "MSE×100 (%)", "mre": "MRE (%)", "rmse": "RMSE"}
+
+
+@dataclass
+class TrainConfig:
+    """Everything about how one network is trained (not which rows)."""
+
+    hidden: tuple = ((25, "tansig"), (10, "tansig"))
+    epochs: int = 100
+    feature_noise: float = 0.0
+    val_fraction: float = 0.0      # > 0: random validation rows per network, early stop after 6 failures
+    max_fail: int = 6
+    device: str | None = None
+    dtype: torch.dtype = torch.float64
+    mem_bytes: int | None = None   # memory budget for one chunk of networks
+    progress: bool = True
+
+    @property
+    def arch(self) -> Arch:
+        return Arch(len(FEATURES), tuple(self.hidden), len(TARGETS))
+
+    def resolved_device(self) -> torch.device:
+        if self.device:
+            return torch.device(self.device)
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+    def budget(self) -> int:
+        if self.mem_bytes:
+            return int(self.mem_bytes)
+        return (8 << 30) if self.resolved_device().type == "cuda" else (1 << 30)
+
+
+def check_trainable(n_train: int, arch: Arch, what: str = "training fold") -> None:
+    """Refuse folds that cannot determine the network (``n_train * n_out < n_params``)."""
+    if n_train < 2:
+        raise UserError("data", f"the {what} has {n_train} sample(s); need at least 2")
+    if n_train * arch.n_out < arch.n_params:
+        need = math.ceil(arch.n_params / arch.n_out)
+        raise UserError("data", f"too few samples for the network: the {what} has {n_train} samples "
+                                f"({n_train * arch.n_out} target values) but {arch.describe()} has "
+                                f"{arch.n_params} weights; need >= {need} samples or a smaller --hidden")
+
+
+@dataclass
+class Batch:
+    """``B`` networks over the same ``n`` rows: masks, scaling and the objective."""
+
+    obj: NetObjective
+    theta0: torch.Tensor
+    x_lo: np.ndarray   # (B, 3)
+    x_hi: np.ndarray
+    t_lo: np.ndarray
+    t_hi: np.ndarray
+    X_phys: np.ndarray  # (B, n, 3) features as the networks saw them (noise included) or (1, n, 3)
+    train: np.ndarray   # (B, n) bool (training rows, excluding validation rows)
+    test: np.ndarray    # (B, n) bool
+
+
+def make_batch(X: np.ndarray, T: np.ndarray, fit_rows: np.ndarray, test_rows: np.ndarray | None,
+               cfg: TrainConfig, rng: np.random.Generator, gen: torch.Generator) -> Batch:
+    """Build the batched problem.  ``fit_rows``/``test_rows``: ``(B, n)`` bool."""
+    arch = cfg.arch
+    dev = cfg.resolved_device()
+    B, n = fit_rows.shape
+    x_lo, x_hi = mapminmax_fit(np.broadcast_to(X, (B, n, X.shape[1])), fit_rows)
+    t_lo, t_hi = mapminmax_fit(np.broadcast_to(T, (B, n, T.shape[1])), fit_rows)
+    for lo, hi, names in ((x_lo, x_hi, FEATURES), (t_lo, t_hi, TARGETS)):
+        const = ~(hi > lo)
+        if const.any():
+            j = int(np.nonzero(const.any(axis=0))[0][0])
+            raise UserError("data", f"column {names[j]} is constant over a training fold; cannot scale it")
+    if cfg.feature_noise > 0:
+        Xp = X[None] * (1.0 + cfg.feature_noise * rng.standard_normal((B, n, X.shape[1])))
+    else:
+        Xp = X[None]
+    train = fit_rows.copy()
+    val = None
+    if cfg.val_fraction > 0:
+        val = np.zeros_like(fit_rows)
+        for b in range(B):
+            rows = np.nonzero(fit_rows[b])[0]
+            k = int(round(cfg.val_fraction * rows.size))
+            if k < 1 or rows.size - k < 2:
+                raise UserError("--val-fraction", f"{cfg.val_fraction:g} leaves no usable validation or training rows")
+            pick = rng.choice(rows, size=k, replace=False)
+            val[b, pick] = True
+        train &= ~val
+    check_trainable(int(train.sum(1).min()), arch)
+    tt = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=cfg.dtype, device=dev)  # noqa: E731
+    Xs = mapminmax_apply(Xp, x_lo, x_hi)
+    Ts = mapminmax_apply(T[None], t_lo, t_hi)
+    obj = NetObjective(arch, tt(Xs), tt(Ts), tt(train), None if val is None else tt(val),
+                       None if test_rows is None else tt(test_rows))
+    theta0 = _net.init_nguyen_widrow(arch, B, gen, dtype=cfg.dtype, device=dev)
+    return Batch(obj, theta0, x_lo, x_hi, t_lo, t_hi, Xp, train,
+                 np.zeros_like(train) if test_rows is None else test_rows)
+
+
+def chunk_size(algo: str, cfg: TrainConfig, n: int) -> int:
+    """How many networks one optimiser call handles within the memory budget."""
+    P = cfg.arch.n_params
+    el = torch.finfo(cfg.dtype).bits // 8
+    if algo == "lm":
+        per = 4 * P * P * el + 8 * n * 8 * el
+    else:
+        width = sum(s for s, _ in cfg.hidden) + 3 * len(TARGETS)
+        per = 12 * n * width * el + 8 * P * el
+    return max(1, int(cfg.budget() // per))
+
+
+def train_batch(algo: str, obj: NetObjective, theta0: torch.Tensor, cfg: TrainConfig, desc: str = "") -> TrainResult:
+    """Run LM or SCG on all networks of ``obj``, a memory-bounded chunk at a time."""
+    if algo not in ALGOS:
+        raise UserError("--algo", f"unknown algorithm {algo!r}; use one of {', '.join(ALGOS)}")
+    B = obj.B
+    n = obj.X.shape[1]
+    step = chunk_size(algo, cfg, n)
+    chunks = [torch.arange(s, min(B, s + step), device=theta0.device) for s in range(0, B, step)]
+    bar = None
+    if cfg.progress:
+        from tqdm import tqdm
+        bar = tqdm(total=len(chunks) * (cfg.epochs + 1), desc=desc or algo, unit="epoch", leave=False,
+                   postfix={"nets": B})
+    results = []
+    for idx in chunks:
+        last = [-1]
+
+        def prog(epoch, last=last):
+            if bar is not None:
+                bar.update(epoch - last[0])
+                last[0] = epoch
+
+        fn = train_lm if algo == "lm" else train_scg
+        kw = {"max_fail": cfg.max_fail}
+        r = fn(obj.subset(idx), theta0[idx], epochs=cfg.epochs, progress=prog, **kw)
+        if bar is not None:
+            bar.update(cfg.epochs + 1 - (last[0] + 1))
+        results.append(r)
+    if bar is not None:
+        bar.close()
+    return TrainResult(
+        theta=torch.cat([r.theta for r in results]),
+        epochs=torch.cat([r.epochs for r in results]),
+        stop=[s for r in results for s in r.stop],
+        history={k: torch.cat([r.history[k] for r in results]) for k in results[0].history},
+    )
+
+
+def predict_scaled(theta: torch.Tensor, Xs: torch.Tensor, arch: Arch, mem_bytes: int = 256 << 20) -> np.ndarray:
+    """Outputs in the scaled target space for ``(B, n, 3)`` inputs, chunked; numpy ``(B, n, 3)``."""
+    B, n, _ = Xs.shape
+    width = sum(s for s, _ in arch.hidden) + arch.n_out
+    step = max(1, mem_bytes // (n * width * 8 * 2))
+    out = []
+    with torch.no_grad():
+        for s in range(0, B, step):
+            out.append(_net.forward(theta[s:s + step], Xs[s:s + step], arch).cpu().numpy())
+    return np.concatenate(out).astype(np.float64)
+
+
+def _t975(dof: int) -> float:
+    from scipy.stats import t
+    return float(t.ppf(0.975, dof)) if dof > 0 else float("nan")
+
+
+def summarize(values: np.ndarray) -> dict:
+    """Mean, std, 2.5/97.5 % percentiles and t-interval of the mean of per-repeat values."""
+    v = np.asarray(values, dtype=np.float64)
+    R = v.size
+    mean = float(v.mean())
+    std = float(v.std(ddof=1)) if R > 1 else 0.0
+    half = _t975(R - 1) * std / math.sqrt(R) if R > 1 else float("nan")
+    return {"mean": mean, "std": std, "lo": float(np.percentile(v, 2.5)), "hi": float(np.percentile(v, 97.5)),
+            "ci_lo": mean - half, "ci_hi": mean + half}
+
+
+@dataclass
+class ValidationResult:
+    algo: str
+    validate: str
+    repeats: int
+    row: dict                       # one table row (flat)
+    per_repeat: dict                # metric -> (R, 3)
+    curves: dict                    # name -> (B, epochs+1) numpy, NaN after stop
+    stops: dict                     # reason -> count
+    wall_s: float
+    extra: dict = field(default_factory=dict)
+
+
+def split_rows(samples: Samples, validate: str, test_split: float | None, rng: np.random.Generator):
+    """HOV test rows (bool ``(n,)``) and a note saying how they were chosen."""
+    n = samples.n
+    if validate != "hov":
+        return None, ""
+    if test_split is not None:
+        if not 0 < test_split < 1:
+            raise UserError("--test-split", f"must be in (0, 1) (got {test_split:g})")
+        k = max(1, int(round(test_split * n)))
+        test = np.zeros(n, bool)
+        test[rng.choice(n, size=k, replace=False)] = True
+        return test, f"random {test_split:g} of the rows ({k})"
+    test = samples.df["tag"].str.startswith(PHANTOM_PREFIX).to_numpy()
+    if test.any():
+        return test, f"{int(test.sum())} calibration-phantom rows"
+    k = max(1, int(round(0.1 * n)))
+    test = np.zeros(n, bool)
+    test[rng.choice(n, size=k, replace=False)] = True
+    return test, f"no phantom rows: random 0.1 of the rows ({k}); set --test-split to choose"
+
+
+def rng_for(seed: int, validate: str):
+    """Random streams for one validation scheme (shared by the algorithms: paired comparisons)."""
+    ss = np.random.SeedSequence([int(seed), VALIDATIONS.index(validate) if validate in VALIDATIONS else 9])
+    rng = np.random.default_rng(ss)
+    gen = torch.Generator().manual_seed(int(rng.integers(0, 2**62)))
+    return rng, gen
+
+
+def run_validation(samples: Samples, algo: str, validate: str, repeats: int, cfg: TrainConfig,
+                   seed: int = 0, test_split: float | None = None) -> ValidationResult:
+    """Train and score ``algo`` under ``validate`` with ``repeats`` random initialisations."""
+    if validate not in VALIDATIONS:
+        raise UserError("--validate", f"unknown validation {validate!r}; use one of {', '.join(VALIDATIONS)}")
+    if repeats < 1:
+        raise UserError("--repeats", f"must be >= 1 (got {repeats})")
+    df = samples.df
+    X = df[list(FEATURES)].to_numpy(np.float64)
+    T = df[list(TARGETS)].to_numpy(np.float64)
+    n = len(df)
+    rng, gen = rng_for(seed, validate)
+    test1, note = split_rows(samples, validate, test_split, rng)
+    if validate == "hov":
+        if test1.all():
+            raise UserError("data", "every row is a test (phantom) row; nothing left to train on")
+        test = np.broadcast_to(test1, (repeats, n)).copy()
+        folds = 1
+    else:
+        if n < 3:
+            raise UserError("data", f"LOOCV needs at least 3 samples (got {n})")
+        test = np.tile(np.eye(n, dtype=bool), (repeats, 1))
+        folds = n
+        note = f"{n} folds"
+    fit = ~test
+    check_trainable(int(fit[0].sum()) - int(round(cfg.val_fraction * fit[0].sum())), cfg.arch)
+    t0 = time.perf_counter()
+    batch = make_batch(X, T, fit, test, cfg, rng, gen)
+    res = train_batch(algo, batch.obj, batch.theta0, cfg, desc=f"{algo} {validate}")
+    wall = time.perf_counter() - t0
+    Ys = predict_scaled(res.theta, batch.obj.X, cfg.arch)               # (B, n, 3) scaled
+    Ts = batch.obj.T.cpu().numpy()
+    Yp = mapminmax_reverse(Ys, batch.t_lo, batch.t_hi)
+    B = test.shape[0]
+    R = repeats
+    shp = (R, folds, n)
+    tm = test.reshape(shp)[..., None]
+    cnt = tm.sum(axis=(1, 2))                                            # (R, 1)
+    Tp = np.broadcast_to(T, Yp.shape)
+    per = {
+        "mse100": 100.0 * (((Ts - Ys) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
+        "mre": 100.0 * ((np.abs(Yp - Tp) / np.abs(Tp)).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
+        "rmse": np.sqrt((((Yp - Tp) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt),
+    }
+    trm = batch.train.reshape(shp)[..., None]
+    train_mse = 100.0 * ((((Ts - Ys) ** 2).reshape(*shp, 3) * trm).sum(axis=2) / trm.sum(axis=2)).mean(axis=1)
+    row = {"algo": algo, "validate": validate, "repeats": R, "n_samples": n,
+           "n_train": int(batch.train[0].sum()), "n_test_per_repeat": int(cnt[0, 0]),
+           "trainings": B, "hidden": ",".join(f"{s}" if a == "tansig" else f"{s}:{a}" for s, a in cfg.hidden),
+           "epochs": cfg.epochs, "feature_noise": cfg.feature_noise, "val_fraction": cfg.val_fraction,
+           "test_set": note, "wall_s": round(wall, 3), "trainings_per_s": round(B / wall, 3),
+           "mean_epochs_run": float(res.epochs.double().mean())}
+    for m in METRICS:
+        for j, tname in enumerate(TARGETS):
+            for k, v in summarize(per[m][:, j]).items():
+                row[f"{m}_{tname}_{k}"] = v
+    for j, tname in enumerate(TARGETS):
+        row[f"train_mse100_{tname}_mean"] = float(train_mse[:, j].mean())
+    stops: dict[str, int] = {}
+    for s in res.stop:
+        stops[s] = stops.get(s, 0) + 1
+    row["stops"] = ";".join(f"{k}:{v}" for k, v in sorted(stops.items()))
+    curves = {k: v.numpy() for k, v in res.history.items() if k in ("train", "test", "val")}
+    return ValidationResult(algo, validate, R, row, per, curves, stops, wall)

@@ -1,0 +1,282 @@
+"""Batched Levenberg–Marquardt and scaled conjugate gradient.
+
+Both optimisers advance ``B`` independent problems in lock-step: every
+per-problem scalar of the textbook algorithm (``mu``, ``lambda``, step sizes,
+success flags, validation counters) is a length-``B`` tensor and every branch
+is a mask.  Problems that meet a stopping rule drop out of the active set, so
+the remaining work shrinks as networks finish.
+
+An *objective* is any object with
+
+* ``B`` (number of problems), ``subset(idx)`` -> objective for those problems;
+* ``perf(theta)`` -> ``(B,)`` and ``perf_grad(theta)`` -> ``(perf, grad)`` (SCG);
+* ``sse(theta)`` -> ``(B,)`` and ``sse_jj_je(theta)`` -> ``(sse, JᵀJ, Jᵀr)`` (LM),
+  ``n_elem`` -> ``(B,)`` number of squared errors in the training SSE;
+* ``has_val`` and ``monitor(theta)`` -> ``dict name -> (B,)`` (must contain
+  ``"val"`` when ``has_val``); recorded every epoch, ``"val"`` drives early stopping.
+
+:class:`training.problem.NetObjective` is the MLP one; the tests use small
+analytic ones.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+
+@dataclass
+class TrainResult:
+    theta: torch.Tensor                 # (B, P) final parameters (best-validation ones when validating)
+    epochs: torch.Tensor                # (B,) epochs run
+    stop: list[str]                     # stopping reason per problem
+    history: dict[str, torch.Tensor] = field(default_factory=dict)  # name -> (B, epochs+1), NaN after stop
+
+
+def _new_history(names, B, epochs, dtype):
+    return {k: torch.full((B, epochs + 1), float("nan"), dtype=dtype) for k in names}
+
+
+def _record(hist, active_cpu, epoch, values: dict):
+    for k, v in values.items():
+        if k not in hist:
+            continue
+        hist[k][active_cpu, epoch] = v.detach().to("cpu", hist[k].dtype)
+
+
+class _Validation:
+    """MATLAB's validation bookkeeping: remember the best-validation parameters, count failures."""
+
+    def __init__(self, theta):
+        B = theta.shape[0]
+        self.best_theta = theta.clone()
+        self.best = torch.full((B,), float("inf"), dtype=theta.dtype, device=theta.device)
+        self.fails = torch.zeros(B, dtype=torch.long, device=theta.device)
+
+    def update(self, active, theta_a, v):
+        better = v < self.best[active]
+        worse = v > self.best[active]
+        ib = active[better]
+        self.best[ib] = v[better]
+        self.best_theta[ib] = theta_a[better]
+        self.fails[ib] = 0
+        self.fails[active[worse]] += 1
+
+
+def train_lm(obj, theta0: torch.Tensor, *, epochs: int = 100, mu: float = 1e-3, mu_dec: float = 0.1,
+             mu_inc: float = 10.0, mu_max: float = 1e10, min_grad: float = 1e-7, max_fail: int = 6,
+             goal: float = 0.0, progress=None) -> TrainResult:
+    """Levenberg–Marquardt back-propagation, batched (MATLAB ``trainlm`` semantics).
+
+    References: K. Levenberg (1944); D. W. Marquardt (1963); M. T. Hagan and
+    M. B. Menhaj, "Training feedforward networks with the Marquardt
+    algorithm", IEEE Trans. Neural Networks 5(6):989–993, 1994; MATLAB Neural
+    Network Toolbox ``trainlm``.
+
+    Each epoch, per problem: compute the training SSE ``E = Σ r²``, ``JᵀJ`` and
+    ``Jᵀr``; stop if ``perf <= goal``, the epoch limit is reached, ``mu > mu_max``,
+    ``‖∇E‖ = 2‖Jᵀr‖ < min_grad`` or (with validation) the validation error
+    has failed to improve ``max_fail`` times in a row.  Otherwise try
+    ``Δθ = -(JᵀJ + mu I)⁻¹ Jᵀr`` (Cholesky); accept it if it lowers ``E``
+    (then ``mu *= mu_dec``, floored at 1e-20), else ``mu *= mu_inc`` and
+    retry while ``mu <= mu_max``.  With validation the parameters with the
+    lowest validation error are returned (as MATLAB does).
+
+    ``perf`` in the history is the training MSE ``E / n_elem``.
+    """
+    theta = theta0.clone()
+    B, P = theta.shape
+    dev, dt = theta.device, theta.dtype
+    mu_t = torch.full((B,), float(mu), dtype=dt, device=dev)
+    val = _Validation(theta) if obj.has_val else None
+    stop = [""] * B
+    ep_run = torch.zeros(B, dtype=torch.long)
+    hist = _new_history(["train", "val", "test", "mu"], B, epochs, dt)
+    eye = torch.eye(P, dtype=dt, device=dev)
+    active = torch.arange(B, device=dev)
+
+    for epoch in range(epochs + 1):
+        if active.numel() == 0:
+            break
+        o = obj.subset(active)
+        th = theta[active]
+        E, jj, je = o.sse_jj_je(th)
+        perf = E / o.n_elem
+        grad = 2.0 * je.norm(dim=1)
+        mon = o.monitor(th)
+        act_cpu = active.cpu()
+        _record(hist, act_cpu, epoch, {"train": perf, "mu": mu_t[active], **mon})
+        if val is not None:
+            val.update(active, th, mon["val"])
+        reasons = [
+            (perf <= goal, "goal"),
+            (torch.full_like(perf, epoch == epochs, dtype=torch.bool), "epochs"),
+            (mu_t[active] > mu_max, "mu_max"),
+            (grad < min_grad, "min_grad"),
+        ]
+        if val is not None:
+            reasons.append((val.fails[active] >= max_fail, "val_fail"))
+        done = torch.zeros_like(perf, dtype=torch.bool)
+        for m, name in reasons:
+            new = m & ~done
+            for i in act_cpu[new.cpu()].tolist():
+                stop[i] = name
+            done |= m
+        ep_run[act_cpu[done.cpu()]] = epoch
+        keep = ~done
+        if not keep.any():
+            active = active[keep]
+            break
+        # --- Levenberg–Marquardt trials for the problems still running
+        loc = keep.nonzero().squeeze(1)
+        jj, je, th, E = jj[loc], je[loc], th[loc], E[loc]
+        gidx = active[loc]
+        o = o.subset(loc)
+        searching = torch.ones(loc.numel(), dtype=torch.bool, device=dev)
+        while True:
+            q = searching.nonzero().squeeze(1)
+            if q.numel() == 0:
+                break
+            m_q = mu_t[gidx[q]]
+            A = jj[q] + m_q[:, None, None] * eye
+            L, info = torch.linalg.cholesky_ex(A)
+            dx = -torch.cholesky_solve(je[q].unsqueeze(-1), L).squeeze(-1)
+            cand = th[q] + dx
+            E2 = o.subset(q).sse(cand)
+            ok = (info == 0) & torch.isfinite(E2) & (E2 < E[q])
+            acc = q[ok]
+            theta[gidx[acc]] = cand[ok]
+            mu_t[gidx[acc]] = torch.clamp(m_q[ok] * mu_dec, min=1e-20)
+            searching[acc] = False
+            rej = q[~ok]
+            mu_t[gidx[rej]] = m_q[~ok] * mu_inc
+            searching[rej[mu_t[gidx[rej]] > mu_max]] = False
+        active = active[keep]
+        if progress is not None:
+            progress(epoch)
+    final = val.best_theta if val is not None else theta
+    return TrainResult(final, ep_run, stop, hist)
+
+
+def train_scg(obj, theta0: torch.Tensor, *, epochs: int = 100, sigma: float = 5e-5, lambda_: float = 5e-7,
+              min_grad: float = 1e-6, max_fail: int = 6, goal: float = 0.0, progress=None) -> TrainResult:
+    """Scaled conjugate gradient, batched (Møller 1993; MATLAB ``trainscg``).
+
+    Reference: M. F. Møller, "A scaled conjugate gradient algorithm for fast
+    supervised learning", Neural Networks 6(4):525–533, 1993; MATLAB Neural
+    Network Toolbox ``trainscg`` (defaults ``sigma = 5e-5``, ``lambda = 5e-7``,
+    ``min_grad = 1e-6``, ``max_fail = 6``).
+
+    Per problem, with ``r = -∇E`` and search direction ``p`` (initially ``r``):
+
+    1. if the last step succeeded: ``σ_k = σ/|p|``,
+       ``s = (∇E(θ + σ_k p) − ∇E(θ))/σ_k``, ``δ = pᵀs``;
+    2. scale: ``δ += (λ − λ̄)|p|²``; if ``δ <= 0``: ``λ̄ = 2(λ − δ/|p|²)``,
+       ``δ = −δ + λ|p|²``, ``λ = λ̄``;
+    3. ``μ = pᵀr``, ``α = μ/δ``, comparison ``Δ = 2δ(E(θ) − E(θ+αp))/μ²``;
+    4. if ``Δ >= 0``: accept ``θ += αp``, ``λ̄ = 0``; restart ``p = r`` every
+       ``P`` iterations, else ``β = (|r'|² − r'ᵀr)/μ``, ``p = r' + βp``;
+       if ``Δ >= 0.75``: ``λ /= 4``.  Else ``λ̄ = λ`` (failure);
+    5. if ``Δ < 0.25``: ``λ += δ(1 − Δ)/|p_k|²`` (``p_k`` the direction of this iteration).
+
+    Stopping rules as :func:`train_lm` (goal, epochs, ``|∇E| < min_grad``,
+    validation failures).  ``E`` is the objective's ``perf`` (the training MSE
+    for networks, as in MATLAB).
+    """
+    theta = theta0.clone()
+    B, P = theta.shape
+    dev, dt = theta.device, theta.dtype
+    perf, g = obj.perf_grad(theta)
+    gX = -g
+    dX = gX.clone()
+    nrm = (dX * dX).sum(1)
+    success = torch.ones(B, dtype=torch.bool, device=dev)
+    lam = torch.full((B,), float(lambda_), dtype=dt, device=dev)
+    lamb = torch.zeros(B, dtype=dt, device=dev)
+    delta = torch.zeros(B, dtype=dt, device=dev)
+    k_iter = torch.zeros(B, dtype=torch.long, device=dev)
+    val = _Validation(theta) if obj.has_val else None
+    stop = [""] * B
+    ep_run = torch.zeros(B, dtype=torch.long)
+    hist = _new_history(["train", "val", "test"], B, epochs, dt)
+    active = torch.arange(B, device=dev)
+
+    for epoch in range(epochs + 1):
+        if active.numel() == 0:
+            break
+        o = obj.subset(active)
+        th = theta[active]
+        pa, ga = perf[active], gX[active]
+        mon = o.monitor(th)
+        act_cpu = active.cpu()
+        _record(hist, act_cpu, epoch, {"train": pa, **mon})
+        if val is not None:
+            val.update(active, th, mon["val"])
+        reasons = [
+            (pa <= goal, "goal"),
+            (torch.full_like(pa, epoch == epochs, dtype=torch.bool), "epochs"),
+            (ga.norm(dim=1) < min_grad, "min_grad"),
+        ]
+        if val is not None:
+            reasons.append((val.fails[active] >= max_fail, "val_fail"))
+        done = torch.zeros_like(pa, dtype=torch.bool)
+        for m, name in reasons:
+            new = m & ~done
+            for i in act_cpu[new.cpu()].tolist():
+                stop[i] = name
+            done |= m
+        ep_run[act_cpu[done.cpu()]] = epoch
+        keep = ~done
+        loc = keep.nonzero().squeeze(1)
+        active = active[keep]
+        if active.numel() == 0:
+            break
+        o = o.subset(loc)
+        a = active
+        th, pa, ga = th[loc], pa[loc], ga[loc]
+        p, nr, lk, lb, dk, succ = dX[a], nrm[a], lam[a], lamb[a], delta[a], success[a]
+
+        # 1. second-order information (only used where the last step succeeded)
+        if succ.any():
+            sig = sigma / nr.sqrt()
+            _, g_t = o.perf_grad(th + sig[:, None] * p)
+            s = (g_t - (-ga)) / sig[:, None]
+            dk = torch.where(succ, (p * s).sum(1), dk)
+        # 2. scale
+        dk = dk + (lk - lb) * nr
+        neg = dk <= 0
+        lb = torch.where(neg, 2.0 * (lk - dk / nr), lb)
+        dk = torch.where(neg, -dk + lk * nr, dk)
+        lk = torch.where(neg, lb, lk)
+        # 3. step size and comparison parameter
+        muk = (p * ga).sum(1)
+        alpha = muk / dk
+        th_new = th + alpha[:, None] * p
+        perf_new, g_new = o.perf_grad(th_new)
+        dif = 2.0 * dk * (pa - perf_new) / (muk * muk)
+        ok = (dif >= 0) & torch.isfinite(perf_new)
+        dif = torch.where(torch.isfinite(dif), dif, torch.zeros_like(dif))
+        # 4. success: move, new direction
+        k_new = k_iter[a] + ok.long()
+        r_new = -g_new
+        beta = ((r_new * r_new).sum(1) - (r_new * ga).sum(1)) / muk
+        restart = (k_new % P) == 0
+        p_new = torch.where(restart[:, None], r_new, r_new + beta[:, None] * p)
+        okc = ok[:, None]
+        theta[a] = torch.where(okc, th_new, th)
+        perf[a] = torch.where(ok, perf_new, pa)
+        gX[a] = torch.where(okc, r_new, ga)
+        dX[a] = torch.where(okc, p_new, p)
+        nrm[a] = torch.where(ok, (p_new * p_new).sum(1), nr)
+        k_iter[a] = k_new
+        lb = torch.where(ok, torch.zeros_like(lb), lk)
+        success[a] = ok
+        # 5. adapt the scale parameter (Møller step 7 uses the |p_k|² of this iteration)
+        lk = torch.where(dif < 0.25, lk + dk * (1.0 - dif) / nr, lk)
+        lk = torch.where(dif >= 0.75, 0.25 * lk, lk)
+        lam[a], lamb[a], delta[a] = lk, lb, dk
+        if progress is not None:
+            progress(epoch)
+    final = val.best_theta if val is not None else theta
+    return TrainResult(final, ep_run, stop, hist)

@@ -1,0 +1,79 @@
+"""Error tables (CSV, Markdown) and training-curve figures."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pandas as pd
+
+from .data import TARGETS, UNITS
+from .experiment import METRICS, ValidationResult
+
+PAPER_BEST = {"algo": "scg", "validate": "loocv", "epochs": 100,
+              "mse100": {"d": 0.58, "h": 1.12, "E": 0.51}}  # paper section 5.2 (MSE x 100 %)
+
+
+def table(results: list[ValidationResult]) -> pd.DataFrame:
+    return pd.DataFrame([r.row for r in results])
+
+
+def _cell(row, m, t, digits=3):
+    mean, lo, hi = row[f"{m}_{t}_mean"], row[f"{m}_{t}_lo"], row[f"{m}_{t}_hi"]
+    if row["repeats"] > 1:
+        return f"{mean:.{digits}g} [{lo:.{digits}g}, {hi:.{digits}g}]"
+    return f"{mean:.{digits}g}"
+
+
+def markdown(df: pd.DataFrame, title: str | None = None) -> str:
+    """One row per (algorithm, validation, repeats): mean [2.5 %, 97.5 %] across repeats."""
+    heads = ["algo", "validation", "repeats", "n train"]
+    for m, unit_fn in (("mse100", lambda t: "%"), ("mre", lambda t: "%"), ("rmse", lambda t: UNITS[t])):
+        label = {"mse100": "MSE×100", "mre": "MRE", "rmse": "RMSE"}[m]
+        heads += [f"{label} {t} ({unit_fn(t)})" for t in TARGETS]
+    heads += ["wall s", "nets/s"]
+    lines = []
+    if title:
+        lines += [title, ""]
+    lines += ["| " + " | ".join(heads) + " |", "|" + "---|" * len(heads)]
+    for _, row in df.iterrows():
+        cells = [row["algo"].upper(), row["validate"].upper(), str(row["repeats"]), str(row["n_train"])]
+        for m in METRICS:
+            cells += [_cell(row, m, t) for t in TARGETS]
+        cells += [f"{row['wall_s']:.1f}", f"{row['trainings_per_s']:.2f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_curves(res: ValidationResult, path: str, label: str = "") -> str:
+    """Median and 10–90 % band over networks of the training (and test) MSE per epoch."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
+    for name, color in (("train", "C0"), ("val", "C2"), ("test", "C3")):
+        c = res.curves.get(name)
+        if c is None or np.isnan(c).all():
+            continue
+        c = pd.DataFrame(c).ffill(axis=1).to_numpy()      # a stopped network keeps its last value
+        with np.errstate(all="ignore"):
+            med = np.nanmedian(c, axis=0)
+            lo, hi = np.nanpercentile(c, 10, axis=0), np.nanpercentile(c, 90, axis=0)
+        ep = np.arange(c.shape[1])
+        what = {"train": "training", "val": "validation", "test": "test"}[name]
+        ax.plot(ep, med, color=color, label=f"{what} (median)")
+        ax.fill_between(ep, lo, hi, color=color, alpha=0.2, lw=0)
+    ax.set_yscale("log")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("MSE on [-1, 1]-scaled targets")
+    ax.set_title(f"{res.algo.upper()} / {res.validate.upper()}, {res.curves['train'].shape[0]} networks{label}",
+                 fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
