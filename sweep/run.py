@@ -128,7 +128,26 @@ def make_plan(cfg: SweepConfig) -> Plan:
             old = man.get("base_params", {}).get("disc", {})
             raise UserError("--out", f"{out} holds a sweep with other solver settings (mesh={old.get('mesh')}, "
                                      f"interface={old.get('interface')}); use the same settings to resume, or another --out")
+        _check_landed_match(out, samples)
     return Plan(cfg, base, samples, out, ranges)
+
+
+def _check_landed_match(out: Path, samples: list[dict]) -> None:
+    """Refuse to resume when a landed id carries other (d, h, E) than the planned sample of that id
+    (an edited phantoms file or --samples table reusing ids): its row would silently be kept."""
+    if not any(out.glob("*.parquet")):
+        return
+    df = io.read_table(out, ["sample_id", "d", "h", "E"])
+    landed = {r.sample_id: (r.d, r.h, r.E) for r in df.itertuples()}
+    bad = []
+    for s in samples:
+        got = landed.get(s["sample_id"])
+        if got is not None and any(abs(a - float(s[k])) > 1e-9 * max(1.0, abs(a)) for a, k in zip(got, dsg.NAMES)):
+            bad.append(f"{s['sample_id']} (landed d={got[0]:g}, h={got[1]:g}, E={got[2]:g}; "
+                       f"now d={s['d']:g}, h={s['h']:g}, E={s['E']:g})")
+    if bad:
+        raise UserError("--out", f"{out} already holds {len(bad)} sample id(s) with other parameters: "
+                                 f"{'; '.join(bad[:3])}; use another --out or other sample ids")
 
 
 # ----------------------------------------------------------------------------- lock
@@ -189,8 +208,9 @@ def _start_client(cfg: SweepConfig):
         except Exception as exc:
             raise UserError("--scheduler", f"cannot connect to {cfg.scheduler} ({type(exc).__name__}: {exc})") from None
         return client, None
+    # ":0": a free port for the scheduler's HTTP endpoint, so concurrent sweeps do not collide on 8787
     cluster = LocalCluster(n_workers=cfg.jobs, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.CRITICAL)
+                           dashboard_address=":0", silence_logs=logging.CRITICAL)
     return Client(cluster), cluster
 
 
@@ -199,6 +219,7 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
     t_start = time.perf_counter()
     plan = plan or make_plan(cfg)
     out = plan.out
+    remote = _start_client(cfg) if cfg.scheduler else None  # a bad address fails before anything is written
     out.mkdir(parents=True, exist_ok=True)
     lock = _acquire_lock(out)
     summary = {"out": str(out), "planned": len(plan.samples), "done": 0, "ok": 0, "failed": 0, "skipped": 0,
@@ -221,7 +242,7 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
         man["runs"].append(run_log)
         io.write_manifest(out, man)
         if todo:
-            _fan_out(cfg, plan, todo, summary)
+            _fan_out(cfg, plan, todo, summary, remote)
     except KeyboardInterrupt:
         summary["interrupted"] = True  # landed rows stay; the caller reports and exits 130
     finally:
@@ -241,10 +262,12 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
                 io.write_manifest(out, man)
         finally:
             lock.unlink(missing_ok=True)
+            if remote is not None:
+                remote[0].close()
     return summary
 
 
-def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict) -> None:
+def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remote=None) -> None:
     from distributed import as_completed
     from tqdm import tqdm
 
@@ -257,7 +280,7 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict) -> N
         mod.warmup(first)
     summary["warmup_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    client, cluster = _start_client(cfg)
+    client, cluster = remote if remote is not None else _start_client(cfg)
     summary["cluster_start_s"] = time.perf_counter() - t0
     summary["workers"] = len(client.scheduler_info(n_workers=-1)["workers"]) if cluster is None else cfg.jobs
     errors: list[tuple[str, str]] = []
@@ -307,10 +330,10 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict) -> N
             summary["worker_utilisation"] = solve_seconds / (fan_wall * max(summary["workers"], 1))
     finally:
         summary["errors"] = errors
-        try:
-            client.close()
-        finally:
-            if cluster is not None:
+        if cluster is not None:  # a local cluster is ours to stop; a remote client is closed by run()
+            try:
+                client.close()
+            finally:
                 cluster.close()
 
 

@@ -159,6 +159,10 @@ def test_fake_sweep_phantoms_user_rows_and_resume(tmp_path):
     # other solver settings into the same directory are refused
     r = _sweep([*args[:-4], "--mesh", "coarse", "--out", str(out)], _fake())
     assert r.returncode == 2 and "other solver settings" in r.stderr
+    # a reused id with other parameters (edited table) is refused, not silently kept
+    table.write_text("sample_id,d,h,E\nmine-1,6,7,41\n")
+    r = _sweep(args, _fake())
+    assert r.returncode == 2 and "mine-1 (landed d=6, h=7, E=40; now d=6, h=7, E=41)" in r.stderr, r.stderr
 
 
 def test_crash_recorded_failed_others_land_then_retry(tmp_path):
@@ -234,7 +238,7 @@ def test_external_scheduler_real_solves(tmp_path, monkeypatch):
     from distributed import LocalCluster
 
     monkeypatch.delenv("ELASTIMAP_SWEEP_SOLVER", raising=False)  # the workers inherit this process's env
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
         out = tmp_path / "ds"
         r = _sweep(["run", "--n", "3", "--mesh", "tiny", "--out", str(out), "--scheduler", cluster.scheduler_address],
                    _env())
