@@ -302,8 +302,15 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                                 pure=False)
             by_future[fut] = s
         tty = sys.stderr.isatty()
+        try:
+            size = os.get_terminal_size(sys.stderr.fileno())
+        except (OSError, ValueError):
+            size = os.terminal_size((0, 0))
+        # a pseudo-terminal of size 0x0 (some CI runners, `script`) would make tqdm print nothing
+        sized = size.columns > 0 and size.lines > 0
         bar = tqdm(total=len(todo), desc="sweep", unit="sample", file=sys.stderr, disable=not cfg.progress,
-                   mininterval=0.5 if tty else 15.0, dynamic_ncols=True, smoothing=0.1)
+                   mininterval=0.5 if tty else 15.0, dynamic_ncols=sized, ncols=None if sized else 100,
+                   nrows=None if sized else 50, smoothing=0.1)
         since_compact = 0
         for fut in as_completed(list(by_future)):
             s = by_future.pop(fut)
