@@ -125,7 +125,10 @@ def _canon_act(name: str, param: str) -> str:
 
 def _act(z: torch.Tensor, name: str) -> torch.Tensor:
     if name == "tansig":
-        return torch.tanh(z)
+        # MATLAB's tansig formula 2/(1+exp(-2n)) - 1: equal to tanh to rounding, and faster
+        # than torch.tanh in float64 on the CPU
+        s = torch.sigmoid(z * 2.0)
+        return s * 2.0 - 1.0 if s.requires_grad else s.mul_(2.0).sub_(1.0)
     if name == "logsig":
         return torch.sigmoid(z)
     return z

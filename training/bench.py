@@ -1,0 +1,99 @@
+"""Benchmark: LOOCV x repeats trainings per second on the SYNTHETIC toy table.
+
+    python -m training.bench --n 512 --repeats 10              # the full goal problem
+    python -m training.bench --n 512 --repeats 1 --folds 64    # a slice of it, projected
+
+Trains ``folds x repeats`` leave-one-out networks (``folds`` defaults to all
+``n``) exactly as ``train --validate loocv`` does, and prints wall time, CPU
+time, trainings per second and the projected wall time of the full
+``n x repeats`` LOOCV.  Data are the analytic toy table
+(:func:`training.data.synthetic_table`), so only the timings mean anything.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+
+import click
+import numpy as np
+
+from elastimap.cli_util import run
+from elastimap.errors import UserError
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--n", "n", default=512, show_default=True, help="Samples in the SYNTHETIC toy table.")
+@click.option("--repeats", default=10, show_default=True)
+@click.option("--folds", default=0, help="LOOCV folds actually trained (0 = all n); the rest is projected.")
+@click.option("--algo", default="scg,lm", show_default=True, help="Comma-separated: scg, lm.")
+@click.option("--epochs", default=100, show_default=True)
+@click.option("--hidden", default="25,10", show_default=True)
+@click.option("--device", default=None)
+@click.option("--threads", default=0, help="Torch CPU threads (0 = torch default).")
+@click.option("--float32", "float32", is_flag=True)
+@click.option("--quiet", is_flag=True)
+def bench(n, repeats, folds, algo, epochs, hidden, device, threads, float32, quiet):
+    """Time batched LOOCV training on the SYNTHETIC toy table."""
+    import torch
+
+    from ._perf import set_threads, tune_malloc
+    from .data import FEATURES, TARGETS, synthetic_table
+    from .experiment import TrainConfig, make_batch, train_batch
+    from .net import parse_hidden
+
+    algos = [a.strip() for a in algo.split(",") if a.strip()]
+    for a in algos:
+        if a not in ("scg", "lm"):
+            raise UserError("--algo", f"unknown algorithm {a!r}; use scg and/or lm")
+    if n < 20:
+        raise UserError("--n", f"need at least 20 samples (got {n})")
+    if repeats < 1:
+        raise UserError("--repeats", f"must be >= 1 (got {repeats})")
+    folds = n if folds in (0, None) else int(folds)
+    if not 1 <= folds <= n:
+        raise UserError("--folds", f"must be in [1, {n}] (got {folds})")
+    tune_malloc()
+    nthreads = set_threads(threads)
+    cfg = TrainConfig(hidden=parse_hidden(hidden), epochs=epochs, device=device,
+                      dtype=torch.float32 if float32 else torch.float64, progress=not quiet)
+    df = synthetic_table(n, seed=0)
+    X, T = df[list(FEATURES)].to_numpy(), df[list(TARGETS)].to_numpy()
+    fit = np.ones((repeats * folds, n), bool)
+    fold_idx = np.tile(np.arange(folds), repeats)
+    fit[np.arange(repeats * folds), fold_idx] = False
+    dev = cfg.resolved_device()
+    click.echo(f"SYNTHETIC toy table n={n}; LOOCV {folds}/{n} folds x {repeats} repeats = {fit.shape[0]} trainings "
+               f"per algorithm; {cfg.arch.describe()} ({cfg.arch.n_params} weights), {epochs} epochs, "
+               f"{str(cfg.dtype).replace('torch.', '')}, device {dev}, {nthreads} thread(s), "
+               f"{os.cpu_count()} CPU(s) visible, {platform.processor() or platform.machine()}")
+    if dev.type == "cuda":
+        click.echo(f"GPU: {torch.cuda.get_device_name(dev)}")
+    rows = []
+    for a in algos:
+        b = make_batch(X, T, fit, ~fit, cfg, np.random.default_rng(0), torch.Generator().manual_seed(0))
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+        t0, c0 = time.perf_counter(), time.process_time()
+        res = train_batch(a, b.obj, b.theta0, cfg, desc=f"bench {a}")
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        k = fit.shape[0]
+        full = n * repeats
+        rows.append((a, k, wall, cpu, k / wall, full / (k / wall), float(res.epochs.double().mean())))
+    click.echo("")
+    click.echo("| algo | trainings | wall s | CPU s | trainings/s | projected LOOCV x repeats (min) | mean epochs |")
+    click.echo("|---|---|---|---|---|---|---|")
+    for a, k, wall, cpu, rate, proj, ep in rows:
+        click.echo(f"| {a.upper()} | {k} | {wall:.1f} | {cpu:.1f} | {rate:.2f} | {proj / 60:.1f} | {ep:.1f} |")
+    return 0
+
+
+def main() -> None:
+    run(bench, prog_name="python -m training.bench")
+
+
+if __name__ == "__main__":
+    main()
