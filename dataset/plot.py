@@ -3,7 +3,7 @@
 * ``scatter3d.png``  the paper's Fig. 5 style: one 3-D panel per feature, a circle at
   (d, h, E) for every ok sample, area and colour from the feature rescaled to 0-255
 * ``features_vs_params.png``  each of O1, O2, O3, force against each of d, h, E
-  (colour: the third... E for d/h panels, d for the E panel)
+  (colour: log10 E in the d and h panels, d in the E panels)
 * ``images.png``  a grid of example difference elasticity images, chosen across the O1 range
 """
 
@@ -29,6 +29,19 @@ def _rescale255(x: np.ndarray) -> np.ndarray:
 def _label(c: str) -> str:
     u = COLUMNS[c][1]
     return f"{c} [{u}]" if u else c
+
+
+def _log_axis(ax, x) -> None:
+    """Log x axis with plain numbers at 1-2-5 steps (matplotlib's default labels collide)."""
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+    ax.set_xscale("log")
+    lo, hi = np.nanmin(x), np.nanmax(x)
+    ticks = [m * 10.0 ** k for k in range(-3, 6) for m in (1, 2, 5) if lo <= m * 10.0 ** k <= hi]
+    if len(ticks) >= 2:
+        ax.set_xticks(ticks)
+    ax.xaxis.set_major_formatter(ScalarFormatter())
+    ax.xaxis.set_minor_formatter(NullFormatter())
 
 
 def plot_all(path, out_dir, n_images: int = 12) -> list[Path]:
@@ -79,14 +92,14 @@ def plot_all(path, out_dir, n_images: int = 12) -> list[Path]:
         for j, par in enumerate(TARGETS):
             ax = axes[i, j]
             x = df[par].to_numpy(dtype=float)
-            colour, cname = (E, "E") if par != "E" else (d, "d")
-            sc = ax.scatter(x, y, c=colour, s=8, cmap="viridis", norm="log" if cname == "E" else None)
+            colour, clabel = (np.log10(E), "colour: log10 E [kPa]") if par != "E" else (d, f"colour: {_label('d')}")
+            sc = ax.scatter(x, y, c=colour, s=8, cmap="viridis")
             if par == "E":
-                ax.set_xscale("log")
+                _log_axis(ax, x)
             ax.set_xlabel(_label(par))
             ax.set_ylabel(_label(feat))
             if i == 0:
-                fig.colorbar(sc, ax=ax, label=f"colour: {_label(cname)}")
+                fig.colorbar(sc, ax=ax, label=clabel)
     fig.tight_layout()
     files.append(out / "features_vs_params.png")
     fig.savefig(files[-1], dpi=100)
