@@ -52,15 +52,18 @@ def _common(f):
 @click.option("--scheduler", type=str, default=None,
               help="address of a running dask scheduler (tcp://host:8786) instead of a local cluster")
 @click.option("--batch-rows", type=int, default=256, show_default=True, help="rows per merged batch file")
+@click.option("--timeout", type=float, default=1800.0, show_default=True,
+              help="seconds one sample may take before it is recorded as failed and its worker restarted (0: no limit)")
 @click.option("--no-progress", is_flag=True, help="no progress bar")
 def run_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, jobs, out, retry_failed, scheduler,
-            batch_rows, no_progress):
+            batch_rows, timeout, no_progress):
     """Run one solve per sample (resumable) and land the rows in OUT."""
     from .run import SweepConfig, format_summary, make_plan, run
 
     cfg = SweepConfig(n=n, jobs=jobs, seed=seed, out=out, mesh=mesh, interface=interface, design=design,
                       ranges=ranges, samples=samples, phantoms=phantoms, retry_failed=retry_failed,
-                      scheduler=scheduler, batch_rows=batch_rows, progress=not no_progress, argv=sys.argv[1:])
+                      scheduler=scheduler, batch_rows=batch_rows, timeout=timeout, progress=not no_progress,
+                      argv=sys.argv[1:])
     plan = make_plan(cfg)
     if scheduler and jobs != 2:
         click.echo("note: --jobs is ignored with --scheduler (the cluster decides the workers)", err=True)

@@ -16,12 +16,15 @@ a small summary (no image) to the driver.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import importlib
 import json
 import math
 import os
 import resource
+import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -87,22 +90,52 @@ def result_row(sample: dict, p: SolveParams, res, seconds: float) -> dict:
     return row
 
 
-def run_sample(sample: dict, base: dict, out_dir: str) -> dict:
-    """Solve one sample and land its row in ``out_dir``; return ``{sample_id, status, seconds, error}``."""
+def timeout_marker(out_dir: str, sample_id: str) -> Path:
+    return Path(out_dir) / f".timeout-{hashlib.sha1(sample_id.encode()).hexdigest()[:16]}"
+
+
+def run_sample(sample: dict, base: dict, out_dir: str, timeout: float | None = None) -> dict:
+    """Solve one sample and land its row in ``out_dir``; return ``{sample_id, status, seconds, error}``.
+
+    With ``timeout`` (s), a watchdog thread lands a ``failed`` row ("Timeout ...") and ends the
+    worker process if the solve has not returned by then (a hung solve cannot be interrupted from
+    Python); it leaves a marker so that dask's retry of the task returns at once instead of hanging
+    a second worker.
+    """
     p = sample_params(sample, SolveParams.from_dict(base))
+    sid = sample["sample_id"]
+    marker = timeout_marker(out_dir, sid) if timeout else None
+    timeout_msg = f"Timeout: no result after {timeout:g} s; the worker was stopped" if timeout else ""
+    if marker is not None and marker.exists():
+        return {"sample_id": sid, "status": "failed", "seconds": float(timeout), "error": timeout_msg}
+    watchdog = None
+    if timeout:
+        def _fire():
+            try:
+                io.land_rows(out_dir, [failed_row(sample, p, timeout_msg, float(timeout))])
+                marker.write_text(sid)
+            finally:
+                os._exit(75)
+        watchdog = threading.Timer(timeout, _fire)
+        watchdog.daemon = True
+        watchdog.start()
     shape = pixel = None  # a failed row has no image: its file carries no image geometry
     t0 = time.perf_counter()
     try:
-        res = solver_module().solve(p)
-        seconds = time.perf_counter() - t0
-        row = result_row(sample, p, res, seconds)
-        if row["status"] == "ok":
-            shape, pixel = tuple(np.shape(res.image)), float(res.pixel)
-    except Exception as exc:  # a failing sample is data, not a crash of the sweep
-        seconds = time.perf_counter() - t0
-        msg = str(exc).strip().replace("\n", " ")
-        row = failed_row(sample, p, f"{type(exc).__name__}: {msg}"[:2000], seconds)
-    io.land_rows(out_dir, [row], shape, pixel)
+        try:
+            res = solver_module().solve(p)
+            seconds = time.perf_counter() - t0
+            row = result_row(sample, p, res, seconds)
+            if row["status"] == "ok":
+                shape, pixel = tuple(np.shape(res.image)), float(res.pixel)
+        except Exception as exc:  # a failing sample is data, not a crash of the sweep
+            seconds = time.perf_counter() - t0
+            msg = str(exc).strip().replace("\n", " ")
+            row = failed_row(sample, p, f"{type(exc).__name__}: {msg}"[:2000], seconds)
+        io.land_rows(out_dir, [row], shape, pixel)
+    finally:
+        if watchdog is not None:
+            watchdog.cancel()
     return {"sample_id": row["sample_id"], "status": row["status"], "seconds": row["seconds"],
             "error": row["error"]}
 

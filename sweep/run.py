@@ -54,6 +54,7 @@ class SweepConfig:
     retry_failed: bool = False
     scheduler: str | None = None
     batch_rows: int = io.BATCH_ROWS
+    timeout: float | None = 1800.0  # s per sample; None or 0: no limit
     progress: bool = True
     compact: bool = True
     argv: list[str] = field(default_factory=list)
@@ -87,6 +88,8 @@ def make_plan(cfg: SweepConfig) -> Plan:
     """Check everything and list the samples; writes nothing."""
     if cfg.jobs is None or cfg.jobs < 1 or cfg.jobs > MAX_JOBS:
         raise UserError("--jobs", f"must be an integer in [1, {MAX_JOBS}] (got {cfg.jobs})")
+    if cfg.timeout is not None and not (cfg.timeout >= 0):
+        raise UserError("--timeout", f"must be >= 0 s (0: no limit; got {cfg.timeout})")
     if cfg.batch_rows < 1:
         raise UserError("--batch-rows", f"must be >= 1 (got {cfg.batch_rows})")
     n = cfg.n if cfg.n is not None else (0 if cfg.samples else 512)
@@ -234,6 +237,8 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
                "todo": 0, "interrupted": False}
     try:
         io.remove_stale_tmp(out)
+        for m in out.glob(".timeout-*"):  # markers of an earlier run's timeouts
+            m.unlink(missing_ok=True)
         landed = io.landed_status(out)
         todo = [s for s in plan.samples
                 if s["sample_id"] not in landed or (cfg.retry_failed and landed[s["sample_id"]] != "ok")]
@@ -298,7 +303,7 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
         cpu0 = time.process_time()
         by_future = {}
         for s in todo:
-            fut = client.submit(jobs.run_sample, s, base, out, key=f"sample-{s['sample_id']}-{time.time_ns()}",
+            fut = client.submit(jobs.run_sample, s, base, out, cfg.timeout or None, key=f"sample-{s['sample_id']}-{time.time_ns()}",
                                 pure=False)
             by_future[fut] = s
         tty = sys.stderr.isatty()

@@ -11,6 +11,7 @@ Environment knobs (all optional):
 * ``ELASTIMAP_FAKE_CRASH``    ``d=VALUE``: the process dies with SIGSEGV when the
   inclusion diameter equals VALUE (a hard crash, as a segfaulting solver would)
 * ``ELASTIMAP_FAKE_FAIL``     ``d=VALUE``: raise :class:`FakeSolverError` instead
+* ``ELASTIMAP_FAKE_HANG``     ``d=VALUE``: sleep for an hour (a hung solve)
 * ``ELASTIMAP_FAKE_LOG``      a file that gets one line ``d h E pid`` per solve started
 """
 
@@ -53,6 +54,8 @@ def solve(params: SolveParams) -> SolveResult:
     time.sleep(float(os.environ.get("ELASTIMAP_FAKE_SECONDS", "0.02")))
     if _match("ELASTIMAP_FAKE_CRASH", inc.d):
         ctypes.string_at(0)  # SIGSEGV
+    if _match("ELASTIMAP_FAKE_HANG", inc.d):
+        time.sleep(3600)
     if _match("ELASTIMAP_FAKE_FAIL", inc.d):
         raise FakeSolverError(f"fake divergence for d={inc.d:g} mm, h={inc.h:g} mm, E={inc.E:g} kPa")
     n = int(round(p.probe.size / p.image.pixel))

@@ -101,6 +101,7 @@ def test_phantoms_file_nine_valid_inclusions():
     (["--samples", "/nonexistent.csv"], "--samples: /nonexistent.csv does not exist"),
     (["--n", "0"], "nothing to run"),
     (["--design", "grid"], "--design: must be one of"),
+    (["--timeout", "-1"], "--timeout: must be >= 0"),
 ])
 def test_invalid_options_clear_error_nothing_written(tmp_path, capsys, args, msg):
     out = tmp_path / "out"
@@ -124,6 +125,15 @@ def test_bad_sample_tables(tmp_path, capsys, content, msg):
     code, _, err = _cli(["run", "--samples", str(f), "--out", str(out)], capsys)
     assert code == 2 and msg in err, err
     assert not out.exists()
+
+
+def test_foreign_nonempty_out_dir_refused(tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    code, _, err = _cli(["run", "--n", "2", "--mesh", "tiny", "--out", str(out)], capsys)
+    assert code == 2 and "holds no sweep manifest" in err
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 
 def test_unreadable_samples_file(tmp_path, capsys):
@@ -186,6 +196,21 @@ def test_crash_recorded_failed_others_land_then_retry(tmp_path):
     assert r.returncode == 0 and "2 done this run (ok 2, failed 0), 3 skipped" in r.stdout, r.stdout + r.stderr
     df = io.read_samples(out, status=None)
     assert len(df) == 5 and (df["status"] == "ok").all()
+
+
+def test_hung_sample_times_out_once_others_land(tmp_path):
+    table = tmp_path / "t.csv"
+    table.write_text("d,h,E\n5,6,50\n6,7,60\n7,8,70\n")
+    out = tmp_path / "ds"
+    log = tmp_path / "starts.log"
+    env = _fake(ELASTIMAP_FAKE_HANG="d=6", ELASTIMAP_FAKE_LOG=str(log), ELASTIMAP_FAKE_SECONDS="0.1")
+    r = _sweep(["run", "--samples", str(table), "--jobs", "2", "--mesh", "tiny", "--out", str(out),
+                "--timeout", "3"], env)
+    assert r.returncode == 0, r.stderr
+    df = io.read_samples(out, status=None).set_index("d")
+    assert list(df["status"]) == ["ok", "failed", "ok"]
+    assert df.loc[6.0, "error"].startswith("Timeout: no result after 3 s")
+    assert [ln.split()[0] for ln in log.read_text().splitlines()].count("6") == 1  # the retry did not hang again
 
 
 def test_bench_command_small(tmp_path):
