@@ -289,8 +289,13 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
     mod = jobs.solver_module()
     t0 = time.perf_counter()
     if hasattr(mod, "warmup"):
-        first = jobs.sample_params(todo[0], plan.base)
-        mod.warmup(first)
+        # with the base inclusion, not a sampled one: a sample whose geometry fails must fail as a
+        # sample, not stop the sweep.  If the warm-up itself fails the workers compile on first use.
+        try:
+            mod.warmup(plan.base)
+        except Exception as exc:
+            print(f"warning: solver warm-up failed ({type(exc).__name__}: {exc}); workers will compile "
+                  "the forms themselves", file=sys.stderr)
     summary["warmup_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     client, cluster = remote if remote is not None else _start_client(cfg)

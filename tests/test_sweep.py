@@ -84,6 +84,19 @@ def test_bad_ranges(text, msg):
         dsg.parse_ranges(text)
 
 
+def test_samples_table_parquet_and_csv(tmp_path):
+    import pandas as pd
+
+    df = pd.DataFrame({"d": [5.0, 8.0], "h": [6.0, 9.0], "E": [50.0, 120.0], "sample_id": ["a", "b"]})
+    df.to_parquet(tmp_path / "s.parquet")
+    rows = dsg.load_samples(str(tmp_path / "s.parquet"))
+    assert [(r["sample_id"], r["d"], r["E"], r["tag"]) for r in rows] == [("a", 5.0, 50.0, "user"), ("b", 8.0, 120.0, "user")]
+    (tmp_path / "s.csv").write_text("# comment\nd, h, E\n5,6,50\n")
+    (r,) = dsg.load_samples(str(tmp_path / "s.csv"))
+    assert r["sample_id"].startswith("user-") and r["h"] == 6.0
+    assert dsg.load_samples(str(tmp_path / "s.csv"))[0]["sample_id"] == r["sample_id"]  # stable
+
+
 def test_phantoms_file_nine_valid_inclusions():
     ph = dsg.load_phantoms()
     assert len(ph) == 9 and len({p["sample_id"] for p in ph}) == 9
