@@ -31,7 +31,7 @@ def _solve_at(model, E_inc: float, p: SolveParams):
     force = model.plate_force(sol)
     if ld.force is None:
         return sol, diag, delta, force
-    if p.disc.interface != "contact":
+    if not p.nonlinear:
         # linear problem: displacements and force scale with δ
         s = ld.force / force
         sol.u *= s
@@ -40,7 +40,7 @@ def _solve_at(model, E_inc: float, p: SolveParams):
             diag[k] *= s
         return sol, diag, delta * s, ld.force
     its = sol.iterations
-    for _ in range(20):  # secant on δ for the (mildly) nonlinear contact problem
+    for _ in range(20):  # secant on δ for the (mildly) nonlinear contact / finite-strain problem
         if abs(force - ld.force) <= 1e-6 * ld.force:
             break
         delta = delta * ld.force / force

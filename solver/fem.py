@@ -33,6 +33,36 @@ partner) and u_D carries the prescribed values.  The reduced system
 Pᵀ A P ū = −Pᵀ A u_D is factorised with MUMPS.  The contact pressure p on Γ
 is recovered from the nodal reaction r = A u by the consistent surface mass
 matrix, M_Γ p = −r_Γ.
+
+Effect switches (both off by default; the default path is unchanged):
+
+* **Interface friction** ``Discretisation.friction_kt`` = k_t (kPa/mm): a
+  tangential spring between the paired nodes of the tied/contact interface,
+
+      s(u, v) = k_t ∫_Γ (u_p,t − u_t,t) · (v_p,t − v_t,t) ds,   t = x, y,
+
+  discretised with the tissue-side consistent surface mass matrix M_Γ
+  (mm²) of the pairs: S = k_t Σ_{c=x,y} B_cᵀ M_Γ B_c with B_c u = u_p,c − u_t,c
+  (only pairs in the active set).  k_t M_Γ is in kPa·mm = mN/mm like A.  The
+  reduced operator becomes K = Pᵀ A P + Pᵀ S P.  k_t = 0 is the frictionless
+  interface; k_t → ∞ ties the tangential components (the ``bonded`` limit).
+  The natural scale is the tissue's E_t / T = 0.25 kPa/mm.
+* **Tissue nonlinearity** ``Tissue.nonlinearity`` = β ∈ [0, 1]: the tissue,
+  skin and inclusion get the stored energy (kPa)
+
+      ψ = (1 − β) ψ_lin + β ψ_NH,
+      ψ_lin = μ ε:ε + ½ λ (tr ε)²,
+      ψ_NH  = ½ μ (I_C − 3) − μ ln J + ½ λ (ln J)²   (compressible neo-Hookean),
+      F = I + ∇u,  C = Fᵀ F,  I_C = tr C,  J = det F,
+
+  with the same μ, λ as the linear model, so that ψ_NH → ψ_lin for small
+  strain; β = 1 is the plain neo-Hookean solid.  The probe PDMS stays linear
+  (it is 10–60 times stiffer than the tissue, so its strains are small).  The
+  residual R(u; v) = ∫ ∂ψ/∂F : ∇v dx and its Jacobian are UFL derivatives;
+  Newton runs on the reduced system, P̄ᵀ J P̄ Δū = −Pᵀ R(P ū + u_D), started
+  from the linear solution, with backtracking when a step inverts an element
+  (J ≤ 0) or raises the residual.  The interface pairs are the coincident
+  nodes of the reference configuration (small tangential sliding assumed).
 """
 
 from __future__ import annotations
@@ -54,6 +84,9 @@ from .geometry import INCLUSION, PROBE_LAYER0, SKIN, TISSUE, RawMesh
 from .params import SolveParams
 
 
+_DEBUG = bool(__import__("os").environ.get("ELASTIMAP_NEWTON_DEBUG"))
+
+
 class SolverError(RuntimeError):
     """A solve failed (no convergence, singular system, bad mesh); carries the parameters."""
 
@@ -68,6 +101,27 @@ def sigma(u, E, nu):
     mu = E / (2 * (1 + nu))
     lmbda = E * nu / ((1 + nu) * (1 - 2 * nu))
     return 2 * mu * epsilon(u) + lmbda * ufl.tr(epsilon(u)) * ufl.Identity(len(u))
+
+
+def psi_linear(u, E, nu):
+    """Linear-elastic stored energy ψ_lin = μ ε:ε + ½ λ (tr ε)² (kPa)."""
+    mu = E / (2 * (1 + nu))
+    lmbda = E * nu / ((1 + nu) * (1 - 2 * nu))
+    eps = epsilon(u)
+    return mu * ufl.inner(eps, eps) + 0.5 * lmbda * ufl.tr(eps) ** 2
+
+
+def psi_neo_hookean(u, E, nu):
+    """Compressible neo-Hookean stored energy ψ_NH = ½ μ (I_C − 3) − μ ln J + ½ λ (ln J)² (kPa).
+
+    F = I + ∇u, I_C = tr(FᵀF), J = det F; the same Lamé constants as :func:`sigma`,
+    so its linearisation at u = 0 is the linear model."""
+    mu = E / (2 * (1 + nu))
+    lmbda = E * nu / ((1 + nu) * (1 - 2 * nu))
+    F = ufl.Identity(len(u)) + ufl.grad(u)
+    Ic = ufl.tr(F.T * F)
+    lnJ = ufl.ln(ufl.det(F))
+    return 0.5 * mu * (Ic - 3) - mu * lnJ + 0.5 * lmbda * lnJ ** 2
 
 
 @dataclass
@@ -204,6 +258,26 @@ class Model:
         self.img_pts, self.img_cells, self.img_shape = pts, owner, gx.shape
 
         self.A = fpetsc.create_matrix(self.a)
+        self.kt = float(p.disc.friction_kt) if p.disc.interface != "bonded" else 0.0
+        self._S_key = None
+        self._S_red = None
+        self.beta = None
+        if p.tissue.nonlinearity > 0:
+            # β per cell: the tissue bodies blend towards neo-Hookean, the probe stays linear
+            self.beta = fem.Function(Q, name="beta")
+            b = np.where(probe_cell, 0.0, float(p.tissue.nonlinearity))
+            self.beta.x.array[: len(b)] = b
+            self.u_fun = fem.Function(V, name="u")
+            psi = ((1 - self.beta) * psi_linear(self.u_fun, self.E, self.nu)
+                   + self.beta * psi_neo_hookean(self.u_fun, self.E, self.nu))
+            # quadrature of degree 2(k-1): exact for the linear part (∇u of P_k is P_{k-1}), like a(u, v)
+            dxq = ufl.dx(metadata={"quadrature_degree": max(2 * (p.disc.degree - 1), 1)})
+            R = ufl.derivative(psi * dxq, self.u_fun, v)
+            self.R_form = fem.form(R)
+            self.J_form = fem.form(ufl.derivative(R, self.u_fun, u))
+            self.Jmat = fpetsc.create_matrix(self.J_form)
+            self._KJ = None
+            self._KJ_key = None
         self.ndofs = 3 * nb
         self._ksp = None
         self._K = None
@@ -255,6 +329,81 @@ class Model:
         col[slave] = col[master[slave]]
         return col, uD, fixed
 
+    def _reduction(self, delta: float, active: np.ndarray):
+        """(P as PETSc, P as scipy CSR, u_D, new_pattern) for this active set, cached by the set."""
+        key = active.tobytes()
+        col, uD, fixed = self._constraints(delta, active)
+        if self._P_key == key:
+            return self._P, self._Psp, uD, False
+        n = len(col)
+        rows = np.flatnonzero(col >= 0)
+        nfree = int(col.max()) + 1
+        Pcsr = sp.csr_matrix((np.ones(len(rows)), (rows, col[rows])), shape=(n, nfree))
+        if self._P is not None:
+            self._P.destroy()
+        self._P = PETSc.Mat().createAIJ(size=(n, nfree), csr=(Pcsr.indptr.astype(PETSc.IntType),
+                                                              Pcsr.indices.astype(PETSc.IntType), Pcsr.data),
+                                        comm=MPI.COMM_SELF)
+        self._P.assemble()
+        self._Psp = Pcsr
+        self._P_key = key
+        return self._P, Pcsr, uD, True
+
+    def friction_matrix(self, active: np.ndarray) -> sp.csr_matrix:
+        """S = k_t Σ_{c=x,y} B_cᵀ M_Γ B_c over the active pairs (mN/mm, full flat dofs; scipy)."""
+        n = 3 * self.nblocks
+        m = len(self.pair_tissue)
+        D = sp.diags(active.astype(float))
+        Mact = (D @ self.M_gamma @ D).tocsr()
+        S = sp.csr_matrix((n, n))
+        for comp in (0, 1):
+            B = sp.csr_matrix((np.r_[np.ones(m), -np.ones(m)],
+                               (np.r_[np.arange(m), np.arange(m)],
+                                np.r_[3 * self.pair_probe + comp, 3 * self.pair_tissue + comp])), shape=(m, n))
+            S = S + B.T @ Mact @ B
+        return (self.kt * S).tocsr()
+
+    def _friction_reduced(self, active: np.ndarray, Psp: sp.csr_matrix) -> tuple[sp.csr_matrix, PETSc.Mat]:
+        key = active.tobytes()
+        if self._S_key != key:
+            S = self.friction_matrix(active)
+            Sr = (Psp.T @ S @ Psp).tocsr()
+            Sr.sort_indices()
+            if self._S_red is not None:
+                self._S_red[1].destroy()
+            Sm = PETSc.Mat().createAIJ(size=Sr.shape, csr=(Sr.indptr.astype(PETSc.IntType),
+                                                            Sr.indices.astype(PETSc.IntType), Sr.data),
+                                       comm=MPI.COMM_SELF)
+            Sm.assemble()
+            self._S_red = (S, Sm)
+            self._S_key = key
+        return self._S_red
+
+    def _factor_solve(self, K: PETSc.Mat, f: PETSc.Vec, new_pattern: bool, which: str = "_ksp") -> PETSc.Vec:
+        ksp = getattr(self, which, None)
+        if ksp is None:
+            ksp = PETSc.KSP().create(MPI.COMM_SELF)
+            ksp.setType("preonly")
+            pc = ksp.getPC()
+            pc.setType("lu")
+            pc.setFactorSolverType("mumps")
+            ksp.setOptionsPrefix(f"elastimap_{id(self)}{which}_")
+            opts = PETSc.Options()
+            opts[f"elastimap_{id(self)}{which}_mat_mumps_icntl_14"] = 80  # workspace margin (%)
+            ksp.setFromOptions()
+            setattr(self, which, ksp)
+        if new_pattern:
+            ksp.reset()  # new constraint set: new symbolic factorisation
+        ksp.setOperators(K)  # same pattern as last time: numeric refactorisation only
+        ksp.setFromOptions()
+        ubar = K.createVecRight()
+        ksp.solve(f, ubar)
+        reason = ksp.getConvergedReason()
+        if reason < 0:
+            ubar.destroy()
+            raise SolverError(f"linear solve failed (PETSc reason {reason})")
+        return ubar
+
     def solve_linear(self, E_inclusion: float, delta: float, active: np.ndarray | None = None) -> LinearSolution:
         """One linear solve with the pairs in ``active`` tied (all pairs when None)."""
         t = time.perf_counter()
@@ -266,56 +415,29 @@ class Model:
         self.A.assemble()
         t = self._tick("assemble", t)
 
-        key = active.tobytes()
-        col, uD, fixed = self._constraints(delta, active)
-        n = len(col)
-        rows = np.flatnonzero(col >= 0)
-        nfree = int(col.max()) + 1
-        if self._P_key != key:
-            Pcsr = sp.csr_matrix((np.ones(len(rows)), (rows, col[rows])), shape=(n, nfree))
-            if self._P is not None:
-                self._P.destroy()
-            self._P = PETSc.Mat().createAIJ(size=(n, nfree), csr=(Pcsr.indptr.astype(PETSc.IntType),
-                                                                  Pcsr.indices.astype(PETSc.IntType), Pcsr.data),
-                                            comm=MPI.COMM_SELF)
-            self._P.assemble()
+        Pm, Psp, uD, new_pattern = self._reduction(delta, active)
+        if new_pattern or self.kt > 0:
+            # with friction K gets the extra Pᵀ S P pattern, so it is rebuilt from PᵀAP each time
             if self._K is not None:
                 self._K.destroy()
-            self._K = self.A.ptap(self._P)
+            self._K = self.A.ptap(Pm)
             new_pattern = True
         else:
-            self.A.ptap(self._P, result=self._K)
-            new_pattern = False
-        self._P_key = key
-        Pm, K = self._P, self._K
+            self.A.ptap(Pm, result=self._K)
+        K = self._K
         vD = PETSc.Vec().createWithArray(uD, comm=MPI.COMM_SELF)
         AuD = self.A.createVecLeft()
         self.A.mult(vD, AuD)
         f = K.createVecRight()
         Pm.multTranspose(AuD, f)
+        if self.kt > 0:
+            S, Sm = self._friction_reduced(active, Psp)
+            K.axpy(1.0, Sm, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+            f.getArray()[:] += Psp.T @ (S @ uD)
         f.scale(-1.0)
         t = self._tick("ptap", t)
 
-        if self._ksp is None:
-            ksp = PETSc.KSP().create(MPI.COMM_SELF)
-            ksp.setType("preonly")
-            pc = ksp.getPC()
-            pc.setType("lu")
-            pc.setFactorSolverType("mumps")
-            ksp.setOptionsPrefix(f"elastimap_{id(self)}_")
-            opts = PETSc.Options()
-            opts[f"elastimap_{id(self)}_mat_mumps_icntl_14"] = 80  # workspace margin (%)
-            ksp.setFromOptions()
-            self._ksp = ksp
-        if new_pattern:
-            self._ksp.reset()  # new constraint set: new symbolic factorisation
-        self._ksp.setOperators(K)  # same pattern as last time: numeric refactorisation only
-        self._ksp.setFromOptions()
-        ubar = K.createVecRight()
-        self._ksp.solve(f, ubar)
-        reason = self._ksp.getConvergedReason()
-        if reason < 0:
-            raise SolverError(f"linear solve failed (PETSc reason {reason})")
+        ubar = self._factor_solve(K, f, new_pattern)
         t = self._tick("factor_solve", t)
 
         u_vec = AuD.duplicate()
@@ -330,6 +452,90 @@ class Model:
             raise SolverError("the solve produced non-finite displacements")
         self._tick("post", t)
         return LinearSolution(u=u, reaction=r, iterations=1)
+
+    def _residual(self, u: np.ndarray) -> np.ndarray:
+        """Internal nodal force R(u) (mN, full flat dofs), without the friction spring."""
+        self.u_fun.x.array[: len(u)] = u
+        return fem.assemble_vector(self.R_form).array[: len(u)].copy()
+
+    def solve_nonlinear(self, E_inclusion: float, delta: float, active: np.ndarray | None = None,
+                        rtol: float = 1e-9, max_iter: int = 30) -> LinearSolution:
+        """Newton on the reduced system for the finite-strain tissue (``Tissue.nonlinearity`` > 0).
+
+        Predictor: the linear solution; each step solves P̄ᵀ(J + S)P̄ Δū = −Pᵀ(R + S u) and
+        halves the step while it makes a non-finite residual (an inverted element) or raises
+        ‖Pᵀ(R + S u)‖.  Converged when the reduced residual falls below ``rtol`` times the
+        norm of the internal force of the predictor.  ``iterations`` counts the linear solves."""
+        if active is None:
+            active = np.ones(len(self.pair_tissue), dtype=bool)
+        lin = self.solve_linear(E_inclusion, delta, active)
+        t = time.perf_counter()
+        Pm, Psp, uD, _ = self._reduction(delta, active)
+        S = self._friction_reduced(active, Psp)[0] if self.kt > 0 else None
+        u = lin.u.copy()
+
+        def reduced_res(uu):
+            r = self._residual(uu)
+            g = Psp.T @ (r + (S @ uu if S is not None else 0.0))
+            return r, g
+
+        r, g = reduced_res(u)
+        scale = max(float(np.linalg.norm(Psp.T @ np.abs(lin.reaction))), 1e-300)
+        gnorm = float(np.linalg.norm(g))
+        its = 1
+        t = self._tick("newton", t)
+        for _ in range(max_iter):
+            if gnorm <= rtol * scale:
+                break
+            self.Jmat.zeroEntries()
+            fpetsc.assemble_matrix(self.Jmat, self.J_form)
+            self.Jmat.assemble()
+            key = active.tobytes()
+            if self._KJ is None or self._KJ_key != key or self.kt > 0:
+                if self._KJ is not None:
+                    self._KJ.destroy()
+                self._KJ = self.Jmat.ptap(Pm)
+                new_pattern = True
+            else:
+                self.Jmat.ptap(Pm, result=self._KJ)
+                new_pattern = False
+            self._KJ_key = key
+            if self.kt > 0:
+                self._KJ.axpy(1.0, self._friction_reduced(active, Psp)[1],
+                              structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+            f = self._KJ.createVecRight()
+            f.getArray()[:] = -g
+            dub = self._factor_solve(self._KJ, f, new_pattern, "_ksp_nl")
+            du = Psp @ dub.getArray().copy()
+            f.destroy()
+            dub.destroy()
+            its += 1
+            step = 1.0
+            for _ls in range(12):
+                u_try = u + step * du
+                with np.errstate(all="ignore"):
+                    r_try, g_try = reduced_res(u_try)
+                gn_try = float(np.linalg.norm(g_try))
+                if np.all(np.isfinite(r_try)) and gn_try < max(gnorm, 1e-12 * scale) * (1 + 1e-12) + 1e-300:
+                    break
+                step *= 0.5
+            else:
+                raise SolverError("Newton line search failed (finite-strain tissue)")
+            u, r, g, gnorm = u_try, r_try, g_try, gn_try
+            if _DEBUG:
+                print(f"newton {its}: step {step:g} |g|/scale {gnorm / scale:.3e}")
+            t = self._tick("newton", t)
+        else:
+            raise SolverError(f"Newton did not converge in {max_iter} iterations "
+                              f"(residual {gnorm:.3g}, scale {scale:.3g})")
+        if not np.all(np.isfinite(u)):
+            raise SolverError("the Newton solve produced non-finite displacements")
+        return LinearSolution(u=u, reaction=r, iterations=its)
+
+    def _solve_once(self, E_inclusion: float, delta: float, active: np.ndarray | None = None) -> LinearSolution:
+        if self.beta is not None:
+            return self.solve_nonlinear(E_inclusion, delta, active)
+        return self.solve_linear(E_inclusion, delta, active)
 
     # ------------------------------------------------------------------------
     def contact_pressure(self, sol: LinearSolution) -> np.ndarray:
@@ -372,11 +578,12 @@ class Model:
         npairs = len(self.pair_tissue)
         if self.p.disc.interface == "contact":
             sol, active, its = active_set(
-                lambda act: self.solve_linear(E_inclusion, delta, act), self.patch_force, self.gap,
+                lambda act: self._solve_once(E_inclusion, delta, act), self.patch_force, self.gap,
                 np.ones(npairs, dtype=bool), gap_tol=1e-9 * delta, max_iter=max_iter)
         else:
             active = np.ones(npairs, dtype=bool)
-            sol, its = self.solve_linear(E_inclusion, delta, active), 1
+            sol = self._solve_once(E_inclusion, delta, active)
+            its = sol.iterations
         pf = self.patch_force(sol)
         sol.iterations = its
         pres = self.contact_pressure(sol)
@@ -393,7 +600,11 @@ class Model:
         return sol, diag
 
     def destroy(self) -> None:
-        for obj in (self._ksp, self._K, self._P, self.A):
+        for name in ("_ksp", "_ksp_nl", "_K", "_KJ", "_P", "A", "Jmat"):
+            obj = getattr(self, name, None)
             if obj is not None:
                 obj.destroy()
-        self._ksp = self._K = self._P = None
+            setattr(self, name, None)
+        if self._S_red is not None:
+            self._S_red[1].destroy()
+            self._S_red = None

@@ -34,6 +34,9 @@ class Tissue:
     nu: float = 0.49
     skin_thickness: float = 0.0  # mm; > 0 adds a bonded skin layer of modulus skin_E (effect switch)
     skin_E: float = 5.0          # kPa
+    # effect switch: 0 = linear elastic (default); 1 = compressible neo-Hookean finite strain for
+    # the tissue, skin and inclusion; in between the stored energy is blended (solver/fem.py)
+    nonlinearity: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -92,6 +95,9 @@ class Discretisation:
     degree: int = 2
     interface: str = "tied"
     symmetry: str = "quarter"
+    # effect switch: tangential probe-tissue interface stiffness k_t (kPa/mm) of the tied/contact
+    # interface; 0 = frictionless (default), -> infinity approaches ``bonded`` (solver/fem.py)
+    friction_kt: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -124,7 +130,18 @@ class SolveParams:
         return dataclasses.replace(self, inclusion=dataclasses.replace(self.inclusion, **changes))
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """Plain dict.  The effect switches added after the first sweeps (``EFFECT_DEFAULTS``)
+        are left out while at their defaults, so stored sweep manifests keep matching."""
+        d = dataclasses.asdict(self)
+        for (part, name), default in EFFECT_DEFAULTS.items():
+            if d[part].get(name) == default:
+                del d[part][name]
+        return d
+
+    @property
+    def nonlinear(self) -> bool:
+        """True when the mechanics is not linear in δ (finite strain or unilateral contact)."""
+        return self.tissue.nonlinearity > 0 or self.disc.interface == "contact"
 
     @classmethod
     def from_dict(cls, d: dict) -> "SolveParams":
@@ -149,6 +166,7 @@ class SolveParams:
         check_range("tissue.nu", t.nu, -1, 0.5, lo_open=True, hi_open=True)
         check_range("tissue.skin_thickness", t.skin_thickness, 0, t.thickness / 2, unit="mm")
         check_range("tissue.skin_E", t.skin_E, 0, lo_open=True, unit="kPa")
+        check_range("tissue.nonlinearity", t.nonlinearity, 0, 1)
         check_range("d", inc.d, 0, lo_open=True, unit="mm")
         check_range("E", inc.E, 0, lo_open=True, unit="kPa")
         check_range("inclusion.nu", inc.nu, -1, 0.5, lo_open=True, hi_open=True)
@@ -183,6 +201,7 @@ class SolveParams:
             raise UserError("degree", f"must be 1 or 2 (got {ds.degree})")
         if ds.interface not in INTERFACES:
             raise UserError("interface", f"must be one of {', '.join(INTERFACES)} (got {ds.interface!r})")
+        check_range("friction_kt", ds.friction_kt, 0, unit="kPa/mm")
         if ds.symmetry not in SYMMETRIES:
             raise UserError("symmetry", f"must be one of {', '.join(SYMMETRIES)} (got {ds.symmetry!r})")
         if ds.symmetry == "quarter" and (inc.offset_x != 0 or inc.offset_y != 0):
@@ -197,6 +216,10 @@ class SolveParams:
         if not (1 <= im.supersample <= 32):
             raise UserError("supersample", f"must be in [1, 32] (got {im.supersample})")
         return self
+
+
+# effect switches omitted from ``SolveParams.to_dict`` while at these defaults
+EFFECT_DEFAULTS = {("tissue", "nonlinearity"): 0.0, ("disc", "friction_kt"): 0.0}
 
 
 def depth_range(d: float, thickness: float = 20.0, aspect: float = 1.0,

@@ -1,0 +1,75 @@
+"""Solver effect switches for the sim-to-real gap work (issue 6): interface friction k_t and
+finite-strain (neo-Hookean) tissue.  Tiny meshes; defaults stay bit-identical."""
+
+import numpy as np
+import pytest
+
+from elastimap.errors import UserError
+from solver.params import Discretisation, Loading, SolveParams, Tissue
+
+
+def tiny(**disc) -> SolveParams:
+    return SolveParams(disc=Discretisation(mesh="tiny", **disc))
+
+
+@pytest.fixture(scope="module")
+def solve():
+    from solver import solve as _solve
+    return _solve
+
+
+@pytest.fixture(scope="module")
+def base(solve):
+    return solve(tiny())
+
+
+def test_effect_switch_validation_and_serialisation():
+    with pytest.raises(UserError) as e:
+        tiny(friction_kt=-1.0).validate()
+    assert e.value.param == "friction_kt"
+    with pytest.raises(UserError) as e:
+        SolveParams(tissue=Tissue(nonlinearity=1.5)).validate()
+    assert e.value.param == "tissue.nonlinearity"
+    # defaults are left out of to_dict (sweep manifests written before the switches keep matching)
+    d = SolveParams().to_dict()
+    assert "friction_kt" not in d["disc"] and "nonlinearity" not in d["tissue"]
+    p = SolveParams(tissue=Tissue(nonlinearity=0.5), disc=Discretisation(friction_kt=2.0))
+    assert SolveParams.from_dict(p.to_dict()) == p
+    assert not SolveParams().nonlinear and p.nonlinear
+
+
+def test_friction_zero_is_frictionless_and_large_is_bonded(solve, base):
+    zero = solve(tiny(friction_kt=0.0))
+    assert zero.O2 == base.O2 and np.array_equal(zero.image, base.image)   # bit-identical default path
+    bonded = solve(tiny(interface="bonded"))
+    stiff = solve(tiny(friction_kt=1e5))
+    for f in ("O1", "O2", "O3", "force"):
+        assert getattr(stiff, f) == pytest.approx(getattr(bonded, f), rel=2e-3), f
+
+
+def test_friction_is_monotone_between_the_limits(solve, base):
+    lo, hi = solve(tiny(friction_kt=0.1)), solve(tiny(friction_kt=1.0))
+    assert base.O2 < lo.O2 < hi.O2
+    assert base.force < lo.force < hi.force
+    # the contact interface with friction closes as the tied one does under the flat punch
+    c = solve(tiny(friction_kt=1.0, interface="contact"))
+    assert c.O2 == pytest.approx(hi.O2, rel=1e-3)
+
+
+def test_neo_hookean_small_strain_limit_is_linear(solve):
+    """Tiny δ: the finite-strain model gives the linear answer (features scale with δ)."""
+    small = tiny().replace(loading=Loading(delta=1e-3))
+    lin = solve(small)
+    nh = solve(small.replace(tissue=Tissue(nonlinearity=1.0)))
+    assert nh.O1 == pytest.approx(lin.O1, rel=2e-3)
+    assert nh.O2 == pytest.approx(lin.O2, rel=2e-3)
+    assert nh.force == pytest.approx(lin.force, rel=2e-3)
+    assert nh.newton_iterations > 2       # Newton actually ran
+
+
+def test_neo_hookean_changes_the_image_at_3mm(solve, base):
+    nh = solve(tiny().replace(tissue=Tissue(nonlinearity=1.0)))
+    assert nh.force > base.force                   # compression stiffens the neo-Hookean tissue
+    assert abs(nh.O1 / base.O1 - 1) > 0.05
+    half = solve(tiny().replace(tissue=Tissue(nonlinearity=0.3)))
+    assert base.force < half.force < nh.force
