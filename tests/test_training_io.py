@@ -180,3 +180,21 @@ def test_cli_run_writes_tables_curves_and_models(tmp_path, toy, capsys):
     assert "3 failed sample(s) excluded" in err
     ens = Ensemble.load(str(out / "model-scg"))
     assert ens.n_members == 2 and ens.meta["n_train"] == 51       # HOV only: phantom rows held out
+
+
+def test_files_vanishing_during_read_is_a_user_error(tmp_path, toy, monkeypatch):
+    import pyarrow.dataset as pads
+
+    d = tmp_path / "ds"
+    d.mkdir()
+    toy.to_parquet(d / "part-0.parquet")
+    real = pads.dataset
+
+    def racing(path, **kw):
+        ds = real(path, **kw)
+        os.remove(d / "part-0.parquet")          # a sweep compacting its files meanwhile
+        return ds
+
+    monkeypatch.setattr(pads, "dataset", racing)
+    with pytest.raises(UserError, match="sweep still writing"):
+        load_samples(str(d))

@@ -62,7 +62,11 @@ def load_samples(path: str) -> Samples:
         raise UserError("--data", f"{path} lacks required column(s) {', '.join(missing)} "
                                   f"(need {', '.join(FEATURES + TARGETS)})")
     cols = list(FEATURES + TARGETS) + [c for c in OPTIONAL if c in names]
-    df = ds.to_table(columns=cols).to_pandas()
+    try:
+        df = ds.to_table(columns=cols).to_pandas()
+    except (OSError, ValueError) as exc:  # e.g. a running sweep compacted files while we read
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise UserError("--data", f"reading {path} failed ({first}); is a sweep still writing to it?") from None
     return prepare(df, source=path)
 
 
