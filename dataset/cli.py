@@ -85,9 +85,13 @@ def compact_cmd(path, batch_rows):
     """Merge a dataset's files into batch files, dropping superseded rows (safe to interrupt)."""
     from . import io
 
-    if (Path(path) / ".sweep.lock").exists():
-        raise UserError("path", f"a sweep is running on {path} (or was killed: then remove {path}/.sweep.lock)")
-    r = io.compact(path, batch_rows)
+    if not Path(path).is_dir():
+        raise UserError("path", f"{path} is not a dataset directory")
+    lock = io.acquire_lock(path, param="path")
+    try:
+        r = io.compact(path, batch_rows)
+    finally:
+        lock.unlink(missing_ok=True)
     click.echo(f"{path}: {r['files_before']} files -> {r['files_after']}, {r['rows']} rows, "
                f"{r['dropped']} superseded rows dropped")
     return 0

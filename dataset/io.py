@@ -41,6 +41,7 @@ from elastimap.errors import UserError
 from .schema import COLUMNS, IMAGE_KEY, REQUIRED, SCHEMA_KEY, SCHEMA_VERSION, arrow_schema
 
 BATCH_ROWS = 256
+LOCK = ".sweep.lock"
 MANIFEST = "_sweep.json"  # leading _ : pyarrow.dataset / pandas.read_parquet(dir) skip it
 _KEY_COLS = ("sample_id", "status", "landed_at")
 
@@ -332,3 +333,51 @@ def write_manifest(path, manifest: dict) -> None:
     tmp = f.with_name(f".{f.name}.{os.getpid()}.tmp")
     tmp.write_text(json.dumps(manifest, indent=1, sort_keys=False))
     os.replace(tmp, f)
+
+
+def acquire_lock(out, param: str = "--out") -> Path:
+    """Take ``out/.sweep.lock`` (one writer per dataset directory: a sweep or a compaction).
+
+    A lock left by a dead process on this host (kill -9) is taken over; a live holder, or one on
+    another host, raises :class:`UserError`.  The caller removes the file when done.
+    """
+    import psutil
+
+    from elastimap.provenance import host
+
+    out = Path(out)
+    lock = out / LOCK
+    me = {"pid": os.getpid(), "host": host(), "created": psutil.Process().create_time()}
+    for _ in range(3):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                other = json.loads(lock.read_text() or "{}")
+            except (OSError, ValueError):
+                other = {}
+            alive = False
+            if not other:  # being written this instant, or garbage: trust it only while fresh
+                try:
+                    alive = time.time() - lock.stat().st_mtime < 10
+                except FileNotFoundError:
+                    continue
+            elif other.get("host") == me["host"] and other.get("pid"):
+                try:
+                    alive = abs(psutil.Process(other["pid"]).create_time() - other.get("created", 0)) < 1.0
+                except psutil.Error:
+                    alive = False
+            elif other.get("host"):
+                alive = True  # another machine: cannot check, assume it is running
+            if alive:
+                raise UserError(param, f"{out} is being written by another sweep or compaction (pid {other.get('pid')} "
+                                       f"on {other.get('host')}); if that is wrong, remove {lock}")
+            try:
+                lock.unlink()
+            except FileNotFoundError:
+                pass
+            continue
+        with os.fdopen(fd, "w") as fh:
+            json.dump(me, fh)
+        return lock
+    raise UserError(param, f"cannot take the lock {lock}")

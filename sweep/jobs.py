@@ -90,8 +90,25 @@ def result_row(sample: dict, p: SolveParams, res, seconds: float) -> dict:
     return row
 
 
-def timeout_marker(out_dir: str, sample_id: str) -> Path:
-    return Path(out_dir) / f".timeout-{hashlib.sha1(sample_id.encode()).hexdigest()[:16]}"
+def _mark(out_dir: str, kind: str, sample_id: str) -> Path:
+    return Path(out_dir) / f".{kind}-{hashlib.sha1(sample_id.encode()).hexdigest()[:16]}"
+
+
+def record_start(out_dir: str, sample_id: str) -> None:
+    """Append one line to the sample's attempt file (O_APPEND: safe across processes)."""
+    fd = os.open(_mark(out_dir, "attempts", sample_id), os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        os.write(fd, f"{os.getpid()}\n".encode())
+    finally:
+        os.close(fd)
+
+
+def attempts(out_dir: str, sample_id: str) -> int:
+    """How many times a job of this sample has started in this run (see :func:`record_start`)."""
+    try:
+        return _mark(out_dir, "attempts", sample_id).read_bytes().count(b"\n")
+    except FileNotFoundError:
+        return 0
 
 
 def run_sample(sample: dict, base: dict, out_dir: str, timeout: float | None = None) -> dict:
@@ -104,10 +121,11 @@ def run_sample(sample: dict, base: dict, out_dir: str, timeout: float | None = N
     """
     p = sample_params(sample, SolveParams.from_dict(base))
     sid = sample["sample_id"]
-    marker = timeout_marker(out_dir, sid) if timeout else None
+    marker = _mark(out_dir, "timeout", sid) if timeout else None
     timeout_msg = f"Timeout: no result after {timeout:g} s; the worker was stopped" if timeout else ""
     if marker is not None and marker.exists():
         return {"sample_id": sid, "status": "failed", "seconds": float(timeout), "error": timeout_msg}
+    record_start(out_dir, sid)
     watchdog = None
     if timeout:
         def _fire():

@@ -24,6 +24,7 @@ import logging
 import os
 import sys
 import time
+import uuid
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -35,7 +36,6 @@ from solver.params import Discretisation, SolveParams
 from . import design as dsg
 from . import jobs
 
-LOCK = ".sweep.lock"
 MAX_JOBS = 256
 
 
@@ -155,41 +155,6 @@ def _check_landed_match(out: Path, samples: list[dict]) -> None:
 
 # ----------------------------------------------------------------------------- lock
 
-def _acquire_lock(out: Path) -> Path:
-    import psutil
-
-    lock = out / LOCK
-    me = {"pid": os.getpid(), "host": host(), "created": psutil.Process().create_time()}
-    for _ in range(3):
-        try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            try:
-                other = json.loads(lock.read_text() or "{}")
-            except (OSError, ValueError):
-                other = {}
-            alive = False
-            if other.get("host") == me["host"] and other.get("pid"):
-                try:
-                    alive = abs(psutil.Process(other["pid"]).create_time() - other.get("created", 0)) < 1.0
-                except psutil.Error:
-                    alive = False
-            elif other.get("host"):
-                alive = True  # another machine: cannot check, assume it is running
-            if alive:
-                raise UserError("--out", f"{out} is being written by another sweep (pid {other.get('pid')} on "
-                                         f"{other.get('host')}); if that is wrong, remove {lock}")
-            try:
-                lock.unlink()
-            except FileNotFoundError:
-                pass
-            continue
-        with os.fdopen(fd, "w") as fh:
-            json.dump(me, fh)
-        return lock
-    raise UserError("--out", f"cannot take the lock {lock}")
-
-
 # ----------------------------------------------------------------------------- run
 
 def _now() -> str:
@@ -204,7 +169,11 @@ def _start_client(cfg: SweepConfig):
         os.environ.setdefault(var, "1")  # workers inherit: one core per solve
     # a task whose worker dies is retried once, then fails with KilledWorker (set before the
     # scheduler starts; a remote scheduler needs it in its own config, see workflows/)
-    dask.config.set({"distributed.scheduler.allowed-failures": 1})
+    dask.config.set({"distributed.scheduler.allowed-failures": 1,
+                     # one task per one-thread worker at a time: when a worker dies, only the sample it
+                     # was running counts the death (with dask's default 1.1 a second sample queued
+                     # on that worker was blamed too, and could end as KilledWorker without running)
+                     "distributed.scheduler.worker-saturation": 1.0})
     if not cfg.scheduler:
         # The local scheduler and the nannies live in the driver process.  dask's default polling
         # (memory monitor 100 ms, system monitor 500 ms, tick 20 ms) costs the idle driver about
@@ -225,6 +194,13 @@ def _start_client(cfg: SweepConfig):
     return Client(cluster), cluster
 
 
+def _clear_markers(out: Path) -> None:
+    """Per-run job markers (attempt counts, timeouts) in the dataset directory."""
+    for pattern in (".timeout-*", ".attempts-*"):
+        for m in out.glob(pattern):
+            m.unlink(missing_ok=True)
+
+
 def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
     """Run a sweep; returns the summary dict (also stored in the manifest's run log)."""
     t_start = time.perf_counter()
@@ -232,13 +208,12 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
     out = plan.out
     remote = _start_client(cfg) if cfg.scheduler else None  # a bad address fails before anything is written
     out.mkdir(parents=True, exist_ok=True)
-    lock = _acquire_lock(out)
+    lock = io.acquire_lock(out)
     summary = {"out": str(out), "planned": len(plan.samples), "done": 0, "ok": 0, "failed": 0, "skipped": 0,
                "todo": 0, "interrupted": False}
     try:
         io.remove_stale_tmp(out)
-        for m in out.glob(".timeout-*"):  # markers of an earlier run's timeouts
-            m.unlink(missing_ok=True)
+        _clear_markers(out)
         landed = io.landed_status(out)
         todo = [s for s in plan.samples
                 if s["sample_id"] not in landed or (cfg.retry_failed and landed[s["sample_id"]] != "ok")]
@@ -274,6 +249,7 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
                 man["runs"][-1].update(finished=_now(), summary={k: v for k, v in summary.items() if k != "errors"})
                 io.write_manifest(out, man)
         finally:
+            _clear_markers(out)
             lock.unlink(missing_ok=True)
             if remote is not None:
                 remote[0].close()
@@ -306,11 +282,13 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
     try:
         t_fan = time.perf_counter()
         cpu0 = time.process_time()
-        by_future = {}
-        for s in todo:
-            fut = client.submit(jobs.run_sample, s, base, out, cfg.timeout or None, key=f"sample-{s['sample_id']}-{time.time_ns()}",
-                                pure=False)
-            by_future[fut] = s
+        token = uuid.uuid4().hex[:8]
+        # one map call: the whole batch reaches the scheduler at once, as one task group, so dask
+        # queues it and hands each one-thread worker one sample at a time (worker-saturation 1.0)
+        futures = client.map(jobs.run_sample, todo, base=base, out_dir=out, timeout=cfg.timeout or None,
+                             key=[f"sweep-sample-{i:07d}-{token}" for i in range(len(todo))], pure=False)
+        by_future = dict(zip(futures, todo))
+        resubmitted: dict[str, int] = {}
         tty = sys.stderr.isatty()
         try:
             size = os.get_terminal_size(sys.stderr.fileno())
@@ -322,12 +300,25 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                    mininterval=0.5 if tty else 15.0, dynamic_ncols=sized, ncols=None if sized else 100,
                    nrows=None if sized else 50, smoothing=0.1)
         since_compact = 0
-        for fut in as_completed(list(by_future)):
+        pending = as_completed(list(by_future))
+        for fut in pending:
             s = by_future.pop(fut)
             try:
                 r = fut.result()
             except Exception as exc:  # KilledWorker (crashed twice) or a bug in the job itself
                 name = type(exc).__name__
+                sid = s["sample_id"]
+                n_started = jobs.attempts(out, sid)
+                if name == "KilledWorker" and n_started < 2 and resubmitted.get(sid, 0) < 3:
+                    # dask blames every task a dying worker held; this one did not crash twice
+                    # itself (it was waiting next to a crashing sample): run it again
+                    resubmitted[sid] = resubmitted.get(sid, 0) + 1
+                    again = client.submit(jobs.run_sample, s, base=base, out_dir=out, timeout=cfg.timeout or None,
+                                          key=f"sweep-retry-{uuid.uuid4().hex}", pure=False)
+                    by_future[again] = s
+                    pending.add(again)
+                    fut.release()
+                    continue
                 msg = (f"worker crashed twice on this sample (segfault, abort or out of memory): {name}"
                        if name == "KilledWorker" else f"{name}: {exc}")
                 jobs.land_failure(s, base, out, msg[:2000])

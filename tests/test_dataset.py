@@ -147,3 +147,21 @@ def test_cli_bad_path_is_one_line(tmp_path, capsys):
     (tmp_path / "x.parquet").write_bytes(b"junk")
     code, out, err = _cli(["inspect", str(tmp_path / "x.parquet")], capsys)
     assert code == 2 and "not a readable Parquet file" in err
+
+
+def test_lock_live_holder_refused_stale_taken_over(tmp_path, capsys):
+    import os
+    import subprocess
+    import sys
+
+    _land(tmp_path, [_row("a")])
+    lock = io.acquire_lock(tmp_path)
+    code, _, err = _cli(["compact", str(tmp_path)], capsys)  # this very process holds it: live
+    assert code == 2 and "being written by another sweep or compaction" in err
+    lock.unlink()
+    # a lock left by a process that is gone (kill -9) is taken over
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    (tmp_path / io.LOCK).write_text(json.dumps({"pid": int(dead.stdout), "host": os.uname().nodename, "created": 1.0}))
+    code, out, err = _cli(["compact", str(tmp_path)], capsys)
+    assert code == 0, err
+    assert not (tmp_path / io.LOCK).exists()

@@ -38,7 +38,8 @@ def main() -> None:
 
     # The scheduler lives in this process: give it the sweep's retry policy (a sample whose
     # worker dies is retried once, then reported to the driver as KilledWorker and recorded failed).
-    dask.config.set({"distributed.scheduler.allowed-failures": 1})
+    # worker-saturation 1.0: a worker holds only the task it runs, so a crash blames only that sample.
+    dask.config.set({"distributed.scheduler.allowed-failures": 1, "distributed.scheduler.worker-saturation": 1.0})
     cluster = SLURMCluster(
         cores=1, processes=1, memory=args.memory, walltime=args.walltime,
         queue=args.partition, account=args.account,
