@@ -48,6 +48,30 @@ _KEY_COLS = ("sample_id", "status", "landed_at")
 
 # ----------------------------------------------------------------------------- files
 
+class _Vanished(Exception):
+    """A file disappeared between listing and reading (a compaction replaced it)."""
+
+
+def _retrying(fn):
+    """Re-list and read again when a running sweep's compaction removes a file under our feet.
+
+    Compaction writes the merged file before it removes the inputs, so a fresh listing always
+    holds every row (possibly twice, which the id rule resolves)."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kw):
+        for attempt in range(10):
+            try:
+                return fn(*args, **kw)
+            except _Vanished as exc:
+                last = exc
+                time.sleep(0.05 * (attempt + 1))
+        raise UserError("path", f"files keep disappearing while reading (last: {last}); is something deleting them?")
+    return wrapper
+
+
+
 def _files(path: str | os.PathLike, *, must_exist: bool = True) -> list[Path]:
     p = Path(path)
     if not p.exists():
@@ -70,7 +94,11 @@ def _meta(f: Path) -> tuple[pa.Schema, dict, dict | None]:
     """Schema, parsed schema metadata and image metadata of one file; UserError if it does not conform."""
     try:
         schema = pq.read_schema(f)
+    except FileNotFoundError:
+        raise _Vanished(f) from None
     except Exception as exc:  # pyarrow raises several types for corrupt/foreign files
+        if not f.exists():
+            raise _Vanished(f) from None
         raise UserError("path", f"{f} is not a readable Parquet file ({type(exc).__name__}: {exc})") from None
     md = schema.metadata or {}
     raw = md.get(SCHEMA_KEY.encode())
@@ -95,6 +123,7 @@ def _meta(f: Path) -> tuple[pa.Schema, dict, dict | None]:
     return schema, info, (json.loads(image) if image else None)
 
 
+@_retrying
 def dataset_info(path) -> dict:
     """Schema version, units, file count and image geometry of a dataset (checks every file)."""
     files = _files(path)
@@ -124,6 +153,7 @@ def _image_meta(infos, files) -> tuple[tuple[int, int] | None, float | None]:
     return shape, pixel
 
 
+@_retrying
 def read_image_meta(path) -> tuple[tuple[int, int], float]:
     """``((ny, nx), pixel_mm)`` of the elasticity images of a dataset."""
     files = _files(path)
@@ -153,6 +183,7 @@ def _dedupe(df: pd.DataFrame) -> pd.DataFrame:
     return df.iloc[_dedupe_index(df)].reset_index(drop=True)
 
 
+@_retrying
 def read_table(path, columns: list[str] | None = None) -> pd.DataFrame:
     """All rows of a dataset, one per sample id (any status)."""
     files = _files(path)
@@ -170,6 +201,8 @@ def read_table(path, columns: list[str] | None = None) -> pd.DataFrame:
         try:
             t = pq.read_table(f, columns=want)
         except Exception as exc:
+            if isinstance(exc, FileNotFoundError) or not f.exists():
+                raise _Vanished(f) from None
             raise UserError("path", f"{f} cannot be read ({type(exc).__name__}: {exc})") from None
         frames.append(t.to_pandas())
     frames = [f for f in frames if len(f)]

@@ -165,3 +165,34 @@ def test_lock_live_holder_refused_stale_taken_over(tmp_path, capsys):
     code, out, err = _cli(["compact", str(tmp_path)], capsys)
     assert code == 0, err
     assert not (tmp_path / io.LOCK).exists()
+
+
+def test_reader_survives_compaction_running_alongside(tmp_path):
+    import threading
+
+    for i in range(40):
+        _land(tmp_path, [_row(f"s{i:02d}")])
+    stop = threading.Event()
+    errors = []
+
+    def compactor():
+        k = 0
+        while not stop.is_set():
+            try:
+                for j in range(3):  # new single rows keep landing, then get merged
+                    _land(tmp_path, [_row(f"s{j:02d}")])
+                io.compact(tmp_path, batch_rows=7 + k % 5)
+            except Exception as exc:  # noqa: BLE001
+                errors.append(exc)
+            k += 1
+
+    t = threading.Thread(target=compactor)
+    t.start()
+    try:
+        for _ in range(15):
+            df = io.read_samples(tmp_path, columns=["sample_id", "O1"])
+            assert len(df) == 40 and df["sample_id"].is_unique
+    finally:
+        stop.set()
+        t.join()
+    assert not errors
