@@ -1,0 +1,225 @@
+"""The measured-data format: phantoms with known (d, h, E) and their camera features or frames.
+
+A measured dataset is a folder (or the path of its table) holding
+
+* ``measured.csv`` or ``measured.parquet`` -- one row per phantom inclusion:
+
+  | column | unit | required | meaning |
+  |---|---|---|---|
+  | ``id`` | | yes | unique name of the inclusion |
+  | ``d``, ``h``, ``E`` | mm, mm, kPa | yes | known diameter, centre depth, modulus |
+  | ``O1``, ``O2``, ``O3`` | FS, FS mm², mm² | yes, unless ``images``/``background`` | camera features (:mod:`camera.features`) |
+  | ``O1_se``, ``O2_se``, ``O3_se`` | same | no | standard error of each feature from repeated frames (the noise floor) |
+  | ``n_frames`` | | no | frames averaged |
+  | ``images``, ``background`` | | no | lesion / background frame files or globs, ``;``-separated, relative to the folder; features (and their standard errors) are then computed here |
+  | ``difference`` | | no | ``.npy`` file: the denoised camera difference image over the footprint window (FS), for the residual map |
+  | ``tissue_E`` | kPa | no | background modulus if not the nominal 5 kPa |
+
+* ``measured.json`` (optional sidecar): ``{"kind": "elastimap.gap.measured", "version": 1,
+  "synthetic": bool, "sensor": {...SensorModel...}, "feature_settings": {...}, "mesh": "coarse",
+  "description": "..."}``.  ``sensor`` and ``feature_settings`` describe the camera model the
+  simulations go through (defaults: the nominal synthetic camera and feature settings); ``mesh``
+  the forward-model mesh level the comparison uses.
+
+A SYNTHETIC dataset (``gap synth``) says so in the sidecar (``"synthetic": true``), in its file
+names (``synthetic_*.npy``) and in its description; its true effect is kept in a separate sealed
+file (``SEALED_truth.json``) that the diagnosis never opens.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from elastimap.errors import UserError
+
+KIND = "elastimap.gap.measured"
+VERSION = 1
+FEATURES = ("O1", "O2", "O3")
+TABLE_NAMES = ("measured.parquet", "measured.csv")
+SIDECAR = "measured.json"
+SEALED = "SEALED_truth.json"
+
+
+@dataclass
+class Measured:
+    ids: list[str]
+    dhe: np.ndarray                  # (n, 3) d mm, h mm, E kPa
+    y: np.ndarray                    # (n, 3) camera features
+    se: np.ndarray                   # (n, 3) standard error (0 where unknown)
+    tissue_E: np.ndarray             # (n,) NaN = nominal
+    difference: list                 # per phantom: 2-D array (FS) or None
+    sensor: dict | None = None
+    feature_settings: dict = field(default_factory=dict)
+    mesh: str = "coarse"
+    synthetic: bool = False
+    description: str = ""
+    source: str = ""
+
+    @property
+    def n(self) -> int:
+        return len(self.ids)
+
+    def sensor_model(self):
+        from camera.optics import SensorModel
+        return SensorModel.from_dict(self.sensor) if self.sensor else SensorModel()
+
+    def settings(self):
+        from camera.features import FeatureSettings
+        return FeatureSettings.from_dict(self.feature_settings or {})
+
+    def subset(self, idx) -> "Measured":
+        idx = np.asarray(idx)
+        return Measured([self.ids[i] for i in idx], self.dhe[idx], self.y[idx], self.se[idx], self.tissue_E[idx],
+                        [self.difference[i] for i in idx], self.sensor, self.feature_settings, self.mesh,
+                        self.synthetic, self.description, self.source)
+
+
+def _table_path(path: Path) -> Path:
+    if path.is_dir():
+        for n in TABLE_NAMES:
+            if (path / n).exists():
+                return path / n
+        raise UserError("measured", f"{path}: no {' or '.join(TABLE_NAMES)} in this folder")
+    if not path.exists():
+        raise UserError("measured", f"{path}: no such file or folder")
+    if path.suffix not in (".csv", ".parquet"):
+        raise UserError("measured", f"{path}: the table must be .csv or .parquet")
+    return path
+
+
+def load(path: str | os.PathLike) -> Measured:
+    """Read and validate a measured dataset; every problem is a one-line :class:`UserError`."""
+    import pandas as pd
+
+    tp = _table_path(Path(path))
+    base = tp.parent
+    try:
+        df = pd.read_parquet(tp) if tp.suffix == ".parquet" else pd.read_csv(tp, comment="#", skipinitialspace=True)
+    except Exception as exc:
+        raise UserError("measured", f"{tp}: not a readable table ({exc})") from None
+    if len(df) == 0:
+        raise UserError("measured", f"{tp}: no rows")
+    if len(df) < 4:
+        raise UserError("measured", f"{tp}: need at least 4 phantoms for a cross-validated diagnosis (got {len(df)})")
+    missing = [c for c in ("id", "d", "h", "E") if c not in df.columns]
+    if missing:
+        raise UserError("measured", f"{tp}: missing column(s) {', '.join(missing)} (need id, d, h, E)")
+    df["id"] = df["id"].astype(str)
+    dup = sorted(set(df["id"][df["id"].duplicated()]))
+    if dup:
+        raise UserError("measured", f"{tp}: duplicate id(s) {dup[:5]}")
+    for c in ("d", "h", "E"):
+        v = pd.to_numeric(df[c], errors="coerce")
+        bad = df["id"][v.isna() | ~(v > 0)].tolist()
+        if bad:
+            raise UserError("measured", f"{tp}: column {c} must be a positive number (rows {bad[:5]})")
+        df[c] = v.astype(float)
+    side = {}
+    sp = base / SIDECAR
+    if sp.exists():
+        try:
+            side = json.loads(sp.read_text())
+        except json.JSONDecodeError as exc:
+            raise UserError("measured", f"{sp}: not valid JSON ({exc})") from None
+        if side.get("kind") != KIND:
+            raise UserError("measured", f"{sp}: not an elastimap gap measured-data sidecar (kind {side.get('kind')!r})")
+        if int(side.get("version", -1)) != VERSION:
+            raise UserError("measured", f"{sp}: version {side.get('version')!r} not supported (expected {VERSION})")
+    sensor = side.get("sensor")
+    settings = side.get("feature_settings", {})
+    if sensor is not None:
+        from camera.optics import SensorModel
+        SensorModel.from_dict(sensor)
+    n = len(df)
+    has_feat = all(k in df.columns for k in FEATURES)
+    has_img = "images" in df.columns and "background" in df.columns
+    if not has_feat and not has_img:
+        raise UserError("measured", f"{tp}: needs camera features O1,O2,O3 or frame columns images,background")
+    y = np.full((n, 3), np.nan)
+    se = np.zeros((n, 3))
+    if has_feat:
+        y = df[list(FEATURES)].apply(pd.to_numeric, errors="coerce").to_numpy(float)
+    for j, k in enumerate(FEATURES):
+        if f"{k}_se" in df.columns:
+            v = pd.to_numeric(df[f"{k}_se"], errors="coerce").to_numpy(float)
+            if np.any(v[np.isfinite(v)] < 0):
+                raise UserError("measured", f"{tp}: {k}_se must be >= 0")
+            se[:, j] = np.where(np.isfinite(v), v, 0.0)
+    need = ~np.all(np.isfinite(y), axis=1)
+    if need.any():
+        if not has_img:
+            raise UserError("measured", f"{tp}: non-numeric features for {df['id'][need].tolist()[:5]}")
+        from camera.features import FeatureSettings, features_from_files
+        from camera.frames import expand
+        from camera.optics import SensorModel
+
+        sm = SensorModel.from_dict(sensor) if sensor else SensorModel()
+        fs = FeatureSettings.from_dict(settings or {})
+        for i in np.flatnonzero(need):
+            r = df.iloc[i]
+            cf = features_from_files(expand(str(r["images"]), base), expand(str(r["background"]), base), sm, fs)
+            y[i] = cf.values
+            se[i] = np.asarray(cf.frame_sd) / np.sqrt(max(cf.n_frames, 1))
+    diffs = []
+    for i in range(n):
+        f = df["difference"].iloc[i] if "difference" in df.columns else None
+        if f is None or (isinstance(f, float) and np.isnan(f)) or str(f).strip() == "":
+            diffs.append(None)
+            continue
+        fp = base / str(f)
+        if not fp.exists():
+            raise UserError("measured", f"{tp}: difference image {fp} of {df['id'].iloc[i]} does not exist")
+        try:
+            a = np.load(fp, allow_pickle=False)
+        except Exception as exc:
+            raise UserError("measured", f"{fp}: not a .npy array ({exc})") from None
+        if a.ndim != 2 or not np.all(np.isfinite(a)):
+            raise UserError("measured", f"{fp}: must be a finite 2-D array (got shape {a.shape})")
+        diffs.append(a.astype(float))
+    shapes = {a.shape for a in diffs if a is not None}
+    if len(shapes) > 1:
+        raise UserError("measured", f"{tp}: difference images have different shapes {sorted(shapes)}")
+    tE = pd.to_numeric(df["tissue_E"], errors="coerce").to_numpy(float) if "tissue_E" in df.columns else np.full(n, np.nan)
+    mesh = str(side.get("mesh", "coarse"))
+    if mesh not in ("tiny", "coarse", "default", "fine"):
+        raise UserError("measured", f"{sp}: mesh must be tiny, coarse, default or fine (got {mesh!r})")
+    return Measured(df["id"].tolist(), df[["d", "h", "E"]].to_numpy(float), y, se, tE, diffs, sensor, settings,
+                    mesh, bool(side.get("synthetic", False)), str(side.get("description", "")), str(tp))
+
+
+def write(m: Measured, folder: str | os.PathLike, fmt: str = "csv") -> Path:
+    """Write a dataset in the format above (difference images as ``.npy`` next to the table)."""
+    import pandas as pd
+
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    prefix = "synthetic_" if m.synthetic else ""
+    rows = []
+    for i, id_ in enumerate(m.ids):
+        r = {"id": id_, "d": m.dhe[i, 0], "h": m.dhe[i, 1], "E": m.dhe[i, 2]}
+        for j, k in enumerate(FEATURES):
+            r[k] = m.y[i, j]
+        for j, k in enumerate(FEATURES):
+            r[f"{k}_se"] = m.se[i, j]
+        if np.isfinite(m.tissue_E[i]):
+            r["tissue_E"] = m.tissue_E[i]
+        if m.difference[i] is not None:
+            fn = f"{prefix}difference_{id_}.npy"
+            np.save(out / fn, np.asarray(m.difference[i], np.float32))
+            r["difference"] = fn
+        rows.append(r)
+    df = pd.DataFrame(rows)
+    tp = out / ("measured.parquet" if fmt == "parquet" else "measured.csv")
+    if fmt == "parquet":
+        df.to_parquet(tp, index=False)
+    else:
+        df.to_csv(tp, index=False, float_format="%.10g")
+    side = {"kind": KIND, "version": VERSION, "synthetic": m.synthetic, "description": m.description,
+            "sensor": m.sensor, "feature_settings": m.feature_settings, "mesh": m.mesh}
+    (out / SIDECAR).write_text(json.dumps(side, indent=2) + "\n")
+    return tp

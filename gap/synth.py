@@ -1,0 +1,89 @@
+"""SYNTHETIC measured data: the baseline forward model plus unmodelled effects, through the
+camera model with noise.  Everything it writes says SYNTHETIC.
+
+``synthesize(phantoms, effects, sim, ...)``: for every phantom (d, h, E) the mechanics effects
+switch the solver, the optics effects switch the camera (:class:`camera.optics.SensorModel`),
+``frames`` noisy lesion and background frames are rendered and the camera features (with their
+standard errors from the frame scatter) and the denoised difference image are kept.  The true
+effects are returned separately (and written to ``SEALED_truth.json``, never read by the
+diagnosis).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+from pathlib import Path
+
+import numpy as np
+
+from . import effects as fx
+from .measured import SEALED, Measured
+from .simulate import Simulator, base_params, measure
+
+DEFAULT_N = 12
+
+
+def phantom_design(n: int = DEFAULT_N, seed: int = 0) -> np.ndarray:
+    """(n, 3) phantom (d, h, E): LHS over d 5-12 mm, E 30-150 kPa (log), depth valid for every
+    effect of the library (ellipsoid up to aspect 1.25, 1 mm skin layer)."""
+    from scipy.stats import qmc
+
+    u = qmc.LatinHypercube(d=3, rng=np.random.default_rng(seed)).random(n)
+    d = 5.0 + 7.0 * u[:, 0]
+    half = 1.25 * d / 2
+    lo, hi = half + 1.6, np.minimum(14.0, 18.0 - half)
+    h = lo + u[:, 1] * (hi - lo)
+    E = np.exp(np.log(30.0) + u[:, 2] * np.log(150.0 / 30.0))
+    return np.round(np.column_stack([d, h, E]), 3)
+
+
+def synthesize(dhe: np.ndarray, effects: list[tuple[fx.Effect, float]], sim: Simulator, sensor=None,
+               settings=None, frames: int = 10, seed: int = 0, ids: list[str] | None = None,
+               noise_scale: float = 1.0) -> tuple[Measured, dict]:
+    from camera.features import FeatureSettings
+    from camera.optics import SensorModel
+
+    sensor = (sensor or SensorModel()).validate()
+    settings = settings or FeatureSettings()
+    true_sensor = sensor.replace(noise_scale=noise_scale)
+    plist = []
+    for row in dhe:
+        p = base_params(sim.mesh, *row)
+        for e, m in effects:
+            if e.stage == "mechanics":
+                p = e.apply_params(p, m)
+            else:
+                true_sensor = e.apply_sensor(true_sensor, m)
+        plist.append(p)
+    recs = sim.run(plist)
+    rng = np.random.default_rng(seed)
+    y, se, D = [], [], []
+    for r in recs:
+        v, s, d = measure(r, true_sensor, settings, frames, rng)
+        y.append(v)
+        se.append(s)
+        D.append(d)
+    n = len(dhe)
+    ids = ids or [f"P{i + 1:02d}" for i in range(n)]
+    label = ", ".join(f"{e.name}={m:g}" for e, m in effects) or "none"
+    meas = Measured(ids, np.asarray(dhe, float), np.asarray(y), np.asarray(se), np.full(n, np.nan), D,
+                    sensor.to_dict(), settings.to_dict(), sim.mesh, True,
+                    f"SYNTHETIC measured data: baseline model + sealed unmodelled effect(s), {frames} frames, "
+                    f"noise_scale {noise_scale:g}, seed {seed}, backend {sim.backend}", "synthetic")
+    truth = {"effects": [{"name": e.name, "magnitude": float(m), "unit": e.unit} for e, m in effects],
+             "label": label}
+    return meas, truth
+
+
+def seal(truth: dict, folder: str | Path) -> Path:
+    """Write the truth base64-wrapped (not secret, just not readable at a glance)."""
+    p = Path(folder) / SEALED
+    blob = base64.b64encode(json.dumps(truth).encode()).decode()
+    p.write_text(json.dumps({"sealed": blob, "note": "SYNTHETIC truth; the diagnosis never reads this file"}) + "\n")
+    return p
+
+
+def unseal(folder: str | Path) -> dict:
+    d = json.loads((Path(folder) / SEALED).read_text())
+    return json.loads(base64.b64decode(d["sealed"]))
