@@ -118,6 +118,9 @@ def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, 
     recs = sim.run(flat)
     base = recs[: meas.n]
     y0, D0 = _cam(base, sensor, settings)
+    if not np.all(np.isfinite(y0)):
+        raise UserError("measured", "the baseline solve failed for phantom(s) "
+                                    f"{[meas.ids[i] for i in np.flatnonzero(~np.all(np.isfinite(y0), axis=1))]}")
     pos = meas.n
     out = []
     for e in cands:
@@ -135,6 +138,9 @@ def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, 
             else:
                 pos += meas.n
                 Y, D = (y0, D0) if e.is_nominal(m) else _cam(base, e.apply_sensor(sensor, m), settings)
+            if not np.all(np.isfinite(Y)):
+                dropped.append(float(m))      # a failed solve: drop this magnitude
+                continue
             ms.append(float(m))
             Ys.append(Y)
             Ds.append(D)

@@ -108,7 +108,12 @@ def _solve_one(args) -> tuple[str, dict, float]:
     key, pdict, backend = args
     p = SolveParams.from_dict(pdict)
     t0 = time.perf_counter()
-    out = toy_solve(p) if backend == "toy" else fem_solve(p)
+    try:
+        out = toy_solve(p) if backend == "toy" else fem_solve(p)
+    except RuntimeError as exc:  # SolverError / MeshError: a NaN record, not cached
+        nan = np.full((2, 2), np.nan, np.float32)
+        out = dict(O1=np.nan, O2=np.nan, O3=np.nan, force=np.nan, pixel=p.image.pixel, image=nan, image_raw=nan,
+                   error=str(exc))
     return key, out, time.perf_counter() - t0
 
 
@@ -180,7 +185,10 @@ class Simulator:
                              float(out["pixel"]), np.asarray(out["image"], np.float32),
                              np.asarray(out["image_raw"], np.float32), float(sec))
                 self.mem[key] = rec
-                pending.append((rec, json.dumps(todo[key].to_dict(), sort_keys=True)))
+                if "error" in out:
+                    self.stats.setdefault("failed", []).append(out["error"][:200])
+                else:
+                    pending.append((rec, json.dumps(todo[key].to_dict(), sort_keys=True)))
                 self.stats["solved"] += 1
                 self.stats["solve_seconds"] += sec
                 done[0] += 1
@@ -216,6 +224,8 @@ def camera_features_of(rec: Record, sensor, settings=None) -> tuple[np.ndarray, 
     """Noise-free SYNTHETIC camera features (O1 FS, O2 FS mm², O3 mm²) and the denoised
     difference image (FS, footprint window) of one solve record (memoised per record and
     camera model: a selftest reuses the same sweep records in every trial)."""
+    if not np.isfinite(rec.O1):
+        return np.full(3, np.nan), np.full((sensor.window[2],) * 2, np.nan)
     key = (rec.key, json.dumps(sensor.to_dict(), sort_keys=True),
            json.dumps(settings.to_dict() if settings is not None else None, sort_keys=True))
     hit = _CAM_MEMO.get(key)

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from elastimap.errors import UserError
+
 from . import effects as fx
 from .measured import SEALED, Measured
 from .simulate import Simulator, base_params, measure
@@ -59,6 +61,9 @@ def synthesize(dhe: np.ndarray, effects: list[tuple[fx.Effect, float]], sim: Sim
     recs = sim.run(plist)
     rng = np.random.default_rng(seed)
     y, se, D = [], [], []
+    bad = [i for i, r in enumerate(recs) if not np.isfinite(r.O1)]
+    if bad:
+        raise UserError("synth", f"the forward solve failed for phantom(s) {bad} with these effects")
     for r in recs:
         v, s, d = measure(r, true_sensor, settings, frames, rng)
         y.append(v)

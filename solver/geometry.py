@@ -109,13 +109,15 @@ def build_mesh(p: SolveParams) -> RawMesh:
                 s = p.tissue.skin_thickness
                 parts.append((3, occ.addBox(x0, x0, T - s, L / 2 - x0, L / 2 - x0, s)))
             sph = occ.addSphere(cx, cy, cz, r)
-            if inc.aspect != 1.0:
-                occ.dilate([(3, sph)], cx, cy, cz, 1.0, 1.0, inc.aspect)
             if quarter:
                 clip = occ.addBox(0, 0, 0, L / 2, L / 2, T)
                 sph_parts, _ = occ.intersect([(3, sph)], [(3, clip)])
             else:
                 sph_parts = [(3, sph)]
+            if inc.aspect != 1.0:
+                # dilate after clipping (the centre lies on the symmetry planes, so they are kept);
+                # dilating the whole sphere first left an open seam loop that gmsh could not mesh
+                occ.dilate(sph_parts, cx, cy, cz, 1.0, 1.0, inc.aspect)
             parts += sph_parts
             z = T
             for th, _E in p.probe.layers:

@@ -73,3 +73,12 @@ def test_neo_hookean_changes_the_image_at_3mm(solve, base):
     assert abs(nh.O1 / base.O1 - 1) > 0.05
     half = solve(tiny().replace(tissue=Tissue(nonlinearity=0.3)))
     assert base.force < half.force < nh.force
+
+
+def test_ellipsoid_quarter_model_meshes_and_scales(solve):
+    """Ellipsoidal inclusion (``Inclusion.aspect``) in the quarter model: the mesh builds
+    (dilated after the symmetry clip) and a taller inclusion gives a larger image."""
+    p = tiny().with_inclusion(d=7.95, h=9.63, E=79.6)
+    flat, tall = solve(p.with_inclusion(aspect=0.8)), solve(p.with_inclusion(aspect=1.25))
+    sph = solve(p)
+    assert flat.O1 < sph.O1 < tall.O1 and flat.O2 < sph.O2 < tall.O2
