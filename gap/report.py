@@ -36,7 +36,7 @@ def summary(res: dict) -> dict:
            "reduced_chi2_baseline": ev["reduced_chi2_baseline"]}
     if top:
         out.update(magnitude=top["magnitude"], magnitude_ci=top["magnitude_ci"], unit=top["unit"],
-                   explained_fraction_cv=top["explained_fraction"], reduced_chi2_cv=top["reduced_chi2_cv"])
+                   explained_fraction_cv=top["explained_fraction"], reduced_chi2_cv=top["reduced_chi2_cv_with_interpolation"])
     if res.get("shrink_features"):
         out["feature_gap_shrink_withheld"] = res["shrink_features"]["shrink"]
     if res.get("shrink_inverse"):

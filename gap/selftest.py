@@ -70,7 +70,7 @@ def run(trials: int, sim: Simulator, candidates: list[fx.Effect], n_phantoms: in
         rec = {"trial": t, "commitment": sealed.commitment, "prediction": pred, "runner_up": ev["runner_up"],
                "best": ev["best"], "outcome": ev["outcome"],
                "explained_fraction": ev["ranking"][0]["explained_fraction"],
-               "reduced_chi2_cv": ev["ranking"][0]["reduced_chi2_cv"],
+               "reduced_chi2_cv": ev["ranking"][0]["reduced_chi2_cv_with_interpolation"],
                "reduced_chi2_baseline": ev["reduced_chi2_baseline"],
                "shrink_features": res["shrink_features"]["shrink"] if res["shrink_features"] else None,
                "shrink_inverse": res["shrink_inverse"]["shrink"] if res["shrink_inverse"] else None}
@@ -84,7 +84,7 @@ def run(trials: int, sim: Simulator, candidates: list[fx.Effect], n_phantoms: in
             rec["withheld_prediction"] = evw["winner"] if evw["outcome"] == "explained" else evw["outcome"]
             rec["withheld_best"] = evw["best"]
             rec["withheld_explained_fraction"] = evw["ranking"][0]["explained_fraction"]
-            rec["withheld_reduced_chi2_cv"] = evw["ranking"][0]["reduced_chi2_cv"]
+            rec["withheld_reduced_chi2_cv"] = evw["ranking"][0]["reduced_chi2_cv_with_interpolation"]
         truth = sealed.open(prediction_recorded=True)
         eff = fx.get(truth["effect"])
         rec["true_effect"], rec["true_magnitude"] = truth["effect"], truth["magnitude"]
