@@ -64,6 +64,18 @@ class _Validation:
         self.fails[active[worse]] += 1
 
 
+def _apply_stops(reasons, act_cpu, stop: list, ep_run, epoch: int) -> torch.Tensor:
+    """Record the first stopping reason met by each active network (MATLAB's order of checks)
+    and its last epoch; returns the mask of networks that go on."""
+    done = torch.zeros_like(reasons[0][0], dtype=torch.bool)
+    for m, name in reasons:
+        for i in act_cpu[(m & ~done).cpu()].tolist():
+            stop[i] = name
+        done |= m
+    ep_run[act_cpu[done.cpu()]] = epoch
+    return ~done
+
+
 def train_lm(obj, theta0: torch.Tensor, *, epochs: int = 100, mu: float = 1e-3, mu_dec: float = 0.1,
              mu_inc: float = 10.0, mu_max: float = 1e10, min_grad: float = 1e-7, max_fail: int = 6,
              goal: float = 0.0, progress=None) -> TrainResult:
@@ -117,14 +129,7 @@ def train_lm(obj, theta0: torch.Tensor, *, epochs: int = 100, mu: float = 1e-3, 
         ]
         if val is not None:
             reasons.append((val.fails[active] >= max_fail, "val_fail"))
-        done = torch.zeros_like(perf, dtype=torch.bool)
-        for m, name in reasons:
-            new = m & ~done
-            for i in act_cpu[new.cpu()].tolist():
-                stop[i] = name
-            done |= m
-        ep_run[act_cpu[done.cpu()]] = epoch
-        keep = ~done
+        keep = _apply_stops(reasons, act_cpu, stop, ep_run, epoch)
         if not keep.any():
             active = active[keep]
             break
@@ -220,14 +225,7 @@ def train_scg(obj, theta0: torch.Tensor, *, epochs: int = 100, sigma: float = 5e
         ]
         if val is not None:
             reasons.append((val.fails[active] >= max_fail, "val_fail"))
-        done = torch.zeros_like(pa, dtype=torch.bool)
-        for m, name in reasons:
-            new = m & ~done
-            for i in act_cpu[new.cpu()].tolist():
-                stop[i] = name
-            done |= m
-        ep_run[act_cpu[done.cpu()]] = epoch
-        keep = ~done
+        keep = _apply_stops(reasons, act_cpu, stop, ep_run, epoch)
         loc = keep.nonzero().squeeze(1)
         active = active[keep]
         if active.numel() == 0:
