@@ -40,7 +40,7 @@ def _step(title: str, argv: list[str]) -> None:
 def cli():
     """elastimap: simulate an elasticity-imaging sensor, learn the inverse map, apply it.
 
-    Stage commands: solve, sweep, dataset, train, calibrate, infer.  Units: mm, kPa, mN.
+    Stage commands: solve, sweep, dataset, train, camera (calibrate, infer), gap.  Units: mm, kPa, mN.
     """
 
 
