@@ -239,3 +239,24 @@ def test_chunked_training_equals_one_chunk():
     cfg_small = TrainConfig(hidden=((4, "tansig"),), epochs=15, progress=False, mem_bytes=1)   # one net per chunk
     pieces = train_batch("lm", b.obj, b.theta0, cfg_small)
     torch.testing.assert_close(whole.theta, pieces.theta, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("algo", ["lm", "scg"])
+def test_worker_processes_give_the_serial_result(algo):
+    """Chunks shared out to two spawned processes reproduce the serial loop exactly."""
+    from training.experiment import TrainConfig, make_batch, train_batch
+    from training.data import synthetic_table, FEATURES, TARGETS
+
+    df = synthetic_table(40, seed=3, phantoms=False)
+    X, T = df[list(FEATURES)].to_numpy(), df[list(TARGETS)].to_numpy()
+    fit = ~np.eye(40, dtype=bool)[:6]
+    kw = dict(hidden=((4, "tansig"),), epochs=12, progress=False, mem_bytes=1)  # one net per chunk
+    b = make_batch(X, T, fit, ~fit, TrainConfig(**kw), np.random.default_rng(0), torch.Generator().manual_seed(0))
+    assert TrainConfig(**kw, workers=2).n_workers(6) == 2
+    serial = train_batch(algo, b.obj, b.theta0, TrainConfig(**kw, workers=1))
+    parallel = train_batch(algo, b.obj, b.theta0, TrainConfig(**kw, workers=2))
+    torch.testing.assert_close(parallel.theta, serial.theta, rtol=1e-12, atol=1e-12)
+    assert parallel.stop == serial.stop
+    assert torch.equal(parallel.epochs, serial.epochs)
+    torch.testing.assert_close(parallel.history["train"], serial.history["train"], rtol=1e-12, atol=1e-12,
+                               equal_nan=True)

@@ -150,6 +150,7 @@ def _cli(args, capsys):
     (["--synthetic", "60", "--validate", "kfold"], "--validate"),
     (["--synthetic", "60", "--hidden", "25,x"], "--hidden"),
     (["--synthetic", "60", "--repeats", "0"], "--repeats"),
+    (["--synthetic", "60", "--workers", "-1"], "--workers"),
     (["--synthetic", "60", "--feature-noise", "-1"], "--feature-noise"),
     (["--synthetic", "60", "--test-split", "1.5"], "--test-split"),
     ([], "--data"),

@@ -46,11 +46,15 @@ VALIDATE_CHOICES = ("hov", "loocv", "all")
 @click.option("--device", default=None, help="cpu or cuda (default: cuda when available).")
 @click.option("--threads", default=1, show_default=True, type=int,
               help="Torch CPU threads (0 = torch default); more threads were slower on the shared 2-core machine.")
-@click.option("--float32", "float32", is_flag=True, help="Single precision (faster, less faithful LM).")
+@click.option("--float32", "float32", is_flag=True,
+              help="Single precision: about 2x faster on the CPU; see docs/training.md for its effect on the table.")
+@click.option("--workers", default=0, show_default=True, type=int,
+              help="CPU processes sharing the networks (0 = one per core); each uses one torch thread. "
+                   "Results do not depend on it.")
 @click.option("--no-model", is_flag=True, help="Skip training the saved ensemble.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def train(data, synthetic, algo, validate, repeats, epochs, hidden, activation, feature_noise, test_split,
-          val_fraction, seed, out, device, threads, float32, no_model, quiet):
+          val_fraction, seed, out, device, threads, float32, workers, no_model, quiet):
     """Train and validate the inverse MLP (O1, O2, O3) -> (d, h, E)."""
     import torch
 
@@ -69,6 +73,8 @@ def train(data, synthetic, algo, validate, repeats, epochs, hidden, activation, 
         raise UserError("--repeats", f"must be >= 1 (got {repeats})")
     if epochs < 0:
         raise UserError("--epochs", f"must be >= 0 (got {epochs})")
+    if workers < 0:
+        raise UserError("--workers", f"must be >= 0 (got {workers})")
     check_range("--feature-noise", feature_noise, 0, 1)
     check_range("--val-fraction", val_fraction, 0, 1, hi_open=True)
     if test_split is not None:
@@ -92,7 +98,8 @@ def train(data, synthetic, algo, validate, repeats, epochs, hidden, activation, 
     algos = list(ALGOS) if algo == "all" else [algo]
     vals = list(VALIDATIONS) if validate == "all" else [validate]
     cfg = TrainConfig(hidden=hidden_t, epochs=epochs, feature_noise=feature_noise, val_fraction=val_fraction,
-                      device=device, dtype=torch.float32 if float32 else torch.float64, progress=not quiet)
+                      device=device, dtype=torch.float32 if float32 else torch.float64, progress=not quiet,
+                      workers=workers)
     os.makedirs(out, exist_ok=True)
     click.echo(samples.report(), err=True)
     click.echo(f"network {cfg.arch.describe()} ({cfg.arch.n_params} weights), device "
@@ -140,7 +147,7 @@ def train(data, synthetic, algo, validate, repeats, epochs, hidden, activation, 
                    "data_sha256": data_hash(samples.df), "algo": algos, "validate": vals, "repeats": repeats,
                    "epochs": epochs, "hidden": hidden, "activation": activation, "feature_noise": feature_noise,
                    "test_split": test_split, "val_fraction": val_fraction, "seed": seed,
-                   "device": str(cfg.resolved_device()), "threads": nthreads, "dtype": str(cfg.dtype),
+                   "device": str(cfg.resolved_device()), "threads": nthreads, "workers": workers, "dtype": str(cfg.dtype),
                    "wall_s": round(time.perf_counter() - t0, 3), "models": models}, f, indent=2)
     return 0
 

@@ -31,6 +31,7 @@ the standard deviation and a Student-t 95 % confidence interval of the mean
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -64,6 +65,7 @@ class TrainConfig:
     dtype: torch.dtype = torch.float64
     mem_bytes: int | None = None   # memory budget for one chunk of networks
     progress: bool = True
+    workers: int = 1               # CPU processes training chunks of networks in parallel (0 = one per core)
 
     @property
     def arch(self) -> Arch:
@@ -73,6 +75,13 @@ class TrainConfig:
         if self.device:
             return torch.device(self.device)
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+    def n_workers(self, n_chunks: int) -> int:
+        """Processes actually used: never more than the chunks, always 1 on a GPU."""
+        if self.resolved_device().type != "cpu" or n_chunks < 2:
+            return 1
+        w = self.workers if self.workers > 0 else (os.cpu_count() or 1)
+        return max(1, min(w, n_chunks))
 
     def budget(self) -> int:
         if self.mem_bytes:
@@ -162,34 +171,63 @@ def chunk_size(algo: str, cfg: TrainConfig, n: int) -> int:
     return max(1, int(cfg.budget() // per))
 
 
+def _worker_init(threads: int) -> None:
+    from ._perf import set_threads, tune_malloc
+    tune_malloc()
+    set_threads(threads)
+
+
+def _train_chunk(algo: str, obj: NetObjective, theta0: torch.Tensor, epochs: int, max_fail: int) -> TrainResult:
+    fn = train_lm if algo == "lm" else train_scg
+    return fn(obj, theta0, epochs=epochs, max_fail=max_fail)
+
+
 def train_batch(algo: str, obj: NetObjective, theta0: torch.Tensor, cfg: TrainConfig, desc: str = "") -> TrainResult:
-    """Run LM or SCG on all networks of ``obj``, a memory-bounded chunk at a time."""
+    """Run LM or SCG on all networks of ``obj``, a memory-bounded chunk at a time.
+
+    With ``cfg.workers != 1`` on the CPU the chunks are shared out to that many
+    spawned processes (one torch thread each); every chunk is computed exactly
+    as in the serial loop, so the results do not depend on the number of workers.
+    """
     if algo not in ALGOS:
         raise UserError("--algo", f"unknown algorithm {algo!r}; use one of {', '.join(ALGOS)}")
     B = obj.B
     n = obj.X.shape[1]
     step = chunk_size(algo, cfg, n)
     chunks = [torch.arange(s, min(B, s + step), device=theta0.device) for s in range(0, B, step)]
+    workers = cfg.n_workers(len(chunks))
     bar = None
     if cfg.progress:
         from tqdm import tqdm
         bar = tqdm(total=len(chunks) * (cfg.epochs + 1), desc=desc or algo, unit="epoch", leave=False,
-                   postfix={"nets": B})
-    results = []
-    for idx in chunks:
-        last = [-1]
+                   postfix={"nets": B, "workers": workers})
+    results: list = [None] * len(chunks)
+    if workers > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        def prog(epoch, last=last):
+        with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_worker_init,
+                                 initargs=(1,)) as pool:
+            futs = {pool.submit(_train_chunk, algo, obj.subset(idx), theta0[idx], cfg.epochs, cfg.max_fail): i
+                    for i, idx in enumerate(chunks)}
+            for f in as_completed(futs):
+                results[futs[f]] = f.result()
+                if bar is not None:
+                    bar.update(cfg.epochs + 1)
+    else:
+        for i, idx in enumerate(chunks):
+            last = [-1]
+
+            def prog(epoch, last=last):
+                if bar is not None:
+                    bar.update(epoch - last[0])
+                    last[0] = epoch
+
+            fn = train_lm if algo == "lm" else train_scg
+            r = fn(obj.subset(idx), theta0[idx], epochs=cfg.epochs, progress=prog, max_fail=cfg.max_fail)
             if bar is not None:
-                bar.update(epoch - last[0])
-                last[0] = epoch
-
-        fn = train_lm if algo == "lm" else train_scg
-        kw = {"max_fail": cfg.max_fail}
-        r = fn(obj.subset(idx), theta0[idx], epochs=cfg.epochs, progress=prog, **kw)
-        if bar is not None:
-            bar.update(cfg.epochs + 1 - (last[0] + 1))
-        results.append(r)
+                bar.update(cfg.epochs + 1 - (last[0] + 1))
+            results[i] = r
     if bar is not None:
         bar.close()
     return TrainResult(
@@ -197,6 +235,7 @@ def train_batch(algo: str, obj: NetObjective, theta0: torch.Tensor, cfg: TrainCo
         epochs=torch.cat([r.epochs for r in results]),
         stop=[s for r in results for s in r.stop],
         history={k: torch.cat([r.history[k] for r in results]) for k in results[0].history},
+        workers=workers,
     )
 
 
@@ -321,7 +360,8 @@ def run_validation(samples: Samples, algo: str, validate: str, repeats: int, cfg
            "trainings": B, "hidden": ",".join(f"{s}" if a == "tansig" else f"{s}:{a}" for s, a in cfg.hidden),
            "epochs": cfg.epochs, "feature_noise": cfg.feature_noise, "val_fraction": cfg.val_fraction,
            "test_set": note, "wall_s": round(wall, 3), "trainings_per_s": round(B / wall, 3),
-           "mean_epochs_run": float(res.epochs.double().mean())}
+           "mean_epochs_run": float(res.epochs.double().mean()), "dtype": str(cfg.dtype).replace("torch.", ""),
+           "workers": res.workers}
     for m in METRICS:
         for j, tname in enumerate(TARGETS):
             for k, v in summarize(per[m][:, j]).items():

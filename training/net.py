@@ -312,7 +312,14 @@ def gauss_newton(theta: torch.Tensor, X: torch.Tensor, w: torch.Tensor, arch: Ar
         for m in range(l + 1, L):
             dm, am = deltas[m], augT[m]
             om, im = dm.shape[1], am.shape[1]
-            C = (dl[:, :, None] * dm[:, None]).sum(3).reshape(B, ol * om, n)
+            if ol * om >= 100:
+                # C_i = δ_l[i] δ_m[i]ᵀ as one batched (ol x K)(K x om) product per sample:
+                # fewer passes over memory than the broadcast-multiply-and-sum below
+                Dl = dl.permute(0, 3, 1, 2).reshape(B * n, ol, K)
+                Dm = dm.permute(0, 3, 2, 1).reshape(B * n, K, om)
+                C = torch.bmm(Dl, Dm).reshape(B, n, ol * om).transpose(1, 2)
+            else:
+                C = (dl[:, :, None] * dm[:, None]).sum(3).reshape(B, ol * om, n)
             A = (al[:, :, None] * am[:, None]).reshape(B, il * im, n)
             M = torch.bmm(C, A.transpose(1, 2)).view(B, ol, om, il, im).permute(0, 1, 3, 2, 4)
             M = M.reshape(B, ol * il, om * im)

@@ -32,6 +32,7 @@ class TrainResult:
     epochs: torch.Tensor                # (B,) epochs run
     stop: list[str]                     # stopping reason per problem
     history: dict[str, torch.Tensor] = field(default_factory=dict)  # name -> (B, epochs+1), NaN after stop
+    workers: int = 1                    # processes that trained it (set by training.experiment.train_batch)
 
 
 def _new_history(names, B, epochs, dtype):
@@ -105,7 +106,6 @@ def train_lm(obj, theta0: torch.Tensor, *, epochs: int = 100, mu: float = 1e-3, 
     stop = [""] * B
     ep_run = torch.zeros(B, dtype=torch.long)
     hist = _new_history(["train", "val", "test", "mu"], B, epochs, dt)
-    eye = torch.eye(P, dtype=dt, device=dev)
     active = torch.arange(B, device=dev)
 
     for epoch in range(epochs + 1):
@@ -135,16 +135,18 @@ def train_lm(obj, theta0: torch.Tensor, *, epochs: int = 100, mu: float = 1e-3, 
             break
         # --- Levenberg–Marquardt trials for the problems still running
         loc = keep.nonzero().squeeze(1)
-        jj, je, th, E = jj[loc], je[loc], th[loc], E[loc]
+        if loc.numel() < keep.numel():          # (indexing copies; skip it while every network runs)
+            jj, je, th, E = jj[loc], je[loc], th[loc], E[loc]
+            o = o.subset(loc)
         gidx = active[loc]
-        o = o.subset(loc)
         searching = torch.ones(loc.numel(), dtype=torch.bool, device=dev)
         while True:
             q = searching.nonzero().squeeze(1)
             if q.numel() == 0:
                 break
             m_q = mu_t[gidx[q]]
-            A = jj[q] + m_q[:, None, None] * eye
+            A = jj[q] if q.numel() < jj.shape[0] else jj.clone()
+            A.diagonal(dim1=-2, dim2=-1).add_(m_q[:, None])      # JᵀJ + mu I
             L, info = torch.linalg.cholesky_ex(A)
             dx = -torch.cholesky_solve(je[q].unsqueeze(-1), L).squeeze(-1)
             cand = th[q] + dx
