@@ -95,23 +95,23 @@ class Effect:
 
 
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
-    Effect("nonlinearity", "mechanics", "-", 0.0, (0.0, 0.25, 0.5, 1.0), (0.3, 1.0),
+    Effect("nonlinearity", "mechanics", "-", 0.0, (0.0, 0.125, 0.25, 0.375, 0.5, 0.75, 1.0), (0.3, 1.0),
            "tissue nonlinearity: compressible neo-Hookean finite strain (blend fraction β)", cost=5.0),
-    Effect("friction", "mechanics", "kPa/mm", 0.0, (0.0, 0.05, 0.15, 0.4, 1.0), (0.1, 1.0),
+    Effect("friction", "mechanics", "kPa/mm", 0.0, (0.0, 0.025, 0.05, 0.1, 0.15, 0.275, 0.4, 0.7, 1.0), (0.1, 1.0),
            "probe-tissue friction: tangential interface stiffness k_t (0 = frictionless, inf = bonded)"),
-    Effect("skin", "mechanics", "kPa", 5.0, (5.0, 10.0, 20.0, 40.0, 80.0), (15.0, 80.0),
+    Effect("skin", "mechanics", "kPa", 5.0, (5.0, 7.5, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0, 80.0), (15.0, 80.0),
            f"stiffer skin layer ({SKIN_THICKNESS:g} mm) on the tissue surface: its modulus"),
-    Effect("aspect", "mechanics", "-", 1.0, (0.6, 0.8, 1.0, 1.25), (0.6, 0.8),
+    Effect("aspect", "mechanics", "-", 1.0, (0.6, 0.7, 0.8, 0.9, 1.0, 1.125, 1.25), (0.6, 0.8),
            "non-spherical inclusion: ellipsoid, vertical semi-axis = aspect * d/2"),
     Effect("offaxis", "mechanics", "mm", 0.0, (0.0, 1.5, 3.0), (1.5, 3.0),
            "inclusion off the probe axis by offset_x (full model)", cost=10.0),
-    Effect("probe_moduli", "mechanics", "-", 1.0, (0.6, 0.8, 1.0, 1.25, 1.5), (0.6, 0.75),
+    Effect("probe_moduli", "mechanics", "-", 1.0, (0.6, 0.7, 0.8, 0.9, 1.0, 1.125, 1.25, 1.375, 1.5), (0.6, 0.75),
            "probe PDMS moduli x factor (cure / temperature)"),
-    Effect("background_E", "mechanics", "kPa", 5.0, (3.5, 4.25, 5.0, 6.0, 7.0), (6.0, 7.0),
+    Effect("background_E", "mechanics", "kPa", 5.0, (3.5, 3.875, 4.25, 4.625, 5.0, 5.5, 6.0, 6.5, 7.0), (6.0, 7.0),
            "background tissue modulus different from nominal"),
-    Effect("saturation", "optics", "mm", 0.5, (0.15, 0.25, 0.35, 0.5, 0.7), (0.15, 0.3),
+    Effect("saturation", "optics", "mm", 0.5, (0.15, 0.2, 0.25, 0.3, 0.35, 0.425, 0.5, 0.6, 0.7), (0.15, 0.3),
            "optical response: scattering saturates at a different deflection w_sat (gamma/saturation)"),
-    Effect("vignetting", "optics", "-", 0.15, (0.0, 0.15, 0.3, 0.45, 0.6), (0.35, 0.6),
+    Effect("vignetting", "optics", "-", 0.15, (0.0, 0.075, 0.15, 0.225, 0.3, 0.375, 0.45, 0.525, 0.6), (0.35, 0.6),
            "non-uniform illumination: lens/LED fall-off towards the window corners"),
 )}
 
