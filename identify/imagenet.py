@@ -1,0 +1,315 @@
+"""The image-based inverse model: shape-PCA of the elasticity image (+ force) -> MLP -> (d, h, E).
+
+Inputs per lesion (:func:`identify.measure.image_inputs`): ``ln(peak)`` of the difference image,
+the first ``K - 1`` PCA scores of the peak-normalised image (its *shape*) and, with ``force``,
+``100 (force - force_ref) / force_ref``.  The network is the paper's MLP (``K -> 25 tansig ->
+10 tansig -> 3 purelin``), trained by :mod:`training`'s batched LM / SCG
+(:func:`training.experiment.make_batch` / :func:`~training.experiment.train_batch`), validated by
+the same HOV (the 9 phantoms) / LOOCV x repeats, scored with the same metrics (MSE x 100 on the
+network's mapminmax [-1, 1] targets, MRE %, RMSE), so a result is one more row of the training
+table (``algo`` ``lm-image`` / ``scg-image``).
+
+Differences from the feature MLP, all deliberate:
+
+* the PCA basis is fitted on the noise-free images of the training rows (HOV: the non-test rows;
+  LOOCV: all rows -- PCA sees no targets, and a 1-row difference in a 520-image basis is
+  negligible; a per-fold basis would cost n SVDs);
+* ``image_noise`` adds per-pixel Gaussian noise of ``image_noise x peak`` to every image, drawn
+  once per *repeat* and shared by that repeat's LOOCV folds (the held-out row's draw is
+  independent of the training rows' draws, as in the feature MLP), then projected on the basis.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+import torch
+
+from elastimap.errors import UserError
+from training.data import TARGETS, UNITS, prepare
+from training.experiment import (METRICS, TrainConfig, ValidationResult, make_batch, predict_scaled, rng_for,
+                                 split_rows, summarize, train_batch)
+from training.model import Ensemble
+from training.net import Arch
+from training.problem import NetObjective, mapminmax_apply, mapminmax_reverse
+
+from .measure import Data, ShapePCA, add_image_noise, image_inputs
+
+PCA_FILE = "image_pca.json"
+
+
+@dataclass
+class ImageTrainConfig(TrainConfig):
+    """:class:`training.experiment.TrainConfig` with ``n_in`` inputs instead of three."""
+
+    n_in: int = 10
+
+    @property
+    def arch(self) -> Arch:
+        return Arch(self.n_in, tuple(self.hidden), len(TARGETS))
+
+
+def input_names(k: int, force: bool) -> tuple[str, ...]:
+    return ("ln_peak",) + tuple(f"shape{i}" for i in range(1, k)) + (("dF_pct",) if force else ())
+
+
+def samples_of(data: Data):
+    df = pd.DataFrame({"sample_id": data.ids, "tag": data.tags, "O1": data.features[:, 0],
+                       "O2": data.features[:, 1], "O3": data.features[:, 2], "d": data.theta[:, 0],
+                       "h": data.theta[:, 1], "E": data.theta[:, 2]})
+    return prepare(df, source=data.source or "<data>")
+
+
+def _inputs(data: Data, pca: ShapePCA, force: bool, images=None):
+    imgs = data.images if images is None else images
+    return image_inputs(imgs, pca, data.dforce if force else None, data.force_ref if force else None)
+
+
+def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg: TrainConfig, *, seed: int = 0,
+                         test_split: float | None = None, k: int = 10, image_noise: float = 0.0,
+                         force: bool = False) -> ValidationResult:
+    """HOV / LOOCV x repeats of the image MLP; ``extra['pred']`` holds the test predictions
+    ``(R, n, 3)`` (NaN where a row was not a test row of that repeat) and ``extra['test']``."""
+    samples = samples_of(data)
+    if list(samples.df["sample_id"]) != list(data.ids):
+        raise UserError("data", "rows must be sorted by sample_id (use identify.measure.load)")
+    n = data.n
+    T = data.theta.astype(np.float64)
+    rng, gen = rng_for(seed, validate)
+    test1, note = split_rows(samples, validate, test_split, rng)
+    if validate == "hov":
+        test = np.broadcast_to(test1, (repeats, n)).copy()
+        folds = 1
+        pca_rows = ~test1
+    else:
+        test = np.tile(np.eye(n, dtype=bool), (repeats, 1))
+        folds = n
+        note = f"{n} folds"
+        pca_rows = np.ones(n, bool)
+    pca = ShapePCA.fit(data.images[pca_rows], k)
+    X0 = _inputs(data, pca, force)
+    icfg = ImageTrainConfig(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(TrainConfig)},
+                            n_in=X0.shape[1])
+    icfg.feature_noise = 0.0
+    fit = ~test
+    t0 = time.perf_counter()
+    batch = make_batch(X0, T, fit, test, icfg, rng, gen)
+    obj = batch.obj
+    if image_noise > 0:
+        Xr = []
+        for r in range(repeats):
+            nrng = np.random.default_rng([int(seed), 7, r])
+            Xr.append(_inputs(data, pca, force, add_image_noise(data.images, image_noise, nrng)))
+        Xb = np.repeat(np.stack(Xr), folds, axis=0)                         # (B, n, c)
+        Xs = torch.as_tensor(mapminmax_apply(Xb, batch.x_lo, batch.x_hi), dtype=obj.X.dtype, device=obj.X.device)
+        obj = NetObjective(icfg.arch, Xs, obj.T, obj.w, obj.w_val, obj.w_test)
+    res = train_batch(algo, obj, batch.theta0, icfg, desc=f"{algo}-image {validate}")
+    wall = time.perf_counter() - t0
+    Ys = predict_scaled(res.theta, obj.X, icfg.arch)
+    Ts = obj.T.cpu().numpy()
+    Yp = mapminmax_reverse(Ys, batch.t_lo, batch.t_hi)
+    R = repeats
+    shp = (R, folds, n)
+    tm = test.reshape(shp)[..., None]
+    cnt = tm.sum(axis=(1, 2))
+    Tp = np.broadcast_to(T, Yp.shape)
+    per = {
+        "mse100": 100.0 * (((Ts - Ys) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
+        "mre": 100.0 * ((np.abs(Yp - Tp) / np.abs(Tp)).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
+        "rmse": np.sqrt((((Yp - Tp) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt),
+    }
+    pred = np.where(tm, Yp.reshape(*shp, 3), 0.0).sum(axis=1)              # (R, n, 3)
+    pred[~test.reshape(shp).any(axis=1)] = np.nan
+    trm = batch.train.reshape(shp)[..., None]
+    train_mse = 100.0 * ((((Ts - Ys) ** 2).reshape(*shp, 3) * trm).sum(axis=2) / trm.sum(axis=2)).mean(axis=1)
+    B = test.shape[0]
+    row = {"algo": f"{algo}-image", "validate": validate, "repeats": R, "n_samples": n,
+           "n_train": int(batch.train[0].sum()), "n_test_per_repeat": int(cnt[0, 0]), "trainings": B,
+           "hidden": ",".join(f"{s}" if a == "tansig" else f"{s}:{a}" for s, a in icfg.hidden),
+           "epochs": icfg.epochs, "feature_noise": 0.0, "image_noise": image_noise, "pca_k": k, "force": force,
+           "val_fraction": icfg.val_fraction, "test_set": note, "wall_s": round(wall, 3),
+           "trainings_per_s": round(B / wall, 3), "mean_epochs_run": float(res.epochs.double().mean())}
+    for m in METRICS:
+        for j, t in enumerate(TARGETS):
+            for kk, v in summarize(per[m][:, j]).items():
+                row[f"{m}_{t}_{kk}"] = v
+    for j, t in enumerate(TARGETS):
+        row[f"train_mse100_{t}_mean"] = float(train_mse[:, j].mean())
+    stops: dict[str, int] = {}
+    for s in res.stop:
+        stops[s] = stops.get(s, 0) + 1
+    row["stops"] = ";".join(f"{a}:{b}" for a, b in sorted(stops.items()))
+    curves = {kk: v.numpy() for kk, v in res.history.items() if kk in ("train", "test", "val")}
+    return ValidationResult(f"{algo}-image", validate, R, row, per, curves, stops, wall,
+                            extra={"pred": pred, "test": test1 if validate == "hov" else np.ones(n, bool)})
+
+
+# ----------------------------------------------------------------------------- the saved model
+@dataclass
+class ImageModel:
+    """An :class:`training.model.Ensemble` over image inputs plus the PCA basis that makes them."""
+
+    ensemble: Ensemble
+    pca: ShapePCA
+    force: bool = False
+
+    def inputs(self, images, dforce=None, force_ref=None) -> np.ndarray:
+        images = np.atleast_2d(np.asarray(images, dtype=np.float64))
+        p = self.pca.mean.size
+        if images.ndim != 2 or images.shape[1] != p:
+            images = images.reshape(images.shape[0], -1) if images.size % p == 0 else images
+        if images.shape[-1] != p:
+            raise UserError("image", f"expected images of {p} pixels (got shape {np.shape(images)})")
+        if not np.isfinite(images).all():
+            raise UserError("image", "contains NaN or inf")
+        if self.force:
+            if dforce is None or force_ref is None:
+                raise UserError("force", "this model needs the plate-force difference and the reference force")
+        return image_inputs(images, self.pca, dforce if self.force else None, force_ref if self.force else None)
+
+    def predict(self, images, dforce=None, force_ref=None) -> np.ndarray:
+        """``(members, n, 3)`` d mm, h mm, E kPa for ``(n, ny*nx)`` (or ``(n, ny, nx)``) difference images."""
+        return self.ensemble.predict(self.inputs(images, dforce, force_ref))
+
+    def in_range(self, images, dforce=None, force_ref=None) -> np.ndarray:
+        return self.ensemble.in_range(self.inputs(images, dforce, force_ref))
+
+    def save(self, directory: str) -> str:
+        self.ensemble.save(directory)
+        with open(os.path.join(directory, PCA_FILE), "w") as f:
+            json.dump({"format": "elastimap.identify.image_pca", "version": 1, "force": self.force,
+                       "inputs": "ln(peak), PCA scores of image/peak" + (", 100 dF/F_ref" if self.force else ""),
+                       **self.pca.to_json()}, f)
+        return directory
+
+    @classmethod
+    def load(cls, directory: str) -> "ImageModel":
+        p = os.path.join(directory, PCA_FILE)
+        if not os.path.isfile(p):
+            raise UserError("model", f"{directory} is not an image model (missing {PCA_FILE})")
+        with open(p) as f:
+            meta = json.load(f)
+        return cls(Ensemble.load(directory), ShapePCA.from_json(meta), bool(meta.get("force", False)))
+
+
+def fit_image_model(data: Data, algo: str = "scg", repeats: int = 10, cfg: TrainConfig | None = None, *,
+                    seed: int = 0, k: int = 10, force: bool = False, image_noise: float = 0.0) -> ImageModel:
+    """Train the saved ensemble on every row of ``data`` (``repeats`` initialisations)."""
+    from elastimap.provenance import code_version
+    from training.data import data_hash
+
+    cfg = cfg or TrainConfig(progress=False)
+    pca = ShapePCA.fit(data.images, k)
+    X0 = _inputs(data, pca, force)
+    icfg = ImageTrainConfig(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(TrainConfig)}, n_in=X0.shape[1])
+    icfg.feature_noise = 0.0
+    T = data.theta.astype(np.float64)
+    rng, gen = rng_for(seed, "final")
+    batch = make_batch(X0, T, np.ones((repeats, data.n), bool), None, icfg, rng, gen)
+    obj = batch.obj
+    if image_noise > 0:
+        Xb = np.stack([_inputs(data, pca, force, add_image_noise(data.images, image_noise,
+                                                               np.random.default_rng([seed, 8, r])))
+                       for r in range(repeats)])
+        obj = NetObjective(icfg.arch, torch.as_tensor(mapminmax_apply(Xb, batch.x_lo, batch.x_hi), dtype=obj.X.dtype,
+                                                      device=obj.X.device), obj.T, obj.w, obj.w_val, obj.w_test)
+    res = train_batch(algo, obj, batch.theta0, icfg, desc=f"{algo}-image final")
+    names = input_names(k, force)
+    units = dict(UNITS, **{nm: "" for nm in names})
+    meta = {"algo": f"{algo}-image", "epochs": icfg.epochs, "repeats": repeats, "seed": seed, "pca_k": k,
+            "force": force, "image_noise": image_noise, "n_train": data.n, "data_source": data.source,
+            "data_sha256": data_hash(samples_of(data).df), "stop_reasons": res.stop,
+            "epochs_run": res.epochs.tolist(), "code_version": code_version(), "device": str(icfg.resolved_device())}
+    ens = Ensemble(arch=icfg.arch, theta=res.theta.detach().cpu().numpy().astype(np.float64), x_min=batch.x_lo[0],
+                   x_max=batch.x_hi[0], y_min=batch.t_lo[0], y_max=batch.t_hi[0], feature_names=names,
+                   target_names=TARGETS, units=units, feature_range=np.stack([X0.min(0), X0.max(0)]),
+                   target_range=np.stack([T.min(0), T.max(0)]), meta=meta)
+    return ImageModel(ens, pca, force)
+
+
+# ----------------------------------------------------------------------------- command line
+def _cli():
+    import click
+
+    @click.command(context_settings={"help_option_names": ["-h", "--help"]})
+    @click.option("--data", "data_path", default="data/sweep512", show_default=True,
+                  help="Sweep directory with stored elasticity images.")
+    @click.option("--algo", default="scg", show_default=True, help="scg, lm or scg,lm.")
+    @click.option("--validate", default="hov", show_default=True, help="hov, loocv or hov,loocv.")
+    @click.option("--repeats", default=10, show_default=True, type=int)
+    @click.option("--k", "k", default=10, show_default=True, type=int,
+                  help="Inputs from the image: ln(peak) and k-1 shape-PCA scores.")
+    @click.option("--force", is_flag=True, help="Add the plate-force difference 100 dF/F_ref as an input.")
+    @click.option("--image-noise", default=0.01, show_default=True, type=float,
+                  help="Per-pixel Gaussian noise, relative to each image's peak, drawn per repeat.")
+    @click.option("--epochs", default=100, show_default=True, type=int)
+    @click.option("--workers", default=0, show_default=True, type=int, help="Training processes (0 = one per core).")
+    @click.option("--float32", "float32", is_flag=True, help="Single precision.")
+    @click.option("--seed", default=0, show_default=True, type=int)
+    @click.option("--out", default="runs/image-inverse", show_default=True, help="Output directory.")
+    def main(data_path, algo, validate, repeats, k, force, image_noise, epochs, workers, float32, seed, out):
+        """Validate the image-based inverse (image PCA -> the paper's MLP -> d, h, E).
+
+        Same HOV split (the 9 phantom rows), LOOCV folds, seeds, metrics and table layout as
+        `train`, so the rows sit next to the feature MLP's (docs/identifiability.md).
+        """
+        from training._perf import set_threads, tune_malloc
+        from training.experiment import ALGOS, VALIDATIONS
+        from training.report import markdown, table
+
+        from .measure import load
+
+        algos = [a.strip() for a in algo.split(",") if a.strip()]
+        vals = [v.strip() for v in validate.split(",") if v.strip()]
+        for a in algos:
+            if a not in ALGOS:
+                raise UserError("--algo", f"must be scg and/or lm (got {a!r})")
+        for v in vals:
+            if v not in VALIDATIONS:
+                raise UserError("--validate", f"must be hov and/or loocv (got {v!r})")
+        if repeats < 1:
+            raise UserError("--repeats", f"must be >= 1 (got {repeats})")
+        if not 2 <= k <= 50:
+            raise UserError("--k", f"must be in [2, 50] (got {k})")
+        if not 0 <= image_noise < 1:
+            raise UserError("--image-noise", f"must be in [0, 1) (got {image_noise:g})")
+        if workers < 0:
+            raise UserError("--workers", f"must be >= 0 (got {workers})")
+        tune_malloc()
+        set_threads(1)
+        data = load(data_path)
+        cfg = TrainConfig(epochs=epochs, progress=True, workers=workers,
+                          dtype=torch.float32 if float32 else torch.float64)
+        os.makedirs(out, exist_ok=True)
+        results = []
+        for v in vals:
+            for a in algos:
+                r = run_image_validation(data, a, v, repeats, cfg, seed=seed, k=k, image_noise=image_noise, force=force)
+                r.row["dtype"] = str(cfg.dtype).replace("torch.", "")
+                results.append(r)
+                click.echo(f"{a}-image {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s", err=True)
+        df = table(results)
+        df.insert(0, "data", data.source)
+        df.to_csv(os.path.join(out, "results.csv"), index=False)
+        title = (f"Image-based inverse, {data.source} ({data.n} rows), inputs ln(peak) + {k - 1} shape-PCA scores"
+                 f"{' + force' if force else ''}, image noise {image_noise:g} of the peak, {epochs} epochs; "
+                 f"mean [2.5 %, 97.5 %] over {repeats} repeat(s).")
+        md = markdown(df, title)
+        with open(os.path.join(out, "results.md"), "w") as f:
+            f.write(md)
+        click.echo(md)
+        return 0
+
+    return main
+
+
+if __name__ == "__main__":
+    from elastimap.cli_util import run
+
+    run(_cli(), prog_name="python -m identify.imagenet")
