@@ -1,0 +1,70 @@
+"""Real finite-difference Jacobians on a coarse (d, depth fraction, E) grid (cached solves).
+
+    python -m identify.fdgrid [--mesh default] [--out data/identify/fdgrid.npz]
+
+7 forward solves per grid point (centre and central differences in d, h, ln E with
+:data:`identify.local.FD_STEP`); every solve is cached by :mod:`identify.solves`, so an
+interrupted run resumes.  The result file holds the grid and the Jacobians; turning them into
+Cramér–Rao maps (:func:`identify.local.fisher` / :func:`~identify.local.crb_relstd`) is NOT done
+yet (see docs/identifiability.md).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+import click
+import numpy as np
+
+from elastimap.cli_util import run
+
+FD_D = (4.0, 7.0, 10.0, 13.0)
+FD_U = (0.25, 0.75)
+FD_E = (12.0, 25.0, 50.0, 100.0, 190.0)
+
+
+def fd_grid_points(ds=FD_D, us=FD_U, Es=FD_E, thickness: float = 20.0) -> np.ndarray:
+    from solver.params import depth_range
+
+    pts = []
+    for d in ds:
+        lo, hi = depth_range(d, thickness)
+        lo2, hi2 = lo + 0.5, hi - 0.5        # room for the +-0.5 mm depth step
+        for u in us:
+            for E in Es:
+                pts.append((d, lo2 + u * (hi2 - lo2), E, u))
+    return np.array(pts)
+
+
+def compute(out: str, mesh: str = "default", progress: bool = True) -> dict:
+    from .local import fd_jacobian_solves
+
+    pts = fd_grid_points()
+    res = {"theta": pts[:, :3], "u": pts[:, 3], "image": [], "lnF": [], "dF": [], "image0": [], "lnF0": [], "dF0": []}
+    t0 = time.perf_counter()
+    for i, p in enumerate(pts):
+        J = fd_jacobian_solves(p[:3], mesh=mesh)
+        for k in ("image", "lnF", "dF", "image0", "lnF0", "dF0"):
+            res[k].append(J[k])
+        if progress:
+            click.echo(f"[{i + 1}/{len(pts)}] d={p[0]:g} h={p[1]:.2f} E={p[2]:g}  {time.perf_counter() - t0:.0f} s", err=True)
+        res["background"] = J["background"]
+    out_d = {k: np.asarray(v) for k, v in res.items()}
+    os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
+    np.savez(out, **out_d, mesh=np.array(mesh))
+    return out_d
+
+
+@click.command()
+@click.option("--mesh", default="default", show_default=True)
+@click.option("--out", default="data/identify/fdgrid.npz", show_default=True)
+def main(mesh, out):
+    """Finite-difference Jacobians from real solves on the coarse study grid."""
+    compute(out, mesh)
+    click.echo(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    run(main, sys.argv[1:], prog_name="python -m identify.fdgrid")
