@@ -395,10 +395,14 @@ def shrink_inverse(meas: Measured, c: Candidate, m: float, sim: Simulator, senso
     Xb, _ = _cam(recs[:k], sensor, settings)
     s_eff = e.apply_sensor(sensor, m) if e.stage == "optics" else sensor
     Xe, _ = _cam(recs[k:], s_eff, settings)
-    ens_b = _train_inverse(Xb, T[ok], st)
-    ens_e = _train_inverse(Xe, T[ok], st)
+    # a failed solve (NaN record) drops its design point from both training sets (paired design)
+    fin = np.all(np.isfinite(Xb), axis=1) & np.all(np.isfinite(Xe), axis=1)
+    Xb, Xe, Tk = Xb[fin], Xe[fin], T[ok][fin]
+    ens_b = _train_inverse(Xb, Tk, st)
+    ens_e = _train_inverse(Xe, Tk, st)
     truth = meas.dhe[te]
-    out = {"n_train": int(k), "withheld": [meas.ids[i] for i in te], "magnitude": m}
+    out = {"n_train": int(fin.sum()), "n_failed_solves": int(k - fin.sum()),
+           "withheld": [meas.ids[i] for i in te], "magnitude": m}
     # the inverse's own error: baseline inverse on noise-free baseline simulations of the withheld phantoms
     own_recs = sim.run(phantom_params(meas.subset(te), sim.mesh))
     Xown, _ = _cam(own_recs, sensor, settings)
