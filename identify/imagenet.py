@@ -293,6 +293,9 @@ def _cli():
                 r = run_image_validation(data, a, v, repeats, cfg, seed=seed, k=k, image_noise=image_noise, force=force)
                 r.row["dtype"] = str(cfg.dtype).replace("torch.", "")
                 results.append(r)
+                # held-out predictions (repeats, rows, 3: d mm, h mm, E kPa; NaN where not a test row)
+                np.savez(os.path.join(out, f"pred-{a}-{v}.npz"), pred=r.extra["pred"], ids=np.asarray(data.ids, dtype=str),
+                         theta=data.theta)
                 click.echo(f"{a}-image {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s", err=True)
         df = table(results)
         df.insert(0, "data", data.source)

@@ -47,3 +47,18 @@ def test_grid_respects_depth_range():
     for d, h, _ in T:
         lo, hi = depth_range(d, 20.0)
         assert lo - 1e-9 <= h <= hi + 1e-9
+
+
+def test_region_score_splits_rows_by_the_bound():
+    from identify.region_score import score
+
+    theta = np.array([[5.0, 6.0, 20.0], [8.0, 8.0, 100.0], [10.0, 9.0, 150.0]])
+    pred = np.full((2, 3, 3), np.nan)
+    pred[0] = theta * np.array([1.1, 1.0, 1.5])          # +10 % d, +50 % E
+    pred[1, :2] = theta[:2] * np.array([0.9, 1.0, 1.1])  # row 2 not held out in repeat 1
+    crb = np.array([[0.05, 0.05, 0.05], [0.05, 0.05, 0.5], [0.05, 0.05, 0.5]])
+    s = score(pred, theta, crb, threshold=0.10)
+    assert np.isclose(s[("d", "all")][0], 10.0) and s[("d", "all")][1] == 3
+    assert np.isclose(s[("E", "identifiable")][0], (50 + 10) / 2) and s[("E", "identifiable")][1] == 1
+    assert np.isclose(s[("E", "rest")][0], (50 + 50 + 10) / 3) and s[("E", "rest")][1] == 2
+    assert np.isnan(s[("h", "rest")][0]) and s[("h", "rest")][1] == 0
