@@ -1,0 +1,133 @@
+"""Where an estimate of (d, h, E) can be trusted: the identifiability map used by inference.
+
+The map holds, on the grid of :func:`identify.local.grid` (d, depth fraction u, E), the Cramér–Rao
+relative standard deviation ``r_q = sqrt(C_qq) / q`` (``C = F⁻¹``, ``F`` the Fisher information of
+the measurement set under the camera noise of :mod:`identify.crbmap`) of each output
+``q ∈ {d, h, E}``.  ``r_q`` is a *lower* bound on the relative error of any unbiased estimator at
+that point, so
+
+* ``r_q > threshold`` (default 10 %): ``q`` is **not identifiable** there; an estimate landing there
+  is flagged ``non_identifiable:q``;
+* every estimate gets an interval at least as wide as the bound's approximate 95 % interval,
+  log-normal so it stays positive, ``[q e^(-2 r_q), q e^(2 r_q)]``, widened to the ensemble's
+  10–90 % range and clipped to the training range of ``q``.  Where ``q`` is not identifiable the
+  interval is wide (for E at ``r_E = 0.5`` it spans a factor e² ≈ 7.4) and is reported in place of
+  a number.
+
+``r`` is interpolated linearly in ``(d, u, ln E)`` of ``ln r`` (the bound spans decades); estimates
+outside the map's box are flagged ``outside_identifiability_map`` and evaluated at the nearest
+point of the box.  Depth fraction ``u = (h - h_lo(d)) / (h_hi(d) - h_lo(d))`` with
+:func:`solver.params.depth_range` (pure Python; no DOLFINx).
+
+Maps come from ``python -m identify.crbmap`` (file ``crb_grid.npz``); the package ships the one
+measured on the default 512-sample sweep (``identify/maps/default.npz``), used when none is given.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from elastimap.errors import UserError
+
+TARGETS = ("d", "h", "E")
+DEFAULT_MAP = os.path.join(os.path.dirname(__file__), "maps", "default.npz")
+SETS = ("features", "image", "image+force", "two-depths")
+
+
+@dataclass
+class Assessment:
+    """Per estimate: bound ``r`` (n, 3), interval ``lo``/``hi`` (n, 3) and flags (list per row)."""
+
+    r: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    flags: list[list[str]] = field(default_factory=list)
+    identifiable: np.ndarray | None = None   # (n, 3) bool
+
+
+@dataclass
+class IdentifiabilityMap:
+    d: np.ndarray                     # (nd,) mm
+    u: np.ndarray                     # (nu,) depth fraction of the allowed centre-depth range
+    E: np.ndarray                     # (nE,) kPa
+    relstd: dict                      # set -> (nd, nu, nE, 3) Cramér–Rao relative std of d, h, E
+    thickness: float = 20.0           # mm, tissue slab of the sweep the map was made on
+    source: str = ""
+
+    # ------------------------------------------------------------------ io
+    @classmethod
+    def load(cls, path: str | os.PathLike | None = None) -> "IdentifiabilityMap":
+        p = str(path) if path else DEFAULT_MAP
+        if not os.path.isfile(p):
+            raise UserError("identifiability", f"{p}: no such map file (make one with python -m identify.crbmap)")
+        try:
+            z = np.load(p, allow_pickle=False)
+            d, u, E = (np.asarray(z[k], float) for k in ("d", "u", "E"))
+            shape = (d.size, u.size, E.size, 3)
+            rel = {s: np.asarray(z[s], float).reshape(shape) for s in SETS if s in z.files}
+            thickness = float(z["thickness"]) if "thickness" in z.files else 20.0
+            source = str(z["source"]) if "source" in z.files else p
+        except (KeyError, ValueError, OSError) as exc:
+            raise UserError("identifiability", f"{p}: not an identifiability map ({exc})") from None
+        if not rel:
+            raise UserError("identifiability", f"{p}: holds none of the measurement sets {', '.join(SETS)}")
+        return cls(d, u, E, rel, thickness, source)
+
+    def save(self, path: str | os.PathLike) -> None:
+        np.savez(path, d=self.d, u=self.u, E=self.E, thickness=self.thickness, source=self.source,
+                 **{s: v.reshape(-1, 3) for s, v in self.relstd.items()})
+
+    # ------------------------------------------------------------------ evaluation
+    def coords(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 3) grid coordinates (d, u, ln E) clipped to the box, and (n,) bool: was inside."""
+        from solver.params import depth_range
+
+        theta = np.atleast_2d(np.asarray(theta, float))
+        lo, hi = np.array([depth_range(max(dv, 1e-6), self.thickness) for dv in theta[:, 0]]).T
+        u = (theta[:, 1] - lo) / np.where(hi > lo, hi - lo, 1.0)
+        x = np.column_stack([theta[:, 0], u, np.log(np.clip(theta[:, 2], 1e-12, None))])
+        box_lo = np.array([self.d[0], self.u[0], np.log(self.E[0])])
+        box_hi = np.array([self.d[-1], self.u[-1], np.log(self.E[-1])])
+        tol = 1e-9 + 1e-6 * (box_hi - box_lo)
+        inside = np.all((x >= box_lo - tol) & (x <= box_hi + tol), axis=1) & np.all(np.isfinite(theta), axis=1)
+        return np.clip(np.nan_to_num(x, nan=0.0), box_lo, box_hi), inside
+
+    def bound(self, theta: np.ndarray, mset: str) -> tuple[np.ndarray, np.ndarray]:
+        """Cramér–Rao relative std (n, 3) at ``theta`` for measurement set ``mset``, and ``inside``."""
+        from scipy.interpolate import RegularGridInterpolator
+
+        if mset not in self.relstd:
+            raise UserError("identifiability", f"the map has no set {mset!r} (has {', '.join(self.relstd)})")
+        x, inside = self.coords(theta)
+        R = np.log(np.clip(self.relstd[mset], 1e-12, None))
+        axes = (self.d, self.u, np.log(self.E))
+        r = np.column_stack([np.exp(RegularGridInterpolator(axes, R[..., j])(x)) for j in range(3)])
+        return r, inside
+
+    def assess(self, mean: np.ndarray, mset: str, threshold: float = 0.10, p10: np.ndarray | None = None,
+               p90: np.ndarray | None = None, target_range: np.ndarray | None = None) -> Assessment:
+        """Flags and intervals for estimates ``mean`` (n, 3) (see the module docstring)."""
+        if not 0 < threshold < 10:
+            raise UserError("threshold", f"must be in (0, 10) (got {threshold:g})")
+        mean = np.atleast_2d(np.asarray(mean, float))
+        r, inside = self.bound(mean, mset)
+        pos = np.clip(mean, 1e-12, None)
+        lo, hi = pos * np.exp(-2.0 * r), pos * np.exp(2.0 * r)
+        if p10 is not None:
+            lo = np.minimum(lo, np.asarray(p10, float))
+        if p90 is not None:
+            hi = np.maximum(hi, np.asarray(p90, float))
+        if target_range is not None:
+            tr = np.asarray(target_range, float)
+            lo, hi = np.clip(lo, tr[0], tr[1]), np.clip(hi, tr[0], tr[1])
+        ok = r <= threshold
+        flags = []
+        for i in range(mean.shape[0]):
+            f = [f"non_identifiable:{q}" for j, q in enumerate(TARGETS) if not ok[i, j]]
+            if not inside[i]:
+                f.append("outside_identifiability_map")
+            flags.append(f)
+        return Assessment(r, lo, hi, flags, ok)

@@ -1,0 +1,204 @@
+"""Identifiability map (identify.region) and its use by inference (issue 7); SYNTHETIC maps and models."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from elastimap.errors import UserError
+from identify.region import DEFAULT_MAP, IdentifiabilityMap
+
+
+def _map() -> IdentifiabilityMap:
+    """SYNTHETIC map: d, h always 2 %; E 5 % below 50 kPa, rising to 80 % at 200 kPa (log-linear)."""
+    d, u, E = np.linspace(2, 15, 6), np.linspace(0.1, 0.9, 3), np.geomspace(10, 200, 7)
+    r = np.empty((6, 3, 7, 3))
+    r[..., 0] = r[..., 1] = 0.02
+    rE = np.where(E <= 50, 0.05, 0.05 * np.exp(np.log(16) * np.log(E / 50) / np.log(4)))
+    r[..., 2] = rE[None, None, :]
+    return IdentifiabilityMap(d, u, E, {"features": r, "image": r / 2}, 20.0, "SYNTHETIC")
+
+
+def _theta(d, u, E):
+    from solver.params import depth_range
+
+    lo, hi = depth_range(d, 20.0)
+    return np.array([[d, lo + u * (hi - lo), E]])
+
+
+def test_bound_interpolates_the_grid_and_flags_outside():
+    m = _map()
+    r, inside = m.bound(_theta(m.d[2], m.u[1], m.E[3]), "features")
+    assert inside.all()
+    np.testing.assert_allclose(r[0], m.relstd["features"][2, 1, 3], rtol=1e-10)
+    # halfway in ln E between two nodes: the geometric mean of the node values (ln r is interpolated)
+    Em = np.sqrt(m.E[5] * m.E[6])
+    r, _ = m.bound(_theta(5.0, 0.5, Em), "features")
+    assert r[0, 2] == pytest.approx(np.sqrt(m.relstd["features"][0, 0, 5, 2] * m.relstd["features"][0, 0, 6, 2]))
+    r, inside = m.bound(np.array([[5.0, 6.0, 400.0]]), "features")
+    assert not inside[0] and r[0, 2] == pytest.approx(0.8)          # evaluated at the box edge
+    with pytest.raises(UserError, match="no set"):
+        m.bound(_theta(5, 0.5, 30), "two-depths")
+
+
+def test_assess_flags_non_identifiable_outputs_with_wide_intervals():
+    m = _map()
+    est = np.vstack([_theta(8, 0.5, 20.0), _theta(8, 0.5, 150.0)])
+    tr = np.array([[2.0, 3.0, 10.0], [15.0, 17.0, 200.0]])
+    a = m.assess(est, "features", 0.10, target_range=tr)
+    assert a.flags[0] == [] and a.flags[1] == ["non_identifiable:E"]
+    assert a.identifiable[0].all() and not a.identifiable[1, 2]
+    # identifiable: the bound's log-normal 95 % interval; non-identifiable E: wide, clipped to training
+    np.testing.assert_allclose(a.lo[0], est[0] * np.exp(-2 * a.r[0]))
+    np.testing.assert_allclose(a.hi[0], est[0] * np.exp(2 * a.r[0]))
+    assert a.r[1, 2] > 0.4 and a.hi[1, 2] == 200.0 and a.lo[1, 2] < 150.0 / 2
+    assert np.all(a.lo <= est) and np.all(est <= a.hi)
+    # the ensemble's 10-90 % range widens the interval, never narrows it
+    b = m.assess(est, "features", 0.10, p10=est * 0.5, p90=est * 1.01, target_range=tr)
+    assert np.all(b.lo <= np.maximum(est * 0.5, tr[0]) + 1e-12) and np.all(b.hi >= a.hi - 1e-12)
+    # the image set (half the bound here) makes E at 150 kPa ... still not identifiable, 80 kPa yes
+    c = m.assess(np.vstack([_theta(8, 0.5, 150.0), _theta(8, 0.5, 60.0)]), "image", 0.10)
+    assert c.flags == [["non_identifiable:E"], []]
+
+
+def test_map_roundtrip_and_bad_files(tmp_path):
+    m = _map()
+    m.save(tmp_path / "m.npz")
+    back = IdentifiabilityMap.load(tmp_path / "m.npz")
+    assert set(back.relstd) == {"features", "image"} and back.source == "SYNTHETIC"
+    np.testing.assert_allclose(back.relstd["image"], m.relstd["image"])
+    with pytest.raises(UserError, match="no such map"):
+        IdentifiabilityMap.load(tmp_path / "nope.npz")
+    np.savez(tmp_path / "bad.npz", x=np.ones(3))
+    with pytest.raises(UserError, match="not an identifiability map"):
+        IdentifiabilityMap.load(tmp_path / "bad.npz")
+
+
+def test_shipped_default_map_says_what_the_study_measured():
+    """The shipped map (python -m identify.crbmap on the default 512-sample sweep, FD-scaled): E is far
+    better determined by the whole image than by three features, and d, h are identifiable from the
+    image over almost the whole box (docs/identifiability.md)."""
+    m = IdentifiabilityMap.load(DEFAULT_MAP)
+    assert {"features", "image"} <= set(m.relstd)
+    th = _theta(8.0, 0.5, 30.0)
+    rf, _ = m.bound(th, "features")
+    ri, _ = m.bound(th, "image")
+    assert ri[0, 2] < rf[0, 2] / 3
+    assert (m.relstd["image"][..., :2] <= 0.10).mean() > 0.95
+    assert (m.relstd["features"][..., 2] <= 0.10).mean() < (m.relstd["image"][..., 2] <= 0.10).mean()
+    assert "sweep" in m.source and "real-FD" in m.source
+
+
+# ----------------------------------------------------------------------------- inference
+class _Ens:
+    """Fixed-prediction ensemble (three members) with a training range."""
+
+    def __init__(self, mean):
+        self.mean = np.asarray(mean, float)
+        self.feature_range = np.array([[-1e9] * 3, [1e9] * 3])
+        self.target_range = np.array([[2.0, 3.0, 10.0], [15.0, 17.0, 200.0]])
+
+    def predict(self, X):
+        X = np.atleast_2d(X)
+        return np.stack([np.tile(self.mean * f, (len(X), 1)) for f in (0.98, 1.0, 1.02)])
+
+
+class _Cal:
+    synthetic = True
+
+    def apply(self, cam):
+        return np.asarray(cam, float) * 2.0 + np.array([0.001, 0.0, 0.0])
+
+    def outside(self, cam, margin=0.0):
+        return np.zeros(np.shape(np.atleast_2d(cam)), bool)
+
+
+def test_estimate_reports_non_identifiable_E_as_an_interval():
+    from camera.infer import estimate
+
+    m = _map()
+    e_hi = estimate([[0.1, 1.0, 5.0]], _Cal(), _Ens(_theta(8, 0.5, 150.0)[0]), identifiability=m)[0]
+    assert "non_identifiable:E" in e_hi.flags and not e_hi.ok
+    row = e_hi.to_dict()
+    assert row["E_identifiable"] is False and row["d_identifiable"] is True
+    assert row["E_lo"] < 150.0 / 2 and row["E_hi"] == 200.0
+    e_lo = estimate([[0.1, 1.0, 5.0]], _Cal(), _Ens(_theta(8, 0.5, 20.0)[0]), identifiability=m)[0]
+    assert e_lo.ok and e_lo.lo[2] <= 20.0 * 0.98 and e_lo.hi[2] >= 20.0 * 1.02
+    # without a map: no interval, no identifiability flag (the old behaviour, explicitly asked for)
+    e_none = estimate([[0.1, 1.0, 5.0]], _Cal(), _Ens(_theta(8, 0.5, 150.0)[0]), identifiability=None)[0]
+    assert e_none.ok and e_none.lo is None
+
+
+def _centred_bump(n, pixel, width=1.5, amp=0.02):
+    from solver.image import pixel_centres
+
+    c = pixel_centres(n * pixel, pixel)
+    Y, X = np.meshgrid(c, c, indexing="ij")
+    return amp * np.exp(-(X ** 2 + Y ** 2) / (2 * width ** 2))
+
+
+def test_camera_difference_image_maps_onto_the_fem_grid():
+    from camera.infer import fem_image_from_camera
+
+    fem = _centred_bump(20, 0.5)                      # 10 mm footprint, 0.5 mm FEM pixels
+    cam = _centred_bump(40, 0.25, amp=0.3)            # the same bump seen by a finer camera, FS units
+    out = fem_image_from_camera(cam, 0.25, float(cam.max()), _Cal(), (20, 20), 0.5)
+    assert out.max() == pytest.approx(2.0 * cam.max() + 0.001)      # the calibration's O1 line
+    np.testing.assert_allclose(out / out.max(), fem / fem.max(), atol=0.02)
+    with pytest.raises(UserError, match="no deformation"):
+        fem_image_from_camera(np.zeros((5, 5)), 0.25, 0.0, _Cal(), (20, 20), 0.5)
+
+
+def test_image_model_inference_from_fem_images(tmp_path):
+    from camera.infer import estimate, estimate_fem_images, load_model
+    from identify.imagenet import fit_image_model
+    from test_identify import _synthetic_data
+    from training.experiment import TrainConfig
+
+    data = _synthetic_data()
+    model = fit_image_model(data, "scg", repeats=2, cfg=TrainConfig(hidden=((6, "tansig"),), epochs=20,
+                                                                    progress=False), k=4)
+    model.save(str(tmp_path / "img"))
+    back = load_model(tmp_path / "img")
+    assert back.shape == (12, 12) and back.pixel == 0.5
+    ests = estimate_fem_images(data.images[:3].reshape(3, 12, 12), back, identifiability=_map())
+    assert len(ests) == 3 and all(e.input == "image" for e in ests)
+    np.testing.assert_allclose(np.array([e.mean for e in ests]), model.predict(data.images[:3]).mean(0))
+    assert np.isfinite(ests[0].fem).all() and ests[0].fem[0] == pytest.approx(data.images[0].max())
+    assert all(e.lo is not None and np.all(e.lo <= e.mean) for e in ests)
+    with pytest.raises(UserError, match="image model"):
+        estimate([[0.1, 1.0, 5.0]], _Cal(), back)
+    with pytest.raises(UserError, match="feature model"):
+        estimate_fem_images(data.images[:1], _Ens([5, 6, 30]))
+
+
+def test_cli_infer_fem_image_prints_non_identifiable_as_interval(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from identify.imagenet import fit_image_model
+    from test_identify import _synthetic_data
+    from training.experiment import TrainConfig
+
+    data = _synthetic_data()
+    fit_image_model(data, "scg", repeats=2, cfg=TrainConfig(hidden=((6, "tansig"),), epochs=10, progress=False),
+                    k=4).save(str(tmp_path / "img"))
+    m = _map()
+    m.relstd["image"][..., 2] = 0.5                  # SYNTHETIC: E never identifiable from this "image"
+    m.save(tmp_path / "map.npz")
+    np.save(tmp_path / "img.npy", data.images[:2].reshape(2, 12, 12))
+    base = [sys.executable, "-m", "camera.cli", "infer", "--model", str(tmp_path / "img"),
+            "--fem-image", str(tmp_path / "img.npy"), "--identifiability", str(tmp_path / "map.npz")]
+    r = subprocess.run(base, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.strip().splitlines()
+    assert len(lines) == 2 and all("E: not identifiable here" in ln and "non_identifiable:E" in ln for ln in lines)
+    r = subprocess.run(base + ["--json"], capture_output=True, text=True)
+    rows = json.loads(r.stdout)
+    assert rows[0]["input"] == "image" and rows[0]["E_identifiable"] is False
+    r = subprocess.run(base[:6] + ["--fem-image", str(tmp_path / "nope.npy"), "--identifiability", "none"],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.startswith("error: --fem-image")
+    r = subprocess.run(base[:-2] + ["--identifiability", "none", "--threshold", "0"], capture_output=True, text=True)
+    assert r.returncode == 2 and "--threshold" in r.stderr
