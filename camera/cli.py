@@ -197,35 +197,70 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
 
 # -------------------------------------------------------------------- infer
 @main.command()
-@click.option("--model", "model_dir", type=click.Path(), required=True, help="Trained ensemble directory.")
-@click.option("--calibration", type=click.Path(dir_okay=False), required=True)
+@click.option("--model", "model_dir", type=click.Path(), required=True,
+              help="Trained model directory: a feature ensemble (train) or an image model "
+                   "(python -m identify.imagenet --save-model).")
+@click.option("--calibration", type=click.Path(dir_okay=False), default=None,
+              help="FEM<->camera calibration (calibrate); needed for camera features and frames.")
 @click.option("--features", "feats", type=float, nargs=3, default=None, help="Camera features O1 O2 O3.")
 @click.option("--images", multiple=True, help="Lesion frames (files or globs; repeatable).")
 @click.option("--background", multiple=True, help="Background frames for --images.")
 @click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None,
               help="Batch: CSV with id and O1,O2,O3 or images,background.")
+@click.option("--fem-image", "fem_image", type=click.Path(dir_okay=False), default=None,
+              help="Image model only: .npy FEM difference image(s), mm, shape (ny, nx) or (n, ny, nx) on the "
+                   "sweep's grid (no calibration needed).")
+@click.option("--identifiability", default="default", show_default=True,
+              help="Identifiability map (crb_grid.npz of python -m identify.crbmap), 'default' (shipped, "
+                   "default 512-sample sweep) or 'none'.")
+@click.option("--threshold", default=0.10, show_default=True, type=float,
+              help="Cramér–Rao relative std above which an output is flagged non-identifiable.")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also write .csv or .json here.")
-def infer(model_dir, calibration, feats, images, background, csv_path, as_json, out):
-    """Estimate (d, h, E) with ensemble uncertainty; out-of-range inputs are flagged."""
+def infer(model_dir, calibration, feats, images, background, csv_path, fem_image, identifiability, threshold,
+          as_json, out):
+    """Estimate (d, h, E) with intervals; out-of-range inputs and non-identifiable outputs are flagged.
+
+    An output the identifiability map calls non-identifiable at the estimate (Cramér–Rao relative
+    std above --threshold) is printed as its interval, not as a number.
+    """
     from .calibration import Calibration
     from .frames import expand
-    from .infer import estimate, features_of_images, load_ensemble, read_lesions_csv
+    from .infer import (estimate, estimate_camera, estimate_fem_images, features_of_images, load_identifiability,
+                        load_model, read_lesions_csv)
 
-    given = sum(x for x in (feats is not None, bool(images), csv_path is not None))
+    given = sum(x for x in (feats is not None, bool(images), csv_path is not None, fem_image is not None))
     if given != 1:
-        raise UserError("input", "give exactly one of --features O1 O2 O3, --images ... --background ..., --csv FILE")
-    cal = Calibration.load(calibration)
-    if images:
-        if not background:
-            raise UserError("background", "--images needs --background frames (the same press without the lesion)")
-        ids, cam = ["1"], features_of_images(expand(list(images)), expand(list(background)), cal).values[None]
-    elif csv_path:
-        ids, cam = read_lesions_csv(csv_path, cal)
+        raise UserError("input", "give exactly one of --features O1 O2 O3, --images ... --background ..., "
+                                 "--csv FILE, --fem-image FILE.npy")
+    if not 0 < threshold < 10:
+        raise UserError("--threshold", f"must be in (0, 10) (got {threshold:g})")
+    if fem_image is not None and not os.path.isfile(fem_image):
+        raise UserError("--fem-image", f"{fem_image}: no such file")
+    idm = load_identifiability(None if identifiability == "none" else identifiability)
+    model = load_model(model_dir)
+    if fem_image is not None:
+        try:
+            arr = np.load(fem_image, allow_pickle=False)
+        except Exception as exc:
+            raise UserError("--fem-image", f"{fem_image}: not a .npy array ({exc})") from None
+        ests = estimate_fem_images(arr, model, identifiability=idm, threshold=threshold)
+        cal = None
     else:
-        ids, cam = ["1"], np.array([feats])
-    ens = load_ensemble(model_dir)
-    rows = [e.to_dict() for e in estimate(cam, cal, ens, ids)]
+        if calibration is None:
+            raise UserError("--calibration", "camera features and frames need the FEM<->camera calibration file")
+        cal = Calibration.load(calibration)
+        if images:
+            if not background:
+                raise UserError("background", "--images needs --background frames (the same press without the lesion)")
+            cf = features_of_images(expand(list(images)), expand(list(background)), cal)
+            ests = [estimate_camera(cf, cal, model, "1", idm, threshold)]
+        elif csv_path:
+            ids, cam = read_lesions_csv(csv_path, cal)
+            ests = estimate(cam, cal, model, ids, idm, threshold)
+        else:
+            ests = estimate(np.array([feats]), cal, model, ["1"], idm, threshold)
+    rows = [e.to_dict() for e in ests]
     if out:
         if out.endswith(".json"):
             with open(out, "w") as fh:
@@ -237,11 +272,18 @@ def infer(model_dir, calibration, feats, images, background, csv_path, as_json, 
         click.echo(json.dumps(rows, indent=2))
     else:
         for r in rows:
-            click.echo(f"{r['id']}: d = {r['d']:.3g} ± {r['d_sd']:.2g} mm   h = {r['h']:.3g} ± {r['h_sd']:.2g} mm   "
-                       f"E = {r['E']:.3g} ± {r['E_sd']:.2g} kPa   "
-                       + ("ok" if r["ok"] else f"FLAGGED: {r['flags']}"))
-    if cal.synthetic:
+            click.echo(f"{r['id']}: " + "   ".join(_quantity(r, q, u) for q, u in (("d", "mm"), ("h", "mm"), ("E", "kPa")))
+                       + "   " + ("ok" if r["ok"] else f"FLAGGED: {r['flags']}"))
+    if cal is not None and cal.synthetic:
         click.echo("note: the calibration was made with the SYNTHETIC camera", err=True)
+
+
+def _quantity(r: dict, q: str, unit: str) -> str:
+    lo, hi = r[f"{q}_lo"], r[f"{q}_hi"]
+    if not r[f"{q}_identifiable"]:
+        return f"{q}: not identifiable here, {lo:.3g}-{hi:.3g} {unit}"
+    s = f"{q} = {r[q]:.3g} ± {r[f'{q}_sd']:.2g} {unit}"
+    return s + (f" [{lo:.3g}, {hi:.3g}]" if np.isfinite(lo) else "")
 
 
 # ------------------------------------------------------------------- detect

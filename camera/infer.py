@@ -18,7 +18,24 @@ never silently extrapolated: every estimate carries ``flags``:
   the nine calibration phantoms (the linear map is extrapolated);
 * ``outside_training:Ok`` - the calibrated FEM feature k outside the
   network's training range (``ensemble.feature_range``);
-* ``no_signal`` - O1 at or below zero: no inclusion visible.
+* ``no_signal`` - O1 at or below zero: no inclusion visible;
+* ``non_identifiable:q`` - at the estimate, the Cramér–Rao bound of the
+  identifiability map (:mod:`identify.region`; by default the one shipped,
+  measured on the default 512-sample sweep) says ``q`` cannot be determined
+  within 10 % from this measurement (three features for the feature MLP,
+  the whole image for an image model).  Such a ``q`` is reported as its
+  interval ``[q_lo, q_hi]`` (at least the bound's 95 % interval, clipped to
+  the training range), never as a confident number;
+* ``outside_identifiability_map`` - the estimate lies outside the map's box.
+
+Every estimate carries ``lo``/``hi``: the bound's approximate 95 % interval
+widened to the ensemble's 10-90 % range (a bound: real errors can be larger).
+
+Image models (``python -m identify.imagenet --save-model DIR``) take a FEM
+difference image (:func:`estimate_fem_images`) or camera frames
+(:func:`estimate_images`), which are mapped to the FEM image grid by
+:func:`fem_image_from_camera` (shape resampled by position, peak through the
+calibration's O1 line).
 """
 
 from __future__ import annotations
@@ -48,6 +65,10 @@ class Estimate:
     p90: np.ndarray
     n_members: int
     flags: list[str] = field(default_factory=list)
+    lo: np.ndarray | None = None          # interval (see the module docstring)
+    hi: np.ndarray | None = None
+    crb: np.ndarray | None = None         # Cramér–Rao relative std of d, h, E at the estimate
+    input: str = "features"               # features | image
 
     d = property(lambda s: float(s.mean[0]))
     h = property(lambda s: float(s.mean[1]))
@@ -67,10 +88,15 @@ class Estimate:
             out[f"{k}_sd"] = float(self.sd[j])
             out[f"{k}_p10"] = float(self.p10[j])
             out[f"{k}_p90"] = float(self.p90[j])
+            out[f"{k}_lo"] = float(self.lo[j]) if self.lo is not None else math.nan
+            out[f"{k}_hi"] = float(self.hi[j]) if self.hi is not None else math.nan
+            out[f"{k}_crb_rel"] = float(self.crb[j]) if self.crb is not None else math.nan
+            out[f"{k}_identifiable"] = f"non_identifiable:{k}" not in self.flags
         for j, k in enumerate(FEATURES):
             out[f"cam_{k}"] = float(self.cam[j])
         for j, k in enumerate(FEATURES):
             out[f"fem_{k}"] = float(self.fem[j])
+        out["input"] = self.input
         out["n_members"] = self.n_members
         out["flags"] = ";".join(self.flags)
         out["ok"] = self.ok
@@ -97,8 +123,45 @@ def _feature_range(ensemble) -> np.ndarray | None:
     return fr if fr.shape == (2, 3) else None
 
 
-def estimate(cam_features, calibration: Calibration, ensemble, ids: list[str] | None = None) -> list[Estimate]:
-    """(n, 3) camera features -> list of :class:`Estimate`."""
+def load_identifiability(identifiability="default"):
+    """``"default"`` (the shipped map), a path, an :class:`identify.region.IdentifiabilityMap`, or None."""
+    if identifiability is None:
+        return None
+    from identify.region import IdentifiabilityMap
+
+    if isinstance(identifiability, IdentifiabilityMap):
+        return identifiability
+    return IdentifiabilityMap.load(None if identifiability == "default" else identifiability)
+
+
+def _assess(ests: list[Estimate], ensemble, idmap, mset: str, threshold: float) -> list[Estimate]:
+    if idmap is None:
+        return ests
+    mean = np.array([e.mean for e in ests])
+    a = idmap.assess(mean, mset, threshold, p10=np.array([e.p10 for e in ests]),
+                     p90=np.array([e.p90 for e in ests]), target_range=getattr(ensemble, "target_range", None))
+    for i, e in enumerate(ests):
+        e.lo, e.hi, e.crb = a.lo[i], a.hi[i], a.r[i]
+        e.flags.extend(a.flags[i])
+    return ests
+
+
+def _members(Y: np.ndarray, n: int):
+    Y = np.asarray(Y, dtype=float)
+    if Y.ndim == 2:
+        Y = Y[None]
+    if Y.shape[1:] != (n, 3):
+        raise RuntimeError(f"ensemble.predict returned shape {Y.shape}, expected (members, {n}, 3)")
+    mean = Y.mean(axis=0)
+    sd = Y.std(axis=0, ddof=1) if Y.shape[0] > 1 else np.full((n, 3), math.nan)
+    return Y, mean, sd, np.percentile(Y, 10, axis=0), np.percentile(Y, 90, axis=0)
+
+
+def estimate(cam_features, calibration: Calibration, ensemble, ids: list[str] | None = None,
+             identifiability="default", threshold: float = 0.10) -> list[Estimate]:
+    """(n, 3) camera features -> list of :class:`Estimate` (feature MLP ensemble).
+
+    ``identifiability``: see :func:`load_identifiability`; its ``features`` set is used."""
     cam = np.atleast_2d(np.asarray(cam_features, dtype=float))
     if cam.ndim != 2 or cam.shape[1] != 3:
         raise UserError("features", f"need three camera features O1 O2 O3 per lesion (got shape {cam.shape})")
@@ -108,15 +171,11 @@ def estimate(cam_features, calibration: Calibration, ensemble, ids: list[str] | 
     ids = [str(i + 1) for i in range(n)] if ids is None else [str(i) for i in ids]
     if len(ids) != n:
         raise UserError("ids", f"{len(ids)} ids for {n} lesions")
+    if _is_image_model(ensemble):
+        raise UserError("model", "this is an image model: give an image (--fem-image or camera frames), not features")
+    idmap = load_identifiability(identifiability)
     fem = calibration.apply(cam)
-    Y = np.asarray(ensemble.predict(fem), dtype=float)
-    if Y.ndim == 2:
-        Y = Y[None]
-    if Y.shape[1:] != (n, 3):
-        raise RuntimeError(f"ensemble.predict returned shape {Y.shape}, expected (members, {n}, 3)")
-    mean = Y.mean(axis=0)
-    sd = Y.std(axis=0, ddof=1) if Y.shape[0] > 1 else np.full((n, 3), math.nan)
-    p10, p90 = np.percentile(Y, 10, axis=0), np.percentile(Y, 90, axis=0)
+    Y, mean, sd, p10, p90 = _members(ensemble.predict(fem), n)
     out_cal = calibration.outside(cam)
     fr = _feature_range(ensemble)
     out_train = ((fem < fr[0]) | (fem > fr[1])) if fr is not None else np.zeros_like(out_cal)
@@ -127,7 +186,89 @@ def estimate(cam_features, calibration: Calibration, ensemble, ids: list[str] | 
         if cam[i, 0] <= 0:
             flags.insert(0, "no_signal")
         ests.append(Estimate(ids[i], cam[i], fem[i], mean[i], sd[i], p10[i], p90[i], Y.shape[0], flags))
-    return ests
+    return _assess(ests, ensemble, idmap, "features", threshold)
+
+
+def _is_image_model(model) -> bool:
+    return hasattr(model, "pca") and hasattr(model, "ensemble")
+
+
+def load_model(directory: str | os.PathLike):
+    """A feature ensemble (``training``) or an image model (``identify.imagenet``), by what the directory holds."""
+    d = str(directory)
+    from identify.imagenet import PCA_FILE
+
+    if os.path.isfile(os.path.join(d, PCA_FILE)):
+        from identify.imagenet import ImageModel
+
+        return ImageModel.load(d)
+    return load_ensemble(d)
+
+
+def estimate_fem_images(images, model, ids: list[str] | None = None, identifiability="default",
+                        threshold: float = 0.10, cam_features=None, flags=None) -> list[Estimate]:
+    """(n, ny, nx) (or (n, ny*nx)) FEM difference images (mm) -> list of :class:`Estimate` (image model).
+
+    ``cam``/``fem`` of each estimate hold the camera features (NaN for simulated input) and the
+    image's own FEM features O1..O3; ``identifiability`` uses the map's ``image`` set."""
+    from solver.image import features as image_features
+
+    if not _is_image_model(model):
+        raise UserError("model", "a feature model takes features or camera frames, not a FEM image; "
+                                 "use an image model (python -m identify.imagenet --save-model DIR)")
+    if model.force:
+        raise UserError("model", "this image model also needs the plate force; inference from images alone "
+                                 "needs a model trained without --force")
+    imgs = np.asarray(images, dtype=float)
+    if model.shape is not None and imgs.ndim == 2 and imgs.shape == tuple(model.shape):
+        imgs = imgs[None]
+    imgs = imgs.reshape(imgs.shape[0], -1) if imgs.ndim >= 2 else np.atleast_2d(imgs)
+    n = imgs.shape[0]
+    ids = [str(i + 1) for i in range(n)] if ids is None else [str(i) for i in ids]
+    if len(ids) != n:
+        raise UserError("ids", f"{len(ids)} ids for {n} images")
+    idmap = load_identifiability(identifiability)
+    Y, mean, sd, p10, p90 = _members(model.predict(imgs), n)
+    inr = np.asarray(model.in_range(imgs), bool)
+    ests = []
+    for i in range(n):
+        if model.shape is not None and model.pixel:
+            fem = np.array(image_features(imgs[i].reshape(model.shape), model.pixel))   # as the sweep's O1..O3
+        else:
+            fem = np.full(3, math.nan)
+        f = list(flags[i]) if flags is not None else []
+        if not inr[i]:
+            f.append("outside_training:image")
+        if not np.abs(imgs[i]).max() > 0:
+            f.insert(0, "no_signal")
+        cam = np.asarray(cam_features[i], float) if cam_features is not None else np.full(3, math.nan)
+        ests.append(Estimate(ids[i], cam, fem, mean[i], sd[i], p10[i], p90[i], Y.shape[0], f, input="image"))
+    return _assess(ests, model.ensemble, idmap, "image", threshold)
+
+
+def fem_image_from_camera(difference: np.ndarray, pixel_mm: float, o1_cam: float, calibration: Calibration,
+                          shape: tuple[int, int], pixel: float) -> np.ndarray:
+    """A camera difference image (FS, ``pixel_mm`` camera pixels over the centred footprint window)
+    on the FEM image grid (mm): its *shape* resampled by position (both grids centred on the probe
+    axis; outside the camera window 0), its *peak* ``calibration``'s O1 line applied to ``o1_cam``."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    from solver.image import pixel_centres
+
+    D = np.asarray(difference, float)
+    if D.ndim != 2:
+        raise UserError("images", f"the camera difference image must be 2-D (got shape {D.shape})")
+    peak_cam = float(np.max(D))
+    if not peak_cam > 0:
+        raise UserError("images", "no deformation in the camera difference image (peak <= 0): no inclusion visible")
+    yc = -D.shape[0] * pixel_mm / 2 + pixel_mm * (np.arange(D.shape[0]) + 0.5)
+    xc = -D.shape[1] * pixel_mm / 2 + pixel_mm * (np.arange(D.shape[1]) + 0.5)
+    ny, nx = shape
+    Y, X = np.meshgrid(pixel_centres(ny * pixel, pixel), pixel_centres(nx * pixel, pixel), indexing="ij")
+    S = RegularGridInterpolator((yc, xc), D / peak_cam, bounds_error=False, fill_value=0.0)(
+        np.column_stack([Y.ravel(), X.ravel()])).reshape(ny, nx)
+    peak_fem = float(calibration.apply(np.array([[o1_cam, 1.0, 1.0]]))[0, 0])
+    return S / max(S.max(), 1e-12) * peak_fem
 
 
 def sensor_of(calibration: Calibration):
@@ -151,9 +292,25 @@ def features_of_images(images: list[str], background: list[str], calibration: Ca
 
 
 def estimate_images(images: list[str], background: list[str], calibration: Calibration, ensemble,
-                    id: str = "1") -> Estimate:
+                    id: str = "1", identifiability="default", threshold: float = 0.10) -> Estimate:
+    """One lesion's camera frames -> :class:`Estimate`, with a feature ensemble or an image model."""
     cf = features_of_images(images, background, calibration)
-    return estimate(cf.values[None], calibration, ensemble, [id])[0]
+    return estimate_camera(cf, calibration, ensemble, id, identifiability, threshold)
+
+
+def estimate_camera(cf, calibration: Calibration, model, id: str = "1", identifiability="default",
+                    threshold: float = 0.10) -> Estimate:
+    """:class:`camera.features.CameraFeatures` -> :class:`Estimate` (feature or image model)."""
+    if not _is_image_model(model):
+        return estimate(cf.values[None], calibration, model, [id], identifiability, threshold)[0]
+    if model.shape is None or not model.pixel:
+        raise UserError("model", "this image model does not record its image grid; re-save it with this version")
+    out_cal = calibration.outside(cf.values[None])[0]
+    flags = [f"outside_calibration:{k}" for j, k in enumerate(FEATURES) if out_cal[j]]
+    img = fem_image_from_camera(cf.difference, sensor_of(calibration).pixel_mm, cf.O1, calibration,
+                                model.shape, model.pixel)
+    return estimate_fem_images(img[None], model, [id], identifiability, threshold, cam_features=cf.values[None],
+                               flags=[flags])[0]
 
 
 def read_lesions_csv(path: str | os.PathLike, calibration: Calibration) -> tuple[list[str], np.ndarray]:

@@ -37,7 +37,7 @@ from training.experiment import (METRICS, TrainConfig, ValidationResult, make_ba
                                  split_rows, summarize, train_batch)
 from training.model import Ensemble
 from training.net import Arch
-from training.problem import NetObjective, mapminmax_apply, mapminmax_reverse
+from training.problem import NetObjective, mapminmax_apply, mapminmax_fit, mapminmax_reverse
 
 from .measure import Data, ShapePCA, add_image_noise, image_inputs
 
@@ -71,16 +71,36 @@ def _inputs(data: Data, pca: ShapePCA, force: bool, images=None):
     return image_inputs(imgs, pca, data.dforce if force else None, data.force_ref if force else None)
 
 
+def _train_targets(T: np.ndarray, log_e: bool) -> np.ndarray:
+    """Network targets: (d, h, E) or, with ``log_e``, (d, h, ln E)."""
+    Tt = np.array(T, dtype=np.float64, copy=True)
+    if log_e:
+        Tt[..., 2] = np.log(Tt[..., 2])
+    return Tt
+
+
+def _physical(Y: np.ndarray, log_e: bool) -> np.ndarray:
+    Y = np.array(Y, dtype=np.float64, copy=True)
+    if log_e:
+        Y[..., 2] = np.exp(Y[..., 2])
+    return Y
+
+
 def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg: TrainConfig, *, seed: int = 0,
                          test_split: float | None = None, k: int = 10, image_noise: float = 0.0,
-                         force: bool = False) -> ValidationResult:
+                         force: bool = False, log_e: bool = False) -> ValidationResult:
     """HOV / LOOCV x repeats of the image MLP; ``extra['pred']`` holds the test predictions
-    ``(R, n, 3)`` (NaN where a row was not a test row of that repeat) and ``extra['test']``."""
+    ``(R, n, 3)`` (NaN where a row was not a test row of that repeat) and ``extra['test']``.
+
+    ``log_e``: the network learns ln E instead of E (relative errors of E become additive).  The
+    metrics are computed on E itself either way; MSE x 100 on the linear [-1, 1] mapminmax scaling
+    of (d, h, E) over each training fold, as for the feature MLP, so the rows stay comparable."""
     samples = samples_of(data)
     if list(samples.df["sample_id"]) != list(data.ids):
         raise UserError("data", "rows must be sorted by sample_id (use identify.measure.load)")
     n = data.n
     T = data.theta.astype(np.float64)
+    Tt = _train_targets(T, log_e)
     rng, gen = rng_for(seed, validate)
     test1, note = split_rows(samples, validate, test_split, rng)
     if validate == "hov":
@@ -99,7 +119,7 @@ def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg
     icfg.feature_noise = 0.0
     fit = ~test
     t0 = time.perf_counter()
-    batch = make_batch(X0, T, fit, test, icfg, rng, gen)
+    batch = make_batch(X0, Tt, fit, test, icfg, rng, gen)
     obj = batch.obj
     if image_noise > 0:
         Xr = []
@@ -113,7 +133,10 @@ def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg
     wall = time.perf_counter() - t0
     Ys = predict_scaled(res.theta, obj.X, icfg.arch)
     Ts = obj.T.cpu().numpy()
-    Yp = mapminmax_reverse(Ys, batch.t_lo, batch.t_hi)
+    Yp = _physical(mapminmax_reverse(Ys, batch.t_lo, batch.t_hi), log_e)
+    if log_e:   # scores on the linear scaling of (d, h, E) over each training fold
+        lo, hi = mapminmax_fit(np.broadcast_to(T, Yp.shape), batch.train)
+        Ys, Ts = mapminmax_apply(Yp, lo, hi), mapminmax_apply(np.broadcast_to(T, Yp.shape), lo, hi)
     R = repeats
     shp = (R, folds, n)
     tm = test.reshape(shp)[..., None]
@@ -129,10 +152,11 @@ def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg
     trm = batch.train.reshape(shp)[..., None]
     train_mse = 100.0 * ((((Ts - Ys) ** 2).reshape(*shp, 3) * trm).sum(axis=2) / trm.sum(axis=2)).mean(axis=1)
     B = test.shape[0]
-    row = {"algo": f"{algo}-image", "validate": validate, "repeats": R, "n_samples": n,
+    row = {"algo": f"{algo}-image" + ("-lnE" if log_e else ""), "validate": validate, "repeats": R, "n_samples": n,
            "n_train": int(batch.train[0].sum()), "n_test_per_repeat": int(cnt[0, 0]), "trainings": B,
            "hidden": ",".join(f"{s}" if a == "tansig" else f"{s}:{a}" for s, a in icfg.hidden),
            "epochs": icfg.epochs, "feature_noise": 0.0, "image_noise": image_noise, "pca_k": k, "force": force,
+           "log_e": log_e,
            "val_fraction": icfg.val_fraction, "test_set": note, "wall_s": round(wall, 3),
            "trainings_per_s": round(B / wall, 3), "mean_epochs_run": float(res.epochs.double().mean())}
     for m in METRICS:
@@ -146,7 +170,7 @@ def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg
         stops[s] = stops.get(s, 0) + 1
     row["stops"] = ";".join(f"{a}:{b}" for a, b in sorted(stops.items()))
     curves = {kk: v.numpy() for kk, v in res.history.items() if kk in ("train", "test", "val")}
-    return ValidationResult(f"{algo}-image", validate, R, row, per, curves, stops, wall,
+    return ValidationResult(f"{algo}-image" + ("-lnE" if log_e else ""), validate, R, row, per, curves, stops, wall,
                             extra={"pred": pred, "test": test1 if validate == "hov" else np.ones(n, bool)})
 
 
@@ -158,6 +182,9 @@ class ImageModel:
     ensemble: Ensemble
     pca: ShapePCA
     force: bool = False
+    shape: tuple[int, int] | None = None   # (ny, nx) of the FEM difference images it was trained on
+    pixel: float | None = None             # their pixel side, mm
+    log_e: bool = False                    # the networks output ln E (predict returns E)
 
     def inputs(self, images, dforce=None, force_ref=None) -> np.ndarray:
         images = np.atleast_2d(np.asarray(images, dtype=np.float64))
@@ -175,7 +202,7 @@ class ImageModel:
 
     def predict(self, images, dforce=None, force_ref=None) -> np.ndarray:
         """``(members, n, 3)`` d mm, h mm, E kPa for ``(n, ny*nx)`` (or ``(n, ny, nx)``) difference images."""
-        return self.ensemble.predict(self.inputs(images, dforce, force_ref))
+        return _physical(self.ensemble.predict(self.inputs(images, dforce, force_ref)), self.log_e)
 
     def in_range(self, images, dforce=None, force_ref=None) -> np.ndarray:
         return self.ensemble.in_range(self.inputs(images, dforce, force_ref))
@@ -185,6 +212,8 @@ class ImageModel:
         with open(os.path.join(directory, PCA_FILE), "w") as f:
             json.dump({"format": "elastimap.identify.image_pca", "version": 1, "force": self.force,
                        "inputs": "ln(peak), PCA scores of image/peak" + (", 100 dF/F_ref" if self.force else ""),
+                       "image_shape": list(self.shape) if self.shape else None, "pixel_mm": self.pixel,
+                       "log_e": self.log_e,
                        **self.pca.to_json()}, f)
         return directory
 
@@ -195,11 +224,15 @@ class ImageModel:
             raise UserError("model", f"{directory} is not an image model (missing {PCA_FILE})")
         with open(p) as f:
             meta = json.load(f)
-        return cls(Ensemble.load(directory), ShapePCA.from_json(meta), bool(meta.get("force", False)))
+        shape = tuple(int(x) for x in meta["image_shape"]) if meta.get("image_shape") else None
+        pixel = float(meta["pixel_mm"]) if meta.get("pixel_mm") else None
+        return cls(Ensemble.load(directory), ShapePCA.from_json(meta), bool(meta.get("force", False)), shape, pixel,
+                   bool(meta.get("log_e", False)))
 
 
 def fit_image_model(data: Data, algo: str = "scg", repeats: int = 10, cfg: TrainConfig | None = None, *,
-                    seed: int = 0, k: int = 10, force: bool = False, image_noise: float = 0.0) -> ImageModel:
+                    seed: int = 0, k: int = 10, force: bool = False, image_noise: float = 0.0,
+                    log_e: bool = False) -> ImageModel:
     """Train the saved ensemble on every row of ``data`` (``repeats`` initialisations)."""
     from elastimap.provenance import code_version
     from training.data import data_hash
@@ -211,7 +244,7 @@ def fit_image_model(data: Data, algo: str = "scg", repeats: int = 10, cfg: Train
     icfg.feature_noise = 0.0
     T = data.theta.astype(np.float64)
     rng, gen = rng_for(seed, "final")
-    batch = make_batch(X0, T, np.ones((repeats, data.n), bool), None, icfg, rng, gen)
+    batch = make_batch(X0, _train_targets(T, log_e), np.ones((repeats, data.n), bool), None, icfg, rng, gen)
     obj = batch.obj
     if image_noise > 0:
         Xb = np.stack([_inputs(data, pca, force, add_image_noise(data.images, image_noise,
@@ -222,7 +255,7 @@ def fit_image_model(data: Data, algo: str = "scg", repeats: int = 10, cfg: Train
     res = train_batch(algo, obj, batch.theta0, icfg, desc=f"{algo}-image final")
     names = input_names(k, force)
     units = dict(UNITS, **{nm: "" for nm in names})
-    meta = {"algo": f"{algo}-image", "epochs": icfg.epochs, "repeats": repeats, "seed": seed, "pca_k": k,
+    meta = {"algo": f"{algo}-image" + ("-lnE" if log_e else ""), "log_e": log_e, "epochs": icfg.epochs, "repeats": repeats, "seed": seed, "pca_k": k,
             "force": force, "image_noise": image_noise, "n_train": data.n, "data_source": data.source,
             "data_sha256": data_hash(samples_of(data).df), "stop_reasons": res.stop,
             "epochs_run": res.epochs.tolist(), "code_version": code_version(), "device": str(icfg.resolved_device())}
@@ -230,7 +263,7 @@ def fit_image_model(data: Data, algo: str = "scg", repeats: int = 10, cfg: Train
                    x_max=batch.x_hi[0], y_min=batch.t_lo[0], y_max=batch.t_hi[0], feature_names=names,
                    target_names=TARGETS, units=units, feature_range=np.stack([X0.min(0), X0.max(0)]),
                    target_range=np.stack([T.min(0), T.max(0)]), meta=meta)
-    return ImageModel(ens, pca, force)
+    return ImageModel(ens, pca, force, tuple(data.shape), float(data.pixel), log_e)
 
 
 # ----------------------------------------------------------------------------- command line
@@ -241,19 +274,26 @@ def _cli():
     @click.option("--data", "data_path", default="data/sweep512", show_default=True,
                   help="Sweep directory with stored elasticity images.")
     @click.option("--algo", default="scg", show_default=True, help="scg, lm or scg,lm.")
-    @click.option("--validate", default="hov", show_default=True, help="hov, loocv or hov,loocv.")
+    @click.option("--validate", default="hov", show_default=True,
+                  help="hov, loocv, hov,loocv, or none (only --save-model).")
     @click.option("--repeats", default=10, show_default=True, type=int)
     @click.option("--k", "k", default=10, show_default=True, type=int,
                   help="Inputs from the image: ln(peak) and k-1 shape-PCA scores.")
     @click.option("--force", is_flag=True, help="Add the plate-force difference 100 dF/F_ref as an input.")
     @click.option("--image-noise", default=0.01, show_default=True, type=float,
                   help="Per-pixel Gaussian noise, relative to each image's peak, drawn per repeat.")
+    @click.option("--log-e", "log_e", is_flag=True,
+                  help="The network learns ln E instead of E (metrics still on E; algo row '<algo>-image-lnE').")
     @click.option("--epochs", default=100, show_default=True, type=int)
     @click.option("--workers", default=0, show_default=True, type=int, help="Training processes (0 = one per core).")
     @click.option("--float32", "float32", is_flag=True, help="Single precision.")
     @click.option("--seed", default=0, show_default=True, type=int)
     @click.option("--out", default="runs/image-inverse", show_default=True, help="Output directory.")
-    def main(data_path, algo, validate, repeats, k, force, image_noise, epochs, workers, float32, seed, out):
+    @click.option("--save-model", "save_model", default=None,
+                  help="Also train on every row (first --algo, --repeats initialisations) and save the ensemble "
+                       "here, for `infer --model DIR --fem-image ...` / camera frames.")
+    def main(data_path, algo, validate, repeats, k, force, image_noise, log_e, epochs, workers, float32, seed, out,
+             save_model):
         """Validate the image-based inverse (image PCA -> the paper's MLP -> d, h, E).
 
         Same HOV split (the 9 phantom rows), LOOCV folds, seeds, metrics and table layout as
@@ -267,6 +307,10 @@ def _cli():
 
         algos = [a.strip() for a in algo.split(",") if a.strip()]
         vals = [v.strip() for v in validate.split(",") if v.strip()]
+        if vals == ["none"]:
+            vals = []
+            if not save_model:
+                raise UserError("--validate", "none needs --save-model DIR (otherwise there is nothing to do)")
         for a in algos:
             if a not in ALGOS:
                 raise UserError("--algo", f"must be scg and/or lm (got {a!r})")
@@ -290,18 +334,27 @@ def _cli():
         results = []
         for v in vals:
             for a in algos:
-                r = run_image_validation(data, a, v, repeats, cfg, seed=seed, k=k, image_noise=image_noise, force=force)
+                r = run_image_validation(data, a, v, repeats, cfg, seed=seed, k=k, image_noise=image_noise, force=force,
+                                         log_e=log_e)
                 r.row["dtype"] = str(cfg.dtype).replace("torch.", "")
                 results.append(r)
                 # held-out predictions (repeats, rows, 3: d mm, h mm, E kPa; NaN where not a test row)
-                np.savez(os.path.join(out, f"pred-{a}-{v}.npz"), pred=r.extra["pred"], ids=np.asarray(data.ids, dtype=str),
+                np.savez(os.path.join(out, f"pred-{a}{'-lnE' if log_e else ''}-{v}.npz"), pred=r.extra["pred"], ids=np.asarray(data.ids, dtype=str),
                          theta=data.theta)
                 click.echo(f"{a}-image {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s", err=True)
+        if save_model:
+            model = fit_image_model(data, algos[0], repeats, cfg, seed=seed, k=k, force=force, image_noise=image_noise,
+                                    log_e=log_e)
+            os.makedirs(save_model, exist_ok=True)
+            model.save(save_model)
+            click.echo(f"saved {algos[0]}-image ensemble ({repeats} members, {data.n} rows) to {save_model}", err=True)
+        if not results:
+            return 0
         df = table(results)
         df.insert(0, "data", data.source)
         df.to_csv(os.path.join(out, "results.csv"), index=False)
         title = (f"Image-based inverse, {data.source} ({data.n} rows), inputs ln(peak) + {k - 1} shape-PCA scores"
-                 f"{' + force' if force else ''}, image noise {image_noise:g} of the peak, {epochs} epochs; "
+                 f"{' + force' if force else ''}{', target ln E' if log_e else ''}, image noise {image_noise:g} of the peak, {epochs} epochs; "
                  f"mean [2.5 %, 97.5 %] over {repeats} repeat(s).")
         md = markdown(df, title)
         with open(os.path.join(out, "results.md"), "w") as f:
