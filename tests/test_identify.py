@@ -93,3 +93,31 @@ def test_cli_bad_options_exit_2(args, param):
     r = subprocess.run([sys.executable, "-m", "identify.imagenet", *args], capture_output=True, text=True)
     assert r.returncode == 2
     assert r.stderr.startswith("error: ") and param in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_log_e_target_scores_on_E_and_round_trips(tmp_path):
+    """``log_e``: the network learns ln E, the table is still scored on E (same linear scaling)."""
+    from training.experiment import TrainConfig
+
+    data = _synthetic_data()
+    cfg = TrainConfig(hidden=((6, "tansig"),), epochs=30, progress=False)
+    lin = run_image_validation(data, "scg", "hov", 2, cfg, seed=0, k=4)
+    log = run_image_validation(data, "scg", "hov", 2, cfg, seed=0, k=4, log_e=True)
+    assert log.row["algo"] == "scg-image-lnE" and log.row["log_e"] is True
+    # identical d, h targets and scaling: the MSE x 100 of d is computed the same way in both
+    p = log.extra["pred"][:, log.extra["test"]]
+    assert np.all(p[..., 2] > 0)
+    t = data.theta[log.extra["test"]]
+    mre_E = 100 * np.mean(np.abs(p[..., 2] - t[:, 2]) / t[:, 2], axis=1)
+    np.testing.assert_allclose(mre_E.mean(), log.row["mre_E_mean"], rtol=1e-9)
+    Et = data.theta[~log.extra["test"], 2]                    # linear [-1, 1] scaling over the training rows
+    s = lambda e: 2 * (e - Et.min()) / (Et.max() - Et.min()) - 1   # noqa: E731
+    mse = 100 * np.mean((s(p[..., 2]) - s(t[:, 2])) ** 2, axis=1)
+    np.testing.assert_allclose(mse.mean(), log.row["mse100_E_mean"], rtol=1e-9)
+    assert np.isfinite(lin.row["mse100_E_mean"]) and np.isfinite(log.row["mse100_E_mean"])
+    model = fit_image_model(data, "scg", repeats=2, cfg=cfg, k=4, log_e=True)
+    back = ImageModel.load(model.save(str(tmp_path / "m")))
+    assert back.log_e
+    y = back.predict(data.images[:4])
+    np.testing.assert_allclose(y, model.predict(data.images[:4]), rtol=1e-10)
+    assert np.all(y[..., 2] > 0)
