@@ -211,3 +211,38 @@ def test_end_to_end_with_trained_ensemble_cli_images(chain, tmp_path):
     assert row["d"] == pytest.approx(d, rel=0.10), row
     assert row["h"] == pytest.approx(h, rel=0.15), row
     assert row["E"] == pytest.approx(E, rel=0.35), row
+
+
+def test_image_model_from_synthetic_camera_frames(chain, tmp_path):
+    """Camera frames -> difference image on the FEM grid (shape by position, peak by the O1 line)
+    -> image model.  TOY forward model, SYNTHETIC camera; the image model is a small SCG ensemble
+    (ln E target) on the toy table's images.  Tolerance 25 % on d and h (a 2-member, 8-neuron net)."""
+    from camera.infer import estimate_camera, fem_image_from_camera, features_of_images, sensor_of
+    from identify.imagenet import fit_image_model
+    from identify.measure import Data
+    from training.experiment import TrainConfig
+
+    tab = toy_table()
+    res = [toy_solve(*row[:3]) for row in tab]
+    n = len(tab)
+    data = Data(theta=tab[:, :3], features=tab[:, 3:], images=np.stack([r.image.ravel() for r in res]),
+                dforce=np.zeros(n), force_ref=np.ones(n), tags=np.array(["design"] * n),
+                ids=np.array([f"t{i:04d}" for i in range(n)]), shape=res[0].image.shape, pixel=res[0].pixel,
+                source="TOY")
+    model = fit_image_model(data, "scg", repeats=2, cfg=TrainConfig(hidden=((8, "tansig"),), epochs=200,
+                                                                    progress=False), k=6, log_e=True)
+    m = chain["sensor"].replace(seed=5)
+    r = toy_solve(*TRUTH)
+    F, B = render_pair(m, r.image_raw, r.image, r.pixel, 30)
+    pf = write_frames(F, tmp_path, "lesion", "png")
+    pb = write_frames(B, tmp_path, "lesion_background", "png")
+    cal = chain["cal"]
+    cf = features_of_images(pf, pb, cal)
+    img = fem_image_from_camera(cf.difference, sensor_of(cal).pixel_mm, cf.O1, cal, model.shape, model.pixel)
+    assert img.max() == pytest.approx(cal.apply(cf.values[None])[0, 0], rel=1e-9)
+    assert img.max() == pytest.approx(r.image.max(), rel=0.10)              # calibrated peak vs the truth
+    est = estimate_camera(cf, cal, model, "lesion", identifiability=None)
+    assert est.input == "image" and est.n_members == 2 and np.isfinite(est.cam).all()
+    d, h, _ = TRUTH
+    assert est.d == pytest.approx(d, rel=0.25), est.to_dict()
+    assert est.h == pytest.approx(h, rel=0.25), est.to_dict()
