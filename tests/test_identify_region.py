@@ -202,3 +202,17 @@ def test_cli_infer_fem_image_prints_non_identifiable_as_interval(tmp_path):
     assert r.returncode == 2 and r.stderr.startswith("error: --fem-image")
     r = subprocess.run(base[:-2] + ["--identifiability", "none", "--threshold", "0"], capture_output=True, text=True)
     assert r.returncode == 2 and "--threshold" in r.stderr
+
+
+def test_region_score_coverage_of_reported_intervals():
+    from identify.region_score import coverage
+
+    m = _map()
+    theta = np.vstack([_theta(8, 0.5, 20.0), _theta(8, 0.5, 150.0), _theta(10, 0.3, 15.0)])
+    pred = np.stack([theta * 1.01, theta * 0.99])            # close to the truth: every interval covers it
+    c = coverage(pred, theta, m, "features")
+    assert c["E"]["n_flagged"] == 1 and c["E"]["cover_flagged"] == 100 and c["E"]["cover_rest"] == 100
+    assert c["h"]["n_flagged"] == 0 and np.isnan(c["h"]["cover_flagged"])
+    far = pred.copy()
+    far[..., 0] *= 1.5                                        # d 50 % off with a 2 % bound: not covered
+    assert coverage(far, theta, m, "features")["d"]["cover_rest"] == 0
