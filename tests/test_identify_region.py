@@ -213,6 +213,7 @@ def test_region_score_coverage_of_reported_intervals():
     c = coverage(pred, theta, m, "features")
     assert c["E"]["n_flagged"] == 1 and c["E"]["cover_flagged"] == 100 and c["E"]["cover_rest"] == 100
     assert c["h"]["n_flagged"] == 0 and np.isnan(c["h"]["cover_flagged"])
-    far = pred.copy()
-    far[..., 0] *= 1.5                                        # d 50 % off with a 2 % bound: not covered
-    assert coverage(far, theta, m, "features")["d"]["cover_rest"] == 0
+    theta = np.vstack([theta, _theta(3, 0.5, 30.0), _theta(14, 0.5, 30.0)])
+    far = np.stack([theta * 1.01, theta * 0.99])
+    far[..., 0] *= 1.5          # d 50 % off with a 2 % bound: not covered, except where clipped to the range edge
+    assert coverage(far, theta, m, "features")["d"]["cover_rest"] == 20
