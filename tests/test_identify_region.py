@@ -217,3 +217,15 @@ def test_region_score_coverage_of_reported_intervals():
     far = np.stack([theta * 1.01, theta * 0.99])
     far[..., 0] *= 1.5          # d 50 % off with a 2 % bound: not covered, except where clipped to the range edge
     assert coverage(far, theta, m, "features")["d"]["cover_rest"] == 20
+
+
+def test_mapcheck_compare_counts_dangerous_disagreements():
+    from identify.mapcheck import compare
+
+    fd = np.array([[0.05, 0.02, 0.05], [0.05, 0.02, 0.50], [0.20, 0.02, 0.08]])
+    mp = np.array([[0.10, 0.02, 0.04], [0.05, 0.04, 0.09], [0.40, 0.01, 0.20]])
+    c = compare(mp, fd, 0.10)
+    assert c["E"]["false_identifiable"] == 1                       # row 1: map 9 %, FD 50 %
+    assert c["E"]["fd_identifiable"] == 2 and c["E"]["agree"] == pytest.approx(100 / 3)
+    assert c["d"]["conservative"] == 100 and c["d"]["median"] == pytest.approx(2.0)
+    assert c["h"]["min"] == pytest.approx(0.5) and c["h"]["false_identifiable"] == 0
