@@ -149,6 +149,16 @@ def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg
     }
     pred = np.where(tm, Yp.reshape(*shp, 3), 0.0).sum(axis=1)              # (R, n, 3)
     pred[~test.reshape(shp).any(axis=1)] = np.nan
+    # the deployed situation: ONE noisy image of each held-out lesion through every repeat's network
+    # (above, each repeat saw its own noise draw, so a mean over repeats would also average noise)
+    pred_shared = None
+    if image_noise > 0:
+        Xf = _inputs(data, pca, force, add_image_noise(data.images, image_noise, np.random.default_rng([int(seed), 9])))
+        Xf = torch.as_tensor(mapminmax_apply(np.broadcast_to(Xf, (test.shape[0],) + Xf.shape), batch.x_lo,
+                                             batch.x_hi), dtype=obj.X.dtype, device=obj.X.device)
+        Yf = _physical(mapminmax_reverse(predict_scaled(res.theta, Xf, icfg.arch), batch.t_lo, batch.t_hi), log_e)
+        pred_shared = np.where(tm, Yf.reshape(*shp, 3), 0.0).sum(axis=1)
+        pred_shared[~test.reshape(shp).any(axis=1)] = np.nan
     trm = batch.train.reshape(shp)[..., None]
     train_mse = 100.0 * ((((Ts - Ys) ** 2).reshape(*shp, 3) * trm).sum(axis=2) / trm.sum(axis=2)).mean(axis=1)
     B = test.shape[0]
@@ -171,7 +181,8 @@ def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg
     row["stops"] = ";".join(f"{a}:{b}" for a, b in sorted(stops.items()))
     curves = {kk: v.numpy() for kk, v in res.history.items() if kk in ("train", "test", "val")}
     return ValidationResult(f"{algo}-image" + ("-lnE" if log_e else ""), validate, R, row, per, curves, stops, wall,
-                            extra={"pred": pred, "test": test1 if validate == "hov" else np.ones(n, bool)})
+                            extra={"pred": pred, "pred_shared_noise": pred_shared,
+                                   "test": test1 if validate == "hov" else np.ones(n, bool)})
 
 
 # ----------------------------------------------------------------------------- the saved model
@@ -339,8 +350,9 @@ def _cli():
                 r.row["dtype"] = str(cfg.dtype).replace("torch.", "")
                 results.append(r)
                 # held-out predictions (repeats, rows, 3: d mm, h mm, E kPa; NaN where not a test row)
-                np.savez(os.path.join(out, f"pred-{a}{'-lnE' if log_e else ''}-{v}.npz"), pred=r.extra["pred"], ids=np.asarray(data.ids, dtype=str),
-                         theta=data.theta)
+                extra = {} if r.extra["pred_shared_noise"] is None else {"pred_shared_noise": r.extra["pred_shared_noise"]}
+                np.savez(os.path.join(out, f"pred-{a}{'-lnE' if log_e else ''}-{v}.npz"), pred=r.extra["pred"],
+                         ids=np.asarray(data.ids, dtype=str), theta=data.theta, **extra)
                 click.echo(f"{a}-image {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s", err=True)
         if save_model:
             model = fit_image_model(data, algos[0], repeats, cfg, seed=seed, k=k, force=force, image_noise=image_noise,

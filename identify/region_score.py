@@ -63,6 +63,7 @@ def main(pred_path, map_path, mset, threshold):
     try:
         z = np.load(pred_path, allow_pickle=False)
         pred, theta = z["pred"], z["theta"]
+        shared = z["pred_shared_noise"] if "pred_shared_noise" in z.files else None
     except Exception as exc:
         raise UserError("--pred", f"{pred_path}: not a prediction file of identify.imagenet ({exc})") from None
     idm = IdentifiabilityMap.load(None if map_path == "default" else map_path)
@@ -75,9 +76,20 @@ def main(pred_path, map_path, mset, threshold):
     for name in ("d", "h", "E"):
         a, i, r = res[(name, "all")], res[(name, "identifiable")], res[(name, "rest")]
         click.echo(f"| {name} | {a[0]:.3g} | {i[0]:.3g} [{i[1]}] | {r[0]:.3g} [{r[1]}] |")
-    cov = coverage(pred, theta, idm, mset, threshold)
+    if shared is not None:
+        ens = score(np.nanmean(shared, axis=0)[None], theta, crb, threshold)
+        click.echo("")
+        click.echo(f"Ensemble estimate as inference reports it: ONE noisy image of each held-out row through all "
+                   f"{shared.shape[0]} networks, their mean:")
+        click.echo("| output | MRE all (%) | identifiable: MRE (%) [rows] | rest: MRE (%) [rows] |")
+        click.echo("|---|---|---|---|")
+        for name in ("d", "h", "E"):
+            a, i, r = ens[(name, "all")], ens[(name, "identifiable")], ens[(name, "rest")]
+            click.echo(f"| {name} | {a[0]:.3g} | {i[0]:.3g} [{i[1]}] | {r[0]:.3g} [{r[1]}] |")
+    cov = coverage(pred if shared is None else shared, theta, idm, mset, threshold)
     click.echo("")
-    click.echo("Intervals as inference reports them (estimate = mean over repeats):")
+    click.echo("Intervals as inference reports them (estimate = mean over repeats"
+               + (", one shared noisy image" if shared is not None else ", each repeat its own noise draw") + "):")
     click.echo("| output | flagged non-identifiable [rows] | coverage flagged (%) | coverage rest (%) "
                "| median hi/lo flagged | median hi/lo rest |")
     click.echo("|---|---|---|---|---|---|")

@@ -121,3 +121,15 @@ def test_log_e_target_scores_on_E_and_round_trips(tmp_path):
     y = back.predict(data.images[:4])
     np.testing.assert_allclose(y, model.predict(data.images[:4]), rtol=1e-10)
     assert np.all(y[..., 2] > 0)
+
+
+def test_shared_noise_predictions_put_one_noisy_image_through_every_network():
+    from training.experiment import TrainConfig
+
+    data = _synthetic_data(n=30, phantoms=3)
+    cfg = TrainConfig(hidden=((4, "tansig"),), epochs=5, progress=False)
+    r = run_image_validation(data, "scg", "loocv", 2, cfg, seed=0, k=3, image_noise=0.02)
+    ps, p = r.extra["pred_shared_noise"], r.extra["pred"]
+    assert ps.shape == p.shape == (2, 30, 3) and np.isfinite(ps).all()
+    assert not np.allclose(ps, p)                       # a different (single) noise draw than each repeat's own
+    assert run_image_validation(data, "scg", "loocv", 1, cfg, k=3, image_noise=0.0).extra["pred_shared_noise"] is None
