@@ -71,21 +71,12 @@ def main(pred_path, map_path, mset, threshold):
     res = score(pred, theta, crb, threshold)
     click.echo(f"{pred_path}: {pred.shape[0]} repeat(s), {pred.shape[1]} rows; region: map CRB ({mset}) "
                f"rel std <= {100 * threshold:g} % ({idm.source})")
-    click.echo("| output | MRE all (%) | identifiable: MRE (%) [rows] | rest: MRE (%) [rows] |")
-    click.echo("|---|---|---|---|")
-    for name in ("d", "h", "E"):
-        a, i, r = res[(name, "all")], res[(name, "identifiable")], res[(name, "rest")]
-        click.echo(f"| {name} | {a[0]:.3g} | {i[0]:.3g} [{i[1]}] | {r[0]:.3g} [{r[1]}] |")
+    _print_scores(res)
     if shared is not None:
-        ens = score(np.nanmean(shared, axis=0)[None], theta, crb, threshold)
         click.echo("")
         click.echo(f"Ensemble estimate as inference reports it: ONE noisy image of each held-out row through all "
                    f"{shared.shape[0]} networks, their mean:")
-        click.echo("| output | MRE all (%) | identifiable: MRE (%) [rows] | rest: MRE (%) [rows] |")
-        click.echo("|---|---|---|---|")
-        for name in ("d", "h", "E"):
-            a, i, r = ens[(name, "all")], ens[(name, "identifiable")], ens[(name, "rest")]
-            click.echo(f"| {name} | {a[0]:.3g} | {i[0]:.3g} [{i[1]}] | {r[0]:.3g} [{r[1]}] |")
+        _print_scores(score(np.nanmean(shared, axis=0)[None], theta, crb, threshold))
     cov = coverage(pred if shared is None else shared, theta, idm, mset, threshold)
     click.echo("")
     click.echo("Intervals as inference reports them (estimate = mean over repeats"
@@ -98,6 +89,14 @@ def main(pred_path, map_path, mset, threshold):
         click.echo(f"| {name} | {c['n_flagged']} | {c['cover_flagged']:.3g} | {c['cover_rest']:.3g} "
                    f"| {c['width_flagged']:.3g} | {c['width_rest']:.3g} |")
     return 0
+
+
+def _print_scores(res: dict) -> None:
+    click.echo("| output | MRE all (%) | identifiable: MRE (%) [rows] | rest: MRE (%) [rows] |")
+    click.echo("|---|---|---|---|")
+    for name in ("d", "h", "E"):
+        a, i, r = res[(name, "all")], res[(name, "identifiable")], res[(name, "rest")]
+        click.echo(f"| {name} | {a[0]:.3g} | {i[0]:.3g} [{i[1]}] | {r[0]:.3g} [{r[1]}] |")
 
 
 def coverage(pred: np.ndarray, theta: np.ndarray, idm, mset: str, threshold: float = 0.10) -> dict:
