@@ -31,21 +31,6 @@ from elastimap.cli_util import run
 SETS = ("features", "image", "image+force", "two-depths")
 
 
-def fd_crb(points, noise) -> dict:
-    """Real-FD CRB relative std ``{set: (len(points), 3)}`` (cached solves, default mesh)."""
-    from .local import crb_relstd, fd_jacobian_solves, fisher, stack
-
-    out = {s: [] for s in SETS}
-    for th in points:
-        J = fd_jacobian_solves(th)
-        Js = stack([J])
-        Js["dF"] = J["dF"][None]
-        F = fisher(Js, noise)
-        for s in SETS:
-            out[s].append(crb_relstd(F[s], np.array([th]))[0])
-    return {s: np.array(v) for s, v in out.items()}
-
-
 FD_SCALE_QUANTILE = 90.0
 
 
@@ -70,14 +55,14 @@ def fd_interpolate(theta_fd: np.ndarray, r_fd: np.ndarray, theta: np.ndarray, th
 
 
 def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_grid: str | None = None):
-    from .fd_check import POINTS
-    from .local import NoiseSpec, Surrogate, crb_relstd, fisher, grid
+    from .fd_check import NOISE as noise
+    from .fd_check import POINTS, fd_crb
+    from .local import Surrogate, crb_relstd, fisher, grid
     from .measure import load
 
     data = load(data_path)
     sur = Surrogate.fit(data, k=k, progress=True)
     T, (ds, us, Es) = grid()
-    noise = NoiseSpec(feature=0.01, image=0.01, force=0.001)
     F = fisher(sur.jacobians(T), noise)
     R0 = {s: crb_relstd(F[s], T) for s in SETS}
     P = np.array(POINTS)
@@ -89,6 +74,7 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
                        f"d {rr[0]:.3g}  h {rr[1]:.3g}  E {rr[2]:.3g}")
     scale = {s: np.ones(3) for s in SETS}
     npts = 0
+    use_grid = fd_scale and bool(fd_grid) and os.path.isfile(fd_grid)
     if fd_scale:
         fd = fd_crb(POINTS, noise)
         for s in SETS:
@@ -97,7 +83,7 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
                            f"d {rr[0]:.3g}  h {rr[1]:.3g}  E {rr[2]:.3g}")
         ratios = {s: [fd[s] / Rp[s]] for s in SETS}
         npts = len(POINTS)
-        if fd_grid and os.path.isfile(fd_grid):
+        if use_grid:
             from .mapcheck import fd_bounds
 
             tg, fdg = fd_bounds(fd_grid)
@@ -113,18 +99,16 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
             click.echo(f"conservative scale {s:12s}: d x{scale[s][0]:.3g}  h x{scale[s][1]:.3g}  E x{scale[s][2]:.3g}"
                        f"  ({FD_SCALE_QUANTILE:g}th percentile of FD / surrogate over {len(q)} points)")
     R = {s: R0[s] * scale[s] for s in SETS}
-    features_from_fd = False
-    if fd_scale and fd_grid and os.path.isfile(fd_grid):
+    if use_grid:
         # the surrogate of the three features disagrees with real FD by up to ~100x (O3 is a thresholded
         # area); no single scale fits, so the features entry is the real-FD bound itself, interpolated
         R["features"] = fd_interpolate(np.vstack([P, tg]), np.vstack([fd["features"], fdg["features"]]), T)
-        features_from_fd = True
         click.echo("features: map = real-FD bound interpolated from the FD points (linear in d, u, ln E of ln r)")
     os.makedirs(out, exist_ok=True)
     src = (f"GP surrogate (k={k}) of {data_path} ({data.n} rows)"
            + (f", scaled per output by max(1, {FD_SCALE_QUANTILE:g}th percentile of real-FD / surrogate over "
               f"{npts} FD points)" if fd_scale else "")
-           + ("; features entry: real-FD bound interpolated from those points" if features_from_fd else "")
+           + ("; features entry: real-FD bound interpolated from those points" if use_grid else "")
            + "; Cramér–Rao relative std, noise 1 % features, 1 % of the image peak per pixel, 0.1 % force; "
              "python -m identify.crbmap")
     np.savez(os.path.join(out, "crb_grid.npz"), theta=T, d=ds, u=us, E=Es, thickness=20.0, source=src,
@@ -144,7 +128,7 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
             axs[j].set_ylabel("d (mm)")
             axs[j].set_title(f"{name}: CRB rel std <= 10 %")
         fig.colorbar(im, ax=axs, label="fraction of the 5 depths")
-        how = ("real-FD Cramér–Rao interpolated from the FD points" if s == "features" and features_from_fd
+        how = ("real-FD Cramér–Rao interpolated from the FD points" if s == "features" and use_grid
                else f"surrogate Cramér–Rao{' (FD-scaled)' if fd_scale else ''}")
         fig.suptitle(f"{s}: {how}, noise 1 % (features / image), 0.1 % force")
         fig.savefig(os.path.join(out, f"identifiability_crb_{s.replace('+', '_')}.png"), dpi=90)

@@ -182,10 +182,25 @@ def fd_jacobian_solves(theta, mesh: str = "default", cache: str | None = None) -
     return J
 
 
+def fd_relstd(J: dict, theta: np.ndarray, noise: NoiseSpec) -> dict:
+    """CRB relative std ``{set: (n, 3)}`` from stacked FD Jacobians (keys image, image0, lnF, dF).
+
+    Points whose Fisher matrix is not finite (e.g. O3 = 0, so ln O3 and its difference are
+    undefined) get NaN for that set instead of poisoning the batch."""
+    F = fisher(J, noise)
+    out = {}
+    for s, Fs in F.items():
+        bad = ~np.isfinite(Fs).all(axis=(1, 2))
+        r = crb_relstd(np.where(bad[:, None, None], np.eye(3), Fs), theta)
+        r[bad] = np.nan
+        out[s] = r
+    return out
+
+
 def stack(Js: list[dict]) -> dict:
     out = {}
     for k in ("image", "lnF", "dF", "image0", "lnF0"):
-        out[k] = np.stack([J[k] for J in Js])
+        out[k] = np.stack([np.asarray(J[k]) for J in Js])
     return out
 
 

@@ -27,21 +27,13 @@ SETS = ("features", "image", "two-depths")
 
 def fd_bounds(path: str) -> tuple[np.ndarray, dict]:
     """``theta`` (n, 3) and ``{set: (n, 3)}`` CRB relative std from an fdgrid file."""
-    from .local import NoiseSpec, crb_relstd, fisher
+    from .fd_check import NOISE
+    from .local import fd_relstd
 
     if not os.path.isfile(path):
         raise UserError("--fdgrid", f"{path}: no such file (make it with python -m identify.fdgrid)")
     z = np.load(path, allow_pickle=False)
-    J = {k: z[k] for k in ("image", "image0", "lnF", "dF")}
-    F = fisher(J, NoiseSpec(feature=0.01, image=0.01, force=0.001))
-    theta = z["theta"]
-    out = {}
-    for s in F:
-        bad = ~np.isfinite(F[s]).all(axis=(1, 2))
-        r = crb_relstd(np.where(bad[:, None, None], np.eye(3), F[s]), theta)
-        r[bad] = np.nan
-        out[s] = r
-    return theta, out
+    return z["theta"], fd_relstd({k: z[k] for k in ("image", "image0", "lnF", "dF")}, z["theta"], NOISE)
 
 
 def compare(map_r: np.ndarray, fd_r: np.ndarray, threshold: float = 0.10) -> dict:

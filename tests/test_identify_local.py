@@ -62,3 +62,16 @@ def test_region_score_splits_rows_by_the_bound():
     assert np.isclose(s[("E", "identifiable")][0], (50 + 10) / 2) and s[("E", "identifiable")][1] == 1
     assert np.isclose(s[("E", "rest")][0], (50 + 50 + 10) / 3) and s[("E", "rest")][1] == 2
     assert np.isnan(s[("h", "rest")][0]) and s[("h", "rest")][1] == 0
+
+
+def test_fd_relstd_isolates_a_point_without_a_finite_bound():
+    from identify.local import fd_relstd
+
+    J = _J()
+    th = np.tile([5.0, 6.0, 30.0], (4, 1))
+    ref = fd_relstd(J, th, NoiseSpec())
+    J["lnF"][1, 2, 0] = np.nan                      # e.g. O3 = 0 at that point: ln O3 undefined
+    r = fd_relstd(J, th, NoiseSpec())
+    assert np.isnan(r["features"][1]).all()
+    np.testing.assert_allclose(r["features"][[0, 2, 3]], ref["features"][[0, 2, 3]])
+    np.testing.assert_allclose(r["image"], ref["image"])          # other sets untouched
