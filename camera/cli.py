@@ -215,10 +215,18 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
                    "default 512-sample sweep) or 'none'.")
 @click.option("--threshold", default=0.10, show_default=True, type=float,
               help="Cramér–Rao relative std above which an output is flagged non-identifiable.")
+@click.option("--refine", is_flag=True,
+              help="With --fem-image and an image model: refine each estimate by a maximum-likelihood fit of the "
+                   "FEM image (python -m identify.refine; runs the solver, some 30-60 forward solves per image, "
+                   "about 2-3 min each on the default mesh); intervals become the local Cramér–Rao bound.")
+@click.option("--image-noise", default=0.01, show_default=True, type=float,
+              help="--refine: pixel noise of the image, relative to its peak.")
+@click.option("--mesh", default="default", show_default=True,
+              help="--refine: mesh of the forward model (the one the model's training sweep used).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also write .csv or .json here.")
 def infer(model_dir, calibration, feats, images, background, csv_path, fem_image, identifiability, threshold,
-          as_json, out):
+          refine, image_noise, mesh, as_json, out):
     """Estimate (d, h, E) with intervals; out-of-range inputs and non-identifiable outputs are flagged.
 
     An output the identifiability map calls non-identifiable at the estimate (Cramér–Rao relative
@@ -235,6 +243,10 @@ def infer(model_dir, calibration, feats, images, background, csv_path, fem_image
                                  "--csv FILE, --fem-image FILE.npy")
     if not 0 < threshold < 10:
         raise UserError("--threshold", f"must be in (0, 10) (got {threshold:g})")
+    if refine and fem_image is None:
+        raise UserError("--refine", "needs --fem-image (the FEM fit works on FEM difference images)")
+    if refine and not 0 < image_noise < 1:
+        raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
     if fem_image is not None and not os.path.isfile(fem_image):
         raise UserError("--fem-image", f"{fem_image}: no such file")
     idm = load_identifiability(None if identifiability == "none" else identifiability)
@@ -245,6 +257,10 @@ def infer(model_dir, calibration, feats, images, background, csv_path, fem_image
         except Exception as exc:
             raise UserError("--fem-image", f"{fem_image}: not a .npy array ({exc})") from None
         ests = estimate_fem_images(arr, model, identifiability=idm, threshold=threshold)
+        if refine:
+            from .infer import refine_estimates
+
+            ests = refine_estimates(ests, arr, image_noise=image_noise, mesh=mesh, threshold=threshold)
         cal = None
     else:
         if calibration is None:

@@ -350,7 +350,8 @@ def _cli():
                 r.row["dtype"] = str(cfg.dtype).replace("torch.", "")
                 results.append(r)
                 # held-out predictions (repeats, rows, 3: d mm, h mm, E kPa; NaN where not a test row)
-                extra = {} if r.extra["pred_shared_noise"] is None else {"pred_shared_noise": r.extra["pred_shared_noise"]}
+                extra = {} if r.extra["pred_shared_noise"] is None else {"pred_shared_noise": r.extra["pred_shared_noise"],
+                                                                         "image_noise": image_noise, "seed": seed}
                 np.savez(os.path.join(out, f"pred-{a}{'-lnE' if log_e else ''}-{v}.npz"), pred=r.extra["pred"],
                          ids=np.asarray(data.ids, dtype=str), theta=data.theta, **extra)
                 click.echo(f"{a}-image {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s", err=True)
