@@ -260,6 +260,24 @@ def _sym_plan(ol: int, il: int, device):
     return _SYM_CACHE[key]
 
 
+def _pair_products(a: torch.Tensor, m: int, summed: bool = False) -> torch.Tensor:
+    """Products of every row pair ``(i <= j)`` of ``a`` ``(B, m, n)`` (``(B, m, K, n)`` with ``summed``:
+    summed over ``K``), in ``torch.triu_indices`` order: ``(B, m(m+1)/2, n)``.  One contiguous
+    broadcast product per row ``i`` (``a[i] * a[i:]``) instead of two index gathers (~3x faster on
+    the CPU)."""
+    B, n = a.shape[0], a.shape[-1]
+    out = torch.empty(B, m * (m + 1) // 2, n, dtype=a.dtype, device=a.device)
+    o = 0
+    for i in range(m):
+        blk = out[:, o:o + m - i]
+        if summed:
+            torch.sum(a[:, i:i + 1] * a[:, i:], dim=2, out=blk)
+        else:
+            torch.mul(a[:, i:i + 1], a[:, i:], out=blk)
+        o += m - i
+    return out
+
+
 def gauss_newton(theta: torch.Tensor, X: torch.Tensor, w: torch.Tensor, arch: Arch) -> torch.Tensor:
     """``JᵀJ`` ``(B, P, P)`` of the residuals of :func:`residual_jacobian`, without forming ``J``.
 
@@ -304,9 +322,9 @@ def gauss_newton(theta: torch.Tensor, X: torch.Tensor, w: torch.Tensor, arch: Ar
             Jl = (dl[:, :, None] * al[:, None, :, None, :]).reshape(B, s_l, K * n)
             G[:, sl[l], sl[l]] = torch.bmm(Jl, Jl.transpose(1, 2))
         else:
-            o0, o1, i0, i1, flat = _sym_plan(ol, il, theta.device)
-            C = (dl.index_select(1, o0) * dl.index_select(1, o1)).sum(2)      # (B, #pairs_o, n)
-            A = al.index_select(1, i0) * al.index_select(1, i1)               # (B, #pairs_i, n)
+            flat = _sym_plan(ol, il, theta.device)[4]
+            C = _pair_products(dl, dl.shape[1], summed=True)                   # (B, #pairs_o, n)
+            A = _pair_products(al, al.shape[1])                                # (B, #pairs_i, n)
             M = torch.bmm(C, A.transpose(1, 2)).reshape(B, -1)
             G[:, sl[l], sl[l]] = M.index_select(1, flat).reshape(B, s_l, s_l)
         for m in range(l + 1, L):

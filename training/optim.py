@@ -145,9 +145,16 @@ def train_lm(obj, theta0: torch.Tensor, *, epochs: int = 100, mu: float = 1e-3, 
             if q.numel() == 0:
                 break
             m_q = mu_t[gidx[q]]
-            A = jj[q] if q.numel() < jj.shape[0] else jj.clone()
-            A.diagonal(dim1=-2, dim2=-1).add_(m_q[:, None])      # JᵀJ + mu I
-            L, info = torch.linalg.cholesky_ex(A)
+            if q.numel() < jj.shape[0]:
+                A = jj[q]                                         # (a copy)
+                A.diagonal(dim1=-2, dim2=-1).add_(m_q[:, None])  # JᵀJ + mu I
+                L, info = torch.linalg.cholesky_ex(A)
+            else:   # every network: shift JᵀJ's diagonal in place and restore it exactly (no copy)
+                dg = jj.diagonal(dim1=-2, dim2=-1)
+                d0 = dg.clone()
+                dg.add_(m_q[:, None])
+                L, info = torch.linalg.cholesky_ex(jj)
+                dg.copy_(d0)
             dx = -torch.cholesky_solve(je[q].unsqueeze(-1), L).squeeze(-1)
             cand = th[q] + dx
             E2 = o.subset(q).sse(cand)
