@@ -217,8 +217,8 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
               help="Cramér–Rao relative std above which an output is flagged non-identifiable.")
 @click.option("--refine", is_flag=True,
               help="With --fem-image and an image model: refine each estimate by a maximum-likelihood fit of the "
-                   "FEM image (python -m identify.refine; runs the solver, some 30-60 forward solves per image, "
-                   "about 2-3 min each on the default mesh); intervals become the local Cramér–Rao bound.")
+                   "FEM image (identify.refine, response surface: runs the solver, 30 forward solves per image, "
+                   "about 1.5 min of one core on the default mesh); intervals from the local Cramér–Rao bound.")
 @click.option("--image-noise", default=0.01, show_default=True, type=float,
               help="--refine: pixel noise of the image, relative to its peak.")
 @click.option("--mesh", default="default", show_default=True,

@@ -247,18 +247,18 @@ def estimate_fem_images(images, model, ids: list[str] | None = None, identifiabi
 
 
 def refine_estimates(ests: list[Estimate], images, image_noise: float = 0.01, mesh: str = "default",
-                     threshold: float = 0.10, chi2_limit: float = 3.0, max_iter: int = 12,
+                     threshold: float = 0.10, chi2_limit: float = 3.0, method: str = "rsm",
                      cache: str | None = None) -> list[Estimate]:
     """Refine image-model estimates by a maximum-likelihood fit of the FEM image (:mod:`identify.refine`).
 
     ``images`` as given to :func:`estimate_fem_images` (FEM difference images, mm, on the model's
-    grid); pixel noise ``image_noise`` x each image's peak.  Runs the solver (DOLFINx): some 30-60
-    forward solves per image.  Each estimate's mean becomes the fitted (d, h, E), ``sd``/``crb`` the
+    grid); pixel noise ``image_noise`` x each image's peak; ``method`` ``rsm`` (default, 30 forward
+    solves per image) or ``trf`` (some 30-50), see :mod:`identify.refine`.  Runs the solver (DOLFINx).  Each estimate's mean becomes the fitted (d, h, E), ``sd``/``crb`` the
     local Cramér–Rao bound at it, ``lo``/``hi`` that bound's 95 % interval widened by
-    :data:`identify.refine.INTERVAL_SCALE` (measured errors were ~2.4x the bound), and the
+    :data:`identify.refine.INTERVAL_SCALE` (measured errors exceed the bound), and the
     identifiability flags are re-decided from the bound; ``model_mismatch`` is added when the fitted image leaves a reduced
     chi² above ``chi2_limit`` (the FEM cannot reproduce the image at the stated noise)."""
-    from identify.refine import fem_model, refine
+    from identify.refine import fem_model, fit
 
     if not 0 < image_noise < 1:
         raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
@@ -267,7 +267,7 @@ def refine_estimates(ests: list[Estimate], images, image_noise: float = 0.01, me
     for e, img in zip(ests, imgs):
         if "no_signal" in e.flags:
             continue
-        r = refine(img, image_noise * np.abs(img).max(), e.mean, model, max_iter=max_iter)
+        r = fit(img, image_noise * np.abs(img).max(), e.mean, model, method)
         e.mean = r.theta
         e.crb = r.relstd
         e.sd = np.array([r.relstd[0] * r.theta[0], r.relstd[1] * r.theta[1], r.relstd[2] * r.theta[2]])
