@@ -130,17 +130,8 @@ class RefineResult:
         return out
 
 
-def refine(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], *, d_range=DESIGN["d"],
-           E_range=DESIGN["E"], thickness: float = THICKNESS, max_iter: int = 12, xtol: float = 5e-4,
-           fd=FD, central: bool = True) -> RefineResult:
-    """Fit ``model(theta) -> image`` to ``image`` (weights ``1/sigma``) starting from ``theta0``.
-
-    ``image`` ``(p,)`` or ``(ny, nx)`` in mm; ``sigma`` a scalar or an array like ``image``
-    (mm, > 0); ``theta0`` (d mm, h mm, E kPa); ``model`` returns the noise-free difference image
-    at a (d, h, E) (same pixel layout).  ``max_iter`` bounds the model evaluations at trial
-    points (each accepted point also costs six for the Jacobian, three with ``central=False``)."""
-    from scipy.optimize import least_squares
-
+def _setup(image, sigma, theta0, d_range, E_range, thickness):
+    """Validated inputs, the box ``lb <= x <= ub``, its padding and the start ``x0`` inside it."""
     I = np.asarray(image, dtype=float).ravel()
     if not np.isfinite(I).all():
         raise UserError("image", "contains NaN or inf")
@@ -152,9 +143,34 @@ def refine(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], *, d
         raise UserError("theta0", f"need a finite (d, h, E > 0) start (got {theta0})")
     lb = np.array([d_range[0], 0.0, math.log(E_range[0])])
     ub = np.array([d_range[1], 1.0, math.log(E_range[1])])
-    pad = np.array([1e-3, 1e-3, 1e-3]) * (ub - lb)
+    pad = 1e-3 * (ub - lb)
     x0 = np.clip(to_x(np.clip(theta0, [d_range[0], -np.inf, E_range[0]], [d_range[1], np.inf, E_range[1]]),
                       thickness), lb + pad, ub - pad)
+    return I, s, theta0, lb, ub, pad, x0
+
+
+def _bound(Jx: np.ndarray, x: np.ndarray, thickness: float):
+    """``(theta, relstd)`` at ``x`` from the σ-scaled Jacobian ``Jx`` ``(p, 3)`` in x units:
+    ``C_x = (JᵀJ)⁻¹`` mapped to (d, h, ln E) by the delta method."""
+    G = _dtheta_dx(x, thickness)
+    C = G @ np.linalg.pinv(Jx.T @ Jx) @ G.T
+    th = to_theta(x, thickness)
+    sd = np.sqrt(np.clip(np.diag(C), 0, None))
+    return th, np.array([sd[0] / th[0], sd[1] / th[1], sd[2]])
+
+
+def refine(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], *, d_range=DESIGN["d"],
+           E_range=DESIGN["E"], thickness: float = THICKNESS, max_iter: int = 12, xtol: float = 5e-4,
+           fd=FD, central: bool = True) -> RefineResult:
+    """Fit ``model(theta) -> image`` to ``image`` (weights ``1/sigma``) starting from ``theta0``.
+
+    ``image`` ``(p,)`` or ``(ny, nx)`` in mm; ``sigma`` a scalar or an array like ``image``
+    (mm, > 0); ``theta0`` (d mm, h mm, E kPa); ``model`` returns the noise-free difference image
+    at a (d, h, E) (same pixel layout).  ``max_iter`` bounds the model evaluations at trial
+    points (each accepted point also costs six for the Jacobian, three with ``central=False``)."""
+    from scipy.optimize import least_squares
+
+    I, s, theta0, lb, ub, _, x0 = _setup(image, sigma, theta0, d_range, E_range, thickness)
     cache: dict = {}
     hist: list = []
 
@@ -189,13 +205,7 @@ def refine(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], *, d
     res = least_squares(resid, x0, jac=jac, bounds=(lb, ub), method="trf", x_scale=np.array(FD) * [1, 0.05, 1],
                         max_nfev=max_iter, xtol=xtol, ftol=1e-4, gtol=1e-10)
     x = res.x
-    J = jac(x)
-    Cx = np.linalg.pinv(J.T @ J)
-    G = _dtheta_dx(x, thickness)
-    C = G @ Cx @ G.T
-    th = to_theta(x, thickness)
-    sd = np.sqrt(np.clip(np.diag(C), 0, None))
-    relstd = np.array([sd[0] / th[0], sd[1] / th[1], sd[2]])
+    th, relstd = _bound(jac(x), x, thickness)
     dof = max(I.size - 3, 1)
     r = resid(x)
     return RefineResult(th, theta0.copy(), relstd, float(r @ r) / dof, float(r_start @ r_start) / dof, len(cache),
@@ -234,20 +244,7 @@ def refine_rsm(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], 
     Jacobian there.  ``rounds x 15`` model evaluations."""
     from scipy.optimize import least_squares
 
-    I = np.asarray(image, dtype=float).ravel()
-    if not np.isfinite(I).all():
-        raise UserError("image", "contains NaN or inf")
-    s = np.broadcast_to(np.asarray(sigma, dtype=float), np.shape(image)).ravel()
-    if not (np.isfinite(s).all() and (s > 0).all()):
-        raise UserError("sigma", "pixel noise must be finite and > 0")
-    theta0 = np.asarray(theta0, dtype=float)
-    if theta0.shape != (3,) or not np.isfinite(theta0).all() or theta0[2] <= 0:
-        raise UserError("theta0", f"need a finite (d, h, E > 0) start (got {theta0})")
-    lb = np.array([d_range[0], 0.0, math.log(E_range[0])])
-    ub = np.array([d_range[1], 1.0, math.log(E_range[1])])
-    pad = 1e-3 * (ub - lb)
-    xc = np.clip(to_x(np.clip(theta0, [d_range[0], -np.inf, E_range[0]], [d_range[1], np.inf, E_range[1]]),
-                      thickness), lb + pad, ub - pad)
+    I, s, theta0, lb, ub, pad, xc = _setup(image, sigma, theta0, d_range, E_range, thickness)
     n_eval = 0
     hist: list = []
     r0 = None
@@ -274,13 +271,7 @@ def refine_rsm(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], 
                 best = sol
         zs = best.x
         xc = np.clip(xc + zs * w, lb + pad, ub - pad)
-    Jx = (_quad_grad(zs).T @ C).T / w                                  # (p, 3) in x units
-    Cx = np.linalg.pinv(Jx.T @ Jx)
-    G = _dtheta_dx(xc, thickness)
-    Cov = G @ Cx @ G.T
-    th = to_theta(xc, thickness)
-    sd = np.sqrt(np.clip(np.diag(Cov), 0, None))
-    relstd = np.array([sd[0] / th[0], sd[1] / th[1], sd[2]])
+    th, relstd = _bound((_quad_grad(zs).T @ C).T / w, xc, thickness)   # model Jacobian in x units
     dof = max(I.size - 3, 1)
     rm = _quad_features(zs)[0] @ C
     return RefineResult(th, theta0.copy(), relstd, float(rm @ rm) / dof, float(r0 @ r0) / dof, n_eval, 0,
