@@ -253,11 +253,13 @@ def refine_estimates(ests: list[Estimate], images, image_noise: float = 0.01, me
 
     ``images`` as given to :func:`estimate_fem_images` (FEM difference images, mm, on the model's
     grid); pixel noise ``image_noise`` x each image's peak; ``method`` ``rsm`` (default, 30 forward
-    solves per image) or ``trf`` (some 30-50), see :mod:`identify.refine`.  Runs the solver (DOLFINx).  Each estimate's mean becomes the fitted (d, h, E), ``sd``/``crb`` the
-    local Cramér–Rao bound at it, ``lo``/``hi`` that bound's 95 % interval widened by
+    solves per image) or ``trf`` (some 30-50), see :mod:`identify.refine`.  Runs the solver
+    (DOLFINx).  Each estimate's mean becomes the fitted (d, h, E), ``sd``/``crb`` the local
+    Cramér–Rao bound at it, ``lo``/``hi`` that bound's 95 % interval widened by
     :data:`identify.refine.INTERVAL_SCALE` (measured errors exceed the bound), and the
-    identifiability flags are re-decided from the bound; ``model_mismatch`` is added when the fitted image leaves a reduced
-    chi² above ``chi2_limit`` (the FEM cannot reproduce the image at the stated noise)."""
+    identifiability flags are re-decided from the bound; ``model_mismatch`` is added when the
+    fitted image leaves a reduced chi² above ``chi2_limit`` (the FEM cannot reproduce the image at
+    the stated noise)."""
     from identify.refine import fem_model, fit
 
     if not 0 < image_noise < 1:
@@ -270,7 +272,7 @@ def refine_estimates(ests: list[Estimate], images, image_noise: float = 0.01, me
         r = fit(img, image_noise * np.abs(img).max(), e.mean, model, method)
         e.mean = r.theta
         e.crb = r.relstd
-        e.sd = np.array([r.relstd[0] * r.theta[0], r.relstd[1] * r.theta[1], r.relstd[2] * r.theta[2]])
+        e.sd = r.relstd * r.theta          # (for E: std of ln E x E, first order)
         e.lo, e.hi = r.lo, r.hi
         e.flags = [f for f in e.flags if not f.startswith("non_identifiable:") and f != "outside_identifiability_map"]
         e.flags += [f"non_identifiable:{q}" for j, q in enumerate(TARGETS) if not r.relstd[j] <= threshold]
