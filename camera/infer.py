@@ -253,7 +253,7 @@ def refine_estimates(ests: list[Estimate], images, image_noise: float = 0.01, me
 
     ``images`` as given to :func:`estimate_fem_images` (FEM difference images, mm, on the model's
     grid); pixel noise ``image_noise`` x each image's peak; ``method`` ``rsm`` (default, 30 forward
-    solves per image) or ``trf`` (some 30-50), see :mod:`identify.refine`.  Runs the solver
+    solves per image) or ``trf`` (15-48, median about 30 in the study), see :mod:`identify.refine`.  Runs the solver
     (DOLFINx).  Each estimate's mean becomes the fitted (d, h, E), ``sd``/``crb`` the local
     Cramér–Rao bound at it, ``lo``/``hi`` that bound's 95 % interval widened by
     :data:`identify.refine.INTERVAL_SCALE` (measured errors exceed the bound), and the

@@ -38,7 +38,7 @@ deviations (for E: the std of ln E), i.e. the local Cramér–Rao bound at the e
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -104,9 +104,8 @@ class RefineResult:
     chi2_red: float                # Σ r² / (p − 3) at theta (≈ 1 when model and noise level are right)
     chi2_red0: float               # the same at theta0
     n_solves: int                  # forward-model evaluations (FD included)
-    status: int                    # scipy least_squares status
+    status: int                    # scipy least_squares status (trf; 0 for rsm)
     message: str
-    history: list = field(default_factory=list)   # (x, cost) of every evaluation
 
     @property
     def lo(self) -> np.ndarray:
@@ -116,18 +115,6 @@ class RefineResult:
     @property
     def hi(self) -> np.ndarray:
         return interval(self.theta, self.relstd)[1]
-
-    def to_dict(self) -> dict:
-        out = {}
-        for j, k in enumerate(("d", "h", "E")):
-            out[k] = float(self.theta[j])
-            out[f"{k}_start"] = float(self.theta0[j])
-            out[f"{k}_crb_rel"] = float(self.relstd[j])
-            out[f"{k}_lo"] = float(self.lo[j])
-            out[f"{k}_hi"] = float(self.hi[j])
-        out.update(chi2_red=self.chi2_red, chi2_red_start=self.chi2_red0, n_solves=self.n_solves,
-                   status=self.status, message=self.message)
-        return out
 
 
 def _setup(image, sigma, theta0, d_range, E_range, thickness):
@@ -172,7 +159,6 @@ def refine(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], *, d
 
     I, s, theta0, lb, ub, _, x0 = _setup(image, sigma, theta0, d_range, E_range, thickness)
     cache: dict = {}
-    hist: list = []
 
     def resid(x):
         key = tuple(np.round(x, 12))
@@ -181,7 +167,6 @@ def refine(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], *, d
             if m.shape != I.shape:
                 raise RuntimeError(f"model returned {m.shape[0]} pixels, the image has {I.shape[0]}")
             cache[key] = (m - I) / s
-            hist.append((np.array(x), 0.5 * float(cache[key] @ cache[key])))
         return cache[key]
 
     def jac(x):
@@ -205,11 +190,11 @@ def refine(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], *, d
     res = least_squares(resid, x0, jac=jac, bounds=(lb, ub), method="trf", x_scale=np.array(FD) * [1, 0.05, 1],
                         max_nfev=max_iter, xtol=xtol, ftol=1e-4, gtol=1e-10)
     x = res.x
-    th, relstd = _bound(jac(x), x, thickness)
+    th, relstd = _bound(res.jac, x, thickness)       # the Jacobian least_squares last evaluated at x
     dof = max(I.size - 3, 1)
     r = resid(x)
     return RefineResult(th, theta0.copy(), relstd, float(r @ r) / dof, float(r_start @ r_start) / dof, len(cache),
-                        int(res.status), str(res.message), hist)
+                        int(res.status), str(res.message))
 
 
 _CCD = np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)]
@@ -246,7 +231,6 @@ def refine_rsm(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], 
 
     I, s, theta0, lb, ub, pad, xc = _setup(image, sigma, theta0, d_range, E_range, thickness)
     n_eval = 0
-    hist: list = []
     r0 = None
     for k in range(rounds):
         lo, hi = h_range(xc[0], thickness)
@@ -255,8 +239,6 @@ def refine_rsm(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], 
         Z = (X - xc) / w
         M = np.array([(np.asarray(model(to_theta(x, thickness)), float).ravel() - I) / s for x in X])
         n_eval += len(X)
-        for x, m in zip(X, M):
-            hist.append((x, 0.5 * float(m @ m)))
         if r0 is None:
             r0 = M[-1]                                   # the centre of the first stencil = the start
         C, *_ = np.linalg.lstsq(_quad_features(Z), M, rcond=None)     # (10, p) residual model
@@ -275,7 +257,7 @@ def refine_rsm(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], 
     dof = max(I.size - 3, 1)
     rm = _quad_features(zs)[0] @ C
     return RefineResult(th, theta0.copy(), relstd, float(rm @ rm) / dof, float(r0 @ r0) / dof, n_eval, 0,
-                        f"response surface, {rounds} rounds", hist)
+                        f"response surface, {rounds} rounds")
 
 
 def fem_model(mesh: str = "default", cache: str | None = None) -> Callable[[np.ndarray], np.ndarray]:
@@ -304,12 +286,7 @@ def fit(image, sigma, theta0, model, method: str = "rsm", max_iter: int = 12) ->
 
 def _refine_row(args):
     image, sigma, theta0, mesh, cache, max_iter, method = args
-    import os
-
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    r = fit(image, sigma, theta0, fem_model(mesh, cache), method, max_iter)
-    r.history = []
-    return r
+    return fit(image, sigma, theta0, fem_model(mesh, cache), method, max_iter)
 
 
 def study(pred_path: str, data_path: str, *, rows: str = "identifiable", threshold: float = 0.10,
@@ -361,6 +338,10 @@ def study(pred_path: str, data_path: str, *, rows: str = "identifiable", thresho
         bar = tqdm(total=len(sel), desc="refine", unit="row")
     if jobs > 1:
         import multiprocessing as mp
+        import os
+
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):   # inherited by the
+            os.environ.setdefault(var, "1")                                          # spawned workers
 
         with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as ex:
             futs = {ex.submit(_refine_row, a): k for k, a in enumerate(args)}
@@ -388,7 +369,10 @@ def summary_table(res: dict) -> str:
     T, S, R, rs = res["theta"], res["start"], res["refined"], res["relstd"]
     mre = lambda P: 100 * np.mean(np.abs(P - T) / T, axis=0)          # noqa: E731
     med = lambda P: 100 * np.median(np.abs(P - T) / T, axis=0)        # noqa: E731
-    cover = lambda sc: 100 * ((interval(R, rs, sc)[0] <= T) & (T <= interval(R, rs, sc)[1])).mean(axis=0)  # noqa: E731
+    def cover(scale):
+        lo, hi = interval(R, rs, scale)
+        return 100 * ((lo <= T) & (T <= hi)).mean(axis=0)
+
     cov1, cov = cover(1.0), cover(INTERVAL_SCALE)
     a, b, ma, mb = mre(S), mre(R), med(S), med(R)
     lines = ["| output | network ensemble MRE (%) | refined MRE (%) | network median (%) | refined median (%) "
