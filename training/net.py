@@ -237,12 +237,10 @@ _SYM_CACHE: dict = {}
 _EW = 50  # cost of one elementwise tensor op per element, in matrix-product flops (CPU measurement)
 
 
-def _sym_plan(ol: int, il: int, device):
-    """Index plan for a diagonal block: unique pairs of ``C`` (``ol x ol``) and ``A`` (``il x il``).
-
-    Returns the upper-triangle pairs of both and the flat gather that
-    rebuilds the ``(ol*il) x (ol*il)`` block from the ``(#pairs_o x #pairs_i)``
-    product: ``block[(a, c), (b, d)] = M[pair(a, b), pair(c, d)]``.
+def _sym_plan(ol: int, il: int, device) -> torch.Tensor:
+    """Flat gather that rebuilds a diagonal ``(ol*il) x (ol*il)`` block from the product of the
+    unique pairs of ``C`` (``ol x ol``) and ``A`` (``il x il``), pairs in ``torch.triu_indices``
+    order (as :func:`_pair_products` makes them): ``block[(a, c), (b, d)] = M[pair(a, b), pair(c, d)]``.
     """
     key = (ol, il, str(device))
     if key not in _SYM_CACHE:
@@ -252,20 +250,19 @@ def _sym_plan(ol: int, il: int, device):
             ar = torch.arange(iu.shape[1])
             mp[iu[0], iu[1]] = ar
             mp[iu[1], iu[0]] = ar
-            return iu, mp, iu.shape[1]
-        iuo, mo, no = maps(ol)
-        iui, mi, ni = maps(il)
-        flat = (mo[:, None, :, None] * ni + mi[None, :, None, :]).reshape(-1)
-        _SYM_CACHE[key] = tuple(t.to(device) for t in (iuo[0], iuo[1], iui[0], iui[1], flat))
+            return mp, iu.shape[1]
+        mo, _ = maps(ol)
+        mi, ni = maps(il)
+        _SYM_CACHE[key] = (mo[:, None, :, None] * ni + mi[None, :, None, :]).reshape(-1).to(device)
     return _SYM_CACHE[key]
 
 
-def _pair_products(a: torch.Tensor, m: int, summed: bool = False) -> torch.Tensor:
+def _pair_products(a: torch.Tensor, summed: bool = False) -> torch.Tensor:
     """Products of every row pair ``(i <= j)`` of ``a`` ``(B, m, n)`` (``(B, m, K, n)`` with ``summed``:
     summed over ``K``), in ``torch.triu_indices`` order: ``(B, m(m+1)/2, n)``.  One contiguous
     broadcast product per row ``i`` (``a[i] * a[i:]``) instead of two index gathers (~3x faster on
     the CPU)."""
-    B, n = a.shape[0], a.shape[-1]
+    B, m, n = a.shape[0], a.shape[1], a.shape[-1]
     out = torch.empty(B, m * (m + 1) // 2, n, dtype=a.dtype, device=a.device)
     o = 0
     for i in range(m):
@@ -322,9 +319,9 @@ def gauss_newton(theta: torch.Tensor, X: torch.Tensor, w: torch.Tensor, arch: Ar
             Jl = (dl[:, :, None] * al[:, None, :, None, :]).reshape(B, s_l, K * n)
             G[:, sl[l], sl[l]] = torch.bmm(Jl, Jl.transpose(1, 2))
         else:
-            flat = _sym_plan(ol, il, theta.device)[4]
-            C = _pair_products(dl, dl.shape[1], summed=True)                   # (B, #pairs_o, n)
-            A = _pair_products(al, al.shape[1])                                # (B, #pairs_i, n)
+            flat = _sym_plan(ol, il, theta.device)
+            C = _pair_products(dl, summed=True)                                # (B, #pairs_o, n)
+            A = _pair_products(al)                                             # (B, #pairs_i, n)
             M = torch.bmm(C, A.transpose(1, 2)).reshape(B, -1)
             G[:, sl[l], sl[l]] = M.index_select(1, flat).reshape(B, s_l, s_l)
         for m in range(l + 1, L):
