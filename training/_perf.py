@@ -29,8 +29,14 @@ def tune_malloc() -> bool:
 
 
 def set_threads(threads: int | None) -> int:
+    """Torch intra-op threads (``0``/None = torch's default); with an explicit count the BLAS
+    libraries loaded next to torch (scipy's OpenBLAS, used for LM's Cholesky steps) get the
+    same limit, so worker processes do not oversubscribe the cores."""
     import torch
 
     if threads:
         torch.set_num_threads(int(threads))
+        from scipy.linalg import lapack  # noqa: F401  (load scipy's BLAS so the limit reaches it)
+        from threadpoolctl import threadpool_limits
+        threadpool_limits(int(threads), user_api="blas")
     return torch.get_num_threads()

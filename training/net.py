@@ -10,8 +10,8 @@ copies of the same rows, e.g. one LOOCV fold per network) and row weights
 
 Forward pass, gradient and the full Jacobian are hand-written batched
 back-propagation (``torch.bmm``/``einsum``), checked against ``torch.func`` in
-the tests.  :func:`gauss_newton` forms ``JᵀJ`` without the Jacobian, from the
-exact per-sample Kronecker structure of an MLP's Jacobian (see there); it is
+the tests.  :func:`gn_system` forms ``JᵀJ`` and ``Jᵀr`` without the Jacobian, from
+the exact per-sample Kronecker structure of an MLP's Jacobian (see there); it is
 what makes batched Levenberg–Marquardt affordable on a CPU.
 
 Transfer functions use MATLAB's names (the paper was done with the Neural
@@ -275,72 +275,128 @@ def _pair_products(a: torch.Tensor, summed: bool = False) -> torch.Tensor:
     return out
 
 
-def gauss_newton(theta: torch.Tensor, X: torch.Tensor, w: torch.Tensor, arch: Arch) -> torch.Tensor:
-    """``JᵀJ`` ``(B, P, P)`` of the residuals of :func:`residual_jacobian`, without forming ``J``.
+def gn_system(theta: torch.Tensor, X: torch.Tensor, T: torch.Tensor | None, w: torch.Tensor, arch: Arch,
+              lower: bool = False, out: torch.Tensor | None = None):
+    """Training SSE ``E = Σ r²`` ``(B,)``, ``JᵀJ`` ``(B, P, P)`` and ``Jᵀr`` ``(B, P)`` from one
+    forward pass, without forming ``J`` (residuals and ``J`` as in :func:`residual_jacobian`).
 
-    Exact (not an approximation): row ``(i, k)`` of layer ``l``'s Jacobian
-    block is ``δ_l[i,k] ⊗ ã_{l-1}[i]`` (``ã`` = layer input with a trailing 1),
-    so the ``(l, m)`` block of ``JᵀJ`` is
-    ``Σ_i C_i ⊗ A_i`` with ``C_i = Σ_k δ_l[i,k] δ_m[i,k]ᵀ`` and
-    ``A_i = ã_{l-1}[i] ã_{m-1}[i]ᵀ``: one matrix product over the samples
-    per block pair, ``K`` (= 3) times fewer flops than ``JᵀJ``, and for
-    diagonal blocks only the upper triangles of the symmetric ``C_i`` and
-    ``A_i`` enter the product (about 4x fewer again).  Everything is laid
-    out samples-last so the gathers copy contiguous rows.
+    Exact (not an approximation).  Row ``(i, k)`` of layer ``l``'s Jacobian block is
+    ``δ_l[i,k] ⊗ ã_{l-1}[i]`` (``ã`` = layer input with a trailing 1), so the ``(l, m)``
+    block of ``JᵀJ`` is ``Σ_i C_i ⊗ A_i`` with ``C_i = Σ_k δ_l[i,k] δ_m[i,k]ᵀ`` and
+    ``A_i = ã_{l-1}[i] ã_{m-1}[i]ᵀ``: one matrix product over the samples per block pair,
+    ``K`` (= 3) times fewer flops than ``JᵀJ``.  The structure of the network supplies the
+    ``C_i`` cheaply:
+
+    * output layer (``purelin``): ``δ_L[i] = w_i I_K``, so its diagonal block is
+      ``I_K ⊗ Σ_i w_i ã ãᵀ`` and its cross blocks have ``C_i = δ_l[i]`` (``w`` is 0/1);
+    * last hidden layer: ``S_i = Σ_k δ δᵀ = w_i D_i (W_Lᵀ W_L) D_i`` (``D_i`` = diag of the
+      transfer-function derivative);
+    * hidden cross blocks by the back-propagation recursion
+      ``C_{l,m} = D_l W_{l+1}ᵀ C_{l+1,m}``, ``C_{m,m} = S_m``.
+
+    Diagonal hidden blocks use only the upper triangles of the symmetric ``C_i`` and ``A_i``
+    (about 4x fewer flops), or, for a small fan-in (the first layer), the Gram matrix of the
+    layer's explicit Jacobian block.  With ``lower`` only the blocks on and below the diagonal
+    are written (the upper off-diagonal blocks are left undefined): all a Cholesky
+    factorisation reads.  ``T = None`` skips ``E`` and ``Jᵀr`` (returned as None); ``out``
+    (``(B, P, P)``, contiguous) receives ``JᵀJ``.
     """
     B, n, _ = X.shape
     K = arch.n_out
     layers = arch.layers
-    L = len(layers)
-    _, acts = forward(theta, X, arch, keep=True)
+    q = len(layers) - 1                      # the output layer
+    dt, dev = theta.dtype, theta.device
+    Y, acts = forward(theta, X, arch, keep=True)
     params = unpack(theta, arch)
-    ones = torch.ones(B, 1, n, dtype=theta.dtype, device=theta.device)
-    augT = [torch.cat([a.transpose(1, 2), ones], dim=1) for a in acts[:-1]]     # (B, in+1, n)
-    # deltas[l]: (B, out_l, K, n), w folded in
-    d = torch.eye(K, dtype=theta.dtype, device=theta.device)[None, :, :, None] * w[:, None, None, :]
-    deltas = [None] * L
-    for li in range(L - 1, -1, -1):
-        deltas[li] = d
-        if li > 0:
-            W = params[li][0]
-            d = torch.bmm(W.transpose(1, 2), d.reshape(B, W.shape[1], K * n)).reshape(B, W.shape[2], K, n)
-            der = _dact(acts[li].transpose(1, 2), layers[li - 1][2])
-            if der is not None:
-                d = d * der.unsqueeze(2)
-    P = arch.n_params
-    G = torch.empty(B, P, P, dtype=theta.dtype, device=theta.device)
-    sl = arch.slices
-    for l in range(L):
-        dl, al = deltas[l], augT[l]
+    ones = torch.ones(B, 1, n, dtype=dt, device=dev)
+    aT = [torch.cat([a.transpose(1, 2), ones], dim=1) for a in acts[:-1]]     # ã_l: (B, in_l + 1, n)
+    der = [_dact(acts[l + 1].transpose(1, 2), layers[l][2]) for l in range(q)]  # (B, out_l, n), None = 1
+    P, sl = arch.n_params, arch.slices
+    E = je = None
+    if T is not None:
+        r = (Y - T) * w.unsqueeze(-1)                                          # (B, n, K)
+        E = (r * r).sum(dim=(1, 2))
+        je = torch.empty(B, P, dtype=dt, device=dev)
+        e = r.transpose(1, 2)                                                  # Σ_k δ_l[., k] r_k
+    # δ_l: (B, out_l, K, n), w folded in
+    deltas = [None] * (q + 1)
+    d = torch.eye(K, dtype=dt, device=dev)[None, :, :, None] * w[:, None, None, :]
+    for l in range(q, -1, -1):
+        deltas[l] = d
+        fi, fo, _ = layers[l]
+        if T is not None:
+            je[:, sl[l]] = torch.bmm(e, aT[l].transpose(1, 2)).reshape(B, -1)
+        if l > 0:
+            Wt = params[l][0].transpose(1, 2)                                   # (B, out_{l-1}, out_l)
+            d = torch.bmm(Wt, d.reshape(B, fo, K * n)).reshape(B, fi, K, n)
+            if der[l - 1] is not None:
+                d.mul_(der[l - 1].unsqueeze(2))
+            if T is not None:
+                e = torch.bmm(Wt, e)
+                if der[l - 1] is not None:
+                    e.mul_(der[l - 1])
+    G = torch.empty(B, P, P, dtype=dt, device=dev) if out is None else out
+    # output layer: I_K ⊗ Σ_i w_i ã ãᵀ
+    iq = aT[q].shape[1]
+    H = torch.bmm(aT[q] * w[:, None, :], aT[q].transpose(1, 2))
+    Gq = G[:, sl[q], sl[q]]
+    Gq.zero_()
+    for k in range(K):
+        Gq[:, k * iq:(k + 1) * iq, k * iq:(k + 1) * iq] = H
+    # per hidden layer: its diagonal-block strategy and, where needed, S_m (B, out_m, out_m, n)
+    explicit, S = [], [None] * q
+    for m in range(q):
+        fi, fo, _ = layers[m]
+        s_m, po, pi = fo * (fi + 1), fo * (fo + 1) // 2, (fi + 1) * (fi + 2) // 2
+        explicit.append(K * s_m * s_m + _EW * K * s_m <= po * pi + _EW * (2 * K * po + pi))
+        if m == 0 and explicit[0]:
+            continue
+        if m == q - 1:
+            Wq = params[q][0]
+            S[m] = torch.bmm(Wq.transpose(1, 2), Wq).unsqueeze(-1) * w[:, None, None, :]
+            if der[m] is not None:
+                S[m].mul_(der[m].unsqueeze(2)).mul_(der[m].unsqueeze(1))
+        else:
+            dm = deltas[m]
+            S[m] = (dm.unsqueeze(2) * dm.unsqueeze(1)).sum(3)
+    for l in range(q):
+        dl, al = deltas[l], aT[l]
         ol, il = dl.shape[1], al.shape[1]
-        s_l, po, pi = ol * il, ol * (ol + 1) // 2, il * (il + 1) // 2
-        if K * s_l * s_l + _EW * K * s_l <= po * pi + _EW * (2 * K * po + pi):
-            # small fan-in (first layer): the layer's Jacobian block itself is cheap
-            Jl = (dl[:, :, None] * al[:, None, :, None, :]).reshape(B, s_l, K * n)
+        s_l = ol * il
+        if explicit[l]:
+            Jl = (dl.unsqueeze(2) * al[:, None, :, None, :]).reshape(B, s_l, K * n)
             G[:, sl[l], sl[l]] = torch.bmm(Jl, Jl.transpose(1, 2))
         else:
-            flat = _sym_plan(ol, il, theta.device)
-            C = _pair_products(dl, summed=True)                                # (B, #pairs_o, n)
-            A = _pair_products(al)                                             # (B, #pairs_i, n)
+            iu = torch.triu_indices(ol, ol, device=dev)
+            C = S[l].reshape(B, ol * ol, n)[:, iu[0] * ol + iu[1]]             # (B, #pairs_o, n)
+            A = _pair_products(al)                                              # (B, #pairs_i, n)
             M = torch.bmm(C, A.transpose(1, 2)).reshape(B, -1)
-            G[:, sl[l], sl[l]] = M.index_select(1, flat).reshape(B, s_l, s_l)
-        for m in range(l + 1, L):
-            dm, am = deltas[m], augT[m]
-            om, im = dm.shape[1], am.shape[1]
-            if ol * om >= 100:
-                # C_i = δ_l[i] δ_m[i]ᵀ as one batched (ol x K)(K x om) product per sample:
-                # fewer passes over memory than the broadcast-multiply-and-sum below
-                Dl = dl.permute(0, 3, 1, 2).reshape(B * n, ol, K)
-                Dm = dm.permute(0, 3, 2, 1).reshape(B * n, K, om)
-                C = torch.bmm(Dl, Dm).reshape(B, n, ol * om).transpose(1, 2)
-            else:
-                C = (dl[:, :, None] * dm[:, None]).sum(3).reshape(B, ol * om, n)
-            A = (al[:, :, None] * am[:, None]).reshape(B, il * im, n)
-            M = torch.bmm(C, A.transpose(1, 2)).view(B, ol, om, il, im).permute(0, 1, 3, 2, 4)
-            M = M.reshape(B, ol * il, om * im)
-            G[:, sl[l], sl[m]] = M
-            G[:, sl[m], sl[l]] = M.transpose(1, 2)
-    return G
+            G[:, sl[l], sl[l]] = M.index_select(1, _sym_plan(ol, il, dev)).reshape(B, s_l, s_l)
+        for m in range(l + 1, q):                        # hidden cross blocks
+            om, im = layers[m][1], aT[m].shape[1]
+            C = S[m]
+            for p in range(m - 1, l - 1, -1):            # C_{p,m} = D_p W_{p+1}ᵀ C_{p+1,m}
+                C = torch.bmm(params[p + 1][0].transpose(1, 2), C.reshape(B, layers[p + 1][1], om * n))
+                C = C.reshape(B, layers[p][1], om, n)
+                if der[p] is not None:
+                    C.mul_(der[p].unsqueeze(2))
+            A = (al.unsqueeze(2) * aT[m].unsqueeze(1)).reshape(B, il * im, n)
+            M = torch.bmm(C.reshape(B, ol * om, n), A.transpose(1, 2)).view(B, ol, om, il, im)
+            G[:, sl[m], sl[l]] = M.permute(0, 2, 4, 1, 3).reshape(B, om * im, s_l)
+            if not lower:
+                G[:, sl[l], sl[m]] = M.permute(0, 1, 3, 2, 4).reshape(B, s_l, om * im)
+        # cross block with the output layer: C_i = δ_l[i]
+        A = (al.unsqueeze(2) * aT[q].unsqueeze(1)).reshape(B, il * iq, n)
+        M = torch.bmm(dl.reshape(B, ol * K, n), A.transpose(1, 2)).view(B, ol, K, il, iq)
+        G[:, sl[q], sl[l]] = M.permute(0, 2, 4, 1, 3).reshape(B, K * iq, s_l)
+        if not lower:
+            G[:, sl[l], sl[q]] = M.permute(0, 1, 3, 2, 4).reshape(B, s_l, K * iq)
+    return E, G, je
+
+
+def gauss_newton(theta: torch.Tensor, X: torch.Tensor, w: torch.Tensor, arch: Arch) -> torch.Tensor:
+    """``JᵀJ`` ``(B, P, P)`` of the residuals of :func:`residual_jacobian` (see :func:`gn_system`)."""
+    return gn_system(theta, X, None, w, arch)[1]
 
 
 def init_nguyen_widrow(arch: Arch, B: int, generator: torch.Generator, dtype=torch.float64,

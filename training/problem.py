@@ -98,25 +98,32 @@ class NetObjective:
         return E / self.n_elem, g / self.n_elem[:, None]
 
     def sse_jj_je(self, theta):
-        """Training SSE, ``JᵀJ`` (:func:`training.net.gauss_newton`) and ``Jᵀr`` (= ∇SSE / 2)."""
+        """Training SSE, ``JᵀJ`` and ``Jᵀr`` (= ∇SSE / 2) by :func:`training.net.gn_system`.
+
+        Only the lower triangle of ``JᵀJ`` is defined (all the Cholesky factorisation of
+        Levenberg–Marquardt reads).  Networks go through in sub-chunks whose temporaries
+        stay within ``work_bytes``.
+        """
         B, n, _ = self.X.shape
         P = self.arch.n_params
         K = self.arch.n_out
         lay = self.arch.layers
-        pin = sum((fi + 1) * (fi + 2) // 2 for fi, _, _ in lay)
-        pout = sum(fo * (fo + 1) // 2 for _, fo, _ in lay)
-        cross = sum(lay[a][1] * lay[b][1] * K + (lay[a][0] + 1) * (lay[b][0] + 1)
-                    for a in range(len(lay)) for b in range(a + 1, len(lay)))
-        per = n * theta.element_size() * (2 * pin + 2 * K * pout + cross) + 2 * P * P * theta.element_size()
+        el = theta.element_size()
+        # largest temporaries per network: each hidden layer's deltas, pair products, cross
+        # products and explicit first-layer Jacobian, over the n samples; plus JᵀJ itself
+        per_sample = sum(fo * K + fo * fo + (fi + 1) * (fi + 2) // 2 for fi, fo, _ in lay[:-1])
+        per_sample += sum((lay[a][0] + 1) * (lay[b][0] + 1) + lay[a][1] * lay[b][1]
+                          for a in range(len(lay)) for b in range(a + 1, len(lay)))
+        per_sample += lay[0][1] * (lay[0][0] + 1) * K
+        per = n * el * per_sample + P * P * el
         step = max(1, int(self.work_bytes // max(per, 1)))
         E = torch.empty(B, dtype=theta.dtype, device=theta.device)
         jj = torch.empty(B, P, P, dtype=theta.dtype, device=theta.device)
         je = torch.empty(B, P, dtype=theta.dtype, device=theta.device)
         for s in range(0, B, step):
             sl = slice(s, min(B, s + step))
-            jj[sl] = _net.gauss_newton(theta[sl], self.X[sl], self.w[sl], self.arch)
-            E[sl], g = _net.sse_grad(theta[sl], self.X[sl], self.T[sl], self.w[sl], self.arch)
-            je[sl] = 0.5 * g
+            E[sl], _, je[sl] = _net.gn_system(theta[sl], self.X[sl], self.T[sl], self.w[sl], self.arch,
+                                              lower=True, out=jj[sl])
         return E, jj, je
 
     def monitor(self, theta):
