@@ -11,7 +11,7 @@ import torch
 
 from training.net import (Arch, forward, gauss_newton, gn_system, init_nguyen_widrow, parse_hidden,
                           residual_jacobian, sse, sse_grad)
-from training.optim import lm_step, train_lm, train_scg
+from training.optim import _lm_step_torch, lm_step, train_lm, train_scg
 from training.problem import NetObjective, mapminmax_apply, mapminmax_fit, mapminmax_reverse
 
 torch.set_num_threads(1)
@@ -91,7 +91,7 @@ def test_gradient_jacobian_gauss_newton_match_torch_func():
 
 @pytest.mark.parametrize("hidden", ["25,10", "25,10,7:purelin", "4,3:logsig", "6", "5:purelin,4"])
 def test_gn_system_matches_explicit_jacobian(hidden):
-    """SSE, JᵀJ (full and lower-triangle-only) and Jᵀr against the explicit Jacobian, for every
+    """SSE, JᵀJ (full and upper-triangle-only) and Jᵀr against the explicit Jacobian, for every
     structural case of gn_system: explicit and pair-product diagonal blocks, one to three hidden
     layers, tansig / logsig / purelin hidden layers."""
     arch = Arch(3, parse_hidden(hidden), 3)
@@ -103,9 +103,9 @@ def test_gn_system_matches_explicit_jacobian(hidden):
     torch.testing.assert_close(je, (J.transpose(1, 2) @ r.unsqueeze(-1)).squeeze(-1), rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(E, (r * r).sum(1))
     out = torch.full_like(G, float("nan"))
-    E2, G2, je2 = gn_system(th, X, T, w, arch, lower=True, out=out)
+    E2, G2, je2 = gn_system(th, X, T, w, arch, upper=True, out=out)
     assert G2 is out
-    torch.testing.assert_close(G2.tril(), JJ.tril(), rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(G2.triu(), JJ.triu(), rtol=1e-10, atol=1e-10)
     assert torch.equal(E2, E) and torch.equal(je2, je)
 
 
@@ -117,17 +117,23 @@ def test_lm_step_matches_dense_solve_and_flags_indefinite():
         jj[2] = -torch.eye(12, dtype=dt)                      # not positive definite at mu = 0.5
         je = torch.randn(4, 12, generator=g, dtype=F64).to(dt)
         mu = torch.tensor([1e-3, 1.0, 0.5, 10.0], dtype=dt)
-        upper_garbage = jj + torch.triu(torch.full_like(jj, float("nan")), 1)   # only the lower triangle is read
-        before = upper_garbage.clone()
-        dx, ok = lm_step(upper_garbage, je, mu)
-        assert torch.equal(upper_garbage.isnan(), before.isnan()) and torch.equal(upper_garbage.nan_to_num(), before.nan_to_num())
+        garbage = jj + torch.tril(torch.full_like(jj, float("nan")), -1)   # only the upper triangle is read
+        before = garbage.clone()
+        dx, ok = lm_step(garbage, je, mu)
+        assert torch.equal(garbage.isnan(), before.isnan()) and torch.equal(garbage.nan_to_num(), before.nan_to_num())
         assert ok.tolist() == [True, True, False, True]
         for b in (0, 1, 3):
             ref = -torch.linalg.solve(jj[b].double() + mu[b].double() * torch.eye(12, dtype=F64), je[b].double())
             torch.testing.assert_close(dx[b].double(), ref, rtol=1e-3 if dt == torch.float32 else 1e-10, atol=1e-4 if dt == torch.float32 else 1e-10)
         idx = torch.tensor([3, 0])
-        dx2, ok2 = lm_step(upper_garbage, je, mu[idx], idx)
+        dx2, ok2 = lm_step(garbage, je, mu[idx], idx)
         assert ok2.all() and torch.equal(dx2, dx[idx])
+        # the torch path (used on GPUs) gives the same steps
+        dx3, ok3 = _lm_step_torch(garbage, je, mu)
+        assert torch.equal(ok3, ok)
+        tol = dict(rtol=1e-4, atol=1e-5) if dt == torch.float32 else dict(rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(dx3[ok3], dx[ok], **tol)
+        assert torch.equal(garbage.isnan(), before.isnan())
 
 
 def test_mapminmax_matches_matlab_convention():

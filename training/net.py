@@ -276,7 +276,7 @@ def _pair_products(a: torch.Tensor, summed: bool = False) -> torch.Tensor:
 
 
 def gn_system(theta: torch.Tensor, X: torch.Tensor, T: torch.Tensor | None, w: torch.Tensor, arch: Arch,
-              lower: bool = False, out: torch.Tensor | None = None):
+              upper: bool = False, out: torch.Tensor | None = None):
     """Training SSE ``E = Σ r²`` ``(B,)``, ``JᵀJ`` ``(B, P, P)`` and ``Jᵀr`` ``(B, P)`` from one
     forward pass, without forming ``J`` (residuals and ``J`` as in :func:`residual_jacobian`).
 
@@ -296,8 +296,8 @@ def gn_system(theta: torch.Tensor, X: torch.Tensor, T: torch.Tensor | None, w: t
 
     Diagonal hidden blocks use only the upper triangles of the symmetric ``C_i`` and ``A_i``
     (about 4x fewer flops), or, for a small fan-in (the first layer), the Gram matrix of the
-    layer's explicit Jacobian block.  With ``lower`` only the blocks on and below the diagonal
-    are written (the upper off-diagonal blocks are left undefined): all a Cholesky
+    layer's explicit Jacobian block.  With ``upper`` only the blocks on and above the diagonal
+    are written (the lower off-diagonal blocks are left undefined): all a Cholesky
     factorisation reads.  ``T = None`` skips ``E`` and ``Jᵀr`` (returned as None); ``out``
     (``(B, P, P)``, contiguous) receives ``JᵀJ``.
     """
@@ -382,15 +382,15 @@ def gn_system(theta: torch.Tensor, X: torch.Tensor, T: torch.Tensor | None, w: t
                     C.mul_(der[p].unsqueeze(2))
             A = (al.unsqueeze(2) * aT[m].unsqueeze(1)).reshape(B, il * im, n)
             M = torch.bmm(C.reshape(B, ol * om, n), A.transpose(1, 2)).view(B, ol, om, il, im)
-            G[:, sl[m], sl[l]] = M.permute(0, 2, 4, 1, 3).reshape(B, om * im, s_l)
-            if not lower:
-                G[:, sl[l], sl[m]] = M.permute(0, 1, 3, 2, 4).reshape(B, s_l, om * im)
+            G[:, sl[l], sl[m]] = M.permute(0, 1, 3, 2, 4).reshape(B, s_l, om * im)
+            if not upper:
+                G[:, sl[m], sl[l]] = M.permute(0, 2, 4, 1, 3).reshape(B, om * im, s_l)
         # cross block with the output layer: C_i = δ_l[i]
         A = (al.unsqueeze(2) * aT[q].unsqueeze(1)).reshape(B, il * iq, n)
         M = torch.bmm(dl.reshape(B, ol * K, n), A.transpose(1, 2)).view(B, ol, K, il, iq)
-        G[:, sl[q], sl[l]] = M.permute(0, 2, 4, 1, 3).reshape(B, K * iq, s_l)
-        if not lower:
-            G[:, sl[l], sl[q]] = M.permute(0, 1, 3, 2, 4).reshape(B, s_l, K * iq)
+        G[:, sl[l], sl[q]] = M.permute(0, 1, 3, 2, 4).reshape(B, s_l, K * iq)
+        if not upper:
+            G[:, sl[q], sl[l]] = M.permute(0, 2, 4, 1, 3).reshape(B, K * iq, s_l)
     return E, G, je
 
 

@@ -10,7 +10,8 @@ An *objective* is any object with
 
 * ``B`` (number of problems), ``subset(idx)`` -> objective for those problems;
 * ``perf(theta)`` -> ``(B,)`` and ``perf_grad(theta)`` -> ``(perf, grad)`` (SCG);
-* ``sse(theta)`` -> ``(B,)`` and ``sse_jj_je(theta)`` -> ``(sse, JᵀJ, Jᵀr)`` (LM),
+* ``sse(theta)`` -> ``(B,)`` and ``sse_jj_je(theta)`` -> ``(sse, JᵀJ, Jᵀr)`` (LM; only the upper
+  triangle of ``JᵀJ`` is read),
   ``n_elem`` -> ``(B,)`` number of squared errors in the training SSE;
 * ``has_val`` and ``monitor(theta)`` -> ``dict name -> (B,)`` (must contain
   ``"val"`` when ``has_val``); recorded every epoch, ``"val"`` drives early stopping.
@@ -81,38 +82,43 @@ def _apply_stops(reasons, act_cpu, stop: list, ep_run, epoch: int) -> torch.Tens
 def lm_step(jj: torch.Tensor, je: torch.Tensor, mu: torch.Tensor, idx: torch.Tensor | None = None):
     """Levenberg–Marquardt steps ``Δθ = -(JᵀJ + μ I)⁻¹ Jᵀr`` by Cholesky factorisation.
 
-    ``jj`` ``(B, P, P)`` (only its lower triangle is read, and it is left unchanged), ``je``
+    ``jj`` ``(B, P, P)`` (only its upper triangle is read, and it is left unchanged), ``je``
     ``(B, P)``; ``mu`` has one value per selected problem, ``idx`` selects problems (None = all).
     Returns ``(Δθ, factorised)``; ``factorised`` is False where ``JᵀJ + μ I`` was not numerically
     positive definite (that trial counts as failed).  On the CPU each network goes through
-    LAPACK ``potrf``/``potrs`` (scipy's OpenBLAS, faster here than torch's batched MKL path for
-    these 393 x 393 systems); elsewhere torch's batched Cholesky.
+    LAPACK ``potrf``/``potrs`` (scipy's OpenBLAS; faster here than torch's batched MKL path for
+    these 393 x 393 systems), on the column-major transpose of its row-major upper triangle,
+    which is a plain copy; elsewhere torch's batched Cholesky.
     """
     if jj.device.type != "cpu":
-        A = jj.clone() if idx is None else jj[idx]
-        A.diagonal(dim1=-2, dim2=-1).add_(mu[:, None])
-        L, info = torch.linalg.cholesky_ex(A)
-        g = je if idx is None else je[idx]
-        return -torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1), info == 0
+        return _lm_step_torch(jj, je, mu, idx)
     from scipy.linalg import lapack
 
     rows = range(jj.shape[0]) if idx is None else idx.tolist()
     J, G, m = jj.numpy(), je.numpy(), mu.numpy()
     potrf, potrs = lapack.get_lapack_funcs(("potrf", "potrs"), dtype=J.dtype)
     P = J.shape[-1]
-    buf = np.empty((P, P), dtype=J.dtype)
+    buf = np.empty((P, P), dtype=J.dtype, order="F")
     out = np.empty((len(rows), P), dtype=J.dtype)
     ok = np.zeros(len(rows), dtype=bool)
     for t, b in enumerate(rows):
-        np.copyto(buf, J[b])
-        buf.flat[::P + 1] += m[t]
-        # buf.T is the Fortran-order view: its upper triangle is JᵀJ's lower one
-        c, info = potrf(buf.T, lower=0, clean=0, overwrite_a=1)
+        np.copyto(buf, J[b].T)             # Fortran order: buf's lower triangle is JᵀJ's upper one
+        buf.T.flat[::P + 1] += m[t]
+        c, info = potrf(buf, lower=1, clean=0, overwrite_a=1)
         if info == 0:
-            x, info = potrs(c, G[b], lower=0)
+            x, info = potrs(c, G[b], lower=1)
         ok[t] = info == 0
         out[t] = -x if info == 0 else 0.0
     return torch.from_numpy(out), torch.from_numpy(ok)
+
+
+def _lm_step_torch(jj, je, mu, idx=None):
+    """:func:`lm_step` by torch's batched Cholesky (any device)."""
+    A = jj.clone() if idx is None else jj[idx]
+    A.diagonal(dim1=-2, dim2=-1).add_(mu[:, None])
+    U, info = torch.linalg.cholesky_ex(A, upper=True)
+    g = je if idx is None else je[idx]
+    return -torch.cholesky_solve(g.unsqueeze(-1), U, upper=True).squeeze(-1), info == 0
 
 
 def train_lm(obj, theta0: torch.Tensor, *, epochs: int = 100, mu: float = 1e-3, mu_dec: float = 0.1,

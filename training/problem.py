@@ -100,7 +100,7 @@ class NetObjective:
     def sse_jj_je(self, theta):
         """Training SSE, ``JᵀJ`` and ``Jᵀr`` (= ∇SSE / 2) by :func:`training.net.gn_system`.
 
-        Only the lower triangle of ``JᵀJ`` is defined (all the Cholesky factorisation of
+        Only the upper triangle of ``JᵀJ`` is defined (all the Cholesky factorisation of
         Levenberg–Marquardt reads).  Networks go through in sub-chunks whose temporaries
         stay within ``work_bytes``.
         """
@@ -123,7 +123,7 @@ class NetObjective:
         for s in range(0, B, step):
             sl = slice(s, min(B, s + step))
             E[sl], _, je[sl] = _net.gn_system(theta[sl], self.X[sl], self.T[sl], self.w[sl], self.arch,
-                                              lower=True, out=jj[sl])
+                                              upper=True, out=jj[sl])
         return E, jj, je
 
     def monitor(self, theta):
