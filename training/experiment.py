@@ -162,8 +162,8 @@ def chunk_size(algo: str, cfg: TrainConfig, n: int) -> int:
     if algo == "lm":
         per = 4 * P * P * el + 8 * n * 8 * el
         if cfg.resolved_device().type == "cpu":
-            # keep each (nets, P, P) block under glibc's largest mmap threshold (32 MiB) so the
-            # per-trial JᵀJ + mu I copies reuse freed memory instead of faulting in fresh pages
+            # keep each chunk's (nets, P, P) JᵀJ under glibc's largest mmap threshold (32 MiB) so
+            # it reuses freed memory every epoch instead of faulting in fresh pages
             return max(1, min(int(cfg.budget() // per), (24 << 20) // (P * P * el)))
     else:
         width = sum(s for s, _ in cfg.hidden) + 3 * len(TARGETS)

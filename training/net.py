@@ -257,20 +257,15 @@ def _sym_plan(ol: int, il: int, device) -> torch.Tensor:
     return _SYM_CACHE[key]
 
 
-def _pair_products(a: torch.Tensor, summed: bool = False) -> torch.Tensor:
-    """Products of every row pair ``(i <= j)`` of ``a`` ``(B, m, n)`` (``(B, m, K, n)`` with ``summed``:
-    summed over ``K``), in ``torch.triu_indices`` order: ``(B, m(m+1)/2, n)``.  One contiguous
-    broadcast product per row ``i`` (``a[i] * a[i:]``) instead of two index gathers (~3x faster on
-    the CPU)."""
-    B, m, n = a.shape[0], a.shape[1], a.shape[-1]
+def _pair_products(a: torch.Tensor) -> torch.Tensor:
+    """Products of every row pair ``(i <= j)`` of ``a`` ``(B, m, n)``, in ``torch.triu_indices``
+    order: ``(B, m(m+1)/2, n)``.  One contiguous broadcast product per row ``i``
+    (``a[i] * a[i:]``) instead of two index gathers (~3x faster on the CPU)."""
+    B, m, n = a.shape
     out = torch.empty(B, m * (m + 1) // 2, n, dtype=a.dtype, device=a.device)
     o = 0
     for i in range(m):
-        blk = out[:, o:o + m - i]
-        if summed:
-            torch.sum(a[:, i:i + 1] * a[:, i:], dim=2, out=blk)
-        else:
-            torch.mul(a[:, i:i + 1], a[:, i:], out=blk)
+        torch.mul(a[:, i:i + 1], a[:, i:], out=out[:, o:o + m - i])
         o += m - i
     return out
 
