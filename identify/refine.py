@@ -297,7 +297,7 @@ def study(pred_path: str, data_path: str, *, rows: str = "identifiable", thresho
     The measured image of each row is rebuilt exactly as imagenet drew the *shared* noisy image
     (``add_image_noise(images, image_noise, default_rng([seed, 9]))``); the start is the mean over
     the repeats' networks of their prediction from it (``pred_shared_noise``), as inference reports it."""
-    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures import ProcessPoolExecutor, as_completed
 
     from .measure import add_image_noise, load
     from .region import IdentifiabilityMap
@@ -345,7 +345,6 @@ def study(pred_path: str, data_path: str, *, rows: str = "identifiable", thresho
 
         with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as ex:
             futs = {ex.submit(_refine_row, a): k for k, a in enumerate(args)}
-            from concurrent.futures import as_completed
             for f in as_completed(futs):
                 out[futs[f]] = f.result()
                 if bar:
@@ -430,8 +429,8 @@ def _cli():
     @click.option("--seed", default=None, type=int, help="Its seed (default: the one it records).")
     @click.option("--mesh", default="default", show_default=True, help="Must be the sweep's mesh.")
     @click.option("--jobs", default=2, show_default=True, type=int, help="Rows refined in parallel.")
-    @click.option("--max-iter", default=12, show_default=True, type=int, help="Trial points per row (each accepted "
-                  "one costs 6 more solves for the central-difference Jacobian).")
+    @click.option("--max-iter", default=12, show_default=True, type=int, help="trf only: trial points per row (each "
+                  "accepted one costs 6 more solves for the central-difference Jacobian).")
     @click.option("--method", default="rsm", show_default=True,
                   help="rsm: response surface over two 15-solve stencils (averages the remeshing jitter); "
                        "trf: trust-region least squares with a central-difference Jacobian.")

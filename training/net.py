@@ -237,10 +237,11 @@ _SYM_CACHE: dict = {}
 _EW = 50  # cost of one elementwise tensor op per element, in matrix-product flops (CPU measurement)
 
 
-def _sym_plan(ol: int, il: int, device) -> torch.Tensor:
-    """Flat gather that rebuilds a diagonal ``(ol*il) x (ol*il)`` block from the product of the
-    unique pairs of ``C`` (``ol x ol``) and ``A`` (``il x il``), pairs in ``torch.triu_indices``
-    order (as :func:`_pair_products` makes them): ``block[(a, c), (b, d)] = M[pair(a, b), pair(c, d)]``.
+def _sym_plan(ol: int, il: int, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Gathers for a diagonal ``(ol*il) x (ol*il)`` block built from the unique pairs of ``C``
+    (``ol x ol``) and ``A`` (``il x il``), pairs in ``torch.triu_indices`` order (as
+    :func:`_pair_products` makes them): the flat indices of ``C``'s upper triangle, and the flat
+    gather ``block[(a, c), (b, d)] = M[pair(a, b), pair(c, d)]`` from their product ``M``.
     """
     key = (ol, il, str(device))
     if key not in _SYM_CACHE:
@@ -253,7 +254,9 @@ def _sym_plan(ol: int, il: int, device) -> torch.Tensor:
             return mp, iu.shape[1]
         mo, _ = maps(ol)
         mi, ni = maps(il)
-        _SYM_CACHE[key] = (mo[:, None, :, None] * ni + mi[None, :, None, :]).reshape(-1).to(device)
+        iu = torch.triu_indices(ol, ol)
+        _SYM_CACHE[key] = ((iu[0] * ol + iu[1]).to(device),
+                           (mo[:, None, :, None] * ni + mi[None, :, None, :]).reshape(-1).to(device))
     return _SYM_CACHE[key]
 
 
@@ -362,11 +365,11 @@ def gn_system(theta: torch.Tensor, X: torch.Tensor, T: torch.Tensor | None, w: t
             Jl = (dl.unsqueeze(2) * al[:, None, :, None, :]).reshape(B, s_l, K * n)
             G[:, sl[l], sl[l]] = torch.bmm(Jl, Jl.transpose(1, 2))
         else:
-            iu = torch.triu_indices(ol, ol, device=dev)
-            C = S[l].reshape(B, ol * ol, n)[:, iu[0] * ol + iu[1]]             # (B, #pairs_o, n)
+            pairs, flat = _sym_plan(ol, il, dev)
+            C = S[l].reshape(B, ol * ol, n)[:, pairs]                           # (B, #pairs_o, n)
             A = _pair_products(al)                                              # (B, #pairs_i, n)
             M = torch.bmm(C, A.transpose(1, 2)).reshape(B, -1)
-            G[:, sl[l], sl[l]] = M.index_select(1, _sym_plan(ol, il, dev)).reshape(B, s_l, s_l)
+            G[:, sl[l], sl[l]] = M.index_select(1, flat).reshape(B, s_l, s_l)
         for m in range(l + 1, q):                        # hidden cross blocks
             om, im = layers[m][1], aT[m].shape[1]
             C = S[m]
@@ -387,11 +390,6 @@ def gn_system(theta: torch.Tensor, X: torch.Tensor, T: torch.Tensor | None, w: t
         if not upper:
             G[:, sl[q], sl[l]] = M.permute(0, 2, 4, 1, 3).reshape(B, K * iq, s_l)
     return E, G, je
-
-
-def gauss_newton(theta: torch.Tensor, X: torch.Tensor, w: torch.Tensor, arch: Arch) -> torch.Tensor:
-    """``JᵀJ`` ``(B, P, P)`` of the residuals of :func:`residual_jacobian` (see :func:`gn_system`)."""
-    return gn_system(theta, X, None, w, arch)[1]
 
 
 def init_nguyen_widrow(arch: Arch, B: int, generator: torch.Generator, dtype=torch.float64,
