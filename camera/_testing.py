@@ -4,7 +4,7 @@ It is *not* physics: a bump ``amp * exp(-(r / width)^p)`` whose height, width
 and profile exponent depend on (d, h, E) so that the three features identify
 the three parameters, on top of a flat-punch-like probe compression with edge
 peaks.  It returns an object with the attributes of
-:class:`solver.params.SolveResult` that the camera side uses (``image``,
+:class:`elastimap.solver.params.SolveResult` that the camera side uses (``image``,
 ``image_raw``, ``pixel``, ``O1``, ``O2``, ``O3``).  Never use it for results.
 """
 
@@ -14,7 +14,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from solver.image import features, pixel_centres
+from elastimap.solver.image import features, pixel_centres
 
 
 def toy_solve(d: float, h: float, E: float, delta: float = 3.0, size: float = 25.0, pixel: float = 0.5,

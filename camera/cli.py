@@ -1,8 +1,8 @@
-"""Camera-side command line: ``python -m camera.cli {synth,features,calibrate,infer,detect}``.
+"""Camera-side command line: ``python -m elastimap.camera.cli {synth,features,calibrate,infer,detect}``.
 
-Console scripts (to be registered): ``camera = camera.cli:main`` (all
-subcommands), ``calibrate = camera.cli:calibrate_main``,
-``infer = camera.cli:infer_main``.  User errors end as one ``error: ...``
+Console scripts (to be registered): ``camera = elastimap.camera.cli:main`` (all
+subcommands), ``calibrate = elastimap.camera.cli:calibrate_main``,
+``infer = elastimap.camera.cli:infer_main``.  User errors end as one ``error: ...``
 line and exit code 2 (:func:`elastimap.cli_util.run`); warnings about frames
 (saturation, blank, colour) print as ``warning: ...`` lines.
 """
@@ -199,7 +199,7 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
 @main.command()
 @click.option("--model", "model_dir", type=click.Path(), required=True,
               help="Trained model directory: a feature ensemble (train) or an image model "
-                   "(python -m identify.imagenet --save-model).")
+                   "(python -m elastimap.identify.imagenet --save-model).")
 @click.option("--calibration", type=click.Path(dir_okay=False), default=None,
               help="FEM<->camera calibration (calibrate); needed for camera features and frames.")
 @click.option("--features", "feats", type=float, nargs=3, default=None, help="Camera features O1 O2 O3.")
@@ -211,13 +211,13 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
               help="Image model only: .npy FEM difference image(s), mm, shape (ny, nx) or (n, ny, nx) on the "
                    "sweep's grid (no calibration needed).")
 @click.option("--identifiability", default="default", show_default=True,
-              help="Identifiability map (crb_grid.npz of python -m identify.crbmap), 'default' (shipped, "
+              help="Identifiability map (crb_grid.npz of python -m elastimap.identify.crbmap), 'default' (shipped, "
                    "default 512-sample sweep) or 'none'.")
 @click.option("--threshold", default=0.10, show_default=True, type=float,
               help="Cramér–Rao relative std above which an output is flagged non-identifiable.")
 @click.option("--refine", is_flag=True,
               help="With --fem-image and an image model: refine each estimate by a maximum-likelihood fit of the "
-                   "FEM image (identify.refine, response surface: runs the solver, 30 forward solves per image, "
+                   "FEM image (elastimap.identify.refine, response surface: runs the solver, 30 forward solves per image, "
                    "about 1.5 min of one core on the default mesh); intervals from the local Cramér–Rao bound.")
 @click.option("--image-noise", default=0.01, show_default=True, type=float,
               help="--refine: pixel noise of the image, relative to its peak.")
@@ -355,5 +355,5 @@ def camera_main():
 
 
 if __name__ == "__main__":
-    run(main, prog_name="python -m camera.cli")
+    run(main, prog_name="python -m elastimap.camera.cli")
     sys.exit(0)

@@ -14,7 +14,7 @@ Here every scan is one synthetic camera frame of a press:
   the indentation), LED power drift ``led_jitter`` (relative sd per LED),
   tissue/skin heterogeneity ``clutter_mm`` (a Gaussian random field of
   correlation length ``clutter_corr_mm`` added to the deflection), and the
-  camera noise of :class:`camera.optics.SensorModel` times ``noise_scale``;
+  camera noise of :class:`elastimap.camera.optics.SensorModel` times ``noise_scale``;
 * a reference frame: a clean press at the nominal depth and LED powers,
   averaged over ``ref_frames`` frames (acquired once, like a background).
 

@@ -9,7 +9,7 @@ Pipeline, for a lesion with frames ``F_1..F_n`` and background frames
    (fraction of full scale, "FS"), cropped to the footprint window;
 3. **spatial denoising**: Gaussian filter of ``smooth_px`` camera pixels
    (applied to ``D``; reflect at the window border);
-4. **features**, with the same definitions as the FEM (:mod:`solver.image`):
+4. **features**, with the same definitions as the FEM (:mod:`elastimap.solver.image`):
 
    * O1 = max D                                        (FS)
    * O2 = sum D * pixel_mm^2   (integral over the footprint, FS mm^2)
@@ -33,7 +33,7 @@ import numpy as np
 from scipy import ndimage
 
 from elastimap.errors import UserError, check_range
-from solver.image import features as image_features
+from elastimap.solver.image import features as image_features
 
 COMBINE = ("mean-image", "mean-features")
 
@@ -143,7 +143,7 @@ def features_from_files(images: list[str], background: list[str], model=None,
                         settings: FeatureSettings | None = None) -> CameraFeatures:
     """Camera features of a lesion from image files.
 
-    ``model`` (a :class:`camera.optics.SensorModel`) gives the footprint window
+    ``model`` (a :class:`elastimap.camera.optics.SensorModel`) gives the footprint window
     and pixel scale; by default the synthetic camera's (the frame size must
     match it).  Raises :class:`UserError` naming the bad file.
     """

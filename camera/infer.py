@@ -2,11 +2,11 @@
 
 Python API (imports no solver and no DOLFINx)::
 
-    from camera.infer import load_ensemble, estimate, estimate_images
-    from camera.calibration import Calibration
+    from elastimap.camera.infer import load_ensemble, estimate, estimate_images
+    from elastimap.camera.calibration import Calibration
     cal = Calibration.load("cal.json")
-    ens = load_ensemble("models/run1")              # training.model.Ensemble
-    est = estimate([[O1, O2, O3]], cal, ens)        # camera features (see camera.features)
+    ens = load_ensemble("models/run1")              # elastimap.training.model.Ensemble
+    est = estimate([[O1, O2, O3]], cal, ens)        # camera features (see elastimap.camera.features)
     est[0].d, est[0].d_sd, est[0].flags
 
 Uncertainty: the ensemble's members (the networks of the training repeats)
@@ -20,7 +20,7 @@ never silently extrapolated: every estimate carries ``flags``:
   network's training range (``ensemble.feature_range``);
 * ``no_signal`` - O1 at or below zero: no inclusion visible;
 * ``non_identifiable:q`` - at the estimate, the Cramér–Rao bound of the
-  identifiability map (:mod:`identify.region`; by default the one shipped,
+  identifiability map (:mod:`elastimap.identify.region`; by default the one shipped,
   measured on the default 512-sample sweep) says ``q`` cannot be determined
   within 10 % from this measurement (three features for the feature MLP,
   the whole image for an image model).  Such a ``q`` is reported as its
@@ -31,7 +31,7 @@ never silently extrapolated: every estimate carries ``flags``:
 Every estimate carries ``lo``/``hi``: the bound's approximate 95 % interval
 widened to the ensemble's 10-90 % range (a bound: real errors can be larger).
 
-Image models (``python -m identify.imagenet --save-model DIR``) take a FEM
+Image models (``python -m elastimap.identify.imagenet --save-model DIR``) take a FEM
 difference image (:func:`estimate_fem_images`) or camera frames
 (:func:`estimate_images`), which are mapped to the FEM image grid by
 :func:`fem_image_from_camera` (shape resampled by position, peak through the
@@ -104,12 +104,12 @@ class Estimate:
 
 
 def load_ensemble(directory: str | os.PathLike):
-    """Load a trained ensemble (``training.model.Ensemble.load``) with a clear error if impossible."""
+    """Load a trained ensemble (``elastimap.training.model.Ensemble.load``) with a clear error if impossible."""
     d = str(directory)
     if not os.path.isdir(d):
         raise UserError("model", f"{d}: no such model directory")
     try:
-        from training.model import Ensemble
+        from elastimap.training.model import Ensemble
     except ImportError as exc:
         raise UserError("model", f"the training package is not available ({exc})") from None
     return Ensemble.load(d)
@@ -124,10 +124,10 @@ def _feature_range(ensemble) -> np.ndarray | None:
 
 
 def load_identifiability(identifiability="default"):
-    """``"default"`` (the shipped map), a path, an :class:`identify.region.IdentifiabilityMap`, or None."""
+    """``"default"`` (the shipped map), a path, an :class:`elastimap.identify.region.IdentifiabilityMap`, or None."""
     if identifiability is None:
         return None
-    from identify.region import IdentifiabilityMap
+    from elastimap.identify.region import IdentifiabilityMap
 
     if isinstance(identifiability, IdentifiabilityMap):
         return identifiability
@@ -194,12 +194,12 @@ def _is_image_model(model) -> bool:
 
 
 def load_model(directory: str | os.PathLike):
-    """A feature ensemble (``training``) or an image model (``identify.imagenet``), by what the directory holds."""
+    """A feature ensemble (``training``) or an image model (``elastimap.identify.imagenet``), by what the directory holds."""
     d = str(directory)
-    from identify.imagenet import PCA_FILE
+    from elastimap.identify.imagenet import PCA_FILE
 
     if os.path.isfile(os.path.join(d, PCA_FILE)):
-        from identify.imagenet import ImageModel
+        from elastimap.identify.imagenet import ImageModel
 
         return ImageModel.load(d)
     return load_ensemble(d)
@@ -211,11 +211,11 @@ def estimate_fem_images(images, model, ids: list[str] | None = None, identifiabi
 
     ``cam``/``fem`` of each estimate hold the camera features (NaN for simulated input) and the
     image's own FEM features O1..O3; ``identifiability`` uses the map's ``image`` set."""
-    from solver.image import features as image_features
+    from elastimap.solver.image import features as image_features
 
     if not _is_image_model(model):
         raise UserError("model", "a feature model takes features or camera frames, not a FEM image; "
-                                 "use an image model (python -m identify.imagenet --save-model DIR)")
+                                 "use an image model (python -m elastimap.identify.imagenet --save-model DIR)")
     if model.force:
         raise UserError("model", "this image model also needs the plate force; inference from images alone "
                                  "needs a model trained without --force")
@@ -249,18 +249,18 @@ def estimate_fem_images(images, model, ids: list[str] | None = None, identifiabi
 def refine_estimates(ests: list[Estimate], images, image_noise: float = 0.01, mesh: str = "default",
                      threshold: float = 0.10, chi2_limit: float = 3.0, method: str = "rsm",
                      cache: str | None = None) -> list[Estimate]:
-    """Refine image-model estimates by a maximum-likelihood fit of the FEM image (:mod:`identify.refine`).
+    """Refine image-model estimates by a maximum-likelihood fit of the FEM image (:mod:`elastimap.identify.refine`).
 
     ``images`` as given to :func:`estimate_fem_images` (FEM difference images, mm, on the model's
     grid); pixel noise ``image_noise`` x each image's peak; ``method`` ``rsm`` (default, 30 forward
-    solves per image) or ``trf`` (15-48, median about 30 in the study), see :mod:`identify.refine`.  Runs the solver
+    solves per image) or ``trf`` (15-48, median about 30 in the study), see :mod:`elastimap.identify.refine`.  Runs the solver
     (DOLFINx).  Each estimate's mean becomes the fitted (d, h, E), ``sd``/``crb`` the local
     Cramér–Rao bound at it, ``lo``/``hi`` that bound's 95 % interval widened by
-    :data:`identify.refine.INTERVAL_SCALE` (measured errors exceed the bound), and the
+    :data:`elastimap.identify.refine.INTERVAL_SCALE` (measured errors exceed the bound), and the
     identifiability flags are re-decided from the bound; ``model_mismatch`` is added when the
     fitted image leaves a reduced chi² above ``chi2_limit`` (the FEM cannot reproduce the image at
     the stated noise)."""
-    from identify.refine import fem_model, fit
+    from elastimap.identify.refine import fem_model, fit
 
     if not 0 < image_noise < 1:
         raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
@@ -289,7 +289,7 @@ def fem_image_from_camera(difference: np.ndarray, pixel_mm: float, o1_cam: float
     axis; outside the camera window 0), its *peak* ``calibration``'s O1 line applied to ``o1_cam``."""
     from scipy.interpolate import RegularGridInterpolator
 
-    from solver.image import pixel_centres
+    from elastimap.solver.image import pixel_centres
 
     D = np.asarray(difference, float)
     if D.ndim != 2:
@@ -336,7 +336,7 @@ def estimate_images(images: list[str], background: list[str], calibration: Calib
 
 def estimate_camera(cf, calibration: Calibration, model, id: str = "1", identifiability="default",
                     threshold: float = 0.10) -> Estimate:
-    """:class:`camera.features.CameraFeatures` -> :class:`Estimate` (feature or image model)."""
+    """:class:`elastimap.camera.features.CameraFeatures` -> :class:`Estimate` (feature or image model)."""
     if not _is_image_model(model):
         return estimate(cf.values[None], calibration, model, [id], identifiability, threshold)[0]
     if model.shape is None or not model.pixel:

@@ -25,7 +25,7 @@ def _stats(x: np.ndarray) -> dict:
 def _coverage(df) -> dict:
     """How evenly the ok samples fill the parameter box: per-parameter 8-bin counts and the
     fraction of occupied cells of a 4x4x4 grid over (d, h relative to its allowed range, log E)."""
-    from solver.params import depth_range
+    from elastimap.solver.params import depth_range
 
     if len(df) < 2:
         return {}

@@ -11,7 +11,12 @@ readers (``training``, ``camera``, ``gap``) import it.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pyarrow as pa
+
+#: the nine calibration-phantom inclusions (shipped with the package)
+PHANTOMS_CSV = Path(__file__).resolve().parent / "phantoms.csv"
 
 SCHEMA_VERSION = 1
 

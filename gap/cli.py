@@ -1,9 +1,9 @@
 """``gap`` command line: synth, diagnose, selftest, effects.
 
-    python -m gap.cli synth --out M --effect friction=0.3 [--mesh tiny] [--n 12]
-    python -m gap.cli diagnose --measured M --out DIR [--effects a,b] [--no-inverse]
-    python -m gap.cli selftest --trials 20 --out DIR [--mesh tiny]
-    python -m gap.cli effects
+    python -m elastimap.gap.cli synth --out M --effect friction=0.3 [--mesh tiny] [--n 12]
+    python -m elastimap.gap.cli diagnose --measured M --out DIR [--effects a,b] [--no-inverse]
+    python -m elastimap.gap.cli selftest --trials 20 --out DIR [--mesh tiny]
+    python -m elastimap.gap.cli effects
 
 User errors print one ``error:`` line and exit 2.  Solves are cached under ``--cache``
 (default ``$ELASTIMAP_GAP_CACHE`` or ``~/.cache/elastimap/gap``).
@@ -87,7 +87,7 @@ def synth_cmd(out, effect, phantoms, n, mesh, frames, noise_scale, seed, fmt, ca
     effs = fx.parse_spec(effect) if effect else []
     ids = None
     if phantoms:
-        from camera.calibration import load_phantoms
+        from elastimap.camera.calibration import load_phantoms
         df = load_phantoms(phantoms) if "name" in open(phantoms).read(2000) else None
         if df is None:
             import pandas as pd

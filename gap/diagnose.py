@@ -26,7 +26,7 @@ the baseline model y0_ij and of candidate effect c at magnitude m, f_c(m)_ij.
 * **Shrink**: on withheld phantoms (every third phantom, never used for the magnitude fit of
   this step) the gap before (baseline) and after (winner at the magnitude fitted on the rest),
   in feature space (RMS normalised residual) and in (d, h, E) after retraining the inverse
-  (``training.api.fit_ensemble``, camera features -> (d, h, E)) on simulations with the effect.
+  (``elastimap.training.api.fit_ensemble``, camera features -> (d, h, E)) on simulations with the effect.
 """
 
 from __future__ import annotations
@@ -351,7 +351,7 @@ def training_design(meas: Measured, n: int, seed: int, aspect_hi: float = 1.0) -
     """LHS of (d, h, E) over the phantoms' bounding box (E log-uniform), depths kept valid."""
     from scipy.stats import qmc
 
-    from solver.params import depth_range
+    from elastimap.solver.params import depth_range
 
     u = qmc.LatinHypercube(d=3, rng=np.random.default_rng(seed)).random(n)
     lo, hi = meas.dhe.min(0), meas.dhe.max(0)
@@ -367,7 +367,7 @@ def training_design(meas: Measured, n: int, seed: int, aspect_hi: float = 1.0) -
 def _train_inverse(X, T, st: Settings):
     import pandas as pd
 
-    from training.api import fit_ensemble
+    from elastimap.training.api import fit_ensemble
 
     df = pd.DataFrame({"O1": X[:, 0], "O2": X[:, 1], "O3": X[:, 2], "d": T[:, 0], "h": T[:, 1], "E": T[:, 2]})
     return fit_ensemble(df, algo="scg", repeats=st.train_repeats, epochs=st.train_epochs, hidden=(10,), seed=st.seed)

@@ -1,7 +1,7 @@
 """The effects library: unmodelled effects as documented switches with one magnitude each.
 
-Every effect is a switch of the solver (:mod:`solver.params`) or of the camera model
-(:class:`camera.optics.SensorModel`), so the same switch generates SYNTHETIC "measured" data
+Every effect is a switch of the solver (:mod:`elastimap.solver.params`) or of the camera model
+(:class:`elastimap.camera.optics.SensorModel`), so the same switch generates SYNTHETIC "measured" data
 and serves as the correction.  Each has a nominal magnitude (the baseline model), a grid of
 magnitudes for the fitting sweep and a "blind" range the self-test draws true magnitudes from
 (chosen so that the features move by well over 3x the camera noise floor).

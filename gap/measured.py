@@ -8,7 +8,7 @@ A measured dataset is a folder (or the path of its table) holding
   |---|---|---|---|
   | ``id`` | | yes | unique name of the inclusion |
   | ``d``, ``h``, ``E`` | mm, mm, kPa | yes | known diameter, centre depth, modulus |
-  | ``O1``, ``O2``, ``O3`` | FS, FS mm², mm² | yes, unless ``images``/``background`` | camera features (:mod:`camera.features`) |
+  | ``O1``, ``O2``, ``O3`` | FS, FS mm², mm² | yes, unless ``images``/``background`` | camera features (:mod:`elastimap.camera.features`) |
   | ``O1_se``, ``O2_se``, ``O3_se`` | same | no | standard error of each feature from repeated frames (the noise floor) |
   | ``n_frames`` | | no | frames averaged |
   | ``images``, ``background`` | | no | lesion / background frame files or globs, ``;``-separated, relative to the folder; features (and their standard errors) are then computed here |
@@ -65,11 +65,11 @@ class Measured:
         return len(self.ids)
 
     def sensor_model(self):
-        from camera.optics import SensorModel
+        from elastimap.camera.optics import SensorModel
         return SensorModel.from_dict(self.sensor) if self.sensor else SensorModel()
 
     def settings(self):
-        from camera.features import FeatureSettings
+        from elastimap.camera.features import FeatureSettings
         return FeatureSettings.from_dict(self.feature_settings or {})
 
     def subset(self, idx) -> "Measured":
@@ -133,7 +133,7 @@ def load(path: str | os.PathLike) -> Measured:
     sensor = side.get("sensor")
     settings = side.get("feature_settings", {})
     if sensor is not None:
-        from camera.optics import SensorModel
+        from elastimap.camera.optics import SensorModel
         SensorModel.from_dict(sensor)
     n = len(df)
     has_feat = all(k in df.columns for k in FEATURES)
@@ -154,9 +154,9 @@ def load(path: str | os.PathLike) -> Measured:
     if need.any():
         if not has_img:
             raise UserError("measured", f"{tp}: non-numeric features for {df['id'][need].tolist()[:5]}")
-        from camera.features import FeatureSettings, features_from_files
-        from camera.frames import expand
-        from camera.optics import SensorModel
+        from elastimap.camera.features import FeatureSettings, features_from_files
+        from elastimap.camera.frames import expand
+        from elastimap.camera.optics import SensorModel
 
         sm = SensorModel.from_dict(sensor) if sensor else SensorModel()
         fs = FeatureSettings.from_dict(settings or {})

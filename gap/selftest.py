@@ -1,7 +1,7 @@
 """Blind check of the diagnosis (``gap selftest``): effects withheld from the analyst.
 
 Each trial draws an effect uniformly from the candidates and a true magnitude uniformly from
-its ``blind`` range (:mod:`gap.effects`; ranges that move the features by well over 3x the
+its ``blind`` range (:mod:`elastimap.gap.effects`; ranges that move the features by well over 3x the
 noise floor), generates SYNTHETIC measured data on a fixed phantom design, seals the label
 (only a SHA-256 commitment is visible until scoring) and runs the diagnosis twice:
 
@@ -10,7 +10,7 @@ noise floor), generates SYNTHETIC measured data on a fixed phantom design, seals
 * mode **withheld**: the true effect removed from the candidates -> the right answer is
   "unexplained"; answering "explained" (by a wrong effect) is a confident wrong attribution.
 
-Every solve goes through the :class:`gap.simulate.Simulator` cache (true magnitudes are
+Every solve goes through the :class:`elastimap.gap.simulate.Simulator` cache (true magnitudes are
 rounded to 3 significant digits so reruns hit the cache).
 """
 

@@ -1,6 +1,6 @@
 """Forward solves for the gap work, cached on disk, and the camera features they give.
 
-``Simulator(cache_dir, mesh, backend)`` turns a list of :class:`solver.params.SolveParams`
+``Simulator(cache_dir, mesh, backend)`` turns a list of :class:`elastimap.solver.params.SolveParams`
 into solve records (features, difference image, raw image), solving only what the cache lacks.
 The cache is a folder of Parquet part files (one row per solve, keyed by the SHA-1 of the
 solve parameters and the backend), so a selftest or a second diagnosis of the same phantoms
@@ -12,7 +12,7 @@ it is *not* physics).
 
 Camera features of a record (:func:`camera_features_of`) are those of the noise-free,
 unquantised frames of the SYNTHETIC camera model: lesion press and background press
-(``image_raw - image``), exactly as :mod:`camera.features` computes them from real frames.
+(``image_raw - image``), exactly as :mod:`elastimap.camera.features` computes them from real frames.
 """
 
 from __future__ import annotations
@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from elastimap.errors import UserError
-from solver.image import features as image_features
-from solver.image import pixel_centres
-from solver.params import Discretisation, SolveParams
+from elastimap.solver.image import features as image_features
+from elastimap.solver.image import pixel_centres
+from elastimap.solver.params import Discretisation, SolveParams
 
 BACKENDS = ("fem", "toy")
 FLUSH_ROWS = 16
@@ -96,7 +96,7 @@ def toy_solve(p: SolveParams) -> dict:
 
 
 def fem_solve(p: SolveParams) -> dict:
-    from solver import solve
+    from elastimap.solver import solve
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -238,8 +238,8 @@ def camera_features_of(rec: Record, sensor, settings=None) -> tuple[np.ndarray, 
 
 
 def _camera_features(rec: Record, sensor, settings=None) -> tuple[np.ndarray, np.ndarray]:
-    from camera.features import camera_features
-    from camera.optics import background_deflection
+    from elastimap.camera.features import camera_features
+    from elastimap.camera.optics import background_deflection
 
     F = sensor.expected(rec.image_raw, rec.pixel)
     B = sensor.expected(background_deflection(rec.image_raw, rec.image), rec.pixel)
@@ -252,8 +252,8 @@ def _camera_features(rec: Record, sensor, settings=None) -> tuple[np.ndarray, np
 def measure(rec: Record, sensor, settings, frames: int, rng: np.random.Generator):
     """Noisy SYNTHETIC measurement: ``frames`` lesion and background frames through the camera
     model; returns (features (3,), standard error (3,), difference image)."""
-    from camera.features import camera_features
-    from camera.optics import render_pair
+    from elastimap.camera.features import camera_features
+    from elastimap.camera.optics import render_pair
 
     L, B = render_pair(sensor, rec.image_raw, rec.image, rec.pixel, frames, rng)
     with warnings.catch_warnings():

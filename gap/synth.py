@@ -2,7 +2,7 @@
 camera model with noise.  Everything it writes says SYNTHETIC.
 
 ``synthesize(phantoms, effects, sim, ...)``: for every phantom (d, h, E) the mechanics effects
-switch the solver, the optics effects switch the camera (:class:`camera.optics.SensorModel`),
+switch the solver, the optics effects switch the camera (:class:`elastimap.camera.optics.SensorModel`),
 ``frames`` noisy lesion and background frames are rendered and the camera features (with their
 standard errors from the frame scatter) and the denoised difference image are kept.  The true
 effects are returned separately (and written to ``SEALED_truth.json``, never read by the
@@ -43,8 +43,8 @@ def phantom_design(n: int = DEFAULT_N, seed: int = 0) -> np.ndarray:
 def synthesize(dhe: np.ndarray, effects: list[tuple[fx.Effect, float]], sim: Simulator, sensor=None,
                settings=None, frames: int = 10, seed: int = 0, ids: list[str] | None = None,
                noise_scale: float = 1.0) -> tuple[Measured, dict]:
-    from camera.features import FeatureSettings
-    from camera.optics import SensorModel
+    from elastimap.camera.features import FeatureSettings
+    from elastimap.camera.optics import SensorModel
 
     sensor = (sensor or SensorModel()).validate()
     settings = settings or FeatureSettings()

@@ -1,22 +1,22 @@
 """Cramér–Rao maps over (d, h, E) from the GP surrogate, checked against real FD Jacobians.
 
-    python -m identify.crbmap [--data data/sweep512] [--out docs/figures]
+    python -m elastimap.identify.crbmap [--data data/sweep512] [--out docs/figures]
 
-Fits :class:`identify.local.Surrogate` (one GP per output) to the sweep, takes central-difference
-Jacobians of the surrogate on :func:`identify.local.grid` (14 d x 5 depth fractions x 15 E),
+Fits :class:`elastimap.identify.local.Surrogate` (one GP per output) to the sweep, takes central-difference
+Jacobians of the surrogate on :func:`elastimap.identify.local.grid` (14 d x 5 depth fractions x 15 E),
 computes Cramér–Rao relative standard deviations for each measurement set (noise: O1..O3 1 %
 relative, image 1 % of its peak per pixel, force 0.1 % per reading) and writes
 ``identifiability_crb_<set>.png`` (fraction of the 5 depths at which each quantity is
 identifiable within 10 %, i.e. CRB relative std <= 10 %, over (d, E)) and ``crb_grid.npz``
-(the identifiability map read by :mod:`identify.region` and used by inference).
+(the identifiability map read by :mod:`elastimap.identify.region` and used by inference).
 
-It also computes the real-FD CRB at the points of :mod:`identify.fd_check` (14 cached solves,
-about a minute when not cached) and, when ``--fd-grid`` exists (``python -m identify.fdgrid``,
+It also computes the real-FD CRB at the points of :mod:`elastimap.identify.fd_check` (14 cached solves,
+about a minute when not cached) and, when ``--fd-grid`` exists (``python -m elastimap.identify.fdgrid``,
 40 more points), at those too, and unless ``--no-fd-scale`` makes the map *conservative*: each
 set's bound of each output is multiplied by the 90th percentile over all FD points of the ratio
 real-FD / surrogate, never by less than 1, so the map is at least as pessimistic as the real FD
 bound at nine points in ten.  The unscaled surrogate bounds are kept in the file as
-``<set>_surrogate``; ``python -m identify.mapcheck`` compares the map with the FD grid.
+``<set>_surrogate``; ``python -m elastimap.identify.mapcheck`` compares the map with the FD grid.
 """
 
 from __future__ import annotations
@@ -36,10 +36,10 @@ FD_SCALE_QUANTILE = 90.0
 
 def fd_interpolate(theta_fd: np.ndarray, r_fd: np.ndarray, theta: np.ndarray, thickness: float = 20.0) -> np.ndarray:
     """Bound ``r`` (n, 3) at ``theta`` from FD bounds at scattered points: linear in (d, u, ln E) of ln r
-    (``u`` the depth fraction of :func:`identify.local.grid`), nearest FD point outside their hull."""
+    (``u`` the depth fraction of :func:`elastimap.identify.local.grid`), nearest FD point outside their hull."""
     from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
-    from solver.params import depth_range
+    from elastimap.solver.params import depth_range
 
     def coords(th):
         lo, hi = np.array([depth_range(d, thickness) for d in th[:, 0]]).T
@@ -110,7 +110,7 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
               f"{npts} FD points)" if fd_scale else "")
            + ("; features entry: real-FD bound interpolated from those points" if use_grid else "")
            + "; Cramér–Rao relative std, noise 1 % features, 1 % of the image peak per pixel, 0.1 % force; "
-             "python -m identify.crbmap")
+             "python -m elastimap.identify.crbmap")
     np.savez(os.path.join(out, "crb_grid.npz"), theta=T, d=ds, u=us, E=Es, thickness=20.0, source=src,
              **{s: R[s] for s in SETS}, **{f"{s}_surrogate": R0[s] for s in SETS},
              **{f"scale_{s}": scale[s] for s in SETS})
@@ -144,7 +144,7 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
 @click.option("--out", default="docs/figures", show_default=True, help="Directory for the PNG maps and crb_grid.npz.")
 @click.option("--no-fd-scale", is_flag=True, help="Keep the raw surrogate bounds (no real-FD correction, no solves).")
 @click.option("--fd-grid", default="data/identify/fdgrid.npz", show_default=True,
-              help="Real-FD Jacobians of python -m identify.fdgrid, used for the scale when the file exists.")
+              help="Real-FD Jacobians of python -m elastimap.identify.fdgrid, used for the scale when the file exists.")
 def main(data_path, out, no_fd_scale, fd_grid):
     """Cramér–Rao identifiability maps (issue 7, local evidence) and the map inference uses."""
     compute(data_path, out, fd_scale=not no_fd_scale, fd_grid=fd_grid)
@@ -153,4 +153,4 @@ def main(data_path, out, no_fd_scale, fd_grid):
 if __name__ == "__main__":
     import sys
 
-    run(main, sys.argv[1:], prog_name="python -m identify.crbmap")
+    run(main, sys.argv[1:], prog_name="python -m elastimap.identify.crbmap")

@@ -1,6 +1,6 @@
 """Cramér–Rao bounds from REAL finite-difference Jacobians at two points (7 cached solves each).
 
-    python -m identify.fd_check
+    python -m elastimap.identify.fd_check
 
 Noise: O1, O2, O3 1 % relative each; image 1 % of its peak per pixel (iid); plate force 0.1 % per
 reading.  "two-depths" is 2 x the image Fisher matrix: the forward model is linear, so the image
@@ -11,7 +11,7 @@ docs/identifiability.md) and only averages noise.  Solves are cached in data/ide
 
 import numpy as np
 
-from identify.local import NoiseSpec, fd_jacobian_solves, fd_relstd, stack
+from elastimap.identify.local import NoiseSpec, fd_jacobian_solves, fd_relstd, stack
 
 POINTS = ((8.0, 8.0, 30.0), (8.0, 8.0, 120.0))
 NOISE = NoiseSpec(feature=0.01, image=0.01, force=0.001)

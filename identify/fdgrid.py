@@ -1,11 +1,11 @@
 """Real finite-difference Jacobians on a coarse (d, depth fraction, E) grid (cached solves).
 
-    python -m identify.fdgrid [--mesh default] [--out data/identify/fdgrid.npz]
+    python -m elastimap.identify.fdgrid [--mesh default] [--out data/identify/fdgrid.npz]
 
 7 forward solves per grid point (centre and central differences in d, h, ln E with
-:data:`identify.local.FD_STEP`); every solve is cached by :mod:`identify.solves`, so an
+:data:`elastimap.identify.local.FD_STEP`); every solve is cached by :mod:`elastimap.identify.solves`, so an
 interrupted run resumes.  The result file holds the grid and the Jacobians; turning them into
-Cramér–Rao maps (:func:`identify.local.fisher` / :func:`~identify.local.crb_relstd`) is NOT done
+Cramér–Rao maps (:func:`elastimap.identify.local.fisher` / :func:`~elastimap.identify.local.crb_relstd`) is NOT done
 yet (see docs/identifiability.md).
 """
 
@@ -26,7 +26,7 @@ FD_E = (12.0, 25.0, 50.0, 100.0, 190.0)
 
 
 def fd_grid_points(ds=FD_D, us=FD_U, Es=FD_E, thickness: float = 20.0) -> np.ndarray:
-    from solver.params import depth_range
+    from elastimap.solver.params import depth_range
 
     pts = []
     for d in ds:
@@ -67,4 +67,4 @@ def main(mesh, out):
 
 
 if __name__ == "__main__":
-    run(main, sys.argv[1:], prog_name="python -m identify.fdgrid")
+    run(main, sys.argv[1:], prog_name="python -m elastimap.identify.fdgrid")

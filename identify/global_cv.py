@@ -1,6 +1,6 @@
 """Global identifiability evidence: cross-validated error of a strong regressor per measurement set.
 
-    python -m identify.global_cv --data data/sweep512 [--noise 0.01]
+    python -m elastimap.identify.global_cv --data data/sweep512 [--noise 0.01]
 
 Measurement sets: (a) the paper's features O1, O2, O3; (b) the whole difference image (PCA);
 (c) image + plate-force difference (force − force_ref).  Regressor: scikit-learn
@@ -58,7 +58,7 @@ def evaluate(df, noise: float = 0.0, seed: int = 0, folds: int = 10) -> dict[str
 @click.option("--noise", type=float, default=0.0, show_default=True, help="Relative noise on features and image pixels.")
 def main(data, noise):
     """Cross-validated mean relative error of d, h, E per measurement set."""
-    from dataset.io import read_samples
+    from elastimap.dataset.io import read_samples
     df = read_samples(data)
     df = df[df["tag"] == "design"].reset_index(drop=True)
     res = evaluate(df, noise)
@@ -69,4 +69,4 @@ def main(data, noise):
 
 
 if __name__ == "__main__":
-    run(main, sys.argv[1:], prog_name="python -m identify.global_cv")
+    run(main, sys.argv[1:], prog_name="python -m elastimap.identify.global_cv")

@@ -1,10 +1,10 @@
 """The image-based inverse model: shape-PCA of the elasticity image (+ force) -> MLP -> (d, h, E).
 
-Inputs per lesion (:func:`identify.measure.image_inputs`): ``ln(peak)`` of the difference image,
+Inputs per lesion (:func:`elastimap.identify.measure.image_inputs`): ``ln(peak)`` of the difference image,
 the first ``K - 1`` PCA scores of the peak-normalised image (its *shape*) and, with ``force``,
 ``100 (force - force_ref) / force_ref``.  The network is the paper's MLP (``K -> 25 tansig ->
 10 tansig -> 3 purelin``), trained by :mod:`training`'s batched LM / SCG
-(:func:`training.experiment.make_batch` / :func:`~training.experiment.train_batch`), validated by
+(:func:`elastimap.training.experiment.make_batch` / :func:`~elastimap.training.experiment.train_batch`), validated by
 the same HOV (the 9 phantoms) / LOOCV x repeats, scored with the same metrics (MSE x 100 on the
 network's mapminmax [-1, 1] targets, MRE %, RMSE), so a result is one more row of the training
 table (``algo`` ``lm-image`` / ``scg-image``).
@@ -32,12 +32,12 @@ import pandas as pd
 import torch
 
 from elastimap.errors import UserError
-from training.data import TARGETS, UNITS, prepare
-from training.experiment import (METRICS, TrainConfig, ValidationResult, make_batch, predict_scaled, rng_for,
+from elastimap.training.data import TARGETS, UNITS, prepare
+from elastimap.training.experiment import (METRICS, TrainConfig, ValidationResult, make_batch, predict_scaled, rng_for,
                                  split_rows, summarize, train_batch)
-from training.model import Ensemble
-from training.net import Arch
-from training.problem import NetObjective, mapminmax_apply, mapminmax_fit, mapminmax_reverse
+from elastimap.training.model import Ensemble
+from elastimap.training.net import Arch
+from elastimap.training.problem import NetObjective, mapminmax_apply, mapminmax_fit, mapminmax_reverse
 
 from .measure import Data, ShapePCA, add_image_noise, image_inputs
 
@@ -46,7 +46,7 @@ PCA_FILE = "image_pca.json"
 
 @dataclass
 class ImageTrainConfig(TrainConfig):
-    """:class:`training.experiment.TrainConfig` with ``n_in`` inputs instead of three."""
+    """:class:`elastimap.training.experiment.TrainConfig` with ``n_in`` inputs instead of three."""
 
     n_in: int = 10
 
@@ -97,7 +97,7 @@ def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg
     of (d, h, E) over each training fold, as for the feature MLP, so the rows stay comparable."""
     samples = samples_of(data)
     if list(samples.df["sample_id"]) != list(data.ids):
-        raise UserError("data", "rows must be sorted by sample_id (use identify.measure.load)")
+        raise UserError("data", "rows must be sorted by sample_id (use elastimap.identify.measure.load)")
     n = data.n
     T = data.theta.astype(np.float64)
     Tt = _train_targets(T, log_e)
@@ -188,7 +188,7 @@ def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg
 # ----------------------------------------------------------------------------- the saved model
 @dataclass
 class ImageModel:
-    """An :class:`training.model.Ensemble` over image inputs plus the PCA basis that makes them."""
+    """An :class:`elastimap.training.model.Ensemble` over image inputs plus the PCA basis that makes them."""
 
     ensemble: Ensemble
     pca: ShapePCA
@@ -246,7 +246,7 @@ def fit_image_model(data: Data, algo: str = "scg", repeats: int = 10, cfg: Train
                     log_e: bool = False) -> ImageModel:
     """Train the saved ensemble on every row of ``data`` (``repeats`` initialisations)."""
     from elastimap.provenance import code_version
-    from training.data import data_hash
+    from elastimap.training.data import data_hash
 
     cfg = cfg or TrainConfig(progress=False)
     pca = ShapePCA.fit(data.images, k)
@@ -310,9 +310,9 @@ def _cli():
         Same HOV split (the 9 phantom rows), LOOCV folds, seeds, metrics and table layout as
         `train`, so the rows sit next to the feature MLP's (docs/identifiability.md).
         """
-        from training._perf import set_threads, tune_malloc
-        from training.experiment import ALGOS, VALIDATIONS
-        from training.report import markdown, table
+        from elastimap.training._perf import set_threads, tune_malloc
+        from elastimap.training.experiment import ALGOS, VALIDATIONS
+        from elastimap.training.report import markdown, table
 
         from .measure import load
 
@@ -381,4 +381,4 @@ def _cli():
 if __name__ == "__main__":
     from elastimap.cli_util import run
 
-    run(_cli(), prog_name="python -m identify.imagenet")
+    run(_cli(), prog_name="python -m elastimap.identify.imagenet")

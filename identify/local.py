@@ -4,7 +4,7 @@ Jacobian of each measurement with respect to ``theta' = (d mm, h mm, ln E)`` by 
 differences of a smooth surrogate** fitted to the sweep (:class:`Surrogate`: one Gaussian-process
 regression per output on standardised ``(d, h, ln E)``, Matérn 5/2 ARD kernel).  The surrogate
 predicts ``ln O1, ln O2, ln O3``, ``ln peak`` and the shape scores of the image
-(:class:`identify.measure.ShapePCA`) and the plate-force difference; images are reconstructed as
+(:class:`elastimap.identify.measure.ShapePCA`) and the plate-force difference; images are reconstructed as
 ``peak * (mean + scores @ components)``.  :func:`fd_jacobian_solves` gives the same Jacobian from
 real forward solves (central differences, cached) to check the surrogate.
 
@@ -208,7 +208,7 @@ def grid(nd: int = 14, nu: int = 5, nE: int = 15, d=(2.0, 15.0), E=(10.0, 200.0)
     """(d, h, E) grid over the design space; h = lo + u (hi - lo) of the allowed range for d.
 
     Returns ``theta`` (nd*nu*nE, 3) and the axes (d, u, E) with ``theta`` in C order over them."""
-    from solver.params import depth_range  # pure-python module (no dolfinx)
+    from elastimap.solver.params import depth_range  # pure-python module (no dolfinx)
 
     ds = np.linspace(*d, nd)
     us = np.linspace(0.1, 0.9, nu)

@@ -2,7 +2,7 @@
 
 A *measurement* is what the camera side can deliver for one lesion.  The sets compared are
 
-* ``features`` -- the paper's O1, O2, O3 (:mod:`solver.image`), noise ``1 %`` of each value
+* ``features`` -- the paper's O1, O2, O3 (:mod:`elastimap.solver.image`), noise ``1 %`` of each value
   (the training stage's ``--feature-noise 0.01``);
 * ``image`` -- the whole 50 x 50 difference elasticity image (0.5 mm pixels, mm of deflection);
 * ``image+force`` -- the image and the plate-force difference ``force - force_ref`` (mN).
@@ -12,7 +12,7 @@ Image noise models (per pixel, independent Gaussian):
 * ``relative`` (default, "1 % image noise"): ``sigma = level * max(image)`` of that image, the
   same for every pixel of one image (``level`` = 0.01);
 * ``camera``: the deflection-equivalent noise of the SYNTHETIC TIR camera
-  (:class:`camera.optics.SensorModel`, shot + read noise, ``frames`` frames averaged for the
+  (:class:`elastimap.camera.optics.SensorModel`, shot + read noise, ``frames`` frames averaged for the
   press and for the background press, 2 x 2 camera pixels per image pixel), a fixed map
   ``sigma(x, y)`` in mm computed at the background deflection (:func:`camera_sigma_map`).
 
@@ -68,7 +68,7 @@ def load(path: str, design_only: bool = False) -> Data:
     """Read a sweep (Parquet directory) with its images; rows sorted by ``sample_id``."""
     import os
 
-    from dataset.io import read_image_meta, read_samples
+    from elastimap.dataset.io import read_image_meta, read_samples
 
     if not os.path.exists(path):
         raise UserError("--data", f"no such file or directory: {path}")
@@ -112,7 +112,7 @@ def camera_sigma_map(background: np.ndarray, pixel: float, frames: int = 30, sen
     (``frames`` each) are differenced (variance x 2 / frames) and the camera pixels falling in
     one image pixel averaged.  Returns an array of the image's shape.
     """
-    from camera.optics import SensorModel
+    from elastimap.camera.optics import SensorModel
 
     s = (sensor or SensorModel()).validate()
     bg = np.asarray(background, dtype=float)

@@ -8,12 +8,12 @@ difference image ``I`` (mm, ``p`` pixels) with independent Gaussian pixel noise 
     θ̂ = argmin_θ  ½ Σ_i ((m_i(θ) − I_i) / σ_i)²,     θ = (d mm, h mm, E kPa),
 
 where ``m(θ)`` is the forward model's difference image -- by default the same FEM solve the
-sweep ran (:func:`fem_model`, cached on disk by :mod:`identify.solves`).  With Gaussian noise this
+sweep ran (:func:`fem_model`, cached on disk by :mod:`elastimap.identify.solves`).  With Gaussian noise this
 is the maximum-likelihood estimate, whose error approaches the Cramér–Rao bound the
 identifiability map is built from.
 
 Parametrisation ``x = (d, u, ln E)`` with ``h = lo(d) + u (hi(d) − lo(d))`` (the admissible
-depth range of :func:`solver.params.depth_range`), so every trial point is a valid geometry and
+depth range of :func:`elastimap.solver.params.depth_range`), so every trial point is a valid geometry and
 the feasible set is the box ``[d_lo, d_hi] x [0, 1] x [ln E_lo, ln E_hi]`` (by default the sweep's
 design box).
 
@@ -47,7 +47,7 @@ from elastimap.errors import UserError
 
 FD = (0.25, 0.25, 0.05)                 # finite-difference steps: d mm, h mm (at fixed d), ln E
 # The reported interval is the local CRB's 95 % interval widened by this factor: on the held-out
-# study with the default response-surface fit (python -m identify.refine, 35 identifiable LOOCV
+# study with the default response-surface fit (python -m elastimap.identify.refine, 35 identifiable LOOCV
 # rows, 1 % noise, seed 0, 2026-11-23) the errors were 1.4x the CRB at the median and the 95th
 # percentile of |error| / CRB sd was 4.8-5.3 (d, h, E), i.e. about 1.96 x 2.7; the CRB alone
 # covered 66-69 %.  Chosen on seed 0; seed 1 is the out-of-sample check (docs/identifiability.md).
@@ -57,7 +57,7 @@ THICKNESS = 20.0
 
 
 def h_range(d: float, thickness: float = THICKNESS) -> tuple[float, float]:
-    from solver.params import depth_range   # pure python, no DOLFINx
+    from elastimap.solver.params import depth_range   # pure python, no DOLFINx
 
     return depth_range(float(d), thickness)
 
@@ -292,7 +292,7 @@ def _refine_row(args):
 def study(pred_path: str, data_path: str, *, rows: str = "identifiable", threshold: float = 0.10,
           image_noise: float | None = None, seed: int | None = None, mesh: str = "default", cache: str | None = None,
           jobs: int = 2, max_iter: int = 12, limit: int = 0, progress: bool = True, method: str = "rsm") -> dict:
-    """Refine the held-out ensemble estimates of ``pred_path`` (identify.imagenet) with the FEM.
+    """Refine the held-out ensemble estimates of ``pred_path`` (elastimap.identify.imagenet) with the FEM.
 
     The measured image of each row is rebuilt exactly as imagenet drew the *shared* noisy image
     (``add_image_noise(images, image_noise, default_rng([seed, 9]))``); the start is the mean over
@@ -304,7 +304,7 @@ def study(pred_path: str, data_path: str, *, rows: str = "identifiable", thresho
 
     z = np.load(pred_path, allow_pickle=False)
     if "pred_shared_noise" not in z.files:
-        raise UserError("--pred", f"{pred_path} has no pred_shared_noise (run identify.imagenet with --image-noise > 0)")
+        raise UserError("--pred", f"{pred_path} has no pred_shared_noise (run elastimap.identify.imagenet with --image-noise > 0)")
     level = float(z["image_noise"]) if image_noise is None and "image_noise" in z.files else image_noise
     sd = int(z["seed"]) if seed is None and "seed" in z.files else seed
     if level is None or sd is None:
@@ -419,7 +419,7 @@ def _cli():
 
     @click.command(context_settings={"help_option_names": ["-h", "--help"]})
     @click.option("--pred", "pred_path", required=True,
-                  help="pred-<algo>-loocv.npz of python -m identify.imagenet (with image noise).")
+                  help="pred-<algo>-loocv.npz of python -m elastimap.identify.imagenet (with image noise).")
     @click.option("--data", "data_path", default="data/sweep512", show_default=True, help="The sweep it was made from.")
     @click.option("--rows", default="identifiable", show_default=True,
                   help="'identifiable' (E's map CRB <= --threshold at the true values), 'all', or sample ids a,b,c.")
@@ -488,4 +488,4 @@ def _cli():
 if __name__ == "__main__":
     from elastimap.cli_util import run
 
-    run(_cli(), prog_name="python -m identify.refine")
+    run(_cli(), prog_name="python -m elastimap.identify.refine")

@@ -1,8 +1,8 @@
 """Where an estimate of (d, h, E) can be trusted: the identifiability map used by inference.
 
-The map holds, on the grid of :func:`identify.local.grid` (d, depth fraction u, E), the Cramér–Rao
+The map holds, on the grid of :func:`elastimap.identify.local.grid` (d, depth fraction u, E), the Cramér–Rao
 relative standard deviation ``r_q = sqrt(C_qq) / q`` (``C = F⁻¹``, ``F`` the Fisher information of
-the measurement set under the camera noise of :mod:`identify.crbmap`) of each output
+the measurement set under the camera noise of :mod:`elastimap.identify.crbmap`) of each output
 ``q ∈ {d, h, E}``.  ``r_q`` is a *lower* bound on the relative error of any unbiased estimator at
 that point, so
 
@@ -17,9 +17,9 @@ that point, so
 ``r`` is interpolated linearly in ``(d, u, ln E)`` of ``ln r`` (the bound spans decades); estimates
 outside the map's box are flagged ``outside_identifiability_map`` and evaluated at the nearest
 point of the box.  Depth fraction ``u = (h - h_lo(d)) / (h_hi(d) - h_lo(d))`` with
-:func:`solver.params.depth_range` (pure Python; no DOLFINx).
+:func:`elastimap.solver.params.depth_range` (pure Python; no DOLFINx).
 
-Maps come from ``python -m identify.crbmap`` (file ``crb_grid.npz``); the package ships the one
+Maps come from ``python -m elastimap.identify.crbmap`` (file ``crb_grid.npz``); the package ships the one
 measured on the default 512-sample sweep (``identify/maps/default.npz``), used when none is given.
 """
 
@@ -62,7 +62,7 @@ class IdentifiabilityMap:
     def load(cls, path: str | os.PathLike | None = None) -> "IdentifiabilityMap":
         p = str(path) if path else DEFAULT_MAP
         if not os.path.isfile(p):
-            raise UserError("identifiability", f"{p}: no such map file (make one with python -m identify.crbmap)")
+            raise UserError("identifiability", f"{p}: no such map file (make one with python -m elastimap.identify.crbmap)")
         try:
             z = np.load(p, allow_pickle=False)
             d, u, E = (np.asarray(z[k], float) for k in ("d", "u", "E"))
@@ -83,7 +83,7 @@ class IdentifiabilityMap:
     # ------------------------------------------------------------------ evaluation
     def coords(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(n, 3) grid coordinates (d, u, ln E) clipped to the box, and (n,) bool: was inside."""
-        from solver.params import depth_range
+        from elastimap.solver.params import depth_range
 
         theta = np.atleast_2d(np.asarray(theta, float))
         lo, hi = np.array([depth_range(max(dv, 1e-6), self.thickness) for dv in theta[:, 0]]).T

@@ -1,16 +1,16 @@
 """Score held-out inverse predictions inside and outside the locally identifiable region.
 
-    python -m identify.region_score --pred runs/image-inverse-loocv/pred-scg-loocv.npz [--set image]
+    python -m elastimap.identify.region_score --pred runs/image-inverse-loocv/pred-scg-loocv.npz [--set image]
 
-For every row of the prediction file (written by ``python -m identify.imagenet``) the Cramér–Rao
-bound of the identifiability map (:mod:`identify.region`; default: the shipped map, the one
+For every row of the prediction file (written by ``python -m elastimap.identify.imagenet``) the Cramér–Rao
+bound of the identifiability map (:mod:`elastimap.identify.region`; default: the shipped map, the one
 inference uses) is evaluated at the row's true (d, h, E) for the chosen measurement set.  A row is
 *identifiable for output q* when the bound's relative standard deviation of q is at most
 ``--threshold`` (default 10 %).  Printed: the mean relative error of each output over all
 held-out rows, over the identifiable rows and over the rest, with counts.
 
 It then checks the *intervals inference would report*: for every row the estimate is the mean
-held-out prediction over the repeats, its interval :meth:`identify.region.IdentifiabilityMap.assess`
+held-out prediction over the repeats, its interval :meth:`elastimap.identify.region.IdentifiabilityMap.assess`
 at that estimate (widened to the repeats' 10–90 % range, clipped to the data's range), and the
 coverage is the fraction of rows whose true value lies inside, separately for the rows flagged
 ``non_identifiable`` at the estimate and the rest.
@@ -45,9 +45,9 @@ def score(pred: np.ndarray, theta: np.ndarray, crb: np.ndarray, threshold: float
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--pred", "pred_path", required=True, help="pred-<algo>-<validation>.npz from identify.imagenet.")
+@click.option("--pred", "pred_path", required=True, help="pred-<algo>-<validation>.npz from elastimap.identify.imagenet.")
 @click.option("--map", "map_path", default="default", show_default=True,
-              help="Identifiability map (crb_grid.npz of python -m identify.crbmap) or 'default' (shipped).")
+              help="Identifiability map (crb_grid.npz of python -m elastimap.identify.crbmap) or 'default' (shipped).")
 @click.option("--set", "mset", default="image", show_default=True, help="Measurement set: " + ", ".join(SETS) + ".")
 @click.option("--threshold", default=0.10, show_default=True, type=float, help="CRB relative std limit.")
 def main(pred_path, map_path, mset, threshold):
@@ -65,7 +65,7 @@ def main(pred_path, map_path, mset, threshold):
         pred, theta = z["pred"], z["theta"]
         shared = z["pred_shared_noise"] if "pred_shared_noise" in z.files else None
     except Exception as exc:
-        raise UserError("--pred", f"{pred_path}: not a prediction file of identify.imagenet ({exc})") from None
+        raise UserError("--pred", f"{pred_path}: not a prediction file of elastimap.identify.imagenet ({exc})") from None
     idm = IdentifiabilityMap.load(None if map_path == "default" else map_path)
     crb, _ = idm.bound(theta, mset)
     res = score(pred, theta, crb, threshold)
@@ -119,4 +119,4 @@ def coverage(pred: np.ndarray, theta: np.ndarray, idm, mset: str, threshold: flo
 
 
 if __name__ == "__main__":
-    run(main, prog_name="python -m identify.region_score")
+    run(main, prog_name="python -m elastimap.identify.region_score")

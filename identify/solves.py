@@ -24,7 +24,7 @@ def cached_solve(d: float, h: float, E: float, *, mesh: str = "default", delta: 
     """One forward solve (tied interface, quarter model) -> dict of image, image_raw, features, force."""
     import dataclasses
 
-    from solver import SolveParams
+    from elastimap.solver import SolveParams
 
     p = SolveParams().with_inclusion(d=float(d), h=float(h), E=float(E))
     p = p.replace(disc=dataclasses.replace(p.disc, mesh=mesh),
@@ -34,7 +34,7 @@ def cached_solve(d: float, h: float, E: float, *, mesh: str = "default", delta: 
     if os.path.exists(path):
         z = np.load(path)
         return {k: z[k] for k in z.files}
-    from solver import solve
+    from elastimap.solver import solve
 
     r = solve(p)
     out = {"image": r.image.astype(np.float64), "image_raw": r.image_raw.astype(np.float64),

@@ -1,7 +1,7 @@
 """Forward model: parametric geometry, DOLFINx contact solve, elasticity image.
 
 ``from solver import solve, warmup, SolveParams`` — DOLFINx is imported only
-when a solve runs, so ``solver.params`` and ``solver.image`` stay light.
+when a solve runs, so ``elastimap.solver.params`` and ``elastimap.solver.image`` stay light.
 """
 
 from .params import (Discretisation, ImageSpec, Inclusion, Loading, Probe, SolveParams, SolveResult,

@@ -4,7 +4,7 @@ One sample is two solves on the same mesh: with the inclusion (modulus E) and
 a reference with the inclusion's modulus set to the tissue's.  The raw image
 w(x, y) = u_z + δ of the probe bottom is dominated by the flat-punch edge
 singularity at the probe rim, so the features are taken from the difference
-image w_E − w_ref (see :mod:`solver.image`).
+image w_E − w_ref (see :mod:`elastimap.solver.image`).
 """
 
 from __future__ import annotations

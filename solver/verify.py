@@ -1,7 +1,7 @@
 """Verification and speed benchmark of the forward model; prints Markdown tables.
 
-    python -m solver.verify                      # every check (several minutes)
-    python -m solver.verify --checks hertz,speed # a subset
+    python -m elastimap.solver.verify                      # every check (several minutes)
+    python -m elastimap.solver.verify --checks hertz,speed # a subset
 
 Checks: ``hertz`` (rigid sphere on a block vs Hertz), ``convergence`` (O1..O3 on
 coarse/default/fine), ``symmetry`` (quarter vs full model), ``interface``
@@ -133,7 +133,7 @@ def command(checks, speed_samples):
 
 
 def main(argv=None):
-    run(command, argv, prog_name="python -m solver.verify")
+    run(command, argv, prog_name="python -m elastimap.solver.verify")
 
 
 if __name__ == "__main__":

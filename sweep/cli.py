@@ -15,7 +15,7 @@ import sys
 import click
 
 from elastimap.cli_util import run as run_cli
-from solver.params import INTERFACES, MESH_LEVELS
+from elastimap.solver.params import INTERFACES, MESH_LEVELS
 
 from . import design as dsg
 

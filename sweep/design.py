@@ -8,7 +8,7 @@ keeps its default.  Defaults: ``d=2:15`` (mm, uniform), ``h=auto``, ``E=10:200:l
 (kPa, log-uniform: a stiffness ratio matters, not a difference, and the
 features change fastest at low E).  ``h`` is the depth of the inclusion centre;
 ``auto`` (the default) means the whole allowed depth for each d
-(:func:`solver.params.depth_range`: >= 1 mm cover, >= 2 mm above the chest
+(:func:`elastimap.solver.params.depth_range`: >= 1 mm cover, >= 2 mm above the chest
 wall).  An explicit h range is intersected with the allowed one for each d.
 
 Sampling: a unit-cube design (scipy.stats.qmc Latin hypercube or scrambled
@@ -34,15 +34,15 @@ from pathlib import Path
 
 import numpy as np
 
+from elastimap.dataset.schema import PHANTOMS_CSV
 from elastimap.errors import UserError
-from solver.params import depth_range
+from elastimap.solver.params import depth_range
 
 NAMES = ("d", "h", "E")
 UNITS = {"d": "mm", "h": "mm", "E": "kPa"}
 DEFAULT_RANGES = "d=2:15,h=auto,E=10:200:log"
 DESIGNS = ("lhs", "sobol")
 MAX_N = 1_000_000
-PHANTOMS_CSV = Path(__file__).resolve().parent.parent / "dataset" / "phantoms.csv"
 OVERRIDES = ("tissue_E", "tissue_thickness")
 
 

@@ -4,11 +4,11 @@ The sweep never knows how a solve is done: it imports a *solver module* that
 provides ``solve(SolveParams) -> SolveResult`` and optionally
 ``warmup(SolveParams)``.  That module is :mod:`solver` unless the environment
 variable ``ELASTIMAP_SWEEP_SOLVER`` names another one (a test-only hook: the
-suite points it at :mod:`sweep.testing`, a fast fake that can also crash on
+suite points it at :mod:`elastimap.sweep.testing`, a fast fake that can also crash on
 purpose).  The variable is inherited by the worker processes.
 
 :func:`run_sample` runs in a dask worker.  It lands its row itself
-(atomically, see :mod:`dataset.io`) before returning, so a result exists on
+(atomically, see :mod:`elastimap.dataset.io`) before returning, so a result exists on
 disk as soon as its solve ends and nothing is held only in memory; it returns
 a small summary (no image) to the driver.
 """
@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dataset import io
+from elastimap.dataset import io
 from elastimap.provenance import code_version, host
-from solver.params import SolveParams
+from elastimap.solver.params import SolveParams
 
 SOLVER_ENV = "ELASTIMAP_SWEEP_SOLVER"
 

@@ -28,10 +28,10 @@ import uuid
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from dataset import io
+from elastimap.dataset import io
 from elastimap.errors import UserError
 from elastimap.provenance import code_version, host
-from solver.params import Discretisation, SolveParams
+from elastimap.solver.params import Discretisation, SolveParams
 
 from . import design as dsg
 from . import jobs

@@ -1,7 +1,7 @@
-"""A fake solver for tests and dry runs: ``ELASTIMAP_SWEEP_SOLVER=sweep.testing``.
+"""A fake solver for tests and dry runs: ``ELASTIMAP_SWEEP_SOLVER=elastimap.sweep.testing``.
 
 It has the solver module's interface (``solve``, ``warmup``) and returns a
-:class:`solver.params.SolveResult` with a smooth analytic difference image
+:class:`elastimap.solver.params.SolveResult` with a smooth analytic difference image
 (a Gaussian bump whose height grows with d and E and falls with h), so the
 sweep, the dataset tools and the plots can be exercised without DOLFINx.
 
@@ -23,8 +23,8 @@ import time
 
 import numpy as np
 
-from solver.image import features
-from solver.params import SolveParams, SolveResult
+from elastimap.solver.image import features
+from elastimap.solver.params import SolveParams, SolveResult
 
 
 class FakeSolverError(RuntimeError):

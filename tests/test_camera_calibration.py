@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from camera import calibration as C
-from camera._testing import toy_solve
-from camera.features import FeatureSettings
-from camera.optics import SensorModel
+from elastimap.camera import calibration as C
+from elastimap.camera._testing import toy_solve
+from elastimap.camera.features import FeatureSettings
+from elastimap.camera.optics import SensorModel
 from elastimap.errors import UserError
 
 REPO = Path(__file__).resolve().parent.parent
@@ -128,20 +128,20 @@ def test_fem_features_from_csv(tmp_path, phantoms_csv):
 
 
 def test_cli_errors_are_one_line(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "camera.cli", "calibrate", "--phantoms", str(tmp_path / "no.csv"),
+    r = subprocess.run([sys.executable, "-m", "elastimap.camera.cli", "calibrate", "--phantoms", str(tmp_path / "no.csv"),
                         "--out", str(tmp_path / "c.json")], capture_output=True, text=True, cwd=REPO)
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().startswith("error: phantoms:") and len(r.stderr.strip().splitlines()) == 1
-    r = subprocess.run([sys.executable, "-m", "camera.cli", "calibrate", "--bits", "8", "--noise-scale", "-1",
+    r = subprocess.run([sys.executable, "-m", "elastimap.camera.cli", "calibrate", "--bits", "8", "--noise-scale", "-1",
                         "--out", str(tmp_path / "c.json")], capture_output=True, text=True, cwd=REPO)
     assert r.returncode == 2 and "noise_scale" in r.stderr
 
 
 def test_cli_calibrate_with_fem_tiny(tmp_path):
     """The real chain: nine tiny-mesh FEM solves + synthetic frames -> JSON + PNG (about 10 s)."""
-    pytest.importorskip("solver.api", reason="the DOLFINx solver is not available")
+    pytest.importorskip("elastimap.solver.api", reason="the DOLFINx solver is not available")
     out = tmp_path / "cal.json"
-    r = subprocess.run([sys.executable, "-m", "camera.cli", "calibrate", "--mesh", "tiny", "--frames", "3",
+    r = subprocess.run([sys.executable, "-m", "elastimap.camera.cli", "calibrate", "--mesh", "tiny", "--frames", "3",
                         "--out", str(out)], capture_output=True, text=True, cwd=REPO, timeout=300)
     assert r.returncode == 0, r.stderr
     cal = C.Calibration.load(out)

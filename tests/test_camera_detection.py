@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from camera._testing import toy_solve
-from camera.detection import (DETECTION_INCLUSIONS, DetectionSettings, auc, bootstrap_auc, plot_roc, roc_curve,
+from elastimap.camera._testing import toy_solve
+from elastimap.camera.detection import (DETECTION_INCLUSIONS, DetectionSettings, auc, bootstrap_auc, plot_roc, roc_curve,
                               run_detection)
-from camera.optics import SensorModel
+from elastimap.camera.optics import SensorModel
 
 
 def test_auc_and_roc_basics():

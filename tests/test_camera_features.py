@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from camera._testing import toy_solve
-from camera.features import FeatureSettings, camera_features, features_from_files
-from camera.frames import write_frames
-from camera.optics import SensorModel, background_deflection, render_pair
+from elastimap.camera._testing import toy_solve
+from elastimap.camera.features import FeatureSettings, camera_features, features_from_files
+from elastimap.camera.frames import write_frames
+from elastimap.camera.optics import SensorModel, background_deflection, render_pair
 from elastimap.errors import UserError
 
 
@@ -14,8 +14,8 @@ from elastimap.errors import UserError
 def fem():
     """One tiny-mesh FEM solve (a few seconds); the camera tests use its raw and difference images."""
     try:
-        from solver import solve
-        from solver.params import Discretisation, SolveParams
+        from elastimap.solver import solve
+        from elastimap.solver.params import Discretisation, SolveParams
     except Exception as exc:  # pragma: no cover - solver missing
         pytest.skip(f"solver not importable: {exc}")
     return solve(SolveParams(disc=Discretisation(mesh="tiny")).with_inclusion(d=8.0, h=8.0, E=80.0))
@@ -70,7 +70,7 @@ def test_features_from_files_equal_in_memory(tmp_path):
     np.testing.assert_allclose(got.values, ref.values, rtol=1e-12)
 
 
-@pytest.mark.filterwarnings("ignore::camera.frames.CameraWarning")
+@pytest.mark.filterwarnings("ignore::elastimap.camera.frames.CameraWarning")
 def test_feature_errors(tmp_path):
     m = SensorModel()
     F = np.zeros((2,) + m.shape)

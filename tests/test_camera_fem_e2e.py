@@ -6,7 +6,7 @@ E above about ten times the tissue modulus and a smaller stiffer inclusion looks
 softer one (docs/training.md, issue 7).  Measured here: d 7.74 mm (−14 %), h 7.71 mm (+3 %),
 E 131 kPa for a true 45 kPa, with a confidently narrow ensemble range (115–145 kPa).  That E
 result is kept as a strict xfail so that it is seen, and so that the day the inverse gets E right
-the test says so.  Inference now knows this: with the shipped identifiability map (identify.region)
+the test says so.  Inference now knows this: with the shipped identifiability map (elastimap.identify.region)
 the estimate carries ``non_identifiable:E`` and an E interval that holds the truth.
 """
 
@@ -15,13 +15,13 @@ import pandas as pd
 import pytest
 from scipy.stats import qmc
 
-from camera.calibration import fit_calibration, load_phantoms, simulate_phantoms
-from camera.features import FeatureSettings
-from camera.infer import estimate_images
-from camera.frames import write_frames
-from camera.optics import SensorModel, render_pair
-from solver import solve
-from solver.params import Discretisation, SolveParams
+from elastimap.camera.calibration import fit_calibration, load_phantoms, simulate_phantoms
+from elastimap.camera.features import FeatureSettings
+from elastimap.camera.infer import estimate_images
+from elastimap.camera.frames import write_frames
+from elastimap.camera.optics import SensorModel, render_pair
+from elastimap.solver import solve
+from elastimap.solver.params import Discretisation, SolveParams
 
 TRUTH = (9.0, 7.5, 45.0)   # d mm, h mm, E kPa — not a table row, not a phantom
 
@@ -33,7 +33,7 @@ def _fem(d, h, E, tissue_E=5.0, thickness=20.0):
 @pytest.fixture(scope="module")
 def estimate_of_truth(tmp_path_factory):
     tmp_path = tmp_path_factory.mktemp("e2e")
-    api = pytest.importorskip("training.api")
+    api = pytest.importorskip("elastimap.training.api")
     # training table: 40 LHS points over d 5-11 mm, h 6.5-10 mm, E 15-150 kPa (log), tiny mesh
     u = qmc.LatinHypercube(d=3, seed=3).random(40)
     d = 5 + 6 * u[:, 0]

@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from camera import calibration as C
-from camera._testing import toy_solve
-from camera.features import FeatureSettings
-from camera.frames import write_frames
-from camera.infer import estimate, estimate_images, read_lesions_csv
-from camera.optics import SensorModel, render_pair
+from elastimap.camera import calibration as C
+from elastimap.camera._testing import toy_solve
+from elastimap.camera.features import FeatureSettings
+from elastimap.camera.frames import write_frames
+from elastimap.camera.infer import estimate, estimate_images, read_lesions_csv
+from elastimap.camera.optics import SensorModel, render_pair
 from elastimap.errors import UserError
 
 REPO = Path(__file__).resolve().parent.parent
@@ -40,7 +40,7 @@ def toy_table():
 
 
 class OracleEnsemble:
-    """Stand-in for training.model.Ensemble: least-squares inversion of the TOY forward model.
+    """Stand-in for elastimap.training.model.Ensemble: least-squares inversion of the TOY forward model.
 
     Members start from the 3 nearest table rows (log-feature distance), so their spread reflects
     how well the features pin (d, h, E) down.  It isolates the camera chain's own error.
@@ -137,9 +137,9 @@ def test_batch_csv(chain, tmp_path):
 
 
 def _fake_training_ensemble(directory, table):
-    """A real training.model.Ensemble on disk (random weights, toy scaling) for CLI plumbing tests."""
-    model = pytest.importorskip("training.model", reason="training.model not available")
-    from training.net import Arch
+    """A real elastimap.training.model.Ensemble on disk (random weights, toy scaling) for CLI plumbing tests."""
+    model = pytest.importorskip("elastimap.training.model", reason="elastimap.training.model not available")
+    from elastimap.training.net import Arch
 
     arch = Arch()
     rng = np.random.default_rng(0)
@@ -154,7 +154,7 @@ def test_cli_infer_features_csv_json(chain, tmp_path):
     mdir = _fake_training_ensemble(tmp_path / "model", toy_table())
     cal = chain["dir"] / "cal.json"
     c = chain["cal"].cam.mean(axis=0)
-    base = [sys.executable, "-m", "camera.cli", "infer", "--model", str(mdir), "--calibration", str(cal)]
+    base = [sys.executable, "-m", "elastimap.camera.cli", "infer", "--model", str(mdir), "--calibration", str(cal)]
     r = subprocess.run(base + ["--features", *map(str, c), "--json"], capture_output=True, text=True, cwd=REPO)
     assert r.returncode == 0, r.stderr
     rows = json.loads(r.stdout)
@@ -174,8 +174,8 @@ def test_cli_infer_features_csv_json(chain, tmp_path):
 
 
 def test_infer_api_does_not_import_solver_fem():
-    code = ("import sys, camera.infer, camera.optics, camera.features, camera.calibration; "
-            "bad=[m for m in sys.modules if m.startswith(('dolfinx','solver.fem','solver.api','gmsh'))]; "
+    code = ("import sys, elastimap.camera.infer, elastimap.camera.optics, elastimap.camera.features, elastimap.camera.calibration; "
+            "bad=[m for m in sys.modules if m.startswith(('dolfinx','elastimap.solver.fem','elastimap.solver.api','gmsh'))]; "
             "print(bad); sys.exit(1 if bad else 0)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO)
     assert r.returncode == 0, r.stdout + r.stderr
@@ -183,9 +183,9 @@ def test_infer_api_does_not_import_solver_fem():
 
 @pytest.mark.slow
 def test_end_to_end_with_trained_ensemble_cli_images(chain, tmp_path):
-    """Train a small real ensemble (training.api.fit_ensemble, LM) on the TOY table, save it, and run
+    """Train a small real ensemble (elastimap.training.api.fit_ensemble, LM) on the TOY table, save it, and run
     ``infer --images`` on 30 SYNTHETIC frames of a lesion not in the table.  Same tolerances as above."""
-    api = pytest.importorskip("training.api", reason="training.api not available")
+    api = pytest.importorskip("elastimap.training.api", reason="elastimap.training.api not available")
     import pandas as pd
 
     tab = toy_table()
@@ -198,7 +198,7 @@ def test_end_to_end_with_trained_ensemble_cli_images(chain, tmp_path):
     write_frames(F, tmp_path / "f", "lesion", "tiff")
     write_frames(B, tmp_path / "f", "lesion_background", "tiff")
     out = tmp_path / "est.json"
-    cmd = [sys.executable, "-m", "camera.cli", "infer", "--model", str(tmp_path / "model"),
+    cmd = [sys.executable, "-m", "elastimap.camera.cli", "infer", "--model", str(tmp_path / "model"),
            "--calibration", str(chain["dir"] / "cal.json"),
            "--images", str(tmp_path / "f" / "synthetic_lesion_f*.tif"),
            "--background", str(tmp_path / "f" / "synthetic_lesion_background_f*.tif"), "--out", str(out),
@@ -217,10 +217,10 @@ def test_image_model_from_synthetic_camera_frames(chain, tmp_path):
     """Camera frames -> difference image on the FEM grid (shape by position, peak by the O1 line)
     -> image model.  TOY forward model, SYNTHETIC camera; the image model is a small SCG ensemble
     (ln E target) on the toy table's images.  Tolerance 25 % on d and h (a 2-member, 8-neuron net)."""
-    from camera.infer import estimate_camera, fem_image_from_camera, features_of_images, sensor_of
-    from identify.imagenet import fit_image_model
-    from identify.measure import Data
-    from training.experiment import TrainConfig
+    from elastimap.camera.infer import estimate_camera, fem_image_from_camera, features_of_images, sensor_of
+    from elastimap.identify.imagenet import fit_image_model
+    from elastimap.identify.measure import Data
+    from elastimap.training.experiment import TrainConfig
 
     tab = toy_table()
     res = [toy_solve(*row[:3]) for row in tab]

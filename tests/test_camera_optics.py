@@ -5,9 +5,9 @@ import warnings
 import numpy as np
 import pytest
 
-from camera._testing import toy_solve
-from camera.frames import CameraWarning, read_frame, read_metadata, read_stack, write_frames
-from camera.optics import SensorModel, render_pair
+from elastimap.camera._testing import toy_solve
+from elastimap.camera.frames import CameraWarning, read_frame, read_metadata, read_stack, write_frames
+from elastimap.camera.optics import SensorModel, render_pair
 from elastimap.errors import UserError
 
 

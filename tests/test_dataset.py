@@ -11,9 +11,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from dataset import io
-from dataset.cli import main as dataset_main
-from dataset.schema import COLUMNS, SCHEMA_KEY
+from elastimap.dataset import io
+from elastimap.dataset.cli import main as dataset_main
+from elastimap.dataset.schema import COLUMNS, SCHEMA_KEY
 from elastimap.errors import UserError
 
 SHAPE = (4, 4)

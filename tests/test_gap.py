@@ -16,10 +16,10 @@ import pandas as pd
 import pytest
 
 from elastimap.errors import UserError
-from gap import effects as fx
-from gap import measured, synth
-from gap.diagnose import Settings, diagnose
-from gap.simulate import Simulator
+from elastimap.gap import effects as fx
+from elastimap.gap import measured, synth
+from elastimap.gap.diagnose import Settings, diagnose
+from elastimap.gap.simulate import Simulator
 
 
 @pytest.fixture(scope="module")
@@ -39,21 +39,21 @@ def test_effect_spec_parsing_and_switches():
     for bad in ("friction", "nope=1", "friction=x", "friction=0.1,friction=0.2", "skin=1000"):
         with pytest.raises(UserError):
             fx.parse_spec(bad)
-    from solver.params import SolveParams
+    from elastimap.solver.params import SolveParams
     p = SolveParams()
     assert fx.get("friction").apply_params(p, 0.0) is p                       # nominal = baseline
     assert fx.get("friction").apply_params(p, 0.5).disc.friction_kt == 0.5
     assert fx.get("skin").apply_params(p, 20.0).tissue.skin_thickness == fx.SKIN_THICKNESS
     assert fx.get("probe_moduli").apply_params(p, 2.0).probe.layers[0][1] == 600.0
     assert fx.get("offaxis").apply_params(p, 2.0).disc.symmetry == "full"
-    from camera.optics import SensorModel
+    from elastimap.camera.optics import SensorModel
     assert fx.get("saturation").apply_sensor(SensorModel(), 0.2).w_sat == 0.2
     assert "offaxis" not in fx.DEFAULT_CANDIDATES
 
 
 def test_phantom_design_is_valid_for_every_effect():
-    from solver.params import SolveParams
-    from gap.simulate import base_params
+    from elastimap.solver.params import SolveParams
+    from elastimap.gap.simulate import base_params
     for row in synth.phantom_design(30, 3):
         for e in fx.EFFECTS.values():
             for m in e.grid:
@@ -99,7 +99,7 @@ def test_measured_roundtrip_and_validation(tmp_path, toy, dhe):
 
 
 def test_simulator_cache_reuses_solves(tmp_path, dhe):
-    from gap.simulate import base_params
+    from elastimap.gap.simulate import base_params
     ps = [base_params("tiny", *r) for r in dhe[:3]]
     a = Simulator(tmp_path, "tiny", "toy")
     ra = a.run(ps)
@@ -123,7 +123,7 @@ def test_diagnosis_identifies_fits_and_shrinks(toy, dhe, tmp_path):
     assert res["shrink_features"]["shrink"] > 0.7
     si = res["shrink_inverse"]
     assert si["mean_error_after"] < si["mean_error_before"]
-    from gap import report
+    from elastimap.gap import report
     doc = report.write(res, tmp_path / "rep")
     md = (tmp_path / "rep" / "report.md").read_text()
     assert "SYNTHETIC" in md and "Winner: `friction`" in md and "Runner-up" in md
@@ -143,7 +143,7 @@ def test_no_gap_and_unexplained_outcomes(toy, dhe):
 
 
 def test_tiny_blind_selftest_toy(toy):
-    from gap import selftest
+    from elastimap.gap import selftest
     res = selftest.run(4, toy, fx.parse_list(None), n_phantoms=10, frames=6, seed=5,
                        st=Settings(inverse=False, bootstrap=20), log=None)
     assert res["top1_accuracy"] >= 0.75
@@ -170,7 +170,7 @@ def test_fem_backend_small_diagnosis(tmp_path):
 
 # ---------------------------------------------------------------- CLI
 def test_cli_end_to_end_and_errors(tmp_path):
-    py = [sys.executable, "-m", "gap.cli"]
+    py = [sys.executable, "-m", "elastimap.gap.cli"]
     m = tmp_path / "m"
     r = subprocess.run(py + ["synth", "--out", str(m), "--effect", "saturation=0.2", "--backend", "toy",
                              "--mesh", "tiny", "--n", "8", "--cache", "none", "--quiet"], capture_output=True, text=True, cwd=ROOT)

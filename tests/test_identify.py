@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from identify.imagenet import ImageModel, fit_image_model, run_image_validation
-from identify.measure import Data, ShapePCA, add_image_noise, image_inputs
+from elastimap.identify.imagenet import ImageModel, fit_image_model, run_image_validation
+from elastimap.identify.measure import Data, ShapePCA, add_image_noise, image_inputs
 
 
 def _synthetic_data(n: int = 48, seed: int = 0, phantoms: int = 6) -> Data:
@@ -53,7 +53,7 @@ def test_relative_image_noise_scales_with_each_peak():
 
 
 def test_image_validation_rows_match_the_training_table_layout():
-    from training.experiment import TrainConfig
+    from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data()
     cfg = TrainConfig(hidden=((6, "tansig"),), epochs=30, progress=False)
@@ -70,7 +70,7 @@ def test_image_validation_rows_match_the_training_table_layout():
 
 
 def test_image_model_save_load_predict(tmp_path):
-    from training.experiment import TrainConfig
+    from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data()
     model = fit_image_model(data, "scg", repeats=2, cfg=TrainConfig(hidden=((6, "tansig"),), epochs=20,
@@ -90,14 +90,14 @@ def test_image_model_save_load_predict(tmp_path):
 def test_cli_bad_options_exit_2(args, param):
     import subprocess
     import sys
-    r = subprocess.run([sys.executable, "-m", "identify.imagenet", *args], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "elastimap.identify.imagenet", *args], capture_output=True, text=True)
     assert r.returncode == 2
     assert r.stderr.startswith("error: ") and param in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
 def test_log_e_target_scores_on_E_and_round_trips(tmp_path):
     """``log_e``: the network learns ln E, the table is still scored on E (same linear scaling)."""
-    from training.experiment import TrainConfig
+    from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data()
     cfg = TrainConfig(hidden=((6, "tansig"),), epochs=30, progress=False)
@@ -124,7 +124,7 @@ def test_log_e_target_scores_on_E_and_round_trips(tmp_path):
 
 
 def test_shared_noise_predictions_put_one_noisy_image_through_every_network():
-    from training.experiment import TrainConfig
+    from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data(n=30, phantoms=3)
     cfg = TrainConfig(hidden=((4, "tansig"),), epochs=5, progress=False)

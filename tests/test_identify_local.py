@@ -1,8 +1,8 @@
-"""Local identifiability (identify.local): Fisher / Cramér–Rao on SYNTHETIC Jacobians (no solves)."""
+"""Local identifiability (elastimap.identify.local): Fisher / Cramér–Rao on SYNTHETIC Jacobians (no solves)."""
 
 import numpy as np
 
-from identify.local import NoiseSpec, crb_relstd, fisher, from_param, grid, to_param
+from elastimap.identify.local import NoiseSpec, crb_relstd, fisher, from_param, grid, to_param
 
 
 def _J(n=4, p=30, seed=0):
@@ -40,7 +40,7 @@ def test_more_measurements_never_worsen_the_bound():
 
 
 def test_grid_respects_depth_range():
-    from solver.params import depth_range
+    from elastimap.solver.params import depth_range
 
     T, (ds, us, Es) = grid(nd=3, nu=2, nE=2)
     assert T.shape == (12, 3)
@@ -50,7 +50,7 @@ def test_grid_respects_depth_range():
 
 
 def test_region_score_splits_rows_by_the_bound():
-    from identify.region_score import score
+    from elastimap.identify.region_score import score
 
     theta = np.array([[5.0, 6.0, 20.0], [8.0, 8.0, 100.0], [10.0, 9.0, 150.0]])
     pred = np.full((2, 3, 3), np.nan)
@@ -65,7 +65,7 @@ def test_region_score_splits_rows_by_the_bound():
 
 
 def test_fd_relstd_isolates_a_point_without_a_finite_bound():
-    from identify.local import fd_relstd
+    from elastimap.identify.local import fd_relstd
 
     J = _J()
     th = np.tile([5.0, 6.0, 30.0], (4, 1))

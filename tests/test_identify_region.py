@@ -1,4 +1,4 @@
-"""Identifiability map (identify.region) and its use by inference (issue 7); SYNTHETIC maps and models."""
+"""Identifiability map (elastimap.identify.region) and its use by inference (issue 7); SYNTHETIC maps and models."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from elastimap.errors import UserError
-from identify.region import DEFAULT_MAP, IdentifiabilityMap
+from elastimap.identify.region import DEFAULT_MAP, IdentifiabilityMap
 
 
 def _map() -> IdentifiabilityMap:
@@ -20,7 +20,7 @@ def _map() -> IdentifiabilityMap:
 
 
 def _theta(d, u, E):
-    from solver.params import depth_range
+    from elastimap.solver.params import depth_range
 
     lo, hi = depth_range(d, 20.0)
     return np.array([[d, lo + u * (hi - lo), E]])
@@ -75,7 +75,7 @@ def test_map_roundtrip_and_bad_files(tmp_path):
 
 
 def test_shipped_default_map_says_what_the_study_measured():
-    """The shipped map (python -m identify.crbmap on the default 512-sample sweep, FD-scaled): E is far
+    """The shipped map (python -m elastimap.identify.crbmap on the default 512-sample sweep, FD-scaled): E is far
     better determined by the whole image than by three features, and d, h are identifiable from the
     image over almost the whole box (docs/identifiability.md)."""
     m = IdentifiabilityMap.load(DEFAULT_MAP)
@@ -114,7 +114,7 @@ class _Cal:
 
 
 def test_estimate_reports_non_identifiable_E_as_an_interval():
-    from camera.infer import estimate
+    from elastimap.camera.infer import estimate
 
     m = _map()
     e_hi = estimate([[0.1, 1.0, 5.0]], _Cal(), _Ens(_theta(8, 0.5, 150.0)[0]), identifiability=m)[0]
@@ -130,7 +130,7 @@ def test_estimate_reports_non_identifiable_E_as_an_interval():
 
 
 def _centred_bump(n, pixel, width=1.5, amp=0.02):
-    from solver.image import pixel_centres
+    from elastimap.solver.image import pixel_centres
 
     c = pixel_centres(n * pixel, pixel)
     Y, X = np.meshgrid(c, c, indexing="ij")
@@ -138,7 +138,7 @@ def _centred_bump(n, pixel, width=1.5, amp=0.02):
 
 
 def test_camera_difference_image_maps_onto_the_fem_grid():
-    from camera.infer import fem_image_from_camera
+    from elastimap.camera.infer import fem_image_from_camera
 
     fem = _centred_bump(20, 0.5)                      # 10 mm footprint, 0.5 mm FEM pixels
     cam = _centred_bump(40, 0.25, amp=0.3)            # the same bump seen by a finer camera, FS units
@@ -150,10 +150,10 @@ def test_camera_difference_image_maps_onto_the_fem_grid():
 
 
 def test_image_model_inference_from_fem_images(tmp_path):
-    from camera.infer import estimate, estimate_fem_images, load_model
-    from identify.imagenet import fit_image_model
+    from elastimap.camera.infer import estimate, estimate_fem_images, load_model
+    from elastimap.identify.imagenet import fit_image_model
     from test_identify import _synthetic_data
-    from training.experiment import TrainConfig
+    from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data()
     model = fit_image_model(data, "scg", repeats=2, cfg=TrainConfig(hidden=((6, "tansig"),), epochs=20,
@@ -177,9 +177,9 @@ def test_cli_infer_fem_image_prints_non_identifiable_as_interval(tmp_path):
     import subprocess
     import sys
 
-    from identify.imagenet import fit_image_model
+    from elastimap.identify.imagenet import fit_image_model
     from test_identify import _synthetic_data
-    from training.experiment import TrainConfig
+    from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data()
     fit_image_model(data, "scg", repeats=2, cfg=TrainConfig(hidden=((6, "tansig"),), epochs=10, progress=False),
@@ -188,7 +188,7 @@ def test_cli_infer_fem_image_prints_non_identifiable_as_interval(tmp_path):
     m.relstd["image"][..., 2] = 0.5                  # SYNTHETIC: E never identifiable from this "image"
     m.save(tmp_path / "map.npz")
     np.save(tmp_path / "img.npy", data.images[:2].reshape(2, 12, 12))
-    base = [sys.executable, "-m", "camera.cli", "infer", "--model", str(tmp_path / "img"),
+    base = [sys.executable, "-m", "elastimap.camera.cli", "infer", "--model", str(tmp_path / "img"),
             "--fem-image", str(tmp_path / "img.npy"), "--identifiability", str(tmp_path / "map.npz")]
     r = subprocess.run(base, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
@@ -205,7 +205,7 @@ def test_cli_infer_fem_image_prints_non_identifiable_as_interval(tmp_path):
 
 
 def test_region_score_coverage_of_reported_intervals():
-    from identify.region_score import coverage
+    from elastimap.identify.region_score import coverage
 
     m = _map()
     theta = np.vstack([_theta(8, 0.5, 20.0), _theta(8, 0.5, 150.0), _theta(10, 0.3, 15.0)])
@@ -220,7 +220,7 @@ def test_region_score_coverage_of_reported_intervals():
 
 
 def test_mapcheck_compare_counts_dangerous_disagreements():
-    from identify.mapcheck import compare
+    from elastimap.identify.mapcheck import compare
 
     fd = np.array([[0.05, 0.02, 0.05], [0.05, 0.02, 0.50], [0.20, 0.02, 0.08]])
     mp = np.array([[0.10, 0.02, 0.04], [0.05, 0.04, 0.09], [0.40, 0.01, 0.20]])

@@ -1,4 +1,4 @@
-"""Maximum-likelihood refinement through the forward model (identify.refine).
+"""Maximum-likelihood refinement through the forward model (elastimap.identify.refine).
 
 The fast tests use a SYNTHETIC analytic image model; one test fits the real FEM on the tiny mesh."""
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from elastimap.errors import UserError
-from identify.refine import refine, refine_rsm, to_theta, to_x
+from elastimap.identify.refine import refine, refine_rsm, to_theta, to_x
 
 _Y, _X = np.mgrid[0:16, 0:16] * 0.75
 _R2 = (_X.ravel() ** 2 + _Y.ravel() ** 2)
@@ -86,20 +86,20 @@ def test_bad_input_is_a_user_error():
         refine(I, 1e-3, [8, 7, -1], bump)
     with pytest.raises(UserError, match="sigma"):
         refine_rsm(I, -1.0, [8, 7, 60], bump)
-    from identify.refine import fit
+    from elastimap.identify.refine import fit
     with pytest.raises(UserError, match="--method"):
         fit(I, 1e-3, [8, 7, 60], bump, method="newton")
 
 
 def test_fem_refinement_on_the_tiny_mesh(tmp_path):
     """The real forward model: noise-free tiny-mesh image, start 30 % off in E and 6 % in d, through
-    the inference API (camera.infer.refine_estimates, default response-surface fit).  The tiny
+    the inference API (elastimap.camera.infer.refine_estimates, default response-surface fit).  The tiny
     mesh's remeshing jitter is large (the fit ends ~9 % off in E, 10-15 % with the trust-region
     variant, at a reduced chi² of ~0.1 in units of 1 % of the peak), so
     this checks that the fit moves the right way and reports consistently; accuracy is measured on
-    the default mesh by `python -m identify.refine` (docs/identifiability.md)."""
-    from camera.infer import Estimate, refine_estimates
-    from identify.refine import fem_model
+    the default mesh by `python -m elastimap.identify.refine` (docs/identifiability.md)."""
+    from elastimap.camera.infer import Estimate, refine_estimates
+    from elastimap.identify.refine import fem_model
 
     truth = np.array([8.0, 7.0, 40.0])
     I = fem_model("tiny", cache=str(tmp_path))(truth)
@@ -120,6 +120,6 @@ def test_cli_refine_needs_a_fem_image(tmp_path):
     import subprocess
     import sys
 
-    r = subprocess.run([sys.executable, "-m", "camera.cli", "infer", "--model", str(tmp_path), "--features", "1", "2",
+    r = subprocess.run([sys.executable, "-m", "elastimap.camera.cli", "infer", "--model", str(tmp_path), "--features", "1", "2",
                         "3", "--refine"], capture_output=True, text=True)
     assert r.returncode == 2 and "--refine" in r.stderr and "Traceback" not in r.stderr

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from elastimap.errors import UserError
-from solver.image import features, mirror_quarter, upsample_bilinear
-from solver.params import Discretisation, Inclusion, Loading, SolveParams, depth_range
+from elastimap.solver.image import features, mirror_quarter, upsample_bilinear
+from elastimap.solver.params import Discretisation, Inclusion, Loading, SolveParams, depth_range
 
 TINY = Discretisation(mesh="tiny")
 
@@ -22,7 +22,7 @@ def tiny(**inc) -> SolveParams:
 
 @pytest.fixture(scope="module")
 def solve():
-    from solver import solve as _solve
+    from elastimap.solver import solve as _solve
     return _solve
 
 
@@ -142,7 +142,7 @@ def test_quarter_and_full_models_agree(solve):
     q = solve(tiny(d=8.0, h=7.0, E=50.0))
     f = solve(tiny(d=8.0, h=7.0, E=50.0).replace(disc=Discretisation(mesh="tiny", symmetry="full")))
     # on the tiny mesh the two discretisations differ by a few %; the 1 % check at the default
-    # mesh is in `python -m solver.verify --checks symmetry` (docs/forward-model.md)
+    # mesh is in `python -m elastimap.solver.verify --checks symmetry` (docs/forward-model.md)
     for k, tol in (("O1", 0.04), ("O2", 0.08), ("O3", 0.04), ("force", 0.04)):
         assert getattr(f, k) == pytest.approx(getattr(q, k), rel=tol), k
 
@@ -155,7 +155,7 @@ def test_off_axis_inclusion_breaks_symmetry(solve):
 
 
 def test_hertz_contact_coarse():
-    from solver.hertz import hertz
+    from elastimap.solver.hertz import hertz
     r = hertz(level="test")
     assert abs(r.force_error) < 0.05, r
     assert abs(r.radius_error) < 0.10, r
@@ -163,14 +163,14 @@ def test_hertz_contact_coarse():
 
 
 def test_vtx_output(tmp_path):
-    from solver.api import solve_with_fields
+    from elastimap.solver.api import solve_with_fields
     out = tmp_path / "u.bp"
     solve_with_fields(tiny(), str(out))
     assert (out / "md.idx").exists() and (out / "data.0").stat().st_size > 0
 
 
 def test_jit_cache_cleaning(tmp_path, monkeypatch):
-    from solver import _boot
+    from elastimap.solver import _boot
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     d = tmp_path / "fenics"
     d.mkdir()
@@ -187,7 +187,7 @@ def test_jit_cache_cleaning(tmp_path, monkeypatch):
 
 # ---------------------------------------------------------------- CLI
 def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "solver.cli", *args], capture_output=True, text=True, timeout=300)
+    return subprocess.run([sys.executable, "-m", "elastimap.solver.cli", *args], capture_output=True, text=True, timeout=300)
 
 
 @pytest.mark.parametrize("args, word", [(["--d", "-2"], "d:"), (["--h", "0.5"], "h:"), (["--mesh", "huge"], "--mesh"),

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from elastimap.errors import UserError
-from solver.params import Discretisation, Loading, SolveParams, Tissue
+from elastimap.solver.params import Discretisation, Loading, SolveParams, Tissue
 
 
 def tiny(**disc) -> SolveParams:
@@ -14,7 +14,7 @@ def tiny(**disc) -> SolveParams:
 
 @pytest.fixture(scope="module")
 def solve():
-    from solver import solve as _solve
+    from elastimap.solver import solve as _solve
     return _solve
 
 

@@ -1,6 +1,6 @@
 """Sweep: design, input checks, fan-out, resume after SIGKILL, crash recording, benchmark.
 
-The fast tests use the fake solver (``ELASTIMAP_SWEEP_SOLVER=sweep.testing``);
+The fast tests use the fake solver (``ELASTIMAP_SWEEP_SOLVER=elastimap.sweep.testing``);
 one end-to-end run and the SIGKILL/resume test use real tiny-mesh solves.
 """
 
@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dataset import io
+from elastimap.dataset import io
 from elastimap.errors import UserError
-from solver.params import depth_range
-from sweep import design as dsg
-from sweep.cli import main as sweep_main
+from elastimap.solver.params import depth_range
+from elastimap.sweep import design as dsg
+from elastimap.sweep.cli import main as sweep_main
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -36,11 +36,11 @@ def _env(**extra):
 
 
 def _fake(**extra):
-    return _env(ELASTIMAP_SWEEP_SOLVER="sweep.testing", **extra)
+    return _env(ELASTIMAP_SWEEP_SOLVER="elastimap.sweep.testing", **extra)
 
 
 def _sweep(args, env, timeout=240):
-    return subprocess.run([sys.executable, "-m", "sweep.cli", *args], env=env, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "elastimap.sweep.cli", *args], env=env, capture_output=True, text=True,
                           timeout=timeout, cwd=ROOT)
 
 
@@ -253,7 +253,7 @@ def test_sigkill_driver_then_rerun_exactly_n_ok_real_solves(tmp_path):
     n = 10
     out = tmp_path / "ds"
     args = ["run", "--n", str(n), "--jobs", "2", "--mesh", "tiny", "--out", str(out), "--no-progress"]
-    proc = subprocess.Popen([sys.executable, "-m", "sweep.cli", *args], env=_env(), cwd=ROOT,
+    proc = subprocess.Popen([sys.executable, "-m", "elastimap.sweep.cli", *args], env=_env(), cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         _wait_rows(out, 2, proc)

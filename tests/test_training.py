@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from training.net import (Arch, forward, gn_system, init_nguyen_widrow, parse_hidden, residual_jacobian, sse,
+from elastimap.training.net import (Arch, forward, gn_system, init_nguyen_widrow, parse_hidden, residual_jacobian, sse,
                           sse_grad)
-from training.optim import _lm_step_torch, lm_step, train_lm, train_scg
-from training.problem import NetObjective, mapminmax_apply, mapminmax_fit, mapminmax_reverse
+from elastimap.training.optim import _lm_step_torch, lm_step, train_lm, train_scg
+from elastimap.training.problem import NetObjective, mapminmax_apply, mapminmax_fit, mapminmax_reverse
 
 torch.set_num_threads(1)
 F64 = torch.float64
@@ -150,7 +150,7 @@ def test_nguyen_widrow_init_shapes_and_ranges():
     arch = Arch()
     th = init_nguyen_widrow(arch, 4, torch.Generator().manual_seed(0))
     assert th.shape == (4, 393) and torch.isfinite(th).all()
-    from training.net import unpack
+    from elastimap.training.net import unpack
     W1, b1 = unpack(th, arch)[0]
     # tansig layer: |w| = 2 * 0.7 * 25^(1/3) per row (inputs in [-1, 1])
     torch.testing.assert_close(W1.norm(dim=2), torch.full((4, 25), 2 * 0.7 * 25 ** (1 / 3), dtype=F64))
@@ -274,8 +274,8 @@ def test_batched_equals_unbatched(algo):
 
 
 def test_chunked_training_equals_one_chunk():
-    from training.experiment import TrainConfig, make_batch, train_batch
-    from training.data import synthetic_table, FEATURES, TARGETS
+    from elastimap.training.experiment import TrainConfig, make_batch, train_batch
+    from elastimap.training.data import synthetic_table, FEATURES, TARGETS
 
     df = synthetic_table(40, seed=2, phantoms=False)
     X, T = df[list(FEATURES)].to_numpy(), df[list(TARGETS)].to_numpy()
@@ -291,8 +291,8 @@ def test_chunked_training_equals_one_chunk():
 @pytest.mark.parametrize("algo", ["lm", "scg"])
 def test_worker_processes_give_the_serial_result(algo):
     """Chunks shared out to two spawned processes reproduce the serial loop exactly."""
-    from training.experiment import TrainConfig, make_batch, train_batch
-    from training.data import synthetic_table, FEATURES, TARGETS
+    from elastimap.training.experiment import TrainConfig, make_batch, train_batch
+    from elastimap.training.data import synthetic_table, FEATURES, TARGETS
 
     df = synthetic_table(40, seed=3, phantoms=False)
     X, T = df[list(FEATURES)].to_numpy(), df[list(TARGETS)].to_numpy()

@@ -17,11 +17,11 @@ import torch
 
 from elastimap.cli_util import run
 from elastimap.errors import UserError
-from training.api import fit_ensemble
-from training.cli import train
-from training.data import data_hash, load_samples, prepare, synthetic_table
-from training.experiment import TrainConfig, run_validation, summarize
-from training.model import Ensemble
+from elastimap.training.api import fit_ensemble
+from elastimap.training.cli import train
+from elastimap.training.data import data_hash, load_samples, prepare, synthetic_table
+from elastimap.training.experiment import TrainConfig, run_validation, summarize
+from elastimap.training.model import Ensemble
 
 torch.set_num_threads(1)
 SMALL = dict(hidden=(5, 3), epochs=20)
@@ -33,7 +33,7 @@ def toy():
 
 
 def test_import_does_not_pull_solver():
-    code = ("import sys, training, training.api, training.model, training.cli, training.experiment;"
+    code = ("import sys, training, elastimap.training.api, elastimap.training.model, elastimap.training.cli, elastimap.training.experiment;"
             "bad = [m for m in sys.modules if m.split('.')[0] in ('dolfinx', 'solver', 'gmsh', 'sweep')];"
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True)
@@ -102,8 +102,8 @@ def test_fit_save_load_roundtrip(tmp_path, toy):
     with pytest.raises(UserError, match="not a trained model"):
         Ensemble.load(str(tmp_path))
     # torch-side forward agrees with the NumPy predict
-    from training.net import forward
-    from training.problem import mapminmax_apply, mapminmax_reverse
+    from elastimap.training.net import forward
+    from elastimap.training.problem import mapminmax_apply, mapminmax_reverse
     Xs = torch.as_tensor(mapminmax_apply(X, back.x_min, back.x_max))[None].expand(3, -1, -1)
     Yt = forward(torch.as_tensor(back.theta), Xs, back.arch).numpy()
     np.testing.assert_allclose(mapminmax_reverse(Yt, back.y_min, back.y_max), Y, rtol=1e-12)

@@ -1,7 +1,7 @@
 """Stable Python API of the training stage.
 
->>> from training.api import fit_ensemble
->>> from training.model import Ensemble
+>>> from elastimap.training.api import fit_ensemble
+>>> from elastimap.training.model import Ensemble
 >>> ens = fit_ensemble(df, algo="scg", repeats=10)      # df: sample table (pandas)
 >>> ens.save("runs/model")
 >>> Ensemble.load("runs/model").predict(X)              # (members, n, 3): d mm, h mm, E kPa
@@ -33,7 +33,7 @@ def fit_ensemble(df: pd.DataFrame | Samples, algo: str = "scg", repeats: int = 1
 
     ``df`` is a sample table (columns ``O1, O2, O3, d, h, E``; ``status``,
     ``tag``, ``sample_id`` optional -- failed rows are dropped) or a
-    :class:`training.data.Samples`.  ``hidden``: ``(25, 10)``, ``"25,10"`` or
+    :class:`elastimap.training.data.Samples`.  ``hidden``: ``(25, 10)``, ``"25,10"`` or
     ``"25,10,7:purelin"``.  Returns the :class:`Ensemble` (not yet saved).
     """
     if algo not in ALGOS:

@@ -1,13 +1,13 @@
 """Benchmark: LOOCV x repeats trainings per second on the SYNTHETIC toy table.
 
-    python -m training.bench --n 512 --repeats 10              # the full goal problem
-    python -m training.bench --n 512 --repeats 1 --folds 64    # a slice of it, projected
+    python -m elastimap.training.bench --n 512 --repeats 10              # the full goal problem
+    python -m elastimap.training.bench --n 512 --repeats 1 --folds 64    # a slice of it, projected
 
 Trains ``folds x repeats`` leave-one-out networks (``folds`` defaults to all
 ``n``) exactly as ``train --validate loocv`` does, and prints wall time, CPU
 time, trainings per second and the projected wall time of the full
 ``n x repeats`` LOOCV.  Data are the analytic toy table
-(:func:`training.data.synthetic_table`), so only the timings mean anything.
+(:func:`elastimap.training.data.synthetic_table`), so only the timings mean anything.
 """
 
 from __future__ import annotations
@@ -107,7 +107,7 @@ def bench(n, repeats, folds, algo, epochs, hidden, device, threads, float32, wor
 
 
 def main() -> None:
-    run(bench, prog_name="python -m training.bench")
+    run(bench, prog_name="python -m elastimap.training.bench")
 
 
 if __name__ == "__main__":

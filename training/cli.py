@@ -6,7 +6,7 @@ Writes to ``--out``: ``results.csv``, ``results.md`` (also printed),
 ``curves-<algo>-<validation>.png``, ``run.json`` and, per algorithm,
 ``model-<algo>/`` -- the ensemble of ``--repeats`` networks trained on all
 non-test rows (all rows unless only HOV was asked for), loadable with
-:meth:`training.model.Ensemble.load`.
+:meth:`elastimap.training.model.Ensemble.load`.
 """
 
 from __future__ import annotations

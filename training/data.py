@@ -1,6 +1,6 @@
 """Reading the sample table for training, and a SYNTHETIC toy table for tests.
 
-Training only knows the sample-table columns of :mod:`dataset.schema`
+Training only knows the sample-table columns of :mod:`elastimap.dataset.schema`
 (features ``O1, O2, O3``, targets ``d, h, E``, ``status``, ``tag``,
 ``sample_id``); it never looks at how the rows were made.
 """

@@ -47,7 +47,7 @@ class Ensemble:
     """``M`` networks sharing one architecture and one input/target scaling."""
 
     arch: Arch
-    theta: np.ndarray                    # (M, P) flat parameters, layout of training.net
+    theta: np.ndarray                    # (M, P) flat parameters, layout of elastimap.training.net
     x_min: np.ndarray                    # (n_in,) mapminmax input scaling
     x_max: np.ndarray
     y_min: np.ndarray                    # (n_out,) mapminmax target scaling

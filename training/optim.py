@@ -16,7 +16,7 @@ An *objective* is any object with
 * ``has_val`` and ``monitor(theta)`` -> ``dict name -> (B,)`` (must contain
   ``"val"`` when ``has_val``); recorded every epoch, ``"val"`` drives early stopping.
 
-:class:`training.problem.NetObjective` is the MLP one; the tests use small
+:class:`elastimap.training.problem.NetObjective` is the MLP one; the tests use small
 analytic ones.
 """
 
@@ -34,7 +34,7 @@ class TrainResult:
     epochs: torch.Tensor                # (B,) epochs run
     stop: list[str]                     # stopping reason per problem
     history: dict[str, torch.Tensor] = field(default_factory=dict)  # name -> (B, epochs+1), NaN after stop
-    workers: int = 1                    # processes that trained it (set by training.experiment.train_batch)
+    workers: int = 1                    # processes that trained it (set by elastimap.training.experiment.train_batch)
 
 
 def _new_history(names, B, epochs, dtype):

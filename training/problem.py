@@ -5,7 +5,7 @@ follow MATLAB's ``mapminmax`` with the default output range ``[-1, 1]``:
 ``y = (ymax - ymin) (x - xmin) / (xmax - xmin) + ymin`` per column.
 
 :class:`NetObjective` is the optimiser-facing objective (see
-:mod:`training.optim`): training rows ``w_train``, optional validation rows
+:mod:`elastimap.training.optim`): training rows ``w_train``, optional validation rows
 ``w_val`` (early stopping) and test rows ``w_test`` (only monitored).
 """
 
@@ -98,7 +98,7 @@ class NetObjective:
         return E / self.n_elem, g / self.n_elem[:, None]
 
     def sse_jj_je(self, theta):
-        """Training SSE, ``JᵀJ`` and ``Jᵀr`` (= ∇SSE / 2) by :func:`training.net.gn_system`.
+        """Training SSE, ``JᵀJ`` and ``Jᵀr`` (= ∇SSE / 2) by :func:`elastimap.training.net.gn_system`.
 
         Only the upper triangle of ``JᵀJ`` is defined (all the Cholesky factorisation of
         Levenberg–Marquardt reads).  Networks go through in sub-chunks whose temporaries
