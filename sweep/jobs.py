@@ -36,7 +36,7 @@ SOLVER_ENV = "ELASTIMAP_SWEEP_SOLVER"
 
 
 def solver_module():
-    return importlib.import_module(os.environ.get(SOLVER_ENV) or "solver")
+    return importlib.import_module(os.environ.get(SOLVER_ENV) or "elastimap.solver")
 
 
 def sample_params(sample: dict, base: SolveParams) -> SolveParams:
