@@ -25,11 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from elastimap.dataset.schema import PHANTOMS_CSV
+from elastimap.dataset.schema import FEATURES, PHANTOMS_CSV, THICKNESS, UNITS
 from elastimap.errors import UserError
 
-FEATURES = ("O1", "O2", "O3")
-FEM_UNITS = {"O1": "mm", "O2": "mm", "O3": "mm^2"}
+FEM_UNITS = {k: UNITS[k] for k in FEATURES}
 DEFAULT_PHANTOMS = PHANTOMS_CSV
 CALIBRATION_VERSION = 1
 
@@ -252,7 +251,7 @@ def plot_calibration(cal: Calibration, path: str | os.PathLike) -> None:
 # ---------------------------------------------------------------- simulation
 def default_fem(mesh: str = "coarse", delta: float = 3.0):
     """A function (d, h, E, tissue_E, thickness) -> SolveResult using the DOLFINx solver (imported lazily)."""
-    def fem(d: float, h: float, E: float, tissue_E: float = 5.0, thickness: float = 20.0):
+    def fem(d: float, h: float, E: float, tissue_E: float = 5.0, thickness: float = THICKNESS):
         from elastimap.solver import solve  # noqa: PLC0415 - keeps DOLFINx out of import time
         from elastimap.solver.params import Discretisation, Loading, SolveParams, Tissue
 

@@ -46,12 +46,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from elastimap.dataset.schema import FEATURES, TARGETS, UNITS
 from elastimap.errors import UserError
 
-from .calibration import FEATURES, Calibration
+from .calibration import Calibration
 
-TARGETS = ("d", "h", "E")
-TARGET_UNITS = {"d": "mm", "h": "mm", "E": "kPa"}
+TARGET_UNITS = {k: UNITS[k] for k in TARGETS}
 
 
 @dataclass

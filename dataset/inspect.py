@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from . import io
-from .schema import FEATURES, TARGETS
+from .schema import FEATURES, TARGETS, THICKNESS, depth_range
 
 EXTRA_FEATURES = ("force", "force_ref")
 
@@ -25,13 +25,10 @@ def _stats(x: np.ndarray) -> dict:
 def _coverage(df) -> dict:
     """How evenly the ok samples fill the parameter box: per-parameter 8-bin counts and the
     fraction of occupied cells of a 4x4x4 grid over (d, h relative to its allowed range, log E)."""
-    from elastimap.solver.params import depth_range
-
     if len(df) < 2:
         return {}
     d, h, E = (df[c].to_numpy(dtype=float) for c in TARGETS)
-    thick = 20.0
-    lo, hi = depth_range(d, thick)
+    lo, hi = depth_range(d, THICKNESS)
     rel_h = np.clip((h - lo) / np.where(hi > lo, hi - lo, 1.0), 0, 1)
     logE = np.log(E)
 

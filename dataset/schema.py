@@ -5,8 +5,15 @@ version and the units are written into every Parquet file's metadata
 (key ``elastimap.schema``, a JSON object), together with the elasticity-image
 shape and pixel size (key ``elastimap.image``).
 
-This module is the single definition of the columns; writers (``sweep``) and
-readers (``training``, ``camera``, ``gap``) import it.
+This module is the single definition of the columns and of the vocabulary every
+room shares; writers (``sweep``) and readers (``training``, ``camera``, ``gap``,
+``identify``) import it:
+
+* ``FEATURES`` (O1, O2, O3) and ``TARGETS`` (d, h, E), with their ``UNITS``;
+* ``DESIGN_BOX`` (d 2–15 mm, E 10–200 kPa; h spans ``depth_range(d, thickness)``)
+  and the default slab ``THICKNESS`` (20 mm).  These two and ``depth_range`` are
+  the solver's own defaults, defined in :mod:`elastimap.solver.params` (which
+  imports nothing heavy) and re-exported here.
 """
 
 from __future__ import annotations
@@ -14,6 +21,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pyarrow as pa
+
+from elastimap.solver.params import DESIGN_BOX, THICKNESS, depth_range  # noqa: F401  (vocabulary, re-exported)
 
 #: the nine calibration-phantom inclusions (shipped with the package)
 PHANTOMS_CSV = Path(__file__).resolve().parent / "phantoms.csv"
@@ -52,8 +61,11 @@ REQUIRED = tuple(k for k in COLUMNS if k != "landed_at")
 SCHEMA_KEY = "elastimap.schema"
 IMAGE_KEY = "elastimap.image"
 
+#: the three image features (paper section 3.2) and the three inclusion parameters
 FEATURES = ("O1", "O2", "O3")
 TARGETS = ("d", "h", "E")
+#: unit of each feature and target (mm, mm^2, kPa), read from ``COLUMNS``
+UNITS = {name: COLUMNS[name][1] for name in FEATURES + TARGETS}
 
 
 def arrow_schema(image_shape: tuple[int, int] | None = None, pixel: float | None = None) -> pa.Schema:

@@ -351,12 +351,12 @@ def training_design(meas: Measured, n: int, seed: int, aspect_hi: float = 1.0) -
     """LHS of (d, h, E) over the phantoms' bounding box (E log-uniform), depths kept valid."""
     from scipy.stats import qmc
 
-    from elastimap.solver.params import depth_range
+    from elastimap.dataset.schema import THICKNESS, depth_range
 
     u = qmc.LatinHypercube(d=3, rng=np.random.default_rng(seed)).random(n)
     lo, hi = meas.dhe.min(0), meas.dhe.max(0)
     d = lo[0] + u[:, 0] * (hi[0] - lo[0])
-    a, b = depth_range(d, 20.0, aspect_hi)
+    a, b = depth_range(d, THICKNESS, aspect_hi)
     hl, hh = np.maximum(a, lo[1]), np.minimum(b, hi[1])
     hh = np.maximum(hh, hl)
     h = hl + u[:, 1] * (hh - hl)

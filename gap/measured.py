@@ -35,11 +35,11 @@ from pathlib import Path
 
 import numpy as np
 
+from elastimap.dataset.schema import FEATURES
 from elastimap.errors import UserError
 
 KIND = "elastimap.gap.measured"
 VERSION = 1
-FEATURES = ("O1", "O2", "O3")
 TABLE_NAMES = ("measured.parquet", "measured.csv")
 SIDECAR = "measured.json"
 SEALED = "SEALED_truth.json"

@@ -27,6 +27,7 @@ import click
 import numpy as np
 
 from elastimap.cli_util import run
+from elastimap.dataset.schema import THICKNESS
 
 SETS = ("features", "image", "image+force", "two-depths")
 
@@ -34,7 +35,7 @@ SETS = ("features", "image", "image+force", "two-depths")
 FD_SCALE_QUANTILE = 90.0
 
 
-def fd_interpolate(theta_fd: np.ndarray, r_fd: np.ndarray, theta: np.ndarray, thickness: float = 20.0) -> np.ndarray:
+def fd_interpolate(theta_fd: np.ndarray, r_fd: np.ndarray, theta: np.ndarray, thickness: float = THICKNESS) -> np.ndarray:
     """Bound ``r`` (n, 3) at ``theta`` from FD bounds at scattered points: linear in (d, u, ln E) of ln r
     (``u`` the depth fraction of :func:`elastimap.identify.local.grid`), nearest FD point outside their hull."""
     from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
@@ -111,7 +112,7 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
            + ("; features entry: real-FD bound interpolated from those points" if use_grid else "")
            + "; Cramér–Rao relative std, noise 1 % features, 1 % of the image peak per pixel, 0.1 % force; "
              "python -m elastimap.identify.crbmap")
-    np.savez(os.path.join(out, "crb_grid.npz"), theta=T, d=ds, u=us, E=Es, thickness=20.0, source=src,
+    np.savez(os.path.join(out, "crb_grid.npz"), theta=T, d=ds, u=us, E=Es, thickness=THICKNESS, source=src,
              **{s: R[s] for s in SETS}, **{f"{s}_surrogate": R0[s] for s in SETS},
              **{f"scale_{s}": scale[s] for s in SETS})
     import matplotlib

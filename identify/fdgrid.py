@@ -19,13 +19,14 @@ import click
 import numpy as np
 
 from elastimap.cli_util import run
+from elastimap.dataset.schema import THICKNESS
 
 FD_D = (4.0, 7.0, 10.0, 13.0)
 FD_U = (0.25, 0.75)
 FD_E = (12.0, 25.0, 50.0, 100.0, 190.0)
 
 
-def fd_grid_points(ds=FD_D, us=FD_U, Es=FD_E, thickness: float = 20.0) -> np.ndarray:
+def fd_grid_points(ds=FD_D, us=FD_U, Es=FD_E, thickness: float = THICKNESS) -> np.ndarray:
     from elastimap.solver.params import depth_range
 
     pts = []

@@ -20,9 +20,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from elastimap.dataset.schema import DESIGN_BOX, TARGETS, THICKNESS
+
 from .measure import Data, ShapePCA, feature_inputs
 
-TARGETS = ("d", "h", "E")
 STEP = np.array([0.05, 0.05, 0.01])        # surrogate FD steps in d (mm), h (mm), ln E
 
 
@@ -204,7 +205,8 @@ def stack(Js: list[dict]) -> dict:
     return out
 
 
-def grid(nd: int = 14, nu: int = 5, nE: int = 15, d=(2.0, 15.0), E=(10.0, 200.0), thickness: float = 20.0):
+def grid(nd: int = 14, nu: int = 5, nE: int = 15, d=DESIGN_BOX["d"], E=DESIGN_BOX["E"],
+         thickness: float = THICKNESS):
     """(d, h, E) grid over the design space; h = lo + u (hi - lo) of the allowed range for d.
 
     Returns ``theta`` (nd*nu*nE, 3) and the axes (d, u, E) with ``theta`` in C order over them."""

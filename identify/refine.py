@@ -43,6 +43,7 @@ from typing import Callable
 
 import numpy as np
 
+from elastimap.dataset.schema import DESIGN_BOX, THICKNESS
 from elastimap.errors import UserError
 
 FD = (0.25, 0.25, 0.05)                 # finite-difference steps: d mm, h mm (at fixed d), ln E
@@ -52,8 +53,6 @@ FD = (0.25, 0.25, 0.05)                 # finite-difference steps: d mm, h mm (a
 # percentile of |error| / CRB sd was 4.8-5.3 (d, h, E), i.e. about 1.96 x 2.7; the CRB alone
 # covered 66-69 %.  Chosen on seed 0; seed 1 is the out-of-sample check (docs/identifiability.md).
 INTERVAL_SCALE = 2.7
-DESIGN = {"d": (2.0, 15.0), "E": (10.0, 200.0)}   # the default sweep's design box
-THICKNESS = 20.0
 
 
 def h_range(d: float, thickness: float = THICKNESS) -> tuple[float, float]:
@@ -146,8 +145,8 @@ def _bound(Jx: np.ndarray, x: np.ndarray, thickness: float):
     return th, np.array([sd[0] / th[0], sd[1] / th[1], sd[2]])
 
 
-def refine(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], *, d_range=DESIGN["d"],
-           E_range=DESIGN["E"], thickness: float = THICKNESS, max_iter: int = 12, xtol: float = 5e-4,
+def refine(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], *, d_range=DESIGN_BOX["d"],
+           E_range=DESIGN_BOX["E"], thickness: float = THICKNESS, max_iter: int = 12, xtol: float = 5e-4,
            fd=FD, central: bool = True) -> RefineResult:
     """Fit ``model(theta) -> image`` to ``image`` (weights ``1/sigma``) starting from ``theta0``.
 
@@ -215,8 +214,8 @@ def _quad_grad(z: np.ndarray) -> np.ndarray:
                      [b, a, 0], [c, 0, a], [0, c, b]], float)
 
 
-def refine_rsm(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], *, d_range=DESIGN["d"],
-               E_range=DESIGN["E"], thickness: float = THICKNESS, half=RSM_HALF, rounds: int = 2,
+def refine_rsm(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], *, d_range=DESIGN_BOX["d"],
+               E_range=DESIGN_BOX["E"], thickness: float = THICKNESS, half=RSM_HALF, rounds: int = 2,
                shrink: float = 0.5) -> RefineResult:
     """Response-surface variant of :func:`refine` that averages the remeshing jitter.
 

@@ -30,9 +30,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from elastimap.dataset.schema import TARGETS, THICKNESS
 from elastimap.errors import UserError
 
-TARGETS = ("d", "h", "E")
 DEFAULT_MAP = os.path.join(os.path.dirname(__file__), "maps", "default.npz")
 SETS = ("features", "image", "image+force", "two-depths")
 
@@ -54,7 +54,7 @@ class IdentifiabilityMap:
     u: np.ndarray                     # (nu,) depth fraction of the allowed centre-depth range
     E: np.ndarray                     # (nE,) kPa
     relstd: dict                      # set -> (nd, nu, nE, 3) Cramér–Rao relative std of d, h, E
-    thickness: float = 20.0           # mm, tissue slab of the sweep the map was made on
+    thickness: float = THICKNESS      # mm, tissue slab of the sweep the map was made on
     source: str = ""
 
     # ------------------------------------------------------------------ io
@@ -68,7 +68,7 @@ class IdentifiabilityMap:
             d, u, E = (np.asarray(z[k], float) for k in ("d", "u", "E"))
             shape = (d.size, u.size, E.size, 3)
             rel = {s: np.asarray(z[s], float).reshape(shape) for s in SETS if s in z.files}
-            thickness = float(z["thickness"]) if "thickness" in z.files else 20.0
+            thickness = float(z["thickness"]) if "thickness" in z.files else THICKNESS
             source = str(z["source"]) if "source" in z.files else p
         except (KeyError, ValueError, OSError) as exc:
             raise UserError("identifiability", f"{p}: not an identifiability map ({exc})") from None

@@ -9,7 +9,7 @@ import click
 
 from elastimap.cli_util import run
 
-from .params import INTERFACES, MESH_LEVELS, Discretisation, ImageSpec, Inclusion, Loading, Probe, SolveParams, Tissue
+from .params import INTERFACES, MESH_LEVELS, THICKNESS, Discretisation, ImageSpec, Inclusion, Loading, Probe, SolveParams, Tissue
 
 
 def _layers(text: str | None):
@@ -40,7 +40,7 @@ def _layers(text: str | None):
 @click.option("--delta", type=float, default=3.0, show_default=True, help="Plate indentation (mm).")
 @click.option("--force", type=float, default=None, help="Prescribe the total plate force (mN) instead of --delta.")
 @click.option("--tissue-E", "tissue_E", type=float, default=5.0, show_default=True, help="Tissue modulus (kPa).")
-@click.option("--thickness", type=float, default=20.0, show_default=True, help="Tissue thickness (mm).")
+@click.option("--thickness", type=float, default=THICKNESS, show_default=True, help="Tissue thickness (mm).")
 @click.option("--nu", type=float, default=0.49, show_default=True, help="Poisson ratio of tissue, inclusion and probe.")
 @click.option("--layers", default=None, help="Probe layers THICK:E,... (mm:kPa) from the tissue side "
                                              "[default: 2:300,3:150,5:50].")

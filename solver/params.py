@@ -23,13 +23,19 @@ MESH_LEVELS = ("tiny", "coarse", "default", "fine")
 INTERFACES = ("tied", "contact", "bonded")
 SYMMETRIES = ("quarter", "full")
 
+#: mm, the default tissue slab thickness (``Tissue.thickness``; every room's default)
+THICKNESS = 20.0
+#: the design box of the paper and of the default sweep: diameter d (mm) and inclusion modulus E
+#: (kPa); the centre depth h spans :func:`depth_range` of each d
+DESIGN_BOX = {"d": (2.0, 15.0), "E": (10.0, 200.0)}
+
 
 @dataclass(frozen=True)
 class Tissue:
     """Tissue slab on a rigid chest wall (bottom face fixed)."""
 
     size: float = 120.0        # mm, square side length
-    thickness: float = 20.0    # mm
+    thickness: float = THICKNESS  # mm
     E: float = 5.0             # kPa
     nu: float = 0.49
     skin_thickness: float = 0.0  # mm; > 0 adds a bonded skin layer of modulus skin_E (effect switch)
@@ -222,7 +228,7 @@ class SolveParams:
 EFFECT_DEFAULTS = {("tissue", "nonlinearity"): 0.0, ("disc", "friction_kt"): 0.0}
 
 
-def depth_range(d: float, thickness: float = 20.0, aspect: float = 1.0,
+def depth_range(d: float, thickness: float = THICKNESS, aspect: float = 1.0,
                 cover: float = 1.0, floor: float = 2.0) -> tuple[float, float]:
     """Allowed centre depths (mm) keeping ``cover`` mm above and ``floor`` mm below the inclusion."""
     half = aspect * d / 2

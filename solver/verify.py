@@ -91,16 +91,16 @@ def check_interface(mesh="default") -> str:
 
 def check_speed(n: int = 6, seed: int = 1) -> str:
     from .api import solve, warmup
-    from .params import depth_range
+    from .params import DESIGN_BOX, depth_range
     warmup()
     rng = np.random.default_rng(seed)
     rows, secs = [], []
     tsum: dict[str, float] = {}
     for _ in range(n):
-        d = float(rng.uniform(2, 15))
+        d = float(rng.uniform(*DESIGN_BOX["d"]))
         lo, hi = depth_range(d)
         h = float(rng.uniform(lo, hi))
-        E = float(np.exp(rng.uniform(np.log(10), np.log(200))))
+        E = float(np.exp(rng.uniform(*np.log(DESIGN_BOX["E"]))))
         r = solve(SolveParams().with_inclusion(d=d, h=h, E=E))
         secs.append(r.seconds)
         for k, v in r.timings.items():

@@ -34,13 +34,11 @@ from pathlib import Path
 
 import numpy as np
 
-from elastimap.dataset.schema import PHANTOMS_CSV
+from elastimap.dataset.schema import DESIGN_BOX, PHANTOMS_CSV, TARGETS, THICKNESS, depth_range
 from elastimap.errors import UserError
-from elastimap.solver.params import depth_range
 
-NAMES = ("d", "h", "E")
-UNITS = {"d": "mm", "h": "mm", "E": "kPa"}
-DEFAULT_RANGES = "d=2:15,h=auto,E=10:200:log"
+NAMES = TARGETS
+DEFAULT_RANGES = "d={:g}:{:g},h=auto,E={:g}:{:g}:log".format(*DESIGN_BOX["d"], *DESIGN_BOX["E"])
 DESIGNS = ("lhs", "sobol")
 MAX_N = 1_000_000
 OVERRIDES = ("tissue_E", "tissue_thickness")
@@ -79,7 +77,7 @@ def _num(name: str, s: str) -> float:
     return v
 
 
-def parse_ranges(text: str | None, thickness: float = 20.0) -> dict[str, Range]:
+def parse_ranges(text: str | None, thickness: float = THICKNESS) -> dict[str, Range]:
     """Parse ``d=2:15,h=auto,E=10:200:log`` (names may be left out) and check it against the slab."""
     out = {}
     for part in DEFAULT_RANGES.split(","):
@@ -151,7 +149,7 @@ def check_n(n: int) -> int:
 
 
 def design_points(n: int, design: str, seed: int, ranges: dict[str, Range],
-                  thickness: float = 20.0) -> list[dict]:
+                  thickness: float = THICKNESS) -> list[dict]:
     """``n`` samples of the space-filling design, with stable ids."""
     check_n(n)
     if design not in DESIGNS:

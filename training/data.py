@@ -14,11 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from elastimap.dataset.schema import FEATURES, TARGETS, UNITS  # noqa: F401  (UNITS: re-exported)
 from elastimap.errors import UserError
 
-FEATURES = ("O1", "O2", "O3")
-TARGETS = ("d", "h", "E")
-UNITS = {"O1": "mm", "O2": "mm", "O3": "mm^2", "d": "mm", "h": "mm", "E": "kPa"}
 OPTIONAL = ("sample_id", "tag", "status")
 PHANTOM_PREFIX = "phantom:"
 
