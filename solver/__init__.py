@@ -1,9 +1,11 @@
 """Forward model: parametric geometry, DOLFINx contact solve, elasticity image.
 
-``from solver import solve, warmup, SolveParams`` — DOLFINx is imported only
-when a solve runs, so ``elastimap.solver.params`` and ``elastimap.solver.image`` stay light.
+``from elastimap.solver import solve, warmup, SolveParams`` — DOLFINx is imported only
+when a solve runs, so ``elastimap.solver.params``, ``elastimap.solver.image`` and
+``elastimap.solver.errors`` stay light.
 """
 
+from .errors import SolverError
 from .params import (Discretisation, ImageSpec, Inclusion, Loading, Probe, SolveParams, SolveResult,
                      Tissue, depth_range)
 
@@ -15,7 +17,4 @@ def __getattr__(name):
     if name in ("solve", "warmup"):
         from . import api
         return getattr(api, name)
-    if name == "SolverError":
-        from .fem import SolverError
-        return SolverError
     raise AttributeError(name)

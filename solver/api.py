@@ -23,7 +23,7 @@ def _peak_mb() -> float:
 
 def _solve_at(model, E_inc: float, p: SolveParams):
     """Solve for one inclusion modulus under the loading of ``p``; returns (sol, diag, delta, force)."""
-    from .fem import SolverError
+    from .errors import SolverError
 
     ld = p.loading
     delta = ld.delta
@@ -79,7 +79,8 @@ def _write_vtx(model, path: str, fields: dict) -> None:
 
 
 def _solve(params: SolveParams, vtx_path: str | None = None) -> SolveResult:
-    from .fem import Model, SolverError
+    from .errors import SolverError
+    from .fem import Model
     from .geometry import MeshError, build_mesh
     from .image import features, mirror_quarter
 

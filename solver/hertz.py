@@ -4,7 +4,7 @@ A rigid sphere of radius R moves down by δ onto the top face z = H of an
 elastic block (quarter model, symmetry planes x = 0 and y = 0, bottom fixed).
 Top-face nodes obey the unilateral condition u_z ≤ g0(r) − δ with the
 initial gap g0(r) = r²/(2R) (the paraboloid of Hertz theory), solved with the same primal–dual active
-set (:func:`elastimap.solver.fem.active_set`) and patch-force criterion as the probe
+set (:func:`elastimap.solver.interface.active_set`) and patch-force criterion as the probe
 interface, closed nodes being prescribed on the sphere.
 
 Hertz (elastic half-space, rigid sphere):
@@ -30,7 +30,8 @@ from dolfinx.fem import petsc as fpetsc
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from .fem import active_set, epsilon, sigma
+from .interface import active_set
+from .materials import epsilon, sigma
 
 
 @dataclass

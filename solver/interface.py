@@ -1,0 +1,228 @@
+r"""The probe–tissue interface Γ (the footprint): node pairs, surface mass matrix, contact laws.
+
+The mesh carries coincident node pairs on Γ (t_i on the tissue, p_i on the probe),
+so the interface conditions are imposed exactly on the discrete pairs, with no
+penalty parameter.  With the normal gap $g_i = u_z(p_i) - u_z(t_i)$ (mm):
+
+* ``tied`` (default), frictionless and closed: $g_i = 0$; tangential components
+  independent (zero shear traction).  Valid while the contact pressure stays
+  compressive, checked after every solve (:meth:`Interface.diagnostics`).
+* ``contact``, frictionless unilateral contact (Signorini) at the pairs:
+
+  $$ g_i \ge 0, \qquad p_i \ge 0, \qquad p_i \, g_i = 0, $$
+
+  solved by the primal–dual active set of :func:`active_set` (one solve per iteration).
+* ``bonded``: all three components tied (a glued probe; wrong for the sensor, offered
+  for comparison).
+
+The tied components are eliminated by :mod:`elastimap.solver.reduction`; this module
+measures the interface.
+"""
+
+from __future__ import annotations
+
+from . import _boot  # noqa: F401  (must precede dolfinx)
+
+import numpy as np
+import scipy.sparse as sp
+import ufl
+from dolfinx import fem, mesh as dmesh
+from dolfinx.fem import petsc as fpetsc
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from .errors import SolverError
+from .space import Space
+
+
+class Interface:
+    """Node pairs on Γ, the tissue-side surface mass matrix M_Γ and the patch incidence.
+
+    ``pair_probe[i]`` and ``pair_tissue[i]`` are the probe and tissue nodes of pair i,
+    ordered by (y, x).
+    """
+
+    def __init__(self, space: Space):
+        X, tol = space.X, space.tol
+        on_gamma = space.on_footprint(X.T)
+        gp = np.flatnonzero(on_gamma & space.is_probe)
+        gt = np.flatnonzero(on_gamma & ~space.is_probe)
+        if len(gp) != len(gt) or len(gp) == 0:
+            raise SolverError(f"interface node pairing failed ({len(gp)} probe vs {len(gt)} tissue nodes)")
+        kp = np.lexsort(np.round(X[gp, :2] / tol).T[::-1])
+        kt = np.lexsort(np.round(X[gt, :2] / tol).T[::-1])
+        gp, gt = gp[kp], gt[kt]
+        if np.max(np.abs(X[gp] - X[gt])) > 10 * tol:
+            raise SolverError("interface node pairs do not coincide")
+        self.pair_probe, self.pair_tissue = gp, gt
+        self.npairs = len(gt)
+        self.M_gamma = self._surface_mass(space)
+        # patch incidence: S_ij = 1 when interface nodes i and j share a facet
+        self.S_patch = (abs(self.M_gamma) > 0).astype(float).tocsr()
+
+    def _surface_mass(self, space: Space) -> sp.csc_matrix:
+        r"""Consistent surface mass matrix of the tissue side of Γ at the pairs (mm²):
+
+        $$ (M_\Gamma)_{ij} = \int_{\Gamma} \phi_i \, \phi_j \, {\rm d}s , $$
+
+        φ_i the scalar P_k basis function of tissue node t_i (assembled as the z-z block
+        of ∫_Γ u_z v_z ds over the tissue-side facets).
+        """
+        msh, fdim = space.mesh, 2
+        msh.topology.create_connectivity(fdim, 3)
+        facets = dmesh.locate_entities_boundary(msh, fdim, space.on_footprint)
+        f2c = msh.topology.connectivity(fdim, 3)
+        tissue_facets = np.array([f for f in facets if not space.probe_cell[f2c.links(f)[0]]], dtype=np.int32)
+        ft = dmesh.meshtags(msh, fdim, np.sort(tissue_facets), np.ones(len(tissue_facets), dtype=np.int32))
+        ds = ufl.Measure("ds", domain=msh, subdomain_data=ft)
+        u, v = ufl.TrialFunction(space.V), ufl.TestFunction(space.V)
+        M = fpetsc.assemble_matrix(fem.form(u[2] * v[2] * ds(1)))
+        M.assemble()
+        Mi, Mj, Mv = M.getValuesCSR()
+        Mfull = sp.csr_matrix((Mv, Mj, Mi), shape=M.getSize())
+        M.destroy()
+        idx = 3 * self.pair_tissue + 2
+        return sp.csc_matrix(Mfull[idx][:, idx])
+
+    # ------------------------------------------------------------------ measures of a solution
+    def gap(self, u: np.ndarray) -> np.ndarray:
+        r"""Normal gap $g_i = u_z(p_i) - u_z(t_i)$ at the pairs (mm, ≥ 0 = no penetration)."""
+        return u[3 * self.pair_probe + 2] - u[3 * self.pair_tissue + 2]
+
+    def contact_pressure(self, reaction: np.ndarray) -> np.ndarray:
+        r"""Normal contact pressure p (kPa, compressive > 0) at the tissue nodes of the pairs,
+        recovered from the nodal reaction r = A u (mN) by
+
+        $$ M_\Gamma \, p = -r_\Gamma . $$
+        """
+        from scipy.sparse.linalg import spsolve
+
+        return -spsolve(self.M_gamma, reaction[3 * self.pair_tissue + 2])
+
+    def patch_force(self, reaction: np.ndarray) -> np.ndarray:
+        r"""Compressive normal force (mN) on each pair's patch of facets,
+
+        $$ f_i = -\sum_{j \in {\rm patch}(i)} r_{z}(t_j) . $$
+
+        The patch sum of nodal forces is a positive-weighted average of the pressure
+        around the node, so its sign is robust to the oscillation of the recovered
+        pressure next to the flat-punch edge singularity.  It is the tension criterion
+        of the active set and of the tied-interface check.
+        """
+        return self.S_patch @ (-reaction[3 * self.pair_tissue + 2])
+
+    def diagnostics(self, u: np.ndarray, reaction: np.ndarray, active: np.ndarray) -> dict[str, float]:
+        """Pressure range (kPa), tensile patch fraction, open pairs, smallest gap (mm)."""
+        pf = self.patch_force(reaction)
+        pres = self.contact_pressure(reaction)
+        pc = pres[active] if active.any() else np.zeros(1)
+        return {
+            "pressure_mean_kPa": float(np.mean(pc)),
+            "pressure_min_kPa": float(np.min(pres)),
+            "pressure_max_kPa": float(np.max(pres)),
+            # patches whose net normal force is tensile (> 1e-6 of the mean patch force)
+            "tension_patch_fraction": float(np.mean(pf < -1e-6 * max(float(np.mean(np.abs(pf))), 1e-300))),
+            "open_pair_fraction": float(np.mean(~active)),
+            "gap_min_mm": float(np.min(self.gap(u))),
+        }
+
+
+class Friction:
+    r"""Interface friction switch (``Discretisation.friction_kt`` = k_t, kPa/mm).
+
+    A tangential spring between the paired nodes of the tied/contact interface,
+
+    $$
+    s(u, v) = k_t \int_\Gamma (u_{p,t} - u_{t,t}) \cdot (v_{p,t} - v_{t,t}) \, {\rm d}s,
+    \qquad t = x, y,
+    $$
+
+    discretised with M_Γ over the active pairs:
+
+    $$ S = k_t \sum_{c = x, y} B_c^{T} M_\Gamma B_c, \qquad (B_c u)_i = u_c(p_i) - u_c(t_i) $$
+
+    (k_t M_Γ is in kPa·mm = mN/mm like A).  The reduced operator becomes
+    K = PᵀAP + PᵀSP.  k_t = 0 is the frictionless interface; k_t → ∞ ties the
+    tangential components (the ``bonded`` limit).  The natural scale is the tissue's
+    E_t / T = 0.25 kPa/mm.
+    """
+
+    def __init__(self, interface: Interface, kt: float, ndofs: int):
+        self.interface, self.kt, self.ndofs = interface, float(kt), ndofs
+        self._key = None
+        self._cached = None
+
+    def matrix(self, active: np.ndarray) -> sp.csr_matrix:
+        """S over the active pairs (mN/mm, all flat dofs; scipy)."""
+        itf, n = self.interface, self.ndofs
+        m = itf.npairs
+        D = sp.diags(active.astype(float))
+        Mact = (D @ itf.M_gamma @ D).tocsr()
+        S = sp.csr_matrix((n, n))
+        for comp in (0, 1):
+            B = sp.csr_matrix((np.r_[np.ones(m), -np.ones(m)],
+                               (np.r_[np.arange(m), np.arange(m)],
+                                np.r_[3 * itf.pair_probe + comp, 3 * itf.pair_tissue + comp])), shape=(m, n))
+            S = S + B.T @ Mact @ B
+        return (self.kt * S).tocsr()
+
+    def matrices(self, active: np.ndarray, Psp: sp.csr_matrix) -> tuple[sp.csr_matrix, PETSc.Mat]:
+        """(S, PᵀSP as PETSc) for this active set, cached by the set."""
+        key = active.tobytes()
+        if self._key != key:
+            S = self.matrix(active)
+            Sr = (Psp.T @ S @ Psp).tocsr()
+            Sr.sort_indices()
+            if self._cached is not None:
+                self._cached[1].destroy()
+            Sm = PETSc.Mat().createAIJ(size=Sr.shape, csr=(Sr.indptr.astype(PETSc.IntType),
+                                                            Sr.indices.astype(PETSc.IntType), Sr.data),
+                                       comm=MPI.COMM_SELF)
+            Sm.assemble()
+            self._cached = (S, Sm)
+            self._key = key
+        return self._cached
+
+    def destroy(self) -> None:
+        if self._cached is not None:
+            self._cached[1].destroy()
+            self._cached = None
+
+
+def active_set(solve_with, patch_force, gap, active0: np.ndarray, *, gap_tol: float,
+               force_tol: float = 1e-6, max_iter: int = 30):
+    r"""Primal–dual active-set iteration for frictionless unilateral contact at node pairs.
+
+    ``solve_with(active)`` solves with the ``active`` nodes closed (normal
+    displacement tied or prescribed); ``patch_force(sol)`` is the compressive
+    normal force on each node's facet patch (mN); ``gap(sol)`` the normal gap
+    (mm, negative = penetration).  The next active set is
+
+    $$
+    \mathcal{A}^{k+1} = \{ i \in \mathcal{A}^k : f_i > -\epsilon_f \bar f \}
+                 \cup \{ i \notin \mathcal{A}^k : g_i < -\epsilon_g \},
+    $$
+
+    a closed node opening when its patch force is tensile (below ``-force_tol`` times
+    the mean |patch force| $\bar f$), an open node closing when it penetrates by more
+    than ``gap_tol``.  Stops when the set no longer changes (a cycle closes the union
+    of the cycling sets); returns (solution, active set, iterations).
+    """
+    active = active0.copy()
+    seen = {active.tobytes()}
+    for its in range(1, max_iter + 1):
+        sol = solve_with(active)
+        pf = patch_force(sol)
+        fscale = max(float(np.mean(np.abs(pf))), 1e-300)
+        g = gap(sol)
+        new = (active & (pf > -force_tol * fscale)) | (~active & (g < -gap_tol))
+        if np.array_equal(new, active):
+            return sol, active, its
+        if new.tobytes() in seen:
+            # a cycle (a node chattering at the contact edge within tolerance):
+            # close the union, which admits no penetration, and stop
+            active = active | new
+            return solve_with(active), active, its + 1
+        seen.add(new.tobytes())
+        active = new
+    raise SolverError(f"contact active set did not settle in {max_iter} iterations")

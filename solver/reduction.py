@@ -1,0 +1,181 @@
+r"""Constraints by elimination: u = P ū + u_D, the reduced system PᵀAP ū = −PᵀA u_D, MUMPS LU.
+
+Dirichlet conditions (mm): u = 0 on the chest wall z = 0; u = (0, 0, −δ) on the
+probe top (bonded to the rigid plate, which moves down by δ); u·n = 0 on the
+symmetry planes x = 0, y = 0 of the quarter model.  The interface ties the
+normal component of every active pair (all three components for ``bonded``):
+a tied tissue value copies its probe partner.
+
+All of them are imposed by elimination.  With the free unknowns ū, the prescribed
+values u_D and the 0/1 matrix P that copies each free unknown to the flat dofs it
+stands for,
+
+$$
+u = P \bar u + u_D, \qquad
+P^{T} (A + S) P \, \bar u = -P^{T} (A + S) \, u_D ,
+$$
+
+A the stiffness matrix of a(u, v) (mN/mm) and S the optional friction spring
+(:class:`elastimap.solver.interface.Friction`).  The reduced matrix keeps A's symmetry
+and is factorised with MUMPS LU; the nodal reaction is r = A u (mN).
+"""
+
+from __future__ import annotations
+
+from . import _boot  # noqa: F401  (must precede dolfinx)
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from .errors import SolverError
+from .interface import Interface
+from .space import Space
+
+
+@dataclass
+class Solution:
+    u: np.ndarray          # all nodal values (mm), flat (3 per node)
+    reaction: np.ndarray   # internal nodal force r (mN), flat: A u (linear) or R(u) (finite strain)
+    iterations: int        # linear solves (or active-set iterations) that produced it
+
+
+class Reduction:
+    """The map u = P ū + u_D for a loading δ and a set of closed interface pairs.
+
+    P depends on the active set only (u_D on δ too); it is rebuilt, and the reduced
+    pattern with it, when the set changes.
+    """
+
+    def __init__(self, space: Space, interface: Interface, tied_components: tuple[int, ...]):
+        self.space, self.interface, self.tied = space, interface, tied_components
+        self._P = None
+        self._Psp = None
+        self._key = None
+        self._K = None
+
+    def constraints(self, delta: float, active: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Column of every flat dof in ū (−1 for prescribed), the prescribed values u_D and the prescribed mask."""
+        s = self.space
+        n = s.ndofs
+        fixed = np.zeros(n, dtype=bool)
+        uD = np.zeros(n)
+        for comp in range(3):
+            fixed[3 * s.bottom + comp] = True
+            fixed[3 * s.top + comp] = True
+        uD[3 * s.top + 2] = -delta
+        fixed[3 * s.sym_x + 0] = True
+        fixed[3 * s.sym_y + 1] = True
+        master = np.arange(n)
+        for comp in self.tied:
+            sl = 3 * self.interface.pair_tissue[active] + comp
+            m = 3 * self.interface.pair_probe[active] + comp
+            fixed[sl] |= fixed[m]
+            master[sl[~fixed[sl]]] = m[~fixed[sl]]
+        free = ~fixed & (master == np.arange(n))
+        col = np.full(n, -1, dtype=np.int64)
+        col[free] = np.arange(np.count_nonzero(free))
+        slave = ~fixed & ~free
+        col[slave] = col[master[slave]]
+        return col, uD, fixed
+
+    def operator(self, delta: float, active: np.ndarray):
+        """(P as PETSc, P as scipy CSR, u_D, new_pattern) for this active set, cached by the set."""
+        key = active.tobytes()
+        col, uD, _fixed = self.constraints(delta, active)
+        if self._key == key:
+            return self._P, self._Psp, uD, False
+        n = len(col)
+        rows = np.flatnonzero(col >= 0)
+        nfree = int(col.max()) + 1
+        Pcsr = sp.csr_matrix((np.ones(len(rows)), (rows, col[rows])), shape=(n, nfree))
+        if self._P is not None:
+            self._P.destroy()
+        self._P = PETSc.Mat().createAIJ(size=(n, nfree), csr=(Pcsr.indptr.astype(PETSc.IntType),
+                                                              Pcsr.indices.astype(PETSc.IntType), Pcsr.data),
+                                        comm=MPI.COMM_SELF)
+        self._P.assemble()
+        self._Psp = Pcsr
+        self._key = key
+        return self._P, Pcsr, uD, True
+
+    def reduce(self, A: PETSc.Mat, Pm: PETSc.Mat, Psp: sp.csr_matrix, uD: np.ndarray, new_pattern: bool,
+               friction: tuple[sp.csr_matrix, PETSc.Mat] | None = None) -> tuple[PETSc.Mat, PETSc.Vec, bool]:
+        r"""The reduced system $K = P^{T} (A + S) P$, $f = -P^{T} (A + S) u_D$ and whether K has a new pattern.
+
+        K is kept between calls: with an unchanged active set and no friction only its
+        values are recomputed (so the LU reuses its symbolic factorisation).
+        """
+        if new_pattern or friction is not None:
+            # with friction K gets the extra Pᵀ S P pattern, so it is rebuilt from PᵀAP each time
+            if self._K is not None:
+                self._K.destroy()
+            self._K = A.ptap(Pm)
+            new_pattern = True
+        else:
+            A.ptap(Pm, result=self._K)
+        K = self._K
+        vD = PETSc.Vec().createWithArray(uD, comm=MPI.COMM_SELF)
+        AuD = A.createVecLeft()
+        A.mult(vD, AuD)
+        f = K.createVecRight()
+        Pm.multTranspose(AuD, f)
+        if friction is not None:
+            S, Sm = friction
+            K.axpy(1.0, Sm, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
+            f.getArray()[:] += Psp.T @ (S @ uD)
+        f.scale(-1.0)
+        vD.destroy()
+        AuD.destroy()
+        return K, f, new_pattern
+
+    def expand(self, Pm: PETSc.Mat, ubar: PETSc.Vec, uD: np.ndarray) -> np.ndarray:
+        """All nodal values u = P ū + u_D (flat numpy array)."""
+        u_vec = Pm.createVecLeft()
+        Pm.mult(ubar, u_vec)
+        u = u_vec.getArray().copy() + uD
+        u_vec.destroy()
+        return u
+
+    def destroy(self) -> None:
+        for obj in (self._P, self._K):
+            if obj is not None:
+                obj.destroy()
+        self._P = self._K = None
+
+
+class LU:
+    """Direct solve K x = f with MUMPS; the symbolic factorisation is kept while K's pattern is."""
+
+    def __init__(self, name: str = "lu"):
+        self.ksp = PETSc.KSP().create(MPI.COMM_SELF)
+        self.ksp.setType("preonly")
+        pc = self.ksp.getPC()
+        pc.setType("lu")
+        pc.setFactorSolverType("mumps")
+        prefix = f"elastimap_{id(self)}_{name}_"
+        self.ksp.setOptionsPrefix(prefix)
+        PETSc.Options()[f"{prefix}mat_mumps_icntl_14"] = 80  # workspace margin (%)
+        self.ksp.setFromOptions()
+
+    def solve(self, K: PETSc.Mat, f: PETSc.Vec, new_pattern: bool) -> PETSc.Vec:
+        ksp = self.ksp
+        if new_pattern:
+            ksp.reset()  # new constraint set: new symbolic factorisation
+        ksp.setOperators(K)  # same pattern as last time: numeric refactorisation only
+        ksp.setFromOptions()
+        x = K.createVecRight()
+        ksp.solve(f, x)
+        reason = ksp.getConvergedReason()
+        if reason < 0:
+            x.destroy()
+            raise SolverError(f"linear solve failed (PETSc reason {reason})")
+        return x
+
+    def destroy(self) -> None:
+        if self.ksp is not None:
+            self.ksp.destroy()
+            self.ksp = None
