@@ -19,7 +19,7 @@ then **split along the probe footprint**: the probe's cells get their own
 copies of the footprint nodes.  The result is one mesh with two disconnected
 bodies whose footprint nodes coincide pairwise; the interface conditions
 (tied normal, unilateral contact, bonded) are imposed on those node pairs by
-:mod:`elastimap.solver.fem`.
+:mod:`elastimap.solver.interface` and :mod:`elastimap.solver.reduction`.
 
 Mesh size is a function of position: ``h0`` inside the probe and the upper
 tissue under it, ``h_inc`` on and near the inclusion, growing linearly with

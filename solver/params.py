@@ -41,7 +41,7 @@ class Tissue:
     skin_thickness: float = 0.0  # mm; > 0 adds a bonded skin layer of modulus skin_E (effect switch)
     skin_E: float = 5.0          # kPa
     # effect switch: 0 = linear elastic (default); 1 = compressible neo-Hookean finite strain for
-    # the tissue, skin and inclusion; in between the stored energy is blended (solver/fem.py)
+    # the tissue, skin and inclusion; in between the stored energy is blended (solver/materials.py)
     nonlinearity: float = 0.0
 
 
@@ -102,7 +102,7 @@ class Discretisation:
     interface: str = "tied"
     symmetry: str = "quarter"
     # effect switch: tangential probe-tissue interface stiffness k_t (kPa/mm) of the tied/contact
-    # interface; 0 = frictionless (default), -> infinity approaches ``bonded`` (solver/fem.py)
+    # interface; 0 = frictionless (default), -> infinity approaches ``bonded`` (solver/interface.py)
     friction_kt: float = 0.0
 
 
