@@ -225,7 +225,7 @@ def plot_calibration(cal: Calibration, path: str | os.PathLike) -> None:
 
     fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
     cam_units = {"O1": "FS", "O2": "FS mm²", "O3": "mm²"}
-    fem_units = {"O1": "mm", "O2": "mm", "O3": "mm²"}
+    fem_units = {k: u.replace("^2", "²") for k, u in FEM_UNITS.items()}
     for j, (k, ax) in enumerate(zip(FEATURES, axes)):
         f = cal.fits[k]
         x, y = cal.cam[:, j], cal.fem[:, j]

@@ -20,8 +20,6 @@ import numpy as np
 from elastimap.cli_util import run
 from elastimap.errors import UserError
 
-FEAT = ("O1", "O2", "O3")
-
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
     click.echo(f"warning: {message}", err=True)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from elastimap.dataset.schema import DESIGN_BOX, TARGETS, THICKNESS
+from elastimap.dataset.schema import DESIGN_BOX, THICKNESS
 
 from .measure import Data, ShapePCA, feature_inputs
 

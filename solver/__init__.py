@@ -6,8 +6,7 @@ when a solve runs, so ``elastimap.solver.params``, ``elastimap.solver.image`` an
 """
 
 from .errors import SolverError
-from .params import (Discretisation, ImageSpec, Inclusion, Loading, Probe, SolveParams, SolveResult,
-                     Tissue, depth_range)
+from .params import Discretisation, ImageSpec, Inclusion, Loading, Probe, SolveParams, SolveResult, Tissue, depth_range
 
 __all__ = ["solve", "warmup", "SolverError", "SolveParams", "SolveResult", "Inclusion", "Tissue", "Probe",
            "Loading", "Discretisation", "ImageSpec", "depth_range"]

@@ -34,6 +34,8 @@ import time
 
 from . import _boot  # noqa: F401  (must precede dolfinx)
 
+# isort: split
+
 import numpy as np
 import ufl
 from dolfinx import fem

@@ -22,10 +22,13 @@ from dataclasses import dataclass
 
 from . import _boot  # noqa: F401
 
+# isort: split
+
 import numpy as np
 import scipy.sparse as sp
 import ufl
-from dolfinx import fem, mesh as dmesh
+from dolfinx import fem
+from dolfinx import mesh as dmesh
 from dolfinx.fem import petsc as fpetsc
 from mpi4py import MPI
 from petsc4py import PETSc

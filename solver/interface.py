@@ -23,10 +23,13 @@ from __future__ import annotations
 
 from . import _boot  # noqa: F401  (must precede dolfinx)
 
+# isort: split
+
 import numpy as np
 import scipy.sparse as sp
 import ufl
-from dolfinx import fem, mesh as dmesh
+from dolfinx import fem
+from dolfinx import mesh as dmesh
 from dolfinx.fem import petsc as fpetsc
 from mpi4py import MPI
 from petsc4py import PETSc

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from . import _boot  # noqa: F401  (must precede dolfinx)
 
+# isort: split
+
 import numpy as np
 import ufl
 from dolfinx import fem

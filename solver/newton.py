@@ -26,6 +26,8 @@ from __future__ import annotations
 
 from . import _boot  # noqa: F401  (must precede dolfinx)
 
+# isort: split
+
 import os
 
 import numpy as np

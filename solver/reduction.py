@@ -24,6 +24,8 @@ from __future__ import annotations
 
 from . import _boot  # noqa: F401  (must precede dolfinx)
 
+# isort: split
+
 from dataclasses import dataclass
 
 import numpy as np

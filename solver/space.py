@@ -21,10 +21,13 @@ from __future__ import annotations
 
 from . import _boot  # noqa: F401  (must precede dolfinx)
 
+# isort: split
+
 import basix.ufl
 import numpy as np
 import ufl
-from dolfinx import fem, mesh as dmesh
+from dolfinx import fem
+from dolfinx import mesh as dmesh
 from mpi4py import MPI
 
 from .geometry import PROBE_LAYER0, RawMesh
