@@ -90,7 +90,7 @@ def test_image_model_save_load_predict(tmp_path):
 def test_cli_bad_options_exit_2(args, param):
     import subprocess
     import sys
-    r = subprocess.run([sys.executable, "-m", "elastimap.identify.imagenet", *args], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "elastimap.workflows.studies.imagenet", *args], capture_output=True, text=True)
     assert r.returncode == 2
     assert r.stderr.startswith("error: ") and param in r.stderr and len(r.stderr.strip().splitlines()) == 1
 

@@ -75,7 +75,7 @@ def test_map_roundtrip_and_bad_files(tmp_path):
 
 
 def test_shipped_default_map_says_what_the_study_measured():
-    """The shipped map (python -m elastimap.identify.crbmap on the default 512-sample sweep, FD-scaled): E is far
+    """The shipped map (python -m elastimap.workflows.studies.crbmap on the default 512-sample sweep, FD-scaled): E is far
     better determined by the whole image than by three features, and d, h are identifiable from the
     image over almost the whole box (docs/identifiability.md)."""
     m = IdentifiabilityMap.load(DEFAULT_MAP)
@@ -205,7 +205,7 @@ def test_cli_infer_fem_image_prints_non_identifiable_as_interval(tmp_path):
 
 
 def test_region_score_coverage_of_reported_intervals():
-    from elastimap.identify.region_score import coverage
+    from elastimap.workflows.studies.region_score import coverage
 
     m = _map()
     theta = np.vstack([_theta(8, 0.5, 20.0), _theta(8, 0.5, 150.0), _theta(10, 0.3, 15.0)])
@@ -220,7 +220,7 @@ def test_region_score_coverage_of_reported_intervals():
 
 
 def test_mapcheck_compare_counts_dangerous_disagreements():
-    from elastimap.identify.mapcheck import compare
+    from elastimap.workflows.studies.mapcheck import compare
 
     fd = np.array([[0.05, 0.02, 0.05], [0.05, 0.02, 0.50], [0.20, 0.02, 0.08]])
     mp = np.array([[0.10, 0.02, 0.04], [0.05, 0.04, 0.09], [0.40, 0.01, 0.20]])
