@@ -133,3 +133,20 @@ def test_shared_noise_predictions_put_one_noisy_image_through_every_network():
     assert ps.shape == p.shape == (2, 30, 3) and np.isfinite(ps).all()
     assert not np.allclose(ps, p)                       # a different (single) noise draw than each repeat's own
     assert run_image_validation(data, "scg", "loocv", 1, cfg, k=3, image_noise=0.0).extra["pred_shared_noise"] is None
+
+
+@pytest.mark.parametrize("name", ["global_cv", "fd_check", "fdgrid", "crbmap", "mapcheck", "imagenet",
+                                  "region_score", "refine"])
+def test_every_study_is_a_click_main_with_help(name):
+    """The studies live in elastimap.workflows.studies, each a click command ``main`` with -h."""
+    import importlib
+
+    import click
+    from click.testing import CliRunner
+
+    mod = importlib.import_module(f"elastimap.workflows.studies.{name}")
+    assert isinstance(mod.main, click.Command)
+    r = CliRunner().invoke(mod.main, ["-h"])
+    assert r.exit_code == 0 and "Usage" in r.output
+    if name == "crbmap":
+        assert "--install" in r.output

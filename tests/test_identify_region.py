@@ -229,3 +229,26 @@ def test_mapcheck_compare_counts_dangerous_disagreements():
     assert c["E"]["fd_identifiable"] == 2 and c["E"]["agree"] == pytest.approx(100 / 3)
     assert c["d"]["conservative"] == 100 and c["d"]["median"] == pytest.approx(2.0)
     assert c["h"]["min"] == pytest.approx(0.5) and c["h"]["false_identifiable"] == 0
+
+
+def test_crbmap_install_writes_the_map_inference_reads(tmp_path):
+    """``crbmap --install`` path: the map file is checked, then replaces the destination atomically;
+    a file that is not a map leaves the destination as it was."""
+    from elastimap.workflows.studies.crbmap import check_install_target, install_map
+
+    src, dest = tmp_path / "crb_grid.npz", tmp_path / "maps" / "default.npz"
+    dest.parent.mkdir()
+    _map().save(src)
+    assert install_map(str(src), str(dest)) == str(dest)
+    got = IdentifiabilityMap.load(dest)
+    np.testing.assert_array_equal(got.relstd["image"], _map().relstd["image"])
+    assert got.source == "SYNTHETIC"
+    before = dest.read_bytes()
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, x=np.zeros(3))
+    with pytest.raises(UserError, match="not an identifiability map"):
+        install_map(str(bad), str(dest))
+    assert dest.read_bytes() == before and sorted(p.name for p in dest.parent.iterdir()) == ["default.npz"]
+    with pytest.raises(UserError, match="--install"):
+        check_install_target(str(tmp_path / "missing" / "default.npz"))
+    assert check_install_target(None) == DEFAULT_MAP      # the shipped map's folder is writable in a checkout
