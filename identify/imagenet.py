@@ -33,8 +33,17 @@ import torch
 
 from elastimap.errors import UserError
 from elastimap.training.data import TARGETS, UNITS, prepare
-from elastimap.training.experiment import (METRICS, TrainConfig, ValidationResult, make_batch, predict_scaled, rng_for,
-                                 split_rows, summarize, train_batch)
+from elastimap.training.experiment import (
+    METRICS,
+    TrainConfig,
+    ValidationResult,
+    make_batch,
+    predict_scaled,
+    rng_for,
+    split_rows,
+    summarize,
+    train_batch,
+)
 from elastimap.training.model import Ensemble
 from elastimap.training.net import Arch
 from elastimap.training.problem import NetObjective, mapminmax_apply, mapminmax_fit, mapminmax_reverse
@@ -229,7 +238,7 @@ class ImageModel:
         return directory
 
     @classmethod
-    def load(cls, directory: str) -> "ImageModel":
+    def load(cls, directory: str) -> ImageModel:
         p = os.path.join(directory, PCA_FILE)
         if not os.path.isfile(p):
             raise UserError("model", f"{directory} is not an image model (missing {PCA_FILE})")

@@ -57,7 +57,7 @@ class Data:
     def n(self) -> int:
         return self.theta.shape[0]
 
-    def subset(self, mask) -> "Data":
+    def subset(self, mask) -> Data:
         m = np.asarray(mask)
         return Data(self.theta[m], self.features[m], self.images[m], self.dforce[m], self.force_ref[m],
                     self.tags[m], self.ids[m], self.shape, self.pixel, self.source)
@@ -112,7 +112,7 @@ class ShapePCA:
     explained: np.ndarray     # (K-1,) explained variance ratio of the shapes
 
     @classmethod
-    def fit(cls, images: np.ndarray, k: int = 10) -> "ShapePCA":
+    def fit(cls, images: np.ndarray, k: int = 10) -> ShapePCA:
         if k < 2:
             raise UserError("--pca", f"need at least 2 inputs (log peak + 1 component), got {k}")
         S = _shapes(images)
@@ -135,7 +135,7 @@ class ShapePCA:
         return {"mean": self.mean.tolist(), "components": self.components.tolist(), "explained": self.explained.tolist()}
 
     @classmethod
-    def from_json(cls, d: dict) -> "ShapePCA":
+    def from_json(cls, d: dict) -> ShapePCA:
         return cls(np.asarray(d["mean"], float), np.asarray(d["components"], float), np.asarray(d["explained"], float))
 
 

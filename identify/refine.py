@@ -42,8 +42,8 @@ the held-out study that chose the defaults and :data:`INTERVAL_SCALE` is
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -61,7 +61,7 @@ THICKNESS = 20.0
 
 
 def h_range(d: float, thickness: float = THICKNESS) -> tuple[float, float]:
-    from elastimap.solver.params import depth_range   # pure python, no DOLFINx
+    from elastimap.solver.params import depth_range  # pure python, no DOLFINx
 
     return depth_range(float(d), thickness)
 
@@ -251,8 +251,8 @@ def refine_rsm(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], 
         best = None
         for z0 in (np.zeros(3), Z[int(np.argmin((M * M).sum(1)))]):
             z0 = np.clip(z0, zlo + 1e-9, zhi - 1e-9)
-            sol = least_squares(lambda z: _quad_features(z)[0] @ C, z0, jac=lambda z: (_quad_grad(z).T @ C).T,
-                                bounds=(zlo, zhi), method="trf")
+            sol = least_squares(lambda z, C=C: _quad_features(z)[0] @ C, z0,
+                                jac=lambda z, C=C: (_quad_grad(z).T @ C).T, bounds=(zlo, zhi), method="trf")
             if best is None or sol.cost < best.cost:
                 best = sol
         zs = best.x

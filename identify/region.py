@@ -60,7 +60,7 @@ class IdentifiabilityMap:
 
     # ------------------------------------------------------------------ io
     @classmethod
-    def load(cls, path: str | os.PathLike | None = None) -> "IdentifiabilityMap":
+    def load(cls, path: str | os.PathLike | None = None) -> IdentifiabilityMap:
         p = str(path) if path else DEFAULT_MAP
         if not os.path.isfile(p):
             raise UserError("identifiability", f"{p}: no such map file (make one with python -m elastimap.workflows.studies.crbmap)")

@@ -21,7 +21,7 @@ def _synthetic_data(n: int = 48, seed: int = 0, phantoms: int = 6) -> Data:
     width = 0.5 * d + 0.3 * h
     images = amp[:, None] * np.exp(-r2[None] / (2 * width[:, None] ** 2))
     feats = np.column_stack([amp, images.sum(1), (images > 0.5 * amp[:, None]).sum(1) + 1.0])
-    tags = np.array(["phantom:p%d" % i if i < phantoms else "design" for i in range(n)])
+    tags = np.array([f"phantom:p{i}" if i < phantoms else "design" for i in range(n)])
     ids = np.array([f"s{i:04d}" for i in range(n)])
     return Data(theta=np.column_stack([d, h, E]), features=feats, images=images, dforce=amp * 100,
                 force_ref=np.full(n, 1400.0), tags=tags, ids=ids, shape=(12, 12), pixel=0.5, source="SYNTHETIC")

@@ -150,9 +150,10 @@ def test_camera_difference_image_maps_onto_the_fem_grid():
 
 
 def test_image_model_inference_from_fem_images(tmp_path):
+    from test_identify import _synthetic_data
+
     from elastimap.camera.infer import estimate, estimate_fem_images, load_model
     from elastimap.identify.imagenet import fit_image_model
-    from test_identify import _synthetic_data
     from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data()
@@ -177,8 +178,9 @@ def test_cli_infer_fem_image_prints_non_identifiable_as_interval(tmp_path):
     import subprocess
     import sys
 
-    from elastimap.identify.imagenet import fit_image_model
     from test_identify import _synthetic_data
+
+    from elastimap.identify.imagenet import fit_image_model
     from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data()

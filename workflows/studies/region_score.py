@@ -25,7 +25,6 @@ import numpy as np
 
 from elastimap.cli_util import run
 from elastimap.errors import UserError
-
 from elastimap.identify.region import SETS
 
 
@@ -111,8 +110,8 @@ def coverage(pred: np.ndarray, theta: np.ndarray, idm, mset: str, threshold: flo
     out = {}
     for j, name in enumerate(("d", "h", "E")):
         f = ~a.identifiable[:, j]
-        pct = lambda m: float(100 * inside[m, j].mean()) if m.any() else float("nan")   # noqa: E731
-        med = lambda m: float(np.median(ratio[m, j])) if m.any() else float("nan")      # noqa: E731
+        pct = lambda m, j=j: float(100 * inside[m, j].mean()) if m.any() else float("nan")
+        med = lambda m, j=j: float(np.median(ratio[m, j])) if m.any() else float("nan")
         out[name] = {"n_flagged": int(f.sum()), "cover_flagged": pct(f), "cover_rest": pct(~f),
                      "width_flagged": med(f), "width_rest": med(~f)}
     return out
