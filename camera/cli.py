@@ -197,7 +197,7 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
 @main.command()
 @click.option("--model", "model_dir", type=click.Path(), required=True,
               help="Trained model directory: a feature ensemble (train) or an image model "
-                   "(python -m elastimap.identify.imagenet --save-model).")
+                   "(python -m elastimap.workflows.studies.imagenet --save-model).")
 @click.option("--calibration", type=click.Path(dir_okay=False), default=None,
               help="FEM<->camera calibration (calibrate); needed for camera features and frames.")
 @click.option("--features", "feats", type=float, nargs=3, default=None, help="Camera features O1 O2 O3.")
@@ -209,7 +209,7 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
               help="Image model only: .npy FEM difference image(s), mm, shape (ny, nx) or (n, ny, nx) on the "
                    "sweep's grid (no calibration needed).")
 @click.option("--identifiability", default="default", show_default=True,
-              help="Identifiability map (crb_grid.npz of python -m elastimap.identify.crbmap), 'default' (shipped, "
+              help="Identifiability map (crb_grid.npz of python -m elastimap.workflows.studies.crbmap), 'default' (shipped, "
                    "default 512-sample sweep) or 'none'.")
 @click.option("--threshold", default=0.10, show_default=True, type=float,
               help="Cramér–Rao relative std above which an output is flagged non-identifiable.")

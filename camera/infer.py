@@ -31,7 +31,7 @@ never silently extrapolated: every estimate carries ``flags``:
 Every estimate carries ``lo``/``hi``: the bound's approximate 95 % interval
 widened to the ensemble's 10-90 % range (a bound: real errors can be larger).
 
-Image models (``python -m elastimap.identify.imagenet --save-model DIR``) take a FEM
+Image models (``python -m elastimap.workflows.studies.imagenet --save-model DIR``) take a FEM
 difference image (:func:`estimate_fem_images`) or camera frames
 (:func:`estimate_images`), which are mapped to the FEM image grid by
 :func:`fem_image_from_camera` (shape resampled by position, peak through the
@@ -215,7 +215,7 @@ def estimate_fem_images(images, model, ids: list[str] | None = None, identifiabi
 
     if not _is_image_model(model):
         raise UserError("model", "a feature model takes features or camera frames, not a FEM image; "
-                                 "use an image model (python -m elastimap.identify.imagenet --save-model DIR)")
+                                 "use an image model (python -m elastimap.workflows.studies.imagenet --save-model DIR)")
     if model.force:
         raise UserError("model", "this image model also needs the plate force; inference from images alone "
                                  "needs a model trained without --force")

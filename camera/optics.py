@@ -263,3 +263,32 @@ def render_pair(model: SensorModel, image_raw: np.ndarray, image_diff: np.ndarra
     bg = model.render(background_deflection(image_raw, image_diff), pixel, frames, rng)
     return lesion, bg
 
+
+def deflection_noise_map(background: np.ndarray, pixel: float, frames: int = 30, sensor=None) -> np.ndarray:
+    """Deflection-equivalent noise (mm) per image pixel of the SYNTHETIC camera difference image.
+
+    Linearised at the background deflection ``w``: per binned camera pixel the electron count is
+    ``e = b² FW L (stray + level s(w))`` with variance ``noise_scale² (e + b² read²)``;
+    ``de/dw = b² FW L level exp(-w / w_sat) / w_sat``.  The lesion and background frame means
+    (``frames`` each) are differenced (variance x 2 / frames) and the camera pixels falling in
+    one image pixel averaged.  Returns an array of the image's shape (mm), usable as the
+    ``sigma_map`` of :func:`elastimap.identify.measure.add_image_noise` and
+    :class:`elastimap.identify.local.NoiseSpec`.
+    """
+    s = (sensor or SensorModel()).validate()
+    bg = np.asarray(background, dtype=float)
+    w = s.deformation_on_frame(bg, pixel)
+    r0, c0, n = s.window
+    w = w[r0:r0 + n, c0:c0 + n]
+    L = s.illumination()[r0:r0 + n, c0:c0 + n]
+    b2fw = s.binning ** 2 * s.full_well_e
+    e = b2fw * L * (s.stray + s.level * s.scatter(w))
+    var_e = s.noise_scale ** 2 * (e + s.binning ** 2 * s.read_noise_e ** 2)
+    dedw = b2fw * L * s.level * np.exp(-np.clip(w, 0, None) / s.w_sat) / s.w_sat
+    var_w = var_e / dedw ** 2 * 2.0 / frames
+    ny, nx = bg.shape
+    fy, fx = n // ny, n // nx
+    if fy * ny != n or fx * nx != n:
+        raise UserError("pixel", f"camera window of {n} pixels is not a multiple of the image's {ny} x {nx}")
+    var_img = var_w.reshape(ny, fy, nx, fx).mean(axis=(1, 3)) / (fy * fx)
+    return np.sqrt(var_img)

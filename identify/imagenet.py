@@ -33,8 +33,17 @@ import torch
 
 from elastimap.errors import UserError
 from elastimap.training.data import TARGETS, UNITS, prepare
-from elastimap.training.experiment import (METRICS, TrainConfig, ValidationResult, make_batch, predict_scaled, rng_for,
-                                 split_rows, summarize, train_batch)
+from elastimap.training.experiment import (
+    METRICS,
+    TrainConfig,
+    ValidationResult,
+    make_batch,
+    predict_scaled,
+    rng_for,
+    split_rows,
+    summarize,
+    train_batch,
+)
 from elastimap.training.model import Ensemble
 from elastimap.training.net import Arch
 from elastimap.training.problem import NetObjective, mapminmax_apply, mapminmax_fit, mapminmax_reverse
@@ -229,7 +238,7 @@ class ImageModel:
         return directory
 
     @classmethod
-    def load(cls, directory: str) -> "ImageModel":
+    def load(cls, directory: str) -> ImageModel:
         p = os.path.join(directory, PCA_FILE)
         if not os.path.isfile(p):
             raise UserError("model", f"{directory} is not an image model (missing {PCA_FILE})")
@@ -275,110 +284,3 @@ def fit_image_model(data: Data, algo: str = "scg", repeats: int = 10, cfg: Train
                    target_names=TARGETS, units=units, feature_range=np.stack([X0.min(0), X0.max(0)]),
                    target_range=np.stack([T.min(0), T.max(0)]), meta=meta)
     return ImageModel(ens, pca, force, tuple(data.shape), float(data.pixel), log_e)
-
-
-# ----------------------------------------------------------------------------- command line
-def _cli():
-    import click
-
-    @click.command(context_settings={"help_option_names": ["-h", "--help"]})
-    @click.option("--data", "data_path", default="data/sweep512", show_default=True,
-                  help="Sweep directory with stored elasticity images.")
-    @click.option("--algo", default="scg", show_default=True, help="scg, lm or scg,lm.")
-    @click.option("--validate", default="hov", show_default=True,
-                  help="hov, loocv, hov,loocv, or none (only --save-model).")
-    @click.option("--repeats", default=10, show_default=True, type=int)
-    @click.option("--k", "k", default=10, show_default=True, type=int,
-                  help="Inputs from the image: ln(peak) and k-1 shape-PCA scores.")
-    @click.option("--force", is_flag=True, help="Add the plate-force difference 100 dF/F_ref as an input.")
-    @click.option("--image-noise", default=0.01, show_default=True, type=float,
-                  help="Per-pixel Gaussian noise, relative to each image's peak, drawn per repeat.")
-    @click.option("--log-e", "log_e", is_flag=True,
-                  help="The network learns ln E instead of E (metrics still on E; algo row '<algo>-image-lnE').")
-    @click.option("--epochs", default=100, show_default=True, type=int)
-    @click.option("--workers", default=0, show_default=True, type=int, help="Training processes (0 = one per core).")
-    @click.option("--float32", "float32", is_flag=True, help="Single precision.")
-    @click.option("--seed", default=0, show_default=True, type=int)
-    @click.option("--out", default="runs/image-inverse", show_default=True, help="Output directory.")
-    @click.option("--save-model", "save_model", default=None,
-                  help="Also train on every row (first --algo, --repeats initialisations) and save the ensemble "
-                       "here, for `infer --model DIR --fem-image ...` / camera frames.")
-    def main(data_path, algo, validate, repeats, k, force, image_noise, log_e, epochs, workers, float32, seed, out,
-             save_model):
-        """Validate the image-based inverse (image PCA -> the paper's MLP -> d, h, E).
-
-        Same HOV split (the 9 phantom rows), LOOCV folds, seeds, metrics and table layout as
-        `train`, so the rows sit next to the feature MLP's (docs/identifiability.md).
-        """
-        from elastimap.training._perf import set_threads, tune_malloc
-        from elastimap.training.experiment import ALGOS, VALIDATIONS
-        from elastimap.training.report import markdown, table
-
-        from .measure import load
-
-        algos = [a.strip() for a in algo.split(",") if a.strip()]
-        vals = [v.strip() for v in validate.split(",") if v.strip()]
-        if vals == ["none"]:
-            vals = []
-            if not save_model:
-                raise UserError("--validate", "none needs --save-model DIR (otherwise there is nothing to do)")
-        for a in algos:
-            if a not in ALGOS:
-                raise UserError("--algo", f"must be scg and/or lm (got {a!r})")
-        for v in vals:
-            if v not in VALIDATIONS:
-                raise UserError("--validate", f"must be hov and/or loocv (got {v!r})")
-        if repeats < 1:
-            raise UserError("--repeats", f"must be >= 1 (got {repeats})")
-        if not 2 <= k <= 50:
-            raise UserError("--k", f"must be in [2, 50] (got {k})")
-        if not 0 <= image_noise < 1:
-            raise UserError("--image-noise", f"must be in [0, 1) (got {image_noise:g})")
-        if workers < 0:
-            raise UserError("--workers", f"must be >= 0 (got {workers})")
-        tune_malloc()
-        set_threads(1)
-        data = load(data_path)
-        cfg = TrainConfig(epochs=epochs, progress=True, workers=workers,
-                          dtype=torch.float32 if float32 else torch.float64)
-        os.makedirs(out, exist_ok=True)
-        results = []
-        for v in vals:
-            for a in algos:
-                r = run_image_validation(data, a, v, repeats, cfg, seed=seed, k=k, image_noise=image_noise, force=force,
-                                         log_e=log_e)
-                r.row["dtype"] = str(cfg.dtype).replace("torch.", "")
-                results.append(r)
-                # held-out predictions (repeats, rows, 3: d mm, h mm, E kPa; NaN where not a test row)
-                extra = {} if r.extra["pred_shared_noise"] is None else {"pred_shared_noise": r.extra["pred_shared_noise"],
-                                                                         "image_noise": image_noise, "seed": seed}
-                np.savez(os.path.join(out, f"pred-{a}{'-lnE' if log_e else ''}-{v}.npz"), pred=r.extra["pred"],
-                         ids=np.asarray(data.ids, dtype=str), theta=data.theta, **extra)
-                click.echo(f"{a}-image {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s", err=True)
-        if save_model:
-            model = fit_image_model(data, algos[0], repeats, cfg, seed=seed, k=k, force=force, image_noise=image_noise,
-                                    log_e=log_e)
-            os.makedirs(save_model, exist_ok=True)
-            model.save(save_model)
-            click.echo(f"saved {algos[0]}-image ensemble ({repeats} members, {data.n} rows) to {save_model}", err=True)
-        if not results:
-            return 0
-        df = table(results)
-        df.insert(0, "data", data.source)
-        df.to_csv(os.path.join(out, "results.csv"), index=False)
-        title = (f"Image-based inverse, {data.source} ({data.n} rows), inputs ln(peak) + {k - 1} shape-PCA scores"
-                 f"{' + force' if force else ''}{', target ln E' if log_e else ''}, image noise {image_noise:g} of the peak, {epochs} epochs; "
-                 f"mean [2.5 %, 97.5 %] over {repeats} repeat(s).")
-        md = markdown(df, title)
-        with open(os.path.join(out, "results.md"), "w") as f:
-            f.write(md)
-        click.echo(md)
-        return 0
-
-    return main
-
-
-if __name__ == "__main__":
-    from elastimap.cli_util import run
-
-    run(_cli(), prog_name="python -m elastimap.identify.imagenet")

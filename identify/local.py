@@ -48,7 +48,7 @@ class Surrogate:
     n_feat: int = 3
 
     @classmethod
-    def fit(cls, data: Data, k: int = 16, progress: bool = False) -> "Surrogate":
+    def fit(cls, data: Data, k: int = 16, progress: bool = False) -> Surrogate:
         from sklearn.gaussian_process import GaussianProcessRegressor
         from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
 

@@ -1,4 +1,4 @@
-"""Measurement sets and their noise models (issue 7).
+"""Measurement sets and their noise models.
 
 A *measurement* is what the camera side can deliver for one lesion.  The sets compared are
 
@@ -11,10 +11,9 @@ Image noise models (per pixel, independent Gaussian):
 
 * ``relative`` (default, "1 % image noise"): ``sigma = level * max(image)`` of that image, the
   same for every pixel of one image (``level`` = 0.01);
-* ``camera``: the deflection-equivalent noise of the SYNTHETIC TIR camera
-  (:class:`elastimap.camera.optics.SensorModel`, shot + read noise, ``frames`` frames averaged for the
-  press and for the background press, 2 x 2 camera pixels per image pixel), a fixed map
-  ``sigma(x, y)`` in mm computed at the background deflection (:func:`camera_sigma_map`).
+* a fixed map ``sigma(x, y)`` in mm (``sigma_map``), e.g. the deflection-equivalent noise of the
+  SYNTHETIC TIR camera, :func:`elastimap.camera.optics.deflection_noise_map` (the camera's noise
+  model lives with the camera; this library takes the map as plain data and imports no camera code).
 
 Force noise: ``sigma_dF = force_noise * force_ref * sqrt(2)`` (the press and the reference press
 each read with a relative error ``force_noise`` of the load, default 0.001 = 0.1 % of ~1.4 N).
@@ -58,7 +57,7 @@ class Data:
     def n(self) -> int:
         return self.theta.shape[0]
 
-    def subset(self, mask) -> "Data":
+    def subset(self, mask) -> Data:
         m = np.asarray(mask)
         return Data(self.theta[m], self.features[m], self.images[m], self.dforce[m], self.force_ref[m],
                     self.tags[m], self.ids[m], self.shape, self.pixel, self.source)
@@ -103,36 +102,6 @@ def add_image_noise(images: np.ndarray, level: float, rng: np.random.Generator,
     return images + level * pk * rng.standard_normal(images.shape)
 
 
-def camera_sigma_map(background: np.ndarray, pixel: float, frames: int = 30, sensor=None) -> np.ndarray:
-    """Deflection-equivalent noise (mm) per image pixel of the SYNTHETIC camera difference image.
-
-    Linearised at the background deflection ``w``: per binned camera pixel the electron count is
-    ``e = b² FW L (stray + level s(w))`` with variance ``noise_scale² (e + b² read²)``;
-    ``de/dw = b² FW L level exp(-w / w_sat) / w_sat``.  The lesion and background frame means
-    (``frames`` each) are differenced (variance x 2 / frames) and the camera pixels falling in
-    one image pixel averaged.  Returns an array of the image's shape.
-    """
-    from elastimap.camera.optics import SensorModel
-
-    s = (sensor or SensorModel()).validate()
-    bg = np.asarray(background, dtype=float)
-    w = s.deformation_on_frame(bg, pixel)
-    r0, c0, n = s.window
-    w = w[r0:r0 + n, c0:c0 + n]
-    L = s.illumination()[r0:r0 + n, c0:c0 + n]
-    b2fw = s.binning ** 2 * s.full_well_e
-    e = b2fw * L * (s.stray + s.level * s.scatter(w))
-    var_e = s.noise_scale ** 2 * (e + s.binning ** 2 * s.read_noise_e ** 2)
-    dedw = b2fw * L * s.level * np.exp(-np.clip(w, 0, None) / s.w_sat) / s.w_sat
-    var_w = var_e / dedw ** 2 * 2.0 / frames
-    ny, nx = bg.shape
-    fy, fx = n // ny, n // nx
-    if fy * ny != n or fx * nx != n:
-        raise UserError("pixel", f"camera window of {n} pixels is not a multiple of the image's {ny} x {nx}")
-    var_img = var_w.reshape(ny, fy, nx, fx).mean(axis=(1, 3)) / (fy * fx)
-    return np.sqrt(var_img)
-
-
 # ----------------------------------------------------------------------------- representations
 @dataclass
 class ShapePCA:
@@ -143,7 +112,7 @@ class ShapePCA:
     explained: np.ndarray     # (K-1,) explained variance ratio of the shapes
 
     @classmethod
-    def fit(cls, images: np.ndarray, k: int = 10) -> "ShapePCA":
+    def fit(cls, images: np.ndarray, k: int = 10) -> ShapePCA:
         if k < 2:
             raise UserError("--pca", f"need at least 2 inputs (log peak + 1 component), got {k}")
         S = _shapes(images)
@@ -166,7 +135,7 @@ class ShapePCA:
         return {"mean": self.mean.tolist(), "components": self.components.tolist(), "explained": self.explained.tolist()}
 
     @classmethod
-    def from_json(cls, d: dict) -> "ShapePCA":
+    def from_json(cls, d: dict) -> ShapePCA:
         return cls(np.asarray(d["mean"], float), np.asarray(d["components"], float), np.asarray(d["explained"], float))
 
 

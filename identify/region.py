@@ -2,7 +2,7 @@
 
 The map holds, on the grid of :func:`elastimap.identify.local.grid` (d, depth fraction u, E), the Cramér–Rao
 relative standard deviation ``r_q = sqrt(C_qq) / q`` (``C = F⁻¹``, ``F`` the Fisher information of
-the measurement set under the camera noise of :mod:`elastimap.identify.crbmap`) of each output
+the measurement set under the camera noise of :mod:`elastimap.workflows.studies.crbmap`) of each output
 ``q ∈ {d, h, E}``.  ``r_q`` is a *lower* bound on the relative error of any unbiased estimator at
 that point, so
 
@@ -19,8 +19,9 @@ outside the map's box are flagged ``outside_identifiability_map`` and evaluated 
 point of the box.  Depth fraction ``u = (h - h_lo(d)) / (h_hi(d) - h_lo(d))`` with
 :func:`elastimap.solver.params.depth_range` (pure Python; no DOLFINx).
 
-Maps come from ``python -m elastimap.identify.crbmap`` (file ``crb_grid.npz``); the package ships the one
-measured on the default 512-sample sweep (``identify/maps/default.npz``), used when none is given.
+Maps come from ``python -m elastimap.workflows.studies.crbmap`` (file ``crb_grid.npz``); the package ships the one
+measured on the default 512-sample sweep (:data:`DEFAULT_MAP`, ``identify/maps/default.npz``), used when none
+is given and written by that study's ``--install``.
 """
 
 from __future__ import annotations
@@ -59,10 +60,10 @@ class IdentifiabilityMap:
 
     # ------------------------------------------------------------------ io
     @classmethod
-    def load(cls, path: str | os.PathLike | None = None) -> "IdentifiabilityMap":
+    def load(cls, path: str | os.PathLike | None = None) -> IdentifiabilityMap:
         p = str(path) if path else DEFAULT_MAP
         if not os.path.isfile(p):
-            raise UserError("identifiability", f"{p}: no such map file (make one with python -m elastimap.identify.crbmap)")
+            raise UserError("identifiability", f"{p}: no such map file (make one with python -m elastimap.workflows.studies.crbmap)")
         try:
             z = np.load(p, allow_pickle=False)
             d, u, E = (np.asarray(z[k], float) for k in ("d", "u", "E"))

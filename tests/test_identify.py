@@ -21,7 +21,7 @@ def _synthetic_data(n: int = 48, seed: int = 0, phantoms: int = 6) -> Data:
     width = 0.5 * d + 0.3 * h
     images = amp[:, None] * np.exp(-r2[None] / (2 * width[:, None] ** 2))
     feats = np.column_stack([amp, images.sum(1), (images > 0.5 * amp[:, None]).sum(1) + 1.0])
-    tags = np.array(["phantom:p%d" % i if i < phantoms else "design" for i in range(n)])
+    tags = np.array([f"phantom:p{i}" if i < phantoms else "design" for i in range(n)])
     ids = np.array([f"s{i:04d}" for i in range(n)])
     return Data(theta=np.column_stack([d, h, E]), features=feats, images=images, dforce=amp * 100,
                 force_ref=np.full(n, 1400.0), tags=tags, ids=ids, shape=(12, 12), pixel=0.5, source="SYNTHETIC")
@@ -90,7 +90,7 @@ def test_image_model_save_load_predict(tmp_path):
 def test_cli_bad_options_exit_2(args, param):
     import subprocess
     import sys
-    r = subprocess.run([sys.executable, "-m", "elastimap.identify.imagenet", *args], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "elastimap.workflows.studies.imagenet", *args], capture_output=True, text=True)
     assert r.returncode == 2
     assert r.stderr.startswith("error: ") and param in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
@@ -133,3 +133,20 @@ def test_shared_noise_predictions_put_one_noisy_image_through_every_network():
     assert ps.shape == p.shape == (2, 30, 3) and np.isfinite(ps).all()
     assert not np.allclose(ps, p)                       # a different (single) noise draw than each repeat's own
     assert run_image_validation(data, "scg", "loocv", 1, cfg, k=3, image_noise=0.0).extra["pred_shared_noise"] is None
+
+
+@pytest.mark.parametrize("name", ["global_cv", "fd_check", "fdgrid", "crbmap", "mapcheck", "imagenet",
+                                  "region_score", "refine"])
+def test_every_study_is_a_click_main_with_help(name):
+    """The studies live in elastimap.workflows.studies, each a click command ``main`` with -h."""
+    import importlib
+
+    import click
+    from click.testing import CliRunner
+
+    mod = importlib.import_module(f"elastimap.workflows.studies.{name}")
+    assert isinstance(mod.main, click.Command)
+    r = CliRunner().invoke(mod.main, ["-h"])
+    assert r.exit_code == 0 and "Usage" in r.output
+    if name == "crbmap":
+        assert "--install" in r.output

@@ -50,7 +50,7 @@ def test_grid_respects_depth_range():
 
 
 def test_region_score_splits_rows_by_the_bound():
-    from elastimap.identify.region_score import score
+    from elastimap.workflows.studies.region_score import score
 
     theta = np.array([[5.0, 6.0, 20.0], [8.0, 8.0, 100.0], [10.0, 9.0, 150.0]])
     pred = np.full((2, 3, 3), np.nan)

@@ -75,7 +75,7 @@ def test_map_roundtrip_and_bad_files(tmp_path):
 
 
 def test_shipped_default_map_says_what_the_study_measured():
-    """The shipped map (python -m elastimap.identify.crbmap on the default 512-sample sweep, FD-scaled): E is far
+    """The shipped map (python -m elastimap.workflows.studies.crbmap on the default 512-sample sweep, FD-scaled): E is far
     better determined by the whole image than by three features, and d, h are identifiable from the
     image over almost the whole box (docs/identifiability.md)."""
     m = IdentifiabilityMap.load(DEFAULT_MAP)
@@ -150,9 +150,10 @@ def test_camera_difference_image_maps_onto_the_fem_grid():
 
 
 def test_image_model_inference_from_fem_images(tmp_path):
+    from test_identify import _synthetic_data
+
     from elastimap.camera.infer import estimate, estimate_fem_images, load_model
     from elastimap.identify.imagenet import fit_image_model
-    from test_identify import _synthetic_data
     from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data()
@@ -177,8 +178,9 @@ def test_cli_infer_fem_image_prints_non_identifiable_as_interval(tmp_path):
     import subprocess
     import sys
 
-    from elastimap.identify.imagenet import fit_image_model
     from test_identify import _synthetic_data
+
+    from elastimap.identify.imagenet import fit_image_model
     from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data()
@@ -205,7 +207,7 @@ def test_cli_infer_fem_image_prints_non_identifiable_as_interval(tmp_path):
 
 
 def test_region_score_coverage_of_reported_intervals():
-    from elastimap.identify.region_score import coverage
+    from elastimap.workflows.studies.region_score import coverage
 
     m = _map()
     theta = np.vstack([_theta(8, 0.5, 20.0), _theta(8, 0.5, 150.0), _theta(10, 0.3, 15.0)])
@@ -220,7 +222,7 @@ def test_region_score_coverage_of_reported_intervals():
 
 
 def test_mapcheck_compare_counts_dangerous_disagreements():
-    from elastimap.identify.mapcheck import compare
+    from elastimap.workflows.studies.mapcheck import compare
 
     fd = np.array([[0.05, 0.02, 0.05], [0.05, 0.02, 0.50], [0.20, 0.02, 0.08]])
     mp = np.array([[0.10, 0.02, 0.04], [0.05, 0.04, 0.09], [0.40, 0.01, 0.20]])
@@ -229,3 +231,26 @@ def test_mapcheck_compare_counts_dangerous_disagreements():
     assert c["E"]["fd_identifiable"] == 2 and c["E"]["agree"] == pytest.approx(100 / 3)
     assert c["d"]["conservative"] == 100 and c["d"]["median"] == pytest.approx(2.0)
     assert c["h"]["min"] == pytest.approx(0.5) and c["h"]["false_identifiable"] == 0
+
+
+def test_crbmap_install_writes_the_map_inference_reads(tmp_path):
+    """``crbmap --install`` path: the map file is checked, then replaces the destination atomically;
+    a file that is not a map leaves the destination as it was."""
+    from elastimap.workflows.studies.crbmap import check_install_target, install_map
+
+    src, dest = tmp_path / "crb_grid.npz", tmp_path / "maps" / "default.npz"
+    dest.parent.mkdir()
+    _map().save(src)
+    assert install_map(str(src), str(dest)) == str(dest)
+    got = IdentifiabilityMap.load(dest)
+    np.testing.assert_array_equal(got.relstd["image"], _map().relstd["image"])
+    assert got.source == "SYNTHETIC"
+    before = dest.read_bytes()
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, x=np.zeros(3))
+    with pytest.raises(UserError, match="not an identifiability map"):
+        install_map(str(bad), str(dest))
+    assert dest.read_bytes() == before and sorted(p.name for p in dest.parent.iterdir()) == ["default.npz"]
+    with pytest.raises(UserError, match="--install"):
+        check_install_target(str(tmp_path / "missing" / "default.npz"))
+    assert check_install_target(None) == DEFAULT_MAP      # the shipped map's folder is writable in a checkout

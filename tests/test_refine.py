@@ -87,7 +87,7 @@ def test_bad_input_is_a_user_error():
     with pytest.raises(UserError, match="sigma"):
         refine_rsm(I, -1.0, [8, 7, 60], bump)
     from elastimap.identify.refine import fit
-    with pytest.raises(UserError, match="--method"):
+    with pytest.raises(UserError, match="method"):
         fit(I, 1e-3, [8, 7, 60], bump, method="newton")
 
 
@@ -97,7 +97,7 @@ def test_fem_refinement_on_the_tiny_mesh(tmp_path):
     mesh's remeshing jitter is large (the fit ends ~9 % off in E, 10-15 % with the trust-region
     variant, at a reduced chi² of ~0.1 in units of 1 % of the peak), so
     this checks that the fit moves the right way and reports consistently; accuracy is measured on
-    the default mesh by `python -m elastimap.identify.refine` (docs/identifiability.md)."""
+    the default mesh by `python -m elastimap.workflows.studies.refine` (docs/identifiability.md)."""
     from elastimap.camera.infer import Estimate, refine_estimates
     from elastimap.identify.refine import fem_model
 

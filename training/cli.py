@@ -58,7 +58,7 @@ def train(data, synthetic, algo, validate, repeats, epochs, hidden, activation, 
     """Train and validate the inverse MLP (O1, O2, O3) -> (d, h, E)."""
     import torch
 
-    from ._perf import set_threads, tune_malloc
+    from .perf import set_threads, tune_malloc
     from .api import fit_ensemble
     from .data import data_hash, load_samples, prepare, synthetic_table
     from .experiment import ALGOS, VALIDATIONS, TrainConfig, run_validation

@@ -172,7 +172,7 @@ def chunk_size(algo: str, cfg: TrainConfig, n: int) -> int:
 
 
 def _worker_init(threads: int) -> None:
-    from ._perf import set_threads, tune_malloc
+    from .perf import set_threads, tune_malloc
     tune_malloc()
     set_threads(threads)
 

@@ -1,4 +1,7 @@
-"""Process-level performance settings for long training runs (CLI and benchmark only).
+"""Process-level performance settings for long training runs (public: the CLIs and studies call them).
+
+Call both once at the start of a long training process (``train``, ``training.bench``, the image
+inverse study): ``tune_malloc()`` then ``set_threads(n)``.
 
 Batched training allocates and frees the same few large temporaries every
 epoch.  With glibc's defaults, blocks above the (dynamic) mmap threshold go
@@ -16,6 +19,7 @@ import ctypes.util
 
 
 def tune_malloc() -> bool:
+    """Raise glibc's mmap / trim thresholds (see the module docstring); True when glibc accepted them."""
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
         mallopt = libc.mallopt

@@ -1,6 +1,6 @@
 """Cramér–Rao maps over (d, h, E) from the GP surrogate, checked against real FD Jacobians.
 
-    python -m elastimap.identify.crbmap [--data data/sweep512] [--out docs/figures]
+    python -m elastimap.workflows.studies.crbmap [--data data/sweep512] [--out docs/figures]
 
 Fits :class:`elastimap.identify.local.Surrogate` (one GP per output) to the sweep, takes central-difference
 Jacobians of the surrogate on :func:`elastimap.identify.local.grid` (14 d x 5 depth fractions x 15 E),
@@ -10,24 +10,33 @@ relative, image 1 % of its peak per pixel, force 0.1 % per reading) and writes
 identifiable within 10 %, i.e. CRB relative std <= 10 %, over (d, E)) and ``crb_grid.npz``
 (the identifiability map read by :mod:`elastimap.identify.region` and used by inference).
 
-It also computes the real-FD CRB at the points of :mod:`elastimap.identify.fd_check` (14 cached solves,
-about a minute when not cached) and, when ``--fd-grid`` exists (``python -m elastimap.identify.fdgrid``,
+It also computes the real-FD CRB at the points of :mod:`elastimap.workflows.studies.fd_check` (14 cached solves,
+about a minute when not cached) and, when ``--fd-grid`` exists (``python -m elastimap.workflows.studies.fdgrid``,
 40 more points), at those too, and unless ``--no-fd-scale`` makes the map *conservative*: each
 set's bound of each output is multiplied by the 90th percentile over all FD points of the ratio
 real-FD / surrogate, never by less than 1, so the map is at least as pessimistic as the real FD
 bound at nine points in ten.  The unscaled surrogate bounds are kept in the file as
-``<set>_surrogate``; ``python -m elastimap.identify.mapcheck`` compares the map with the FD grid.
+``<set>_surrogate``; ``python -m elastimap.workflows.studies.mapcheck`` compares the map with the FD grid.
+
+``--install`` also writes the map to the file inference reads when no map is given,
+:data:`elastimap.identify.region.DEFAULT_MAP` (``identify/maps/default.npz`` in the repository),
+through :func:`install_map`: the new file is read back as an
+:class:`~elastimap.identify.region.IdentifiabilityMap` first and then swapped in atomically.  That
+file is the shipped map; regenerate it this way, never by hand.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 
 import click
 import numpy as np
 
 from elastimap.cli_util import run
 from elastimap.dataset.schema import THICKNESS
+from elastimap.errors import UserError
 
 SETS = ("features", "image", "image+force", "two-depths")
 
@@ -55,11 +64,49 @@ def fd_interpolate(theta_fd: np.ndarray, r_fd: np.ndarray, theta: np.ndarray, th
     return np.exp(out)
 
 
-def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_grid: str | None = None):
+def install_map(src: str, dest: str | None = None) -> str:
+    """Copy the map file ``src`` to ``dest`` (default: the shipped map inference reads) after checking
+    that it loads as an identifiability map; the destination is replaced atomically."""
+    from elastimap.identify.region import DEFAULT_MAP, IdentifiabilityMap
+
+    dest = dest or DEFAULT_MAP
+    IdentifiabilityMap.load(src)
+    folder = os.path.dirname(os.path.abspath(dest))
+    fd, tmp = tempfile.mkstemp(suffix=".npz", dir=folder)
+    os.close(fd)
+    try:
+        shutil.copyfile(src, tmp)
+        IdentifiabilityMap.load(tmp)
+        os.replace(tmp, dest)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return dest
+
+
+def check_install_target(dest: str | None = None) -> str:
+    """The install destination, checked before any work: its folder must exist and be writable."""
+    from elastimap.identify.region import DEFAULT_MAP
+
+    dest = dest or DEFAULT_MAP
+    folder = os.path.dirname(os.path.abspath(dest))
+    if not (os.path.isdir(folder) and os.access(folder, os.W_OK)):
+        raise UserError("--install", f"cannot write the shipped map {dest} (folder missing or read-only; "
+                                     "use an editable install of the repository)")
+    return dest
+
+
+def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_grid: str | None = None,
+            install: str | None = None):
+    """Fit, bound and plot (see the module docstring); with ``install`` (a path) the map is also
+    written there by :func:`install_map`.  Returns ``{set: (n_grid, 3)}`` relative std."""
+    if install:
+        check_install_target(install)
+    from elastimap.identify.local import Surrogate, crb_relstd, fisher, grid
+    from elastimap.identify.measure import load
+
     from .fd_check import NOISE as noise
     from .fd_check import POINTS, fd_crb
-    from .local import Surrogate, crb_relstd, fisher, grid
-    from .measure import load
 
     data = load(data_path)
     sur = Surrogate.fit(data, k=k, progress=True)
@@ -111,8 +158,9 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
               f"{npts} FD points)" if fd_scale else "")
            + ("; features entry: real-FD bound interpolated from those points" if use_grid else "")
            + "; Cramér–Rao relative std, noise 1 % features, 1 % of the image peak per pixel, 0.1 % force; "
-             "python -m elastimap.identify.crbmap")
-    np.savez(os.path.join(out, "crb_grid.npz"), theta=T, d=ds, u=us, E=Es, thickness=THICKNESS, source=src,
+             "python -m elastimap.workflows.studies.crbmap")
+    grid_file = os.path.join(out, "crb_grid.npz")
+    np.savez(grid_file, theta=T, d=ds, u=us, E=Es, thickness=THICKNESS, source=src,
              **{s: R[s] for s in SETS}, **{f"{s}_surrogate": R0[s] for s in SETS},
              **{f"scale_{s}": scale[s] for s in SETS})
     import matplotlib
@@ -137,21 +185,27 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
         frac, frac0 = (R[s] <= 0.10).mean(axis=0) * 100, (R0[s] <= 0.10).mean(axis=0) * 100
         click.echo(f"{s:12s} grid fraction identifiable within 10 %: d {frac[0]:.0f} %  h {frac[1]:.0f} %  "
                    f"E {frac[2]:.0f} %   (unscaled surrogate: d {frac0[0]:.0f} %  h {frac0[1]:.0f} %  E {frac0[2]:.0f} %)")
+    if install:
+        click.echo(f"installed {grid_file} as the shipped map {install_map(grid_file, install)}")
     return R
 
 
-@click.command()
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--data", "data_path", default="data/sweep512", show_default=True, help="Sweep with images.")
 @click.option("--out", default="docs/figures", show_default=True, help="Directory for the PNG maps and crb_grid.npz.")
 @click.option("--no-fd-scale", is_flag=True, help="Keep the raw surrogate bounds (no real-FD correction, no solves).")
 @click.option("--fd-grid", default="data/identify/fdgrid.npz", show_default=True,
-              help="Real-FD Jacobians of python -m elastimap.identify.fdgrid, used for the scale when the file exists.")
-def main(data_path, out, no_fd_scale, fd_grid):
-    """Cramér–Rao identifiability maps (issue 7, local evidence) and the map inference uses."""
-    compute(data_path, out, fd_scale=not no_fd_scale, fd_grid=fd_grid)
+              help="Real-FD Jacobians of python -m elastimap.workflows.studies.fdgrid, used for the scale when the file exists.")
+@click.option("--install", is_flag=True,
+              help="Also replace the shipped map inference reads (identify/maps/default.npz) with the new one.")
+def main(data_path, out, no_fd_scale, fd_grid, install):
+    """Cramér–Rao identifiability maps (local evidence) and the map inference uses."""
+    from elastimap.identify.region import DEFAULT_MAP
+
+    compute(data_path, out, fd_scale=not no_fd_scale, fd_grid=fd_grid, install=DEFAULT_MAP if install else None)
 
 
 if __name__ == "__main__":
     import sys
 
-    run(main, sys.argv[1:], prog_name="python -m elastimap.identify.crbmap")
+    run(main, sys.argv[1:], prog_name="python -m elastimap.workflows.studies.crbmap")

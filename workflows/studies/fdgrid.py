@@ -1,6 +1,6 @@
 """Real finite-difference Jacobians on a coarse (d, depth fraction, E) grid (cached solves).
 
-    python -m elastimap.identify.fdgrid [--mesh default] [--out data/identify/fdgrid.npz]
+    python -m elastimap.workflows.studies.fdgrid [--mesh default] [--out data/identify/fdgrid.npz]
 
 7 forward solves per grid point (centre and central differences in d, h, ln E with
 :data:`elastimap.identify.local.FD_STEP`); every solve is cached by :mod:`elastimap.identify.solves`, so an
@@ -40,7 +40,7 @@ def fd_grid_points(ds=FD_D, us=FD_U, Es=FD_E, thickness: float = THICKNESS) -> n
 
 
 def compute(out: str, mesh: str = "default", progress: bool = True) -> dict:
-    from .local import fd_jacobian_solves
+    from elastimap.identify.local import fd_jacobian_solves
 
     pts = fd_grid_points()
     res = {"theta": pts[:, :3], "u": pts[:, 3], "image": [], "lnF": [], "dF": [], "image0": [], "lnF0": [], "dF0": []}
@@ -58,7 +58,7 @@ def compute(out: str, mesh: str = "default", progress: bool = True) -> dict:
     return out_d
 
 
-@click.command()
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--mesh", default="default", show_default=True)
 @click.option("--out", default="data/identify/fdgrid.npz", show_default=True)
 def main(mesh, out):
@@ -68,4 +68,4 @@ def main(mesh, out):
 
 
 if __name__ == "__main__":
-    run(main, sys.argv[1:], prog_name="python -m elastimap.identify.fdgrid")
+    run(main, sys.argv[1:], prog_name="python -m elastimap.workflows.studies.fdgrid")

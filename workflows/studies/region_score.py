@@ -1,8 +1,8 @@
 """Score held-out inverse predictions inside and outside the locally identifiable region.
 
-    python -m elastimap.identify.region_score --pred runs/image-inverse-loocv/pred-scg-loocv.npz [--set image]
+    python -m elastimap.workflows.studies.region_score --pred runs/image-inverse-loocv/pred-scg-loocv.npz [--set image]
 
-For every row of the prediction file (written by ``python -m elastimap.identify.imagenet``) the Cramér–Rao
+For every row of the prediction file (written by ``python -m elastimap.workflows.studies.imagenet``) the Cramér–Rao
 bound of the identifiability map (:mod:`elastimap.identify.region`; default: the shipped map, the one
 inference uses) is evaluated at the row's true (d, h, E) for the chosen measurement set.  A row is
 *identifiable for output q* when the bound's relative standard deviation of q is at most
@@ -25,8 +25,7 @@ import numpy as np
 
 from elastimap.cli_util import run
 from elastimap.errors import UserError
-
-from .region import SETS
+from elastimap.identify.region import SETS
 
 
 def score(pred: np.ndarray, theta: np.ndarray, crb: np.ndarray, threshold: float = 0.10) -> dict:
@@ -45,14 +44,14 @@ def score(pred: np.ndarray, theta: np.ndarray, crb: np.ndarray, threshold: float
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--pred", "pred_path", required=True, help="pred-<algo>-<validation>.npz from elastimap.identify.imagenet.")
+@click.option("--pred", "pred_path", required=True, help="pred-<algo>-<validation>.npz from elastimap.workflows.studies.imagenet.")
 @click.option("--map", "map_path", default="default", show_default=True,
-              help="Identifiability map (crb_grid.npz of python -m elastimap.identify.crbmap) or 'default' (shipped).")
+              help="Identifiability map (crb_grid.npz of python -m elastimap.workflows.studies.crbmap) or 'default' (shipped).")
 @click.option("--set", "mset", default="image", show_default=True, help="Measurement set: " + ", ".join(SETS) + ".")
 @click.option("--threshold", default=0.10, show_default=True, type=float, help="CRB relative std limit.")
 def main(pred_path, map_path, mset, threshold):
     """MRE of held-out predictions inside / outside the identifiable region of the map."""
-    from .region import IdentifiabilityMap
+    from elastimap.identify.region import IdentifiabilityMap
 
     if mset not in SETS:
         raise UserError("--set", f"must be one of {', '.join(SETS)} (got {mset!r})")
@@ -65,7 +64,7 @@ def main(pred_path, map_path, mset, threshold):
         pred, theta = z["pred"], z["theta"]
         shared = z["pred_shared_noise"] if "pred_shared_noise" in z.files else None
     except Exception as exc:
-        raise UserError("--pred", f"{pred_path}: not a prediction file of elastimap.identify.imagenet ({exc})") from None
+        raise UserError("--pred", f"{pred_path}: not a prediction file of elastimap.workflows.studies.imagenet ({exc})") from None
     idm = IdentifiabilityMap.load(None if map_path == "default" else map_path)
     crb, _ = idm.bound(theta, mset)
     res = score(pred, theta, crb, threshold)
@@ -111,12 +110,12 @@ def coverage(pred: np.ndarray, theta: np.ndarray, idm, mset: str, threshold: flo
     out = {}
     for j, name in enumerate(("d", "h", "E")):
         f = ~a.identifiable[:, j]
-        pct = lambda m: float(100 * inside[m, j].mean()) if m.any() else float("nan")   # noqa: E731
-        med = lambda m: float(np.median(ratio[m, j])) if m.any() else float("nan")      # noqa: E731
+        pct = lambda m, j=j: float(100 * inside[m, j].mean()) if m.any() else float("nan")
+        med = lambda m, j=j: float(np.median(ratio[m, j])) if m.any() else float("nan")
         out[name] = {"n_flagged": int(f.sum()), "cover_flagged": pct(f), "cover_rest": pct(~f),
                      "width_flagged": med(f), "width_rest": med(~f)}
     return out
 
 
 if __name__ == "__main__":
-    run(main, prog_name="python -m elastimap.identify.region_score")
+    run(main, prog_name="python -m elastimap.workflows.studies.region_score")

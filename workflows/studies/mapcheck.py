@@ -1,9 +1,9 @@
 """Check the identifiability map against Cramér–Rao bounds from REAL finite differences on a grid.
 
-    python -m elastimap.identify.fdgrid                      # 40 points x 7 cached solves (~13 min, resumable)
-    python -m elastimap.identify.mapcheck [--fdgrid data/identify/fdgrid.npz] [--map default]
+    python -m elastimap.workflows.studies.fdgrid                      # 40 points x 7 cached solves (~13 min, resumable)
+    python -m elastimap.workflows.studies.mapcheck [--fdgrid data/identify/fdgrid.npz] [--map default]
 
-At every point of the FD grid (:mod:`elastimap.identify.fdgrid`: d 4/7/10/13 mm, two depth fractions,
+At every point of the FD grid (:mod:`elastimap.workflows.studies.fdgrid`: d 4/7/10/13 mm, two depth fractions,
 E 12/25/50/100/190 kPa) the bound from the real FD Jacobian (same noise as the map) is compared
 with the map's bound interpolated there, as inference evaluates it.  Printed per measurement set
 and output: median and range of map / FD, the fraction of points where the map is at least as
@@ -27,11 +27,12 @@ SETS = ("features", "image", "two-depths")
 
 def fd_bounds(path: str) -> tuple[np.ndarray, dict]:
     """``theta`` (n, 3) and ``{set: (n, 3)}`` CRB relative std from an fdgrid file."""
+    from elastimap.identify.local import fd_relstd
+
     from .fd_check import NOISE
-    from .local import fd_relstd
 
     if not os.path.isfile(path):
-        raise UserError("--fdgrid", f"{path}: no such file (make it with python -m elastimap.identify.fdgrid)")
+        raise UserError("--fdgrid", f"{path}: no such file (make it with python -m elastimap.workflows.studies.fdgrid)")
     z = np.load(path, allow_pickle=False)
     return z["theta"], fd_relstd({k: z[k] for k in ("image", "image0", "lnF", "dF")}, z["theta"], NOISE)
 
@@ -51,12 +52,12 @@ def compare(map_r: np.ndarray, fd_r: np.ndarray, threshold: float = 0.10) -> dic
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--fdgrid", default="data/identify/fdgrid.npz", show_default=True, help="Output of elastimap.identify.fdgrid.")
+@click.option("--fdgrid", default="data/identify/fdgrid.npz", show_default=True, help="Output of elastimap.workflows.studies.fdgrid.")
 @click.option("--map", "map_path", default="default", show_default=True, help="Map file or 'default' (shipped).")
 @click.option("--threshold", default=0.10, show_default=True, type=float)
 def main(fdgrid, map_path, threshold):
     """Compare the identifiability map with real-FD Cramér–Rao bounds on the FD grid."""
-    from .region import IdentifiabilityMap
+    from elastimap.identify.region import IdentifiabilityMap
 
     theta, fd = fd_bounds(fdgrid)
     idm = IdentifiabilityMap.load(None if map_path == "default" else map_path)
@@ -78,4 +79,4 @@ def main(fdgrid, map_path, threshold):
 
 
 if __name__ == "__main__":
-    run(main, sys.argv[1:], prog_name="python -m elastimap.identify.mapcheck")
+    run(main, sys.argv[1:], prog_name="python -m elastimap.workflows.studies.mapcheck")

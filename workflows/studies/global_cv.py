@@ -1,6 +1,6 @@
 """Global identifiability evidence: cross-validated error of a strong regressor per measurement set.
 
-    python -m elastimap.identify.global_cv --data data/sweep512 [--noise 0.01]
+    python -m elastimap.workflows.studies.global_cv --data data/sweep512 [--noise 0.01]
 
 Measurement sets: (a) the paper's features O1, O2, O3; (b) the whole difference image (PCA);
 (c) image + plate-force difference (force − force_ref).  Regressor: scikit-learn
@@ -53,7 +53,7 @@ def evaluate(df, noise: float = 0.0, seed: int = 0, folds: int = 10) -> dict[str
     return out
 
 
-@click.command()
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--data", required=True, help="Sweep dataset with images.")
 @click.option("--noise", type=float, default=0.0, show_default=True, help="Relative noise on features and image pixels.")
 def main(data, noise):
@@ -69,4 +69,4 @@ def main(data, noise):
 
 
 if __name__ == "__main__":
-    run(main, sys.argv[1:], prog_name="python -m elastimap.identify.global_cv")
+    run(main, sys.argv[1:], prog_name="python -m elastimap.workflows.studies.global_cv")
