@@ -198,7 +198,7 @@ class SolveStore:
         status = t.column("status").to_pylist()
         landed = t.column("landed_at").to_pylist() if "landed_at" in names else [None] * n
         if "image_raw" in names:
-            has_raw = (~pq.read_table(f, columns=["image_raw"]).column(0).is_null()).to_pylist()
+            has_raw = [not x for x in pq.read_table(f, columns=["image_raw"]).column(0).is_null().to_pylist()]
         else:
             has_raw = [False] * n
         for i in range(n):
