@@ -26,7 +26,8 @@ float32, as everywhere in the sample table.
 **Lookup.** Only ``ok`` rows of the store's solver answer (column ``solver``; ``fem`` when
 absent), so rows of the SYNTHETIC test stand-in never answer for the forward model.  Among
 several rows of one key the newest wins; with ``need_raw=True`` only rows with ``image_raw``
-count.  Part files of the gap cache from before the store (``solves-*.parquet``) are not read.
+count.  A reader looks at the folder again when a key is missing, so it sees other processes'
+new solves (and its own puts at once).  Part files of the gap cache from before the store (``solves-*.parquet``) are not read.
 """
 
 from __future__ import annotations
@@ -278,7 +279,12 @@ class SolveStore:
             io.remove_stale_tmp(self.path, older_than=3600.0)
             self._tmp_cleaned = True
         for (shape, pixel), rows in groups.items():
-            io.land_rows(self.path, rows, shape, pixel)
+            f = io.land_rows(self.path, rows, shape, pixel)
+            try:
+                if f.name not in self._geometry:
+                    self._scan(f)  # this reader sees its own puts at once
+            except (FileNotFoundError, io._Vanished):
+                pass  # already compacted away: the next refresh finds its rows
         return keys
 
     def solve(self, params: SolveParams, solve: Callable[[SolveParams], SolveResult] | None = None, *,
