@@ -23,8 +23,8 @@ import json
 import os
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -114,7 +114,7 @@ class Simulator:
             if k not in self.mem and k not in todo:
                 todo[k] = p.validate()
         if todo and self.store is not None:
-            for (k, p), res in zip(list(todo.items()), self.store.get_many(todo.values(), need_raw=True)):
+            for (k, _), res in zip(list(todo.items()), self.store.get_many(todo.values(), need_raw=True)):
                 if res is not None:
                     self.mem[k] = _record(f"{self.label}:{k}", res, res.seconds)
                     del todo[k]

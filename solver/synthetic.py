@@ -122,7 +122,7 @@ class SyntheticSolver:
             object.__setattr__(self, name, _diameters(getattr(self, name)))
 
     @classmethod
-    def from_spec(cls, text: str) -> "SyntheticSolver":
+    def from_spec(cls, text: str) -> SyntheticSolver:
         """Parse ``synthetic[:KEY=VALUE,...]``, e.g. ``synthetic:seconds=0.1,crash_d=7.5,fail_d=4|5,log=/tmp/x``
         (diameter lists separated by ``|``)."""
         name, _, rest = text.partition(":")

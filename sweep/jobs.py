@@ -24,13 +24,12 @@ import os
 import resource
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
-from elastimap.dataset import io
-from elastimap.dataset import store
+from elastimap.dataset import io, store
 from elastimap.errors import UserError
 from elastimap.provenance import code_version, host
 from elastimap.solver.params import SolveParams

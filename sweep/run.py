@@ -25,9 +25,9 @@ import os
 import sys
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
 
 from elastimap.dataset import io, store
 from elastimap.errors import UserError

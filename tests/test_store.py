@@ -14,7 +14,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from elastimap.dataset import io
 from elastimap.dataset.store import SolveStore, canonical_json, params_key
