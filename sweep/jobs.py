@@ -79,11 +79,6 @@ def sample_params(sample: dict, base: SolveParams) -> SolveParams:
     return p
 
 
-def expected_image_shape(p: SolveParams) -> tuple[int, int]:
-    n = int(round(p.probe.size / p.image.pixel))
-    return (n, n)
-
-
 def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
