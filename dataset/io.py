@@ -8,6 +8,9 @@ Layout of a dataset directory (written by ``sweep run``)::
         b-<ns>-<rand>.parquet      a batch of up to ``BATCH_ROWS`` rows (compaction of r- files)
         .*.tmp                     a file being written (ignored; removed by the next run)
 
+Every row carries its solve key (``key``), so a dataset directory is also a solve store
+(:mod:`elastimap.dataset.store`), which lands its own rows the same way.
+
 Every file is written under a temporary name and ``os.replace``d into place, so
 a file either exists complete or not at all (kill -9 safe).  A sample id may
 appear in several files (a retried failure, a compaction killed before it
@@ -262,7 +265,7 @@ def to_table(rows: list[dict], image_shape=None, pixel=None) -> pa.Table:
     cols = {}
     for name in schema.names:
         vals = [r.get(name) for r in rows]
-        if name == "image":
+        if name in ("image", "image_raw"):
             vals = [None if v is None else np.asarray(v, dtype=np.float32).ravel() for v in vals]
         cols[name] = pa.array(vals, type=schema.field(name).type)
     return pa.Table.from_pydict(cols, schema=schema)
@@ -331,8 +334,9 @@ def compact(path, batch_rows: int = BATCH_ROWS, only_rows: bool = False) -> dict
     tables = []
     for f in files:
         t = pq.read_table(f)
-        if "landed_at" not in t.column_names:
-            t = t.append_column("landed_at", pa.nulls(t.num_rows, pa.float64()))
+        for name in schema.names:  # optional columns added after the file was written
+            if name not in t.column_names:
+                t = t.append_column(name, pa.nulls(t.num_rows, schema.field(name).type))
         tables.append(t.select(schema.names).cast(schema))
     table = pa.concat_tables(tables)
     keep = _dedupe_index(table.select(list(_KEY_COLS)).to_pandas())

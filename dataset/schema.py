@@ -53,11 +53,17 @@ COLUMNS: dict[str, tuple[pa.DataType, str, str]] = {
     "host": (pa.string(), "", "machine that ran the sample"),
     # added by the sweep (additive; readers that ignore it are unaffected)
     "landed_at": (pa.float64(), "s", "unix time the row was written; the newest row of a sample id wins (an 'ok' row always beats a 'failed' one)"),
+    # added by the solve store (additive; see elastimap.dataset.store)
+    "key": (pa.string(), "", "solve key: sha256 of the canonical JSON of the solver inputs (elastimap.dataset.store.params_key)"),
+    "solver": (pa.string(), "", "what produced the row: 'fem' (the forward model; also when absent) or 'synthetic' (the test stand-in)"),
+    "delta": (pa.float64(), "mm", "indentation actually applied"),
+    "image_raw": (pa.list_(pa.float32()), "mm", "raw probe compression image (with the inclusion), row-major; solve-store rows only"),
 }
 
-# Columns every conforming file must have (the original version-1 set); ``landed_at`` is optional
-# so that files written before it existed still read.
-REQUIRED = tuple(k for k in COLUMNS if k != "landed_at")
+# Columns every conforming file must have (the original version-1 set); the later ones are optional
+# so that files written before they existed still read.
+OPTIONAL = ("landed_at", "key", "solver", "delta", "image_raw")
+REQUIRED = tuple(k for k in COLUMNS if k not in OPTIONAL)
 SCHEMA_KEY = "elastimap.schema"
 IMAGE_KEY = "elastimap.image"
 

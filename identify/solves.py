@@ -1,47 +1,68 @@
-"""Cached forward solves for the local study (finite-difference checks, indentation check).
+"""Stored forward solves for the local study (finite-difference checks, indentation check).
 
-Each solve is stored once under ``<cache>/<key>.npz`` (key = hash of the solve parameters), so
-reruns of the study and of the tests cost nothing.  Only this module imports the solver.
+Each solve is kept once in the solve store (:class:`elastimap.dataset.store.SolveStore`) in the
+folder ``cache``, keyed by the solve parameters, so reruns of the study and of the tests cost
+nothing.  Files of the older per-solve cache (``<cache>/<hash>.npz``) are still read.  Only this
+module runs solves.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
+from collections.abc import Callable
 
 import numpy as np
 
 DEFAULT_CACHE = "data/identify/solves"
+_STORES: dict = {}
 
 
-def _key(p) -> str:
-    return hashlib.sha256(json.dumps(p.to_dict(), sort_keys=True).encode()).hexdigest()[:20]
+def _params(d: float, h: float, E: float, mesh: str, delta: float, nonlinearity: float):
+    from elastimap.solver.params import SolveParams
+
+    p = SolveParams().with_inclusion(d=float(d), h=float(h), E=float(E))
+    return p.replace(disc=dataclasses.replace(p.disc, mesh=mesh),
+                     loading=dataclasses.replace(p.loading, delta=float(delta)),
+                     tissue=dataclasses.replace(p.tissue, nonlinearity=float(nonlinearity)))
+
+
+def _legacy_npz(cache: str, p) -> str:
+    """Path of the solve in the per-solve npz cache this store replaced."""
+    key = hashlib.sha256(json.dumps(p.to_dict(), sort_keys=True).encode()).hexdigest()[:20]
+    return os.path.join(cache, key + ".npz")
+
+
+def _store(cache: str, solver: str):
+    from elastimap.dataset.store import SolveStore
+
+    k = (os.path.abspath(cache), solver)
+    if k not in _STORES:  # one per folder and process: its index is reused across calls
+        _STORES[k] = SolveStore(cache, solver=solver)
+    return _STORES[k]
 
 
 def cached_solve(d: float, h: float, E: float, *, mesh: str = "default", delta: float = 3.0,
-                 nonlinearity: float = 0.0, cache: str = DEFAULT_CACHE) -> dict:
-    """One forward solve (tied interface, quarter model) -> dict of image, image_raw, features, force."""
-    import dataclasses
+                 nonlinearity: float = 0.0, cache: str = DEFAULT_CACHE,
+                 solver: Callable | None = None) -> dict:
+    """One forward solve (tied interface, quarter model) -> dict of image, image_raw, features, force.
 
-    from elastimap.solver import SolveParams
+    ``solver``: the solve function (default the forward model; tests pass the SYNTHETIC stand-in,
+    whose solves the store keeps apart).  Images come as stored (float32 values, as float64 arrays).
+    """
+    from elastimap.dataset.store import solver_label
 
-    p = SolveParams().with_inclusion(d=float(d), h=float(h), E=float(E))
-    p = p.replace(disc=dataclasses.replace(p.disc, mesh=mesh),
-                  loading=dataclasses.replace(p.loading, delta=float(delta)),
-                  tissue=dataclasses.replace(p.tissue, nonlinearity=float(nonlinearity)))
-    path = os.path.join(cache, _key(p) + ".npz")
-    if os.path.exists(path):
-        z = np.load(path)
+    p = _params(d, h, E, mesh, delta, nonlinearity)
+    store = _store(cache, solver_label(solver))
+    res = store.get(p, need_raw=True)
+    if res is None and solver is None and os.path.exists(_legacy_npz(cache, p)):
+        z = np.load(_legacy_npz(cache, p))
         return {k: z[k] for k in z.files}
-    from elastimap.solver import solve
-
-    r = solve(p)
-    out = {"image": r.image.astype(np.float64), "image_raw": r.image_raw.astype(np.float64),
-           "O": np.array([r.O1, r.O2, r.O3]), "force": np.array(r.force), "force_ref": np.array(r.force_ref),
-           "theta": np.array([d, h, E]), "delta": np.array(r.delta), "seconds": np.array(r.seconds)}
-    os.makedirs(cache, exist_ok=True)
-    tmp = path + f".tmp{os.getpid()}.npz"
-    np.savez(tmp, **out)
-    os.replace(tmp, path)
-    return out
+    if res is None:
+        res = store.solve(p, solver, need_raw=True)
+    return {"image": np.asarray(res.image, np.float64), "image_raw": np.asarray(res.image_raw, np.float64),
+            "O": np.array([res.O1, res.O2, res.O3]), "force": np.array(res.force),
+            "force_ref": np.array(res.force_ref), "theta": np.array([d, h, E]), "delta": np.array(res.delta),
+            "seconds": np.array(res.seconds)}

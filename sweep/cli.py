@@ -38,6 +38,9 @@ def _common(f):
         click.option("--samples", type=str, default=None,
                      help="CSV/Parquet table of samples (columns d, h, E; optional sample_id, tissue_E, tissue_thickness)"),
         click.option("--phantoms", is_flag=True, help="add the nine calibration-phantom inclusions of dataset/phantoms.csv"),
+        # for tests and dry runs only (docs/sweep.md): 'synthetic[:KEY=VALUE,...]' runs the
+        # SYNTHETIC stand-in of elastimap.solver.synthetic instead of the forward model
+        click.option("--solver", "solver_spec", default="fem", hidden=True),
     ]
     for o in reversed(opts):
         f = o(f)
@@ -55,15 +58,16 @@ def _common(f):
 @click.option("--timeout", type=float, default=1800.0, show_default=True,
               help="seconds one sample may take before it is recorded as failed and its worker restarted (0: no limit)")
 @click.option("--no-progress", is_flag=True, help="no progress bar")
-def run_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, jobs, out, retry_failed, scheduler,
-            batch_rows, timeout, no_progress):
+def run_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solver_spec, jobs, out, retry_failed,
+            scheduler, batch_rows, timeout, no_progress):
     """Run one solve per sample (resumable) and land the rows in OUT."""
+    from .jobs import resolve_solver
     from .run import SweepConfig, format_summary, make_plan, run
 
     cfg = SweepConfig(n=n, jobs=jobs, seed=seed, out=out, mesh=mesh, interface=interface, design=design,
                       ranges=ranges, samples=samples, phantoms=phantoms, retry_failed=retry_failed,
                       scheduler=scheduler, batch_rows=batch_rows, timeout=timeout, progress=not no_progress,
-                      argv=sys.argv[1:])
+                      argv=sys.argv[1:], solver=resolve_solver(solver_spec))
     plan = make_plan(cfg)
     if scheduler and jobs != 2:
         click.echo("note: --jobs is ignored with --scheduler (the cluster decides the workers)", err=True)
@@ -79,9 +83,10 @@ def run_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, jobs, o
 @_common
 @click.option("--jobs-list", default="1,2", show_default=True, help="comma-separated worker counts to time")
 @click.option("--out", type=str, default=None, help="keep the datasets under OUT/jobs<k> (default: a temporary dir)")
-def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, jobs_list, out):
+def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solver_spec, jobs_list, out):
     """Time the same sweep at several --jobs: samples/min, speed-up, driver overhead per sample."""
     from .bench import bench, format_bench
+    from .jobs import resolve_solver
 
     try:
         counts = [int(x) for x in jobs_list.split(",") if x.strip()]
@@ -89,7 +94,8 @@ def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, jobs_
         from elastimap.errors import UserError
         raise UserError("--jobs-list", f"expected integers like 1,2 (got {jobs_list!r})") from None
     res = bench(counts, n=16 if n is None and not samples else n, seed=seed, mesh=mesh, interface=interface,
-                design=design, ranges=ranges, samples=samples, phantoms=phantoms, out=out)
+                design=design, ranges=ranges, samples=samples, phantoms=phantoms, out=out,
+                solver=resolve_solver(solver_spec))
     click.echo(format_bench(res))
     return 0
 

@@ -1,42 +1,69 @@
-"""One sample as one job: sample dict -> SolveParams -> ``solve`` -> one landed row.
+"""One sample as one job: sample dict -> SolveParams -> solve -> one landed row.
 
-The sweep never knows how a solve is done: it imports a *solver module* that
-provides ``solve(SolveParams) -> SolveResult`` and optionally
-``warmup(SolveParams)``.  That module is :mod:`solver` unless the environment
-variable ``ELASTIMAP_SWEEP_SOLVER`` names another one (a test-only hook: the
-suite points it at :mod:`elastimap.sweep.testing`, a fast fake that can also crash on
-purpose).  The variable is inherited by the worker processes.
+The solver is passed in explicitly: ``solver=None`` is the forward model
+(:func:`elastimap.solver.solve`, warmed up by :func:`elastimap.solver.warmup`); tests pass the
+SYNTHETIC stand-in (:class:`elastimap.solver.synthetic.SyntheticSolver`, which can also crash,
+hang or fail on purpose).  A solver is any callable ``solve(SolveParams) -> SolveResult`` that
+pickles by module path (a module-level function or an instance of a module-level class): the
+driver hands it to the dask workers as a task argument.  Its ``solver_name`` attribute labels
+the rows (``solver`` column; ``fem`` for the forward model).
 
 :func:`run_sample` runs in a dask worker.  It lands its row itself
-(atomically, see :mod:`elastimap.dataset.io`) before returning, so a result exists on
-disk as soon as its solve ends and nothing is held only in memory; it returns
-a small summary (no image) to the driver.
+(atomically, see :mod:`elastimap.dataset.io`) before returning, so a result exists on disk as
+soon as its solve ends and nothing is held only in memory; it returns a small summary (no
+image) to the driver.  Every row carries the solve key (:mod:`elastimap.dataset.store`), so a
+sweep folder is also a solve store.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
-import importlib
 import json
-import math
 import os
 import resource
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from elastimap.dataset import io
+from elastimap.dataset import io, store
+from elastimap.errors import UserError
 from elastimap.provenance import code_version, host
 from elastimap.solver.params import SolveParams
 
-SOLVER_ENV = "ELASTIMAP_SWEEP_SOLVER"
+SOLVERS = ("fem", "synthetic[:KEY=VALUE,...]")
 
 
-def solver_module():
-    return importlib.import_module(os.environ.get(SOLVER_ENV) or "elastimap.solver")
+def resolve_solver(spec: str | None) -> Callable | None:
+    """``None``/``'fem'``: the forward model (returned as None); ``'synthetic[:...]'``: the SYNTHETIC
+    stand-in for tests and dry runs (see :meth:`elastimap.solver.synthetic.SyntheticSolver.from_spec`)."""
+    if spec is None or spec == "fem":
+        return None
+    if spec.partition(":")[0] == "synthetic":
+        from elastimap.solver.synthetic import SyntheticSolver
+
+        return SyntheticSolver.from_spec(spec)
+    raise UserError("solver", f"must be one of {', '.join(SOLVERS)} (got {spec!r})")
+
+
+def solve_with(solver: Callable | None, p: SolveParams):
+    """``solver(p)``, the forward model when ``solver`` is None."""
+    if solver is None:
+        from elastimap.solver import solve as solver
+    return solver(p)
+
+
+def warmup(solver: Callable | None, p: SolveParams) -> None:
+    """Compile what the solver needs once, before the fan-out (a no-op for solvers without ``warmup``)."""
+    if solver is None:
+        from elastimap.solver import warmup as warm
+    else:
+        warm = getattr(solver, "warmup", None)
+    if warm is not None:
+        warm(p)
 
 
 def sample_params(sample: dict, base: SolveParams) -> SolveParams:
@@ -52,41 +79,33 @@ def sample_params(sample: dict, base: SolveParams) -> SolveParams:
     return p
 
 
-def expected_image_shape(p: SolveParams) -> tuple[int, int]:
-    n = int(round(p.probe.size / p.image.pixel))
-    return (n, n)
-
-
 def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _base_row(sample: dict, p: SolveParams) -> dict:
+def _base_row(sample: dict, p: SolveParams, solver: str = store.FEM) -> dict:
     return {"sample_id": sample["sample_id"], "tag": sample.get("tag", "design"),
             "d": float(sample["d"]), "h": float(sample["h"]), "E": float(sample["E"]),
-            "params_json": json.dumps(p.to_dict(), sort_keys=True),
+            "params_json": json.dumps(p.to_dict(), sort_keys=True), "key": store.params_key(p), "solver": solver,
             "code_version": code_version(), "host": host()}
 
 
-def failed_row(sample: dict, p: SolveParams, error: str, seconds: float = float("nan")) -> dict:
-    row = _base_row(sample, p)
+def failed_row(sample: dict, p: SolveParams, error: str, seconds: float = float("nan"),
+               solver: str = store.FEM) -> dict:
+    row = _base_row(sample, p, solver)
     nan = float("nan")
-    row.update(O1=nan, O2=nan, O3=nan, force=nan, force_ref=nan, image=None, status="failed",
+    row.update(O1=nan, O2=nan, O3=nan, force=nan, force_ref=nan, delta=nan, image=None, status="failed",
                error=error, ndofs=None, newton_iterations=None, seconds=seconds,
                peak_memory_mb=_peak_mb())
     return row
 
 
-def result_row(sample: dict, p: SolveParams, res, seconds: float) -> dict:
-    img = np.asarray(res.image, dtype=np.float32)
-    row = _base_row(sample, p)
-    row.update(O1=float(res.O1), O2=float(res.O2), O3=float(res.O3), force=float(res.force),
-               force_ref=float(res.force_ref), image=img.ravel(), status="ok", error="",
-               ndofs=int(res.ndofs), newton_iterations=int(res.newton_iterations), seconds=float(seconds),
-               peak_memory_mb=float(getattr(res, "peak_memory_mb", None) or _peak_mb()))
-    bad = [k for k in ("O1", "O2", "O3", "force", "force_ref") if not math.isfinite(row[k])]
-    if bad or not np.all(np.isfinite(img)):
-        row.update(status="failed", error=f"non-finite result ({', '.join(bad) or 'image'})")
+def result_row(sample: dict, p: SolveParams, res, seconds: float, solver: str = store.FEM) -> dict:
+    """The store's row of the result (without ``image_raw``) under the sample's id and tag."""
+    row = store.result_row(p, res, solver=solver, raw=False)
+    row.update(_base_row(sample, p, solver), seconds=float(seconds))
+    if row["peak_memory_mb"] is None or not row["peak_memory_mb"]:
+        row["peak_memory_mb"] = _peak_mb()
     return row
 
 
@@ -111,8 +130,10 @@ def attempts(out_dir: str, sample_id: str) -> int:
         return 0
 
 
-def run_sample(sample: dict, base: dict, out_dir: str, timeout: float | None = None) -> dict:
-    """Solve one sample and land its row in ``out_dir``; return ``{sample_id, status, seconds, error}``.
+def run_sample(sample: dict, base: dict, out_dir: str, timeout: float | None = None,
+               solver: Callable | None = None) -> dict:
+    """Solve one sample with ``solver`` (None: the forward model) and land its row in ``out_dir``;
+    return ``{sample_id, status, seconds, error}``.
 
     With ``timeout`` (s), a watchdog thread lands a ``failed`` row ("Timeout ...") and ends the
     worker process if the solve has not returned by then (a hung solve cannot be interrupted from
@@ -120,6 +141,7 @@ def run_sample(sample: dict, base: dict, out_dir: str, timeout: float | None = N
     a second worker.
     """
     p = sample_params(sample, SolveParams.from_dict(base))
+    label = store.solver_label(solver)
     sid = sample["sample_id"]
     marker = _mark(out_dir, "timeout", sid) if timeout else None
     timeout_msg = f"Timeout: no result after {timeout:g} s; the worker was stopped" if timeout else ""
@@ -130,7 +152,7 @@ def run_sample(sample: dict, base: dict, out_dir: str, timeout: float | None = N
     if timeout:
         def _fire():
             try:
-                io.land_rows(out_dir, [failed_row(sample, p, timeout_msg, float(timeout))])
+                io.land_rows(out_dir, [failed_row(sample, p, timeout_msg, float(timeout), label)])
                 marker.write_text(sid)
             finally:
                 os._exit(75)
@@ -141,15 +163,15 @@ def run_sample(sample: dict, base: dict, out_dir: str, timeout: float | None = N
     t0 = time.perf_counter()
     try:
         try:
-            res = solver_module().solve(p)
+            res = solve_with(solver, p)
             seconds = time.perf_counter() - t0
-            row = result_row(sample, p, res, seconds)
+            row = result_row(sample, p, res, seconds, label)
             if row["status"] == "ok":
                 shape, pixel = tuple(np.shape(res.image)), float(res.pixel)
         except Exception as exc:  # a failing sample is data, not a crash of the sweep
             seconds = time.perf_counter() - t0
             msg = str(exc).strip().replace("\n", " ")
-            row = failed_row(sample, p, f"{type(exc).__name__}: {msg}"[:2000], seconds)
+            row = failed_row(sample, p, f"{type(exc).__name__}: {msg}"[:2000], seconds, label)
         io.land_rows(out_dir, [row], shape, pixel)
     finally:
         if watchdog is not None:
@@ -158,7 +180,7 @@ def run_sample(sample: dict, base: dict, out_dir: str, timeout: float | None = N
             "error": row["error"]}
 
 
-def land_failure(sample: dict, base: dict, out_dir: str, error: str) -> None:
+def land_failure(sample: dict, base: dict, out_dir: str, error: str, solver: Callable | None = None) -> None:
     """Record a sample whose job never returned (worker crashed twice) — run by the driver."""
     p = sample_params(sample, SolveParams.from_dict(base))
-    io.land_rows(out_dir, [failed_row(sample, p, error)])
+    io.land_rows(out_dir, [failed_row(sample, p, error, solver=store.solver_label(solver))])

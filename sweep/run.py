@@ -25,10 +25,11 @@ import os
 import sys
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from elastimap.dataset import io
+from elastimap.dataset import io, store
 from elastimap.errors import UserError
 from elastimap.provenance import code_version, host
 from elastimap.solver.params import Discretisation, SolveParams
@@ -58,6 +59,9 @@ class SweepConfig:
     progress: bool = True
     compact: bool = True
     argv: list[str] = field(default_factory=list)
+    # None: the forward model; tests pass the SYNTHETIC stand-in (see sweep.jobs), which the
+    # workers receive as a task argument
+    solver: Callable | None = None
 
 
 @dataclass
@@ -127,6 +131,10 @@ def make_plan(cfg: SweepConfig) -> Plan:
         man = io.read_manifest(out)
         if man is None and any(out.iterdir()):
             raise UserError("--out", f"{out} is not empty and holds no sweep manifest ({io.MANIFEST}); choose another --out")
+        label = store.solver_label(cfg.solver)
+        if man is not None and man.get("solver", store.FEM) != label:
+            raise UserError("--out", f"{out} holds a sweep by the {man.get('solver', store.FEM)!r} solver, not {label!r}; "
+                                     "use another --out")
         if man is not None and man.get("base_params") != _jsonable(base.to_dict()):
             old = man.get("base_params", {}).get("disc", {})
             raise UserError("--out", f"{out} holds a sweep with other solver settings (mesh={old.get('mesh')}, "
@@ -221,6 +229,7 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
         summary["todo"] = len(todo)
         man = io.read_manifest(out) or {"format": "elastimap-sweep", "schema_version": io.SCHEMA_VERSION,
                                         "created": _now(), "base_params": _jsonable(plan.base.to_dict()),
+                                        "solver": store.solver_label(cfg.solver),
                                         "planned": [], "runs": []}
         known = set(man["planned"])
         man["planned"] += [s["sample_id"] for s in plan.samples if s["sample_id"] not in known]
@@ -262,16 +271,15 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
 
     base = plan.base.to_dict()
     out = str(plan.out.resolve())
-    mod = jobs.solver_module()
+    solver = cfg.solver
     t0 = time.perf_counter()
-    if hasattr(mod, "warmup"):
-        # with the base inclusion, not a sampled one: a sample whose geometry fails must fail as a
-        # sample, not stop the sweep.  If the warm-up itself fails the workers compile on first use.
-        try:
-            mod.warmup(plan.base)
-        except Exception as exc:
-            print(f"warning: solver warm-up failed ({type(exc).__name__}: {exc}); workers will compile "
-                  "the forms themselves", file=sys.stderr)
+    # with the base inclusion, not a sampled one: a sample whose geometry fails must fail as a
+    # sample, not stop the sweep.  If the warm-up itself fails the workers compile on first use.
+    try:
+        jobs.warmup(solver, plan.base)
+    except Exception as exc:
+        print(f"warning: solver warm-up failed ({type(exc).__name__}: {exc}); workers will compile "
+              "the forms themselves", file=sys.stderr)
     summary["warmup_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     client, cluster = remote if remote is not None else _start_client(cfg)
@@ -286,7 +294,7 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
         # one map call: the whole batch reaches the scheduler at once, as one task group, so dask
         # queues it and hands each one-thread worker one sample at a time (worker-saturation 1.0)
         futures = client.map(jobs.run_sample, todo, base=base, out_dir=out, timeout=cfg.timeout or None,
-                             key=[f"sweep-sample-{i:07d}-{token}" for i in range(len(todo))], pure=False)
+                             solver=solver, key=[f"sweep-sample-{i:07d}-{token}" for i in range(len(todo))], pure=False)
         by_future = dict(zip(futures, todo))
         resubmitted: dict[str, int] = {}
         tty = sys.stderr.isatty()
@@ -314,14 +322,14 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                     # itself (it was waiting next to a crashing sample): run it again
                     resubmitted[sid] = resubmitted.get(sid, 0) + 1
                     again = client.submit(jobs.run_sample, s, base=base, out_dir=out, timeout=cfg.timeout or None,
-                                          key=f"sweep-retry-{uuid.uuid4().hex}", pure=False)
+                                          solver=solver, key=f"sweep-retry-{uuid.uuid4().hex}", pure=False)
                     by_future[again] = s
                     pending.add(again)
                     fut.release()
                     continue
                 msg = (f"worker crashed twice on this sample (segfault, abort or out of memory): {name}"
                        if name == "KilledWorker" else f"{name}: {exc}")
-                jobs.land_failure(s, base, out, msg[:2000])
+                jobs.land_failure(s, base, out, msg[:2000], solver)
                 r = {"sample_id": s["sample_id"], "status": "failed", "seconds": float("nan"), "error": msg}
             fut.release()
             summary["done"] += 1

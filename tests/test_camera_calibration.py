@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from elastimap.camera import calibration as C
-from elastimap.camera._testing import toy_solve
+from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 from elastimap.camera.features import FeatureSettings
 from elastimap.camera.optics import SensorModel
 from elastimap.errors import UserError

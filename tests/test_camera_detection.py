@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from elastimap.camera._testing import toy_solve
+from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 from elastimap.camera.detection import (DETECTION_INCLUSIONS, DetectionSettings, auc, bootstrap_auc, plot_roc, roc_curve,
                               run_detection)
 from elastimap.camera.optics import SensorModel

@@ -108,6 +108,12 @@ def test_simulator_cache_reuses_solves(tmp_path, dhe):
     rb = b.run(ps + ps[:1])
     assert b.stats["solved"] == 0 and b.stats["hits"] == 4
     assert np.array_equal(ra[0].image, rb[0].image) and rb[3].key == ra[0].key
+    # the cache is a solve store: the same rows read through SolveStore, labelled SYNTHETIC,
+    # and they never answer for the FEM
+    from elastimap.dataset.store import SolveStore
+    got = SolveStore(tmp_path, solver="synthetic").get(ps[1], need_raw=True)
+    assert got is not None and np.array_equal(got.image, ra[1].image) and np.array_equal(got.image_raw, ra[1].image_raw)
+    assert SolveStore(tmp_path).get(ps[1]) is None
 
 
 # ---------------------------------------------------------------- diagnosis (TOY backend)

@@ -1,7 +1,8 @@
 """Sweep: design, input checks, fan-out, resume after SIGKILL, crash recording, benchmark.
 
-The fast tests use the fake solver (``ELASTIMAP_SWEEP_SOLVER=elastimap.sweep.testing``);
-one end-to-end run and the SIGKILL/resume test use real tiny-mesh solves.
+The fast tests run the real command with the SYNTHETIC stand-in (hidden option
+``--solver synthetic[:...]``, see :mod:`elastimap.solver.synthetic`); one end-to-end run and the
+SIGKILL/resume test use real tiny-mesh solves.
 """
 
 from __future__ import annotations
@@ -35,13 +36,15 @@ def _env(**extra):
     return env
 
 
-def _fake(**extra):
-    return _env(ELASTIMAP_SWEEP_SOLVER="elastimap.sweep.testing", **extra)
+def _synthetic(**faults) -> list[str]:
+    """The hidden option that runs the SYNTHETIC stand-in (with fault injection) instead of the FEM."""
+    spec = ",".join(f"{k}={v}" for k, v in faults.items())
+    return ["--solver", f"synthetic:{spec}" if spec else "synthetic"]
 
 
-def _sweep(args, env, timeout=240):
-    return subprocess.run([sys.executable, "-m", "elastimap.sweep.cli", *args], env=env, capture_output=True, text=True,
-                          timeout=timeout, cwd=ROOT)
+def _sweep(args, env=None, timeout=240):
+    return subprocess.run([sys.executable, "-m", "elastimap.sweep.cli", *args], env=env or _env(), capture_output=True,
+                          text=True, timeout=timeout, cwd=ROOT)
 
 
 def _cli(args, capsys):
@@ -159,13 +162,13 @@ def test_unreadable_samples_file(tmp_path, capsys):
 
 # ----------------------------------------------------------------------------- runs (fake solver)
 
-def test_fake_sweep_phantoms_user_rows_and_resume(tmp_path):
+def test_synthetic_sweep_phantoms_user_rows_and_resume(tmp_path):
     table = tmp_path / "t.csv"
     table.write_text("sample_id,d,h,E\nmine-1,6,7,40\n")
     out = tmp_path / "ds"
-    args = ["run", "--n", "6", "--jobs", "2", "--mesh", "tiny", "--phantoms", "--samples", str(table),
+    args = ["run", *_synthetic(), "--n", "6", "--jobs", "2", "--mesh", "tiny", "--phantoms", "--samples", str(table),
             "--out", str(out), "--seed", "4"]
-    r = _sweep(args, _fake())
+    r = _sweep(args)
     assert r.returncode == 0, r.stderr
     assert "16 done this run (ok 16, failed 0), 0 skipped" in r.stdout and "samples/min" in r.stdout
     df = io.read_samples(out)
@@ -173,18 +176,22 @@ def test_fake_sweep_phantoms_user_rows_and_resume(tmp_path):
     assert sorted(set(df["tag"]))[:2] == ["design", "phantom:depth-1"] and "user" in set(df["tag"])
     assert set(df.loc[df.tag == "user", "sample_id"]) == {"mine-1"}
     assert io.read_image_meta(out) == ((50, 50), 0.5)
+    assert set(df["solver"]) == {"synthetic"} and df["key"].str.len().eq(64).all()  # labelled, keyed
     assert [f.name[:2] for f in out.glob("*.parquet")] == ["b-"]  # compacted at the end
     import pyarrow.dataset as pads  # plain pyarrow readers (training) see the same rows, manifest skipped
 
     assert pads.dataset(out, format="parquet").to_table(columns=["sample_id"]).num_rows == 16
-    r = _sweep(args, _fake())
+    r = _sweep(args)
     assert r.returncode == 0 and "0 done this run" in r.stdout and "16 skipped" in r.stdout
     # other solver settings into the same directory are refused
-    r = _sweep([*args[:-4], "--mesh", "coarse", "--out", str(out)], _fake())
+    r = _sweep([*args[:-4], "--mesh", "coarse", "--out", str(out)])
     assert r.returncode == 2 and "other solver settings" in r.stderr
+    # so is the forward model resuming a folder of SYNTHETIC rows
+    r = _sweep([a for a in args if a not in _synthetic()])
+    assert r.returncode == 2 and "by the 'synthetic' solver" in r.stderr, r.stderr
     # a reused id with other parameters (edited table) is refused, not silently kept
     table.write_text("sample_id,d,h,E\nmine-1,6,7,41\n")
-    r = _sweep(args, _fake())
+    r = _sweep(args)
     assert r.returncode == 2 and "mine-1 (landed d=6, h=7, E=40; now d=6, h=7, E=41)" in r.stderr, r.stderr
 
 
@@ -195,19 +202,17 @@ def test_crash_recorded_failed_others_land_then_retry(tmp_path):
     table.write_text("d,h,E\n5,6,50\n6,7,60\n7.5,8,70\n8,8,80\n4,5,40\n9,9,90\n10,9,100\n3,5,30\n")
     out = tmp_path / "ds"
     log = tmp_path / "starts.log"
-    env = _fake(ELASTIMAP_FAKE_CRASH="d=7.5", ELASTIMAP_FAKE_FAIL="d=4", ELASTIMAP_FAKE_LOG=str(log),
-                ELASTIMAP_FAKE_SECONDS="0.1")
     args = ["run", "--samples", str(table), "--jobs", "2", "--mesh", "tiny", "--out", str(out)]
-    r = _sweep(args, env)
+    r = _sweep([*args, *_synthetic(crash_d=7.5, fail_d=4, log=log, seconds=0.1)])
     assert r.returncode == 0, r.stderr
     df = io.read_samples(out, status=None).set_index("d")
     assert (df["status"] == "ok").sum() == 6, df[["status", "error"]]
     assert df.loc[7.5, "status"] == "failed" and "worker crashed" in df.loc[7.5, "error"]
-    assert df.loc[4.0, "status"] == "failed" and "FakeSolverError" in df.loc[4.0, "error"]
+    assert df.loc[4.0, "status"] == "failed" and "SyntheticSolverError" in df.loc[4.0, "error"]
     starts = [ln.split()[0] for ln in log.read_text().splitlines()]
     assert starts.count("7.5") == 2  # allowed-failures: one retry, then recorded
     # --retry-failed reruns only the failures; now they succeed
-    r = _sweep([*args, "--retry-failed"], _fake())
+    r = _sweep([*args, *_synthetic(), "--retry-failed"])
     assert r.returncode == 0 and "2 done this run (ok 2, failed 0), 6 skipped" in r.stdout, r.stdout + r.stderr
     df = io.read_samples(out, status=None)
     assert len(df) == 8 and (df["status"] == "ok").all()
@@ -218,9 +223,8 @@ def test_hung_sample_times_out_once_others_land(tmp_path):
     table.write_text("d,h,E\n5,6,50\n6,7,60\n7,8,70\n")
     out = tmp_path / "ds"
     log = tmp_path / "starts.log"
-    env = _fake(ELASTIMAP_FAKE_HANG="d=6", ELASTIMAP_FAKE_LOG=str(log), ELASTIMAP_FAKE_SECONDS="0.1")
     r = _sweep(["run", "--samples", str(table), "--jobs", "2", "--mesh", "tiny", "--out", str(out),
-                "--timeout", "3"], env)
+                "--timeout", "3", *_synthetic(hang_d=6, log=log, seconds=0.1)])
     assert r.returncode == 0, r.stderr
     df = io.read_samples(out, status=None).set_index("d")
     assert list(df["status"]) == ["ok", "failed", "ok"]
@@ -229,7 +233,7 @@ def test_hung_sample_times_out_once_others_land(tmp_path):
 
 
 def test_bench_command_small(tmp_path):
-    r = _sweep(["bench", "--n", "4", "--mesh", "tiny", "--out", str(tmp_path / "b")], _fake())
+    r = _sweep(["bench", *_synthetic(), "--n", "4", "--mesh", "tiny", "--out", str(tmp_path / "b")])
     assert r.returncode == 0, r.stderr
     assert "speed-up jobs 2 vs 1" in r.stdout and "driver CPU ms/sample" in r.stdout
     for k in (1, 2):
@@ -274,10 +278,9 @@ def test_sigkill_driver_then_rerun_exactly_n_ok_real_solves(tmp_path):
     assert np.isfinite(df[["O1", "O2", "O3", "force"]].to_numpy()).all()
 
 
-def test_external_scheduler_real_solves(tmp_path, monkeypatch):
+def test_external_scheduler_real_solves(tmp_path):
     from distributed import LocalCluster
 
-    monkeypatch.delenv("ELASTIMAP_SWEEP_SOLVER", raising=False)  # the workers inherit this process's env
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
         out = tmp_path / "ds"
         r = _sweep(["run", "--n", "3", "--mesh", "tiny", "--out", str(out), "--scheduler", cluster.scheduler_address],
