@@ -9,8 +9,10 @@ docs/identifiability.md) and only averages noise.  Solves are cached in data/ide
 (about 3 s each on the default mesh when absent).
 """
 
+import click
 import numpy as np
 
+from elastimap.cli_util import CONTEXT_SETTINGS, run
 from elastimap.identify.local import NoiseSpec, fd_jacobian_solves, fd_relstd, stack
 
 POINTS = ((8.0, 8.0, 30.0), (8.0, 8.0, 120.0))
@@ -22,14 +24,16 @@ def fd_crb(points=POINTS, noise: NoiseSpec = NOISE) -> dict:
     return fd_relstd(stack([fd_jacobian_solves(th) for th in points]), np.array(points, dtype=float), noise)
 
 
+@click.command(context_settings=CONTEXT_SETTINGS)
 def main():
+    """Print the real-FD Cramér–Rao relative std of d, h, E at the two check points."""
     R = fd_crb()
     for i, th in enumerate(POINTS):
         for k in ("features", "image", "image+force", "two-depths"):
             r = R[k][i] * 100
-            print(f"d={th[0]:g} h={th[1]:g} E={th[2]:g}  {k:12s} CRB rel std %: "
-                  f"d {r[0]:.3g}  h {r[1]:.3g}  E {r[2]:.3g}")
+            click.echo(f"d={th[0]:g} h={th[1]:g} E={th[2]:g}  {k:12s} CRB rel std %: "
+                       f"d {r[0]:.3g}  h {r[1]:.3g}  E {r[2]:.3g}")
 
 
 if __name__ == "__main__":
-    main()
+    run(main, prog_name="python -m elastimap.identify.fd_check")

@@ -278,7 +278,7 @@ def fit_image_model(data: Data, algo: str = "scg", repeats: int = 10, cfg: Train
 
 
 # ----------------------------------------------------------------------------- command line
-def _cli():
+def cli():
     import click
 
     @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -381,4 +381,4 @@ def _cli():
 if __name__ == "__main__":
     from elastimap.cli_util import run
 
-    run(_cli(), prog_name="python -m elastimap.identify.imagenet")
+    run(cli(), prog_name="python -m elastimap.identify.imagenet")

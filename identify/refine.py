@@ -414,7 +414,7 @@ def plot(res: dict, path: str) -> str:
     return path
 
 
-def _cli():
+def cli():
     import click
 
     @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -488,4 +488,4 @@ def _cli():
 if __name__ == "__main__":
     from elastimap.cli_util import run
 
-    run(_cli(), prog_name="python -m elastimap.identify.refine")
+    run(cli(), prog_name="python -m elastimap.identify.refine")
