@@ -177,7 +177,7 @@ def flag_for(command: click.Command | None, name: str) -> str:
     params = [p for p in command.params if p.name != "help"]
     tries = [name] + ([name.rsplit(".", 1)[1]] if "." in name else [])
     for n in tries:
-        key = n.replace(".", "_")
+        key = n.replace(".", "_").replace("-", "_")
         for p in params:
             if p.name == key:
                 return _flag_of(p)

@@ -81,17 +81,26 @@ class Interval(Constraint):
         lo_closed = self.closed in ("both", "left")
         hi_closed = self.closed in ("both", "right")
         u = f" {self.unit}" if self.unit else ""
+        lo, hi = _num(self.lo), _num(self.hi)
         if self.lo is not None and self.hi is not None:
-            rng = f"in {'[' if lo_closed else '('}{self.lo:g}, {self.hi:g}{']' if hi_closed else ')'}{u}"
+            rng = f"in {'[' if lo_closed else '('}{lo}, {hi}{']' if hi_closed else ')'}{u}"
         elif self.lo is not None:
-            rng = f"{'>=' if lo_closed else '>'} {self.lo:g}{u}"
+            rng = f"{'>=' if lo_closed else '>'} {lo}{u}"
         elif self.hi is not None:
-            rng = f"{'<=' if hi_closed else '<'} {self.hi:g}{u}"
+            rng = f"{'<=' if hi_closed else '<'} {hi}{u}"
         else:
             rng = ""
         if self.kind is int:
             return f"an integer {rng}".rstrip()
         return rng or "a number"
+
+
+def _num(x: float | None) -> str:
+    if x is None:
+        return ""
+    if float(x).is_integer() and abs(x) < 1e15:
+        return str(int(x))
+    return f"{x:g}"
 
 
 class Options(Constraint):
@@ -141,8 +150,8 @@ class Predicate(Constraint):
 
 
 def describe(rules: list) -> str:
-    """The "must be ..." sentence of one parameter's rule list."""
-    parts = ["None" if r is None else str(r) for r in rules]
+    """The "must be ..." sentence of one parameter's rule list (``None``, "not given", is left out)."""
+    parts = [str(r) for r in rules if r is not None] or ["None"]
     return parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " or " + parts[-1]
 
 
