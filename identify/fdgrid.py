@@ -18,7 +18,7 @@ import time
 import click
 import numpy as np
 
-from elastimap.cli_util import run
+from elastimap.cli_util import mesh_option, run
 
 FD_D = (4.0, 7.0, 10.0, 13.0)
 FD_U = (0.25, 0.75)
@@ -58,7 +58,7 @@ def compute(out: str, mesh: str = "default", progress: bool = True) -> dict:
 
 
 @click.command()
-@click.option("--mesh", default="default", show_default=True)
+@mesh_option()
 @click.option("--out", default="data/identify/fdgrid.npz", show_default=True)
 def main(mesh, out):
     """Finite-difference Jacobians from real solves on the coarse study grid."""
