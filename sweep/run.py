@@ -77,7 +77,7 @@ class SweepConfig:
         "timeout": [None, Interval(float, 0, None, unit="s")],
     }
 
-    def validate(self) -> "SweepConfig":
+    def validate(self) -> SweepConfig:
         validate_params(vars(self), self._parameter_constraints)
         return self
 

@@ -74,7 +74,7 @@ def test_help_lists_every_stage():
 
 def test_every_lazy_entry_resolves_to_a_click_command():
     for table in (STAGES, STUDIES):
-        for name, (spec, help_line) in table.items():
+        for spec, help_line in table.values():
             assert isinstance(load_command(spec), click.Command), spec
             assert help_line and "\n" not in help_line
 
@@ -102,7 +102,7 @@ def test_alias_runs_the_same_click_object_as_elastimap(alias, monkeypatch):
 def test_dash_h_on_every_group_and_subcommand():
     """Walk the whole click tree (stages, their subcommands, the studies): `-h` shows the usage."""
     n = 0
-    for path, cmd in _walk(cli, []):
+    for path, _cmd in _walk(cli, []):
         r = CliRunner().invoke(cli, [*path, "-h"])
         assert r.exit_code == 0 and "Usage:" in r.output and "--help" in r.output, (path, r.output)
         n += 1
@@ -248,9 +248,9 @@ def test_mistyped_flag_answers_fast_in_one_line(argv):
 @pytest.mark.parametrize("argv", [["--help"], ["solve", "--bogus"], ["sweep", "run", "--bogus"],
                                   ["train", "--bogus"], ["camera", "-h"], ["gap", "-h"], ["identify", "-h"]])
 def test_lazy_imports_nothing_heavy(argv):
-    code = ("import sys\nfrom elastimap.cli import main\ntry:\n    main(%r)\nexcept SystemExit:\n    pass\n"
+    code = (f"import sys\nfrom elastimap.cli import main\ntry:\n    main({argv!r})\nexcept SystemExit:\n    pass\n"
             "heavy = sorted(m for m in ('torch', 'dolfinx', 'dask', 'distributed', 'pandas', 'gmsh') if m in sys.modules)\n"
-            "print('HEAVY', ','.join(heavy))\n") % (argv,)
+            "print('HEAVY', ','.join(heavy))\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=120)
     line = [ln for ln in r.stdout.splitlines() if ln.startswith("HEAVY")]
     assert line == ["HEAVY "], (argv, r.stdout[-500:], r.stderr[-500:])

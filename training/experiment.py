@@ -84,7 +84,7 @@ class TrainConfig:
         "workers": [Interval(int, 0, None)],
     }
 
-    def validate(self) -> "TrainConfig":
+    def validate(self) -> TrainConfig:
         """Raise :class:`UserError` naming the first setting that breaks its rule; return self."""
         validate_params(vars(self), self._parameter_constraints)
         return self
