@@ -1,8 +1,8 @@
-"""Camera-side command line: ``python -m elastimap.camera.cli {synth,features,calibrate,infer,detect}``.
+"""Camera-side command line: ``elastimap camera {synth,features,calibrate,infer,detect}``.
 
-Console scripts (to be registered): ``camera = elastimap.camera.cli:main`` (all
-subcommands), ``calibrate = elastimap.camera.cli:calibrate_main``,
-``infer = elastimap.camera.cli:infer_main``.  User errors end as one ``error: ...``
+Also installed as ``camera`` (the same group), and ``calibrate`` / ``infer`` are the very
+``camera calibrate`` / ``camera infer`` command objects under a name of their own;
+``python -m elastimap.camera.cli`` works too.  User errors end as one ``error: ...``
 line and exit code 2 (:func:`elastimap.cli_util.run`); warnings about frames
 (saturation, blank, colour) print as ``warning: ...`` lines.
 """
@@ -17,7 +17,7 @@ import warnings
 import click
 import numpy as np
 
-from elastimap.cli_util import run
+from elastimap.cli_util import CONTEXT_SETTINGS, mesh_option, run
 from elastimap.errors import UserError
 
 
@@ -80,19 +80,19 @@ def _model_kw(seed, noise_scale, bits, binning):
     return dict(seed=seed, noise_scale=noise_scale, bits=None if bits is None else int(bits), binning=binning)
 
 
-@click.group()
+@click.group(context_settings=CONTEXT_SETTINGS)
 def main():
     """Camera side of elastimap: SYNTHETIC TIR camera, camera features, calibration, inference, detection."""
 
 
 # -------------------------------------------------------------------- synth
-@main.command()
+@main.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--d", "d", type=float, required=True, help="Inclusion diameter, mm.")
 @click.option("--h", "h", type=float, required=True, help="Centre depth below the surface, mm.")
 @click.option("--E", "E", type=float, required=True, help="Inclusion modulus, kPa.")
 @click.option("--tissue-E", type=float, default=5.0, show_default=True)
 @click.option("--delta", type=float, default=3.0, show_default=True, help="Indentation, mm.")
-@click.option("--mesh", default="default", show_default=True)
+@mesh_option()
 @click.option("--frames", type=int, default=30, show_default=True)
 @click.option("--out", type=click.Path(file_okay=False), required=True)
 @click.option("--name", default=None, help="File-name stem (default d<d>_h<h>_E<E>).")
@@ -121,7 +121,7 @@ def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, s
 
 
 # ----------------------------------------------------------------- features
-@main.command()
+@main.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--images", multiple=True, required=True, help="Lesion frames (files or globs; repeatable).")
 @click.option("--background", multiple=True, required=True, help="Background frames (files or globs).")
 @click.option("--sensor", "sensor_json", type=click.Path(dir_okay=False), help="Camera geometry (SensorModel JSON).")
@@ -142,14 +142,14 @@ def features(images, background, sensor_json, threshold, smooth_px, combine, as_
 
 
 # ---------------------------------------------------------------- calibrate
-@main.command()
+@main.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--phantoms", type=click.Path(dir_okay=False), default=None,
               help="Phantom spec CSV (name,d,h,E[,tissue_E,tissue_thickness]); default dataset/phantoms.csv.")
 @click.option("--camera-csv", type=click.Path(dir_okay=False), default=None,
               help="CSV name,images,background of YOUR phantom images; without it the camera is SYNTHETIC.")
 @click.option("--fem-features", type=click.Path(dir_okay=False), default=None,
               help="Take FEM features from a CSV/Parquet (name or tag 'phantom:<name>', O1,O2,O3) instead of solving.")
-@click.option("--mesh", default="default", show_default=True)
+@mesh_option()
 @click.option("--delta", type=float, default=3.0, show_default=True)
 @click.option("--frames", type=int, default=30, show_default=True)
 @click.option("--write-frames", type=click.Path(file_okay=False), default=None, help="Also save the synthetic frames here.")
@@ -194,10 +194,10 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
 
 
 # -------------------------------------------------------------------- infer
-@main.command()
+@main.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--model", "model_dir", type=click.Path(), required=True,
-              help="Trained model directory: a feature ensemble (train) or an image model "
-                   "(python -m elastimap.workflows.studies.imagenet --save-model).")
+              help="Trained model directory: a feature ensemble (elastimap train) or an image model "
+                   "(elastimap identify imagenet --save-model).")
 @click.option("--calibration", type=click.Path(dir_okay=False), default=None,
               help="FEM<->camera calibration (calibrate); needed for camera features and frames.")
 @click.option("--features", "feats", type=float, nargs=3, default=None, help="Camera features O1 O2 O3.")
@@ -209,7 +209,7 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
               help="Image model only: .npy FEM difference image(s), mm, shape (ny, nx) or (n, ny, nx) on the "
                    "sweep's grid (no calibration needed).")
 @click.option("--identifiability", default="default", show_default=True,
-              help="Identifiability map (crb_grid.npz of python -m elastimap.workflows.studies.crbmap), 'default' (shipped, "
+              help="Identifiability map (crb_grid.npz of elastimap identify crbmap), 'default' (shipped, "
                    "default 512-sample sweep) or 'none'.")
 @click.option("--threshold", default=0.10, show_default=True, type=float,
               help="Cramér–Rao relative std above which an output is flagged non-identifiable.")
@@ -219,8 +219,7 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
                    "about 1.5 min of one core on the default mesh); intervals from the local Cramér–Rao bound.")
 @click.option("--image-noise", default=0.01, show_default=True, type=float,
               help="--refine: pixel noise of the image, relative to its peak.")
-@click.option("--mesh", default="default", show_default=True,
-              help="--refine: mesh of the forward model (the one the model's training sweep used).")
+@mesh_option(help="--refine: mesh of the forward model (the one the model's training sweep used).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also write .csv or .json here.")
 def infer(model_dir, calibration, feats, images, background, csv_path, fem_image, identifiability, threshold,
@@ -301,8 +300,8 @@ def _quantity(r: dict, q: str, unit: str) -> str:
 
 
 # ------------------------------------------------------------------- detect
-@main.command()
-@click.option("--mesh", default="default", show_default=True)
+@main.command(context_settings=CONTEXT_SETTINGS)
+@mesh_option()
 @click.option("--repeats", type=int, default=1, show_default=True, help="Scans per inclusion (and clean scans).")
 @click.option("--clutter-mm", type=float, default=None, help="Tissue heterogeneity sd, mm (default 0.002).")
 @click.option("--press-jitter", type=float, default=None)

@@ -1,9 +1,9 @@
-"""``dataset``: look at, plot, export and compact sample datasets.
+"""``elastimap dataset`` (alias ``dataset``): look at, plot, export and compact sample datasets.
 
-    dataset inspect sweeps/default-tied-lhs512-s0
-    dataset plot sweeps/default-tied-lhs512-s0 --out figs/
-    dataset export sweeps/default-tied-lhs512-s0 --csv table.csv
-    dataset compact sweeps/default-tied-lhs512-s0
+    elastimap dataset inspect sweeps/default-tied-lhs512-s0
+    elastimap dataset plot sweeps/default-tied-lhs512-s0 --out figs/
+    elastimap dataset export sweeps/default-tied-lhs512-s0 --csv table.csv
+    elastimap dataset compact sweeps/default-tied-lhs512-s0
 """
 
 from __future__ import annotations
@@ -14,11 +14,12 @@ from pathlib import Path
 
 import click
 
+from elastimap.cli_util import CONTEXT_SETTINGS, out_option
 from elastimap.cli_util import run as run_cli
 from elastimap.errors import UserError
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(context_settings=CONTEXT_SETTINGS)
 def cli():
     """Sample datasets landed by `sweep run` (see docs/dataset.md)."""
 
@@ -38,13 +39,13 @@ def inspect_cmd(path, as_json, top):
 
 @cli.command("plot")
 @click.argument("path")
-@click.option("--out", "out_dir", required=True, help="directory for the PNG figures")
+@out_option(required=True, help="directory for the PNG figures")
 @click.option("--images", default=12, show_default=True, help="example images in the grid")
-def plot_cmd(path, out_dir, images):
+def plot_cmd(path, out, images):
     """PNG figures: the paper's 3-D scatter per feature, features vs parameters, example images."""
     from .plot import plot_all
 
-    for f in plot_all(path, out_dir, n_images=images):
+    for f in plot_all(path, out, n_images=images):
         click.echo(str(f))
     return 0
 

@@ -1,7 +1,20 @@
-"""``elastimap``: the umbrella command; ``elastimap demo`` runs the main job on a small default.
+"""``elastimap``: the one command; every stage is a subcommand, imported only when it runs.
 
-The demo chains the real stages on a small problem, each through its own
-command, so that a fresh machine shows the whole pipeline working:
+    elastimap solve --d 8 --h 7 --E 50          one forward sample
+    elastimap sweep run --n 512 --jobs 2        a design of solves into Parquet
+    elastimap dataset inspect DIR               look at / plot / export a dataset
+    elastimap train --algo lm --validate loocv  the inverse MLP
+    elastimap camera calibrate|infer|...        the camera side
+    elastimap gap diagnose ...                  sim-to-real diagnosis
+    elastimap identify crbmap ...               the identifiability studies
+    elastimap demo                              the whole pipeline on a small default
+
+The stage commands are also installed under their own names (``solve``, ``sweep``,
+``dataset``, ``train``, ``camera``, ``calibrate``, ``infer``, ``gap``): the same click
+objects, so flags, help and errors are identical.
+
+``elastimap demo`` chains the real stages on a small problem, each through its own
+subcommand, so that a fresh machine shows the whole pipeline working:
 
 1. ``solve``        one sample at the default mesh, PNG of its elasticity image;
 2. ``sweep run``    a small design (plus the nine calibration phantoms) landing in Parquet;
@@ -13,46 +26,75 @@ command, so that a fresh machine shows the whole pipeline working:
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 import sys
 import time
 
 import click
 
-from .cli_util import run
+from .cli_util import CONTEXT_SETTINGS, LazyGroup, mesh_option, out_option, run
 from .errors import UserError
+
+#: The stages: subcommand -> ("module:attr" of its click object, the line ``elastimap --help`` shows).
+STAGES = {
+    "solve": ("elastimap.solver.cli:command", "One forward solve: features, force and image of one inclusion."),
+    "sweep": ("elastimap.sweep.cli:cli", "Batch sweeps of the forward model into Parquet datasets."),
+    "dataset": ("elastimap.dataset.cli:cli", "Inspect, plot, export and compact sample datasets."),
+    "train": ("elastimap.training.cli:train", "Train and validate the inverse MLP (LM/SCG, HOV/LOOCV)."),
+    "camera": ("elastimap.camera.cli:main", "Camera side: synthetic frames, features, calibrate, infer, detect."),
+    "gap": ("elastimap.gap.cli:main_group", "Sim-to-real gap diagnosis (synth, diagnose, selftest)."),
+}
+
+#: The identifiability studies behind the shipped map and the docs' tables:
+#: ``elastimap identify <study>`` -> ("module:attr", help line).  One row per study.
+STUDIES = {
+    "crbmap": ("elastimap.workflows.studies.crbmap:main", "Cramér–Rao identifiability maps and the map inference uses."),
+    "fdgrid": ("elastimap.workflows.studies.fdgrid:main", "Real finite-difference Jacobians on a grid of design points."),
+    "fd-check": ("elastimap.workflows.studies.fd_check:main", "Cramér–Rao bounds from real FD Jacobians at two points."),
+    "mapcheck": ("elastimap.workflows.studies.mapcheck:main", "Compare the identifiability map with the real-FD bounds."),
+    "global-cv": ("elastimap.workflows.studies.global_cv:main", "Cross-validated error of d, h, E per measurement set."),
+    "imagenet": ("elastimap.workflows.studies.imagenet:main", "Validate the image-based inverse (image PCA -> MLP)."),
+    "region-score": ("elastimap.workflows.studies.region_score:main", "Score the identifiable region on held-out predictions."),
+    "refine": ("elastimap.workflows.studies.refine:main", "Refine image-network estimates by a FEM maximum-likelihood fit."),
+}
+
+
+@click.group(cls=LazyGroup, lazy=STAGES, context_settings=CONTEXT_SETTINGS)
+@click.version_option(package_name="elastimap", message="%(prog)s %(version)s")
+def cli():
+    """elastimap: simulate an elasticity-imaging sensor, learn the inverse map, apply it.
+
+    Every stage is a subcommand (`elastimap STAGE -h` for its options); the stages are also
+    installed as commands of their own (solve, sweep, dataset, train, camera, calibrate,
+    infer, gap).  Units: mm, kPa, mN.
+    """
+
+
+@cli.group(cls=LazyGroup, lazy=STUDIES, context_settings=CONTEXT_SETTINGS,
+           short_help="Identifiability studies (crbmap, fdgrid, imagenet, refine, ...).")
+def identify():
+    """Identifiability studies: the maps, bounds and tables behind docs/identifiability.md."""
 
 
 def _step(title: str, argv: list[str]) -> None:
-    click.secho(f"\n== {title}\n$ {' '.join(argv)}", bold=True)
+    """Run ``elastimap ARGV`` in a fresh process (each stage as a user would run it)."""
+    click.secho(f"\n== {title}\n$ elastimap {' '.join(argv)}", bold=True)
     t0 = time.perf_counter()
-    exe = shutil.which(argv[0], path=os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", ""))
-    if exe is None:
-        raise click.ClickException(f"command {argv[0]!r} not found next to {sys.executable}")
-    r = subprocess.run([exe, *argv[1:]])
+    r = subprocess.run([sys.executable, "-m", "elastimap.cli", *argv])
     if r.returncode != 0:
         raise click.ClickException(f"step failed ({title}), exit code {r.returncode}")
     click.echo(f"-- {time.perf_counter() - t0:.1f} s")
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
-def cli():
-    """elastimap: simulate an elasticity-imaging sensor, learn the inverse map, apply it.
-
-    Stage commands: solve, sweep, dataset, train, camera (calibrate, infer), gap.  Units: mm, kPa, mN.
-    """
-
-
-@cli.command()
-@click.option("--out", default="out/demo", show_default=True, help="Output folder.")
+@cli.command(context_settings=CONTEXT_SETTINGS, short_help="The whole pipeline on a small default (make demo).")
+@out_option(help="Output folder.", default="out/demo")
 @click.option("--n", type=int, default=40, show_default=True, help="Design samples in the demo sweep.")
-@click.option("--mesh", default="coarse", show_default=True, help="Mesh level of the demo sweep.")
+@mesh_option(default="coarse", help="Mesh level of the demo sweep.")
 @click.option("--jobs", type=int, default=2, show_default=True, help="Sweep worker processes.")
 def demo(out, n, mesh, jobs):
     """Run the pipeline on a small default: solve → sweep → inspect/plot → train."""
     if n < 1:
-        raise UserError("--n", f"must be >= 1 (got {n})")
+        raise UserError("n", f"must be >= 1 (got {n})")
     os.makedirs(out, exist_ok=True)
     data = os.path.join(out, "data")
     _step("one forward solve (default mesh)", ["solve", "--d", "8", "--h", "7", "--E", "50",
@@ -71,3 +113,7 @@ def demo(out, n, mesh, jobs):
 
 def main(argv=None):
     run(cli, argv, prog_name="elastimap")
+
+
+if __name__ == "__main__":
+    main()

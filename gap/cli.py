@@ -1,9 +1,9 @@
-"""``gap`` command line: synth, diagnose, selftest, effects.
+"""``elastimap gap`` (alias ``gap``): synth, diagnose, selftest, effects.
 
-    python -m elastimap.gap.cli synth --out M --effect friction=0.3 [--mesh tiny] [--n 12]
-    python -m elastimap.gap.cli diagnose --measured M --out DIR [--effects a,b] [--no-inverse]
-    python -m elastimap.gap.cli selftest --trials 20 --out DIR [--mesh tiny]
-    python -m elastimap.gap.cli effects
+    elastimap gap synth --out M --effect friction=0.3 [--mesh tiny] [--n 12]
+    elastimap gap diagnose --measured M --out DIR [--effects a,b] [--no-inverse]
+    elastimap gap selftest --trials 20 --out DIR [--mesh tiny]
+    elastimap gap effects
 
 User errors print one ``error:`` line and exit 2.  Solves are cached under ``--cache``
 (default ``$ELASTIMAP_GAP_CACHE`` or ``~/.cache/elastimap/gap``).
@@ -18,6 +18,7 @@ from pathlib import Path
 
 import click
 
+from elastimap.cli_util import CONTEXT_SETTINGS, jobs_option, mesh_option, options
 from elastimap.cli_util import run as run_cli
 from elastimap.errors import UserError
 
@@ -37,29 +38,21 @@ def _sim(cache, mesh, backend, jobs, quiet):
     return Simulator(None if cache == "none" else os.path.join(cache, f"{backend}-{mesh}"), mesh, backend, jobs, prog)
 
 
-common = [
+common = options(
     click.option("--cache", default=None, help="solve cache folder ('none' = no cache)"),
     click.option("--backend", type=click.Choice(["fem", "toy"]), default="fem", show_default=True,
                  help="fem = DOLFINx forward model; toy = analytic TOY stand-in (tests only)"),
-    click.option("--jobs", type=int, default=1, show_default=True, help="worker processes for missing solves"),
+    jobs_option(default=1, help="worker processes for missing solves"),
     click.option("--quiet", is_flag=True),
-]
+)
 
 
-def add(opts):
-    def deco(f):
-        for o in reversed(opts):
-            f = o(f)
-        return f
-    return deco
-
-
-@click.group()
+@click.group(context_settings=CONTEXT_SETTINGS)
 def main_group():
-    """Sim-to-real gap diagnosis (issue 6).  Synthetic data are labelled SYNTHETIC."""
+    """Sim-to-real gap diagnosis.  Synthetic data are labelled SYNTHETIC."""
 
 
-@main_group.command("effects")
+@main_group.command("effects", context_settings=CONTEXT_SETTINGS)
 def effects_cmd():
     """List the effects library."""
     for e in fx.EFFECTS.values():
@@ -67,17 +60,17 @@ def effects_cmd():
                    f"blind {list(e.blind)}  {e.description}")
 
 
-@main_group.command("synth")
+@main_group.command("synth", context_settings=CONTEXT_SETTINGS)
 @click.option("--out", required=True, type=click.Path(file_okay=False))
 @click.option("--effect", "effect", default="", help="NAME=MAGNITUDE[,NAME=MAGNITUDE] (empty: baseline only)")
 @click.option("--phantoms", type=click.Path(), default=None, help="CSV with id (or name), d, h, E; default an LHS design")
 @click.option("--n", "n", type=int, default=12, show_default=True)
-@click.option("--mesh", default="coarse", show_default=True)
+@mesh_option(default="coarse")
 @click.option("--frames", type=int, default=10, show_default=True)
 @click.option("--noise-scale", type=float, default=1.0, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--format", "fmt", type=click.Choice(["csv", "parquet"]), default="csv", show_default=True)
-@add(common)
+@common
 def synth_cmd(out, effect, phantoms, n, mesh, frames, noise_scale, seed, fmt, cache, backend, jobs, quiet):
     """Generate a SYNTHETIC measured dataset (truth sealed in SEALED_truth.json)."""
     import numpy as np
@@ -96,7 +89,7 @@ def synth_cmd(out, effect, phantoms, n, mesh, frames, noise_scale, seed, fmt, ca
         ids = [str(x) for x in df["name"]]
     else:
         if n < 4:
-            raise UserError("--n", "need at least 4 phantoms")
+            raise UserError("n", "need at least 4 phantoms")
         dhe = synth.phantom_design(n, seed)
     sim = _sim(cache or default_cache(), mesh, backend, jobs, quiet)
     meas, truth = synth.synthesize(dhe, effs, sim, frames=frames, seed=seed, ids=ids, noise_scale=noise_scale)
@@ -106,11 +99,11 @@ def synth_cmd(out, effect, phantoms, n, mesh, frames, noise_scale, seed, fmt, ca
     return 0
 
 
-@main_group.command("diagnose")
+@main_group.command("diagnose", context_settings=CONTEXT_SETTINGS)
 @click.option("--measured", "mpath", required=True, type=click.Path())
 @click.option("--out", required=True, type=click.Path(file_okay=False))
 @click.option("--effects", default=None, help="comma-separated candidate effects (default: all but offaxis)")
-@click.option("--mesh", default=None, help="override the sidecar's mesh level")
+@mesh_option(default=None, help="override the sidecar's mesh level")
 @click.option("--no-inverse", is_flag=True, help="skip the (d, h, E) retraining step")
 @click.option("--n-train", type=int, default=40, show_default=True, help="simulations per inverse training set")
 @click.option("--model-floor", type=float, default=0.005, show_default=True)
@@ -118,7 +111,7 @@ def synth_cmd(out, effect, phantoms, n, mesh, frames, noise_scale, seed, fmt, ca
 @click.option("--resid-max", type=float, default=4.0, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="print the summary as JSON")
-@add(common)
+@common
 def diagnose_cmd(mpath, out, effects, mesh, no_inverse, n_train, model_floor, explain_min, resid_max, seed,
                  as_json, cache, backend, jobs, quiet):
     """Diagnose the sim-to-real gap of a measured dataset: report.md, PNG figures, diagnosis.json."""
@@ -144,24 +137,24 @@ def diagnose_cmd(mpath, out, effects, mesh, no_inverse, n_train, model_floor, ex
     return 0
 
 
-@main_group.command("selftest")
+@main_group.command("selftest", context_settings=CONTEXT_SETTINGS)
 @click.option("--trials", type=int, default=20, show_default=True)
 @click.option("--out", type=click.Path(file_okay=False), default=None)
-@click.option("--mesh", default="tiny", show_default=True)
+@mesh_option(default="tiny")
 @click.option("--effects", default=None)
 @click.option("--n-phantoms", type=int, default=12, show_default=True)
 @click.option("--frames", type=int, default=10, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--inverse", is_flag=True, help="also retrain the inverse in every trial (slow)")
 @click.option("--no-withheld", is_flag=True, help="skip the true-effect-removed mode")
-@add(common)
+@common
 def selftest_cmd(trials, out, mesh, effects, n_phantoms, frames, seed, inverse, no_withheld, cache, backend, jobs, quiet):
     """Blind check: random sealed effect + magnitude, diagnose, score (SYNTHETIC)."""
     from . import selftest
     from .diagnose import Settings
 
     if trials < 1:
-        raise UserError("--trials", "must be >= 1")
+        raise UserError("trials", "must be >= 1")
     sim = _sim(cache or default_cache(), mesh, backend, jobs, quiet)
     res = selftest.run(trials, sim, fx.parse_list(effects), n_phantoms, frames, seed, Settings(inverse=inverse),
                        not no_withheld, log=None if quiet else lambda s: click.echo(s, err=True))

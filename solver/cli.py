@@ -7,9 +7,9 @@ import sys
 
 import click
 
-from elastimap.cli_util import run
+from elastimap.cli_util import CONTEXT_SETTINGS, Choice, mesh_option, param_flags, run
 
-from .params import INTERFACES, MESH_LEVELS, THICKNESS, Discretisation, ImageSpec, Inclusion, Loading, Probe, SolveParams, Tissue
+from .params import INTERFACES, THICKNESS, Discretisation, ImageSpec, Inclusion, Loading, Probe, SolveParams, Tissue
 
 
 def _layers(text: str | None):
@@ -25,15 +25,15 @@ def _layers(text: str | None):
     return out
 
 
-@click.command(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@param_flags({"probe.layer*": "--layers"})
+@click.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--d", "d", type=float, default=8.0, show_default=True, help="Inclusion diameter (mm).")
 @click.option("--h", "h", type=float, default=7.0, show_default=True,
               help="Depth of the inclusion centre below the tissue surface (mm); the sphere must stay >= 1 mm "
                    "below the surface and >= 2 mm above the chest wall.")
 @click.option("--E", "E", type=float, default=50.0, show_default=True, help="Inclusion Young's modulus (kPa).")
-@click.option("--mesh", type=click.Choice(MESH_LEVELS), default="default", show_default=True,
-              help="Mesh level (tiny is for tests only).")
-@click.option("--interface", type=click.Choice(INTERFACES), default="tied", show_default=True,
+@mesh_option()
+@click.option("--interface", type=Choice(INTERFACES), default="tied", show_default=True,
               help="Probe-tissue interface: tied = frictionless closed (normal tied, tangentially free); "
                    "contact = frictionless unilateral contact (active set); bonded = glued (comparison only).")
 @click.option("--full", is_flag=True, help="Full model instead of the quarter-symmetry model.")
@@ -63,7 +63,7 @@ def command(d, h, E, mesh, interface, full, delta, force, tissue_E, thickness, n
     elasticity image: O1 maximum (mm), O2 total (mm), O3 deformed area (mm^2), plus
     the plate force (mN).  Units: mm, kPa, mN.
 
-    Example: solve --d 8 --h 7 --E 50 --json --image inclusion.png
+    Example: elastimap solve --d 8 --h 7 --E 50 --json --image inclusion.png
     """
     p = SolveParams(
         inclusion=Inclusion(d=d, h=h, E=E, nu=nu),

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from elastimap.constraints import Interval, Options, validate_params
 from elastimap.errors import UserError, check_range
 
 MESH_LEVELS = ("tiny", "coarse", "default", "fine")
@@ -28,6 +29,33 @@ THICKNESS = 20.0
 #: the design box of the paper and of the default sweep: diameter d (mm) and inclusion modulus E
 #: (kPa); the centre depth h spans :func:`depth_range` of each d
 DESIGN_BOX = {"d": (2.0, 15.0), "E": (10.0, 200.0)}
+
+_POSITIVE_MM = Interval(float, 0, None, closed="neither", unit="mm")
+_POSITIVE_KPA = Interval(float, 0, None, closed="neither", unit="kPa")
+_POISSON = Interval(float, -1, 0.5, closed="neither")
+
+#: What each solve parameter alone must be, under the name errors report (``d``, ``tissue.E``, ...).
+PARAMETER_CONSTRAINTS = {
+    "tissue.size": [_POSITIVE_MM],
+    "tissue.thickness": [_POSITIVE_MM],
+    "tissue.E": [_POSITIVE_KPA],
+    "tissue.nu": [_POISSON],
+    "tissue.skin_E": [_POSITIVE_KPA],
+    "tissue.nonlinearity": [Interval(float, 0, 1)],
+    "d": [_POSITIVE_MM],
+    "E": [_POSITIVE_KPA],
+    "inclusion.nu": [_POISSON],
+    "inclusion.aspect": [Interval(float, 0.2, 5.0)],
+    "probe.nu": [_POISSON],
+    "force": [None, Interval(float, 0, None, closed="neither", unit="mN")],
+    "mesh": [Options(MESH_LEVELS)],
+    "degree": [Options((1, 2))],
+    "interface": [Options(INTERFACES)],
+    "friction_kt": [Interval(float, 0, None, unit="kPa/mm")],
+    "symmetry": [Options(SYMMETRIES)],
+    "threshold": [Interval(float, 0, None, unit="mm")],
+    "supersample": [Interval(int, 1, 32)],
+}
 
 
 @dataclass(frozen=True)
@@ -163,20 +191,27 @@ class SolveParams:
             image=ImageSpec(**d.get("image", {})),
         )
 
-    def validate(self) -> "SolveParams":
-        """Raise :class:`UserError` naming the first bad parameter; return self."""
+    def _named_values(self) -> dict:
+        """Every parameter under the name errors report it by (the keys of ``PARAMETER_CONSTRAINTS``)."""
         t, inc, p, ld, ds, im = self.tissue, self.inclusion, self.probe, self.loading, self.disc, self.image
-        check_range("tissue.size", t.size, 0, lo_open=True, unit="mm")
-        check_range("tissue.thickness", t.thickness, 0, lo_open=True, unit="mm")
-        check_range("tissue.E", t.E, 0, lo_open=True, unit="kPa")
-        check_range("tissue.nu", t.nu, -1, 0.5, lo_open=True, hi_open=True)
+        return {"tissue.size": t.size, "tissue.thickness": t.thickness, "tissue.E": t.E, "tissue.nu": t.nu,
+                "tissue.skin_E": t.skin_E, "tissue.nonlinearity": t.nonlinearity,
+                "d": inc.d, "E": inc.E, "inclusion.nu": inc.nu, "inclusion.aspect": inc.aspect,
+                "probe.nu": p.nu, "force": ld.force,
+                "mesh": ds.mesh, "degree": ds.degree, "interface": ds.interface, "friction_kt": ds.friction_kt,
+                "symmetry": ds.symmetry, "threshold": im.threshold, "supersample": im.supersample}
+
+    def validate(self) -> "SolveParams":
+        """Raise :class:`UserError` naming the first bad parameter; return self.
+
+        What each parameter alone must be is declared in ``PARAMETER_CONSTRAINTS``; the rules
+        that tie parameters together (depth range for the diameter, probe inside the slab,
+        pixel grid over the probe) follow as code.
+        """
+        t, inc, p, ld, ds, im = self.tissue, self.inclusion, self.probe, self.loading, self.disc, self.image
+        validate_params(self._named_values(), PARAMETER_CONSTRAINTS)
+        # rules that tie parameters together
         check_range("tissue.skin_thickness", t.skin_thickness, 0, t.thickness / 2, unit="mm")
-        check_range("tissue.skin_E", t.skin_E, 0, lo_open=True, unit="kPa")
-        check_range("tissue.nonlinearity", t.nonlinearity, 0, 1)
-        check_range("d", inc.d, 0, lo_open=True, unit="mm")
-        check_range("E", inc.E, 0, lo_open=True, unit="kPa")
-        check_range("inclusion.nu", inc.nu, -1, 0.5, lo_open=True, hi_open=True)
-        check_range("inclusion.aspect", inc.aspect, 0.2, 5.0)
         half_height = inc.aspect * inc.d / 2
         lo, hi = depth_range(inc.d, t.thickness, inc.aspect)
         if not (lo <= inc.h <= hi):
@@ -194,22 +229,10 @@ class SolveParams:
         if len(p.layers) < 1:
             raise UserError("probe.layers", "at least one (thickness, E) layer is required")
         for i, (th, E) in enumerate(p.layers, 1):
-            check_range(f"probe.layer{i}.thickness", th, 0, lo_open=True, unit="mm")
-            check_range(f"probe.layer{i}.E", E, 0, lo_open=True, unit="kPa")
-        check_range("probe.nu", p.nu, -1, 0.5, lo_open=True, hi_open=True)
+            validate_params({f"probe.layer{i}.thickness": th, f"probe.layer{i}.E": E},
+                            {f"probe.layer{i}.thickness": [_POSITIVE_MM], f"probe.layer{i}.E": [_POSITIVE_KPA]})
         if ld.force is None:
             check_range("delta", ld.delta, 0, min(p.height, t.thickness) / 2, lo_open=True, unit="mm")
-        else:
-            check_range("force", ld.force, 0, lo_open=True, unit="mN")
-        if ds.mesh not in MESH_LEVELS:
-            raise UserError("mesh", f"must be one of {', '.join(MESH_LEVELS)} (got {ds.mesh!r})")
-        if ds.degree not in (1, 2):
-            raise UserError("degree", f"must be 1 or 2 (got {ds.degree})")
-        if ds.interface not in INTERFACES:
-            raise UserError("interface", f"must be one of {', '.join(INTERFACES)} (got {ds.interface!r})")
-        check_range("friction_kt", ds.friction_kt, 0, unit="kPa/mm")
-        if ds.symmetry not in SYMMETRIES:
-            raise UserError("symmetry", f"must be one of {', '.join(SYMMETRIES)} (got {ds.symmetry!r})")
         if ds.symmetry == "quarter" and (inc.offset_x != 0 or inc.offset_y != 0):
             raise UserError("symmetry", "an off-axis inclusion breaks quarter symmetry: use the full model")
         check_range("pixel", im.pixel, 0, p.size / 4, lo_open=True, unit="mm")
@@ -218,9 +241,6 @@ class SolveParams:
             raise UserError("pixel", f"must divide the probe size {p.size:g} mm into a whole number of pixels (got {im.pixel:g})")
         if ds.symmetry == "quarter" and round(n) % 2:
             raise UserError("pixel", "the quarter model needs an even number of pixels across the probe")
-        check_range("threshold", im.threshold, 0, unit="mm")
-        if not (1 <= im.supersample <= 32):
-            raise UserError("supersample", f"must be in [1, 32] (got {im.supersample})")
         return self
 
 

@@ -25,7 +25,7 @@ from .run import SweepConfig, make_plan, run
 
 def bench(counts: list[int], out: str | None = None, **kw) -> dict:
     if not counts:
-        raise UserError("--jobs-list", "give at least one worker count")
+        raise UserError("counts", "give at least one worker count")
     tmp = None
     if out is None:
         tmp = tempfile.TemporaryDirectory(prefix="sweep-bench-")
@@ -33,7 +33,7 @@ def bench(counts: list[int], out: str | None = None, **kw) -> dict:
     else:
         root = Path(out)
         if root.exists() and any(root.iterdir()):
-            raise UserError("--out", f"{root} is not empty (the benchmark needs fresh directories)")
+            raise UserError("out", f"{root} is not empty (the benchmark needs fresh directories)")
     plans = []
     for k in counts:  # check everything before running anything
         cfg = SweepConfig(jobs=k, out=str(root / f"jobs{k}"), progress=False, **kw)

@@ -1,9 +1,9 @@
-"""``sweep``: run a batch of forward solves into a Parquet dataset.
+"""``elastimap sweep`` (alias ``sweep``): run a batch of forward solves into a Parquet dataset.
 
-    sweep run --n 512 --jobs 2                 # 512 LHS samples, default ranges, default mesh
-    sweep run --n 64 --mesh tiny --phantoms    # + the nine calibration-phantom inclusions
-    sweep run --samples table.csv --out sweeps/mine
-    sweep bench --n 16 --mesh tiny             # samples/min at --jobs 1 and 2, driver overhead
+    elastimap sweep run --n 512 --jobs 2                 # 512 LHS samples, default ranges, default mesh
+    elastimap sweep run --n 64 --mesh tiny --phantoms    # + the nine calibration-phantom inclusions
+    elastimap sweep run --samples table.csv --out sweeps/mine
+    elastimap sweep bench --n 16 --mesh tiny             # samples/min at --jobs 1 and 2, driver overhead
 
 Rerunning the same command resumes: only samples with no landed row run.
 """
@@ -14,43 +14,42 @@ import sys
 
 import click
 
+from elastimap.cli_util import CONTEXT_SETTINGS, Choice, jobs_option, mesh_option, options, out_option, param_flags
 from elastimap.cli_util import run as run_cli
-from elastimap.solver.params import INTERFACES, MESH_LEVELS
+from elastimap.solver.params import INTERFACES
 
 from . import design as dsg
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(context_settings=CONTEXT_SETTINGS)
 def cli():
     """Batch sweeps of the forward model into Parquet datasets (see docs/sweep.md)."""
 
 
-def _common(f):
-    opts = [
-        click.option("--n", "n", type=int, default=None,
-                     help="design samples (default 512; 0 with --samples unless given)"),
-        click.option("--seed", type=int, default=0, show_default=True, help="seed of the design"),
-        click.option("--mesh", default="default", show_default=True, help=f"mesh level: {', '.join(MESH_LEVELS)}"),
-        click.option("--interface", default="tied", show_default=True, help=f"probe/tissue interface: {', '.join(INTERFACES)}"),
-        click.option("--design", default="lhs", show_default=True, help="lhs (Latin hypercube) or sobol (scrambled)"),
-        click.option("--ranges", default=None,
-                     help=f"NAME=LO:HI[:log] for d (mm), h (centre depth, mm or 'auto'), E (kPa); default {dsg.DEFAULT_RANGES}"),
-        click.option("--samples", type=str, default=None,
-                     help="CSV/Parquet table of samples (columns d, h, E; optional sample_id, tissue_E, tissue_thickness)"),
-        click.option("--phantoms", is_flag=True, help="add the nine calibration-phantom inclusions of dataset/phantoms.csv"),
-        # for tests and dry runs only (docs/sweep.md): 'synthetic[:KEY=VALUE,...]' runs the
-        # SYNTHETIC stand-in of elastimap.solver.synthetic instead of the forward model
-        click.option("--solver", "solver_spec", default="fem", hidden=True),
-    ]
-    for o in reversed(opts):
-        f = o(f)
-    return f
+_common = options(
+    click.option("--n", "n", type=int, default=None,
+                 help="design samples (default 512; 0 with --samples unless given)"),
+    click.option("--seed", type=int, default=0, show_default=True, help="seed of the design"),
+    mesh_option(),
+    click.option("--interface", type=Choice(INTERFACES), default="tied", show_default=True,
+                 help="probe/tissue interface"),
+    click.option("--design", type=Choice(dsg.DESIGNS), default="lhs", show_default=True,
+                 help="lhs (Latin hypercube) or sobol (scrambled)"),
+    click.option("--ranges", default=None,
+                 help=f"NAME=LO:HI[:log] for d (mm), h (centre depth, mm or 'auto'), E (kPa); default {dsg.DEFAULT_RANGES}"),
+    click.option("--samples", type=str, default=None,
+                 help="CSV/Parquet table of samples (columns d, h, E; optional sample_id, tissue_E, tissue_thickness)"),
+    click.option("--phantoms", is_flag=True, help="add the nine calibration-phantom inclusions of dataset/phantoms.csv"),
+    # for tests and dry runs only (docs/sweep.md): 'synthetic[:KEY=VALUE,...]' runs the
+    # SYNTHETIC stand-in of elastimap.solver.synthetic instead of the forward model
+    click.option("--solver", "solver_spec", default="fem", hidden=True),
+)
 
 
-@cli.command("run")
+@cli.command("run", context_settings=CONTEXT_SETTINGS)
 @_common
-@click.option("--jobs", type=int, default=2, show_default=True, help="local worker processes (one solve each)")
-@click.option("--out", type=str, default=None, help="dataset directory (default sweeps/<mesh>-<interface>-<design><n>-s<seed>)")
+@jobs_option(default=2, help="local worker processes (one solve each)")
+@out_option(help="dataset directory (default sweeps/<mesh>-<interface>-<design><n>-s<seed>)")
 @click.option("--retry-failed", is_flag=True, help="run samples that landed as failed again")
 @click.option("--scheduler", type=str, default=None,
               help="address of a running dask scheduler (tcp://host:8786) instead of a local cluster")
@@ -65,7 +64,7 @@ def run_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solver_
     from .run import SweepConfig, format_summary, make_plan, run
 
     cfg = SweepConfig(n=n, jobs=jobs, seed=seed, out=out, mesh=mesh, interface=interface, design=design,
-                      ranges=ranges, samples=samples, phantoms=phantoms, retry_failed=retry_failed,
+                      ranges=dsg.parse_ranges_text(ranges), samples=samples, phantoms=phantoms, retry_failed=retry_failed,
                       scheduler=scheduler, batch_rows=batch_rows, timeout=timeout, progress=not no_progress,
                       argv=sys.argv[1:], solver=resolve_solver(solver_spec))
     plan = make_plan(cfg)
@@ -79,10 +78,11 @@ def run_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solver_
     return 0
 
 
-@cli.command("bench")
+@param_flags({"jobs": "--jobs-list", "counts": "--jobs-list"})
+@cli.command("bench", context_settings=CONTEXT_SETTINGS)
 @_common
 @click.option("--jobs-list", default="1,2", show_default=True, help="comma-separated worker counts to time")
-@click.option("--out", type=str, default=None, help="keep the datasets under OUT/jobs<k> (default: a temporary dir)")
+@out_option(help="keep the datasets under OUT/jobs<k> (default: a temporary dir)")
 def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solver_spec, jobs_list, out):
     """Time the same sweep at several --jobs: samples/min, speed-up, driver overhead per sample."""
     from .bench import bench, format_bench
@@ -92,9 +92,9 @@ def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solve
         counts = [int(x) for x in jobs_list.split(",") if x.strip()]
     except ValueError:
         from elastimap.errors import UserError
-        raise UserError("--jobs-list", f"expected integers like 1,2 (got {jobs_list!r})") from None
+        raise UserError("jobs_list", f"expected integers like 1,2 (got {jobs_list!r})") from None
     res = bench(counts, n=16 if n is None and not samples else n, seed=seed, mesh=mesh, interface=interface,
-                design=design, ranges=ranges, samples=samples, phantoms=phantoms, out=out,
+                design=design, ranges=dsg.parse_ranges_text(ranges), samples=samples, phantoms=phantoms, out=out,
                 solver=resolve_solver(solver_spec))
     click.echo(format_bench(res))
     return 0

@@ -3,8 +3,9 @@
 A sample is a plain dict ``{"sample_id", "tag", "d", "h", "E"}`` plus optional
 overrides of the base solve (``tissue_E``, ``tissue_thickness``).
 
-Ranges (``--ranges``): ``d=LO:HI,h=LO:HI,E=LO:HI[:log|lin]``; a name left out
-keeps its default.  Defaults: ``d=2:15`` (mm, uniform), ``h=auto``, ``E=10:200:log``
+Ranges: a dict ``{"d": (LO, HI), "h": "auto", "E": (LO, HI, "log")}`` (:func:`check_ranges`);
+the command line writes them ``d=LO:HI,h=LO:HI,E=LO:HI[:log|lin]`` (:func:`parse_ranges_text`).
+A name left out keeps its default.  Defaults: ``d=2:15`` (mm, uniform), ``h=auto``, ``E=10:200:log``
 (kPa, log-uniform: a stiffness ratio matters, not a difference, and the
 features change fastest at low E).  ``h`` is the depth of the inclusion centre;
 ``auto`` (the default) means the whole allowed depth for each d
@@ -67,75 +68,100 @@ class Range:
         return lo + u * (hi - lo)
 
 
-def _num(name: str, s: str) -> float:
+def _num(name: str, s) -> float:
     try:
-        v = float(s)
-    except ValueError:
-        raise UserError("--ranges", f"{name}: {s!r} is not a number") from None
+        v = float(s.strip() if isinstance(s, str) else s)
+    except (TypeError, ValueError):
+        raise UserError("ranges", f"{name}: {s!r} is not a number") from None
     if not math.isfinite(v):
-        raise UserError("--ranges", f"{name}: {s!r} is not a finite number")
+        raise UserError("ranges", f"{name}: {s!r} is not a finite number")
     return v
+
+
+def parse_ranges_text(text: str | None) -> dict[str, str]:
+    """Split the command-line form ``d=2:15,h=auto,E=10:200:log`` into ``{name: "LO:HI[:scale]"}``.
+
+    Names left out are absent (:func:`check_ranges` fills in the defaults); a name given twice
+    is an error.
+    """
+    out: dict[str, str] = {}
+    for part in (text or "").split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if "=" not in part:
+            raise UserError("ranges", f"{part!r}: expected NAME=LO:HI (names {', '.join(NAMES)})")
+        name, spec = (x.strip() for x in part.split("=", 1))
+        if name in out:
+            raise UserError("ranges", f"{name} is given twice")
+        out[name] = spec
+    return out
+
+
+def check_ranges(ranges: dict | None, thickness: float = THICKNESS) -> dict[str, Range]:
+    """The design ranges as :class:`Range` objects, defaults filled in, checked against the slab.
+
+    ``ranges`` maps ``d``, ``h``, ``E`` (any of them) to a :class:`Range`, a tuple
+    ``(lo, hi)`` or ``(lo, hi, "lin"|"log")``, a string ``"LO:HI[:log]"``, or, for ``h``
+    only, ``"auto"``/``None`` (the whole allowed depth for each d).
+    """
+    out = {name: _range(name, spec) for name, spec in _DEFAULT_SPECS.items()}
+    for name, spec in (ranges or {}).items():
+        out[name] = _range(name, spec)
+    d, h = out["d"], out["h"]
+    if d.lo <= 0:
+        raise UserError("ranges", f"d must be > 0 mm (got {d.text()})")
+    if out["E"].lo <= 0:
+        raise UserError("ranges", f"E must be > 0 kPa (got {out['E'].text()})")
+    lo, hi = depth_range(d.hi, thickness)
+    if lo > hi:
+        dmax = thickness - 3.0
+        raise UserError("ranges", f"d up to {d.hi:g} mm does not fit in the {thickness:g} mm slab "
+                                  f"(1 mm cover, 2 mm floor: d <= {dmax:g} mm)")
+    if not h.auto:
+        # the allowed interval shrinks as d grows: the largest d is the binding case
+        if max(h.lo, lo) > min(h.hi, hi):
+            raise UserError("ranges", f"h={h.text()} mm leaves no valid depth for d = {d.hi:g} mm "
+                                      f"(allowed centre depth [{lo:g}, {hi:g}] mm); use h=auto or a wider range")
+    return out
 
 
 def parse_ranges(text: str | None, thickness: float = THICKNESS) -> dict[str, Range]:
     """Parse ``d=2:15,h=auto,E=10:200:log`` (names may be left out) and check it against the slab."""
-    out = {}
-    for part in DEFAULT_RANGES.split(","):
-        out.update(_parse_one(part))
-    if text:
-        seen = set()
-        for part in text.split(","):
-            part = part.strip()
-            if not part:
-                continue
-            one = _parse_one(part)
-            name, = one
-            if name in seen:
-                raise UserError("--ranges", f"{name} is given twice")
-            seen.add(name)
-            out.update(one)
-    d, h = out["d"], out["h"]
-    if d.lo <= 0:
-        raise UserError("--ranges", f"d must be > 0 mm (got {d.text()})")
-    if out["E"].lo <= 0:
-        raise UserError("--ranges", f"E must be > 0 kPa (got {out['E'].text()})")
-    lo, hi = depth_range(d.hi, thickness)
-    if lo > hi:
-        dmax = thickness - 3.0
-        raise UserError("--ranges", f"d up to {d.hi:g} mm does not fit in the {thickness:g} mm slab "
-                                    f"(1 mm cover, 2 mm floor: d <= {dmax:g} mm)")
-    if not h.auto:
-        # the allowed interval shrinks as d grows: the largest d is the binding case
-        if max(h.lo, lo) > min(h.hi, hi):
-            raise UserError("--ranges", f"h={h.text()} mm leaves no valid depth for d = {d.hi:g} mm "
-                                        f"(allowed centre depth [{lo:g}, {hi:g}] mm); use h=auto or a wider range")
-    return out
+    return check_ranges(parse_ranges_text(text), thickness)
 
 
-def _parse_one(part: str) -> dict[str, Range]:
-    if "=" not in part:
-        raise UserError("--ranges", f"{part!r}: expected NAME=LO:HI (names {', '.join(NAMES)})")
-    name, spec = (x.strip() for x in part.split("=", 1))
+def _range(name: str, spec) -> Range:
     if name not in NAMES:
-        raise UserError("--ranges", f"unknown parameter {name!r} (known: {', '.join(NAMES)})")
-    if spec == "auto":
+        raise UserError("ranges", f"unknown parameter {name!r} (known: {', '.join(NAMES)})")
+    if isinstance(spec, Range):
+        spec = (spec.lo, spec.hi, spec.scale) if not spec.auto else None
+    if spec is None or spec == "auto":
         if name != "h":
-            raise UserError("--ranges", f"only h can be 'auto' (got {name}=auto)")
-        return {name: Range(None, None)}
-    bits = spec.split(":")
+            raise UserError("ranges", f"only h can be 'auto' (got {name}=auto)")
+        return Range(None, None)
+    if isinstance(spec, str):
+        bits = spec.split(":")
+    elif isinstance(spec, (tuple, list)):
+        bits = list(spec)
+    else:
+        raise UserError("ranges", f"{name}: expected (LO, HI), (LO, HI, scale) or 'LO:HI[:log]' (got {spec!r})")
     scale = "lin"
     if len(bits) == 3:
-        scale = bits.pop().strip()
+        scale = str(bits.pop()).strip()
         if scale not in ("lin", "log"):
-            raise UserError("--ranges", f"{name}: scale must be lin or log (got {scale!r})")
+            raise UserError("ranges", f"{name}: scale must be lin or log (got {scale!r})")
     if len(bits) != 2:
-        raise UserError("--ranges", f"{name}={spec!r}: expected LO:HI or LO:HI:log")
+        raise UserError("ranges", f"{name}={spec!r}: expected LO:HI or LO:HI:log")
     lo, hi = _num(name, bits[0]), _num(name, bits[1])
     if not lo < hi:
-        raise UserError("--ranges", f"{name}: LO must be < HI (got {lo:g}:{hi:g})")
+        raise UserError("ranges", f"{name}: LO must be < HI (got {lo:g}:{hi:g})")
     if scale == "log" and lo <= 0:
-        raise UserError("--ranges", f"{name}: a log range needs LO > 0 (got {lo:g})")
-    return {name: Range(lo, hi, scale)}
+        raise UserError("ranges", f"{name}: a log range needs LO > 0 (got {lo:g})")
+    return Range(lo, hi, scale)
+
+
+_DEFAULT_SPECS = parse_ranges_text(DEFAULT_RANGES)
 
 
 def ranges_text(ranges: dict[str, Range]) -> str:
@@ -144,7 +170,7 @@ def ranges_text(ranges: dict[str, Range]) -> str:
 
 def check_n(n: int) -> int:
     if n is None or n < 0 or n > MAX_N:
-        raise UserError("--n", f"must be an integer in [0, {MAX_N}] (got {n})")
+        raise UserError("n", f"must be an integer in [0, {MAX_N}] (got {n})")
     return int(n)
 
 
@@ -153,7 +179,7 @@ def design_points(n: int, design: str, seed: int, ranges: dict[str, Range],
     """``n`` samples of the space-filling design, with stable ids."""
     check_n(n)
     if design not in DESIGNS:
-        raise UserError("--design", f"must be one of {', '.join(DESIGNS)} (got {design!r})")
+        raise UserError("design", f"must be one of {', '.join(DESIGNS)} (got {design!r})")
     if n == 0:
         return []
     from scipy.stats import qmc
@@ -200,18 +226,18 @@ def load_samples(path: str) -> list[dict]:
 
     p = Path(path)
     if not p.is_file():
-        raise UserError("--samples", f"{path} does not exist or is not a file")
+        raise UserError("samples", f"{path} does not exist or is not a file")
     try:
         if p.suffix.lower() in (".parquet", ".pq"):
             df = pd.read_parquet(p)
         elif p.suffix.lower() in (".csv", ".txt"):
             df = pd.read_csv(p, comment="#", skipinitialspace=True)
         else:
-            raise UserError("--samples", f"{path}: expected a .csv or .parquet file")
+            raise UserError("samples", f"{path}: expected a .csv or .parquet file")
     except UserError:
         raise
     except Exception as exc:
-        raise UserError("--samples", f"{path} cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+        raise UserError("samples", f"{path} cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
     cols = [str(c).strip() for c in df.columns]
     df.columns = cols
     if "id" in cols and "sample_id" not in cols:
@@ -219,13 +245,13 @@ def load_samples(path: str) -> list[dict]:
         cols = list(df.columns)
     missing = [c for c in NAMES if c not in cols]
     if missing:
-        raise UserError("--samples", f"{path} lacks column(s) {', '.join(missing)} (has: {', '.join(cols) or 'none'})")
+        raise UserError("samples", f"{path} lacks column(s) {', '.join(missing)} (has: {', '.join(cols) or 'none'})")
     allowed = {*NAMES, "sample_id", *OVERRIDES}
     unknown = [c for c in cols if c not in allowed]
     if unknown:
-        raise UserError("--samples", f"{path}: unknown column(s) {', '.join(unknown)} (allowed: {', '.join(sorted(allowed))})")
+        raise UserError("samples", f"{path}: unknown column(s) {', '.join(unknown)} (allowed: {', '.join(sorted(allowed))})")
     if len(df) == 0:
-        raise UserError("--samples", f"{path} has no rows")
+        raise UserError("samples", f"{path} has no rows")
     out = []
     for i, r in enumerate(df.to_dict("records")):
         line = f"{path} row {i + 1}"
@@ -236,9 +262,9 @@ def load_samples(path: str) -> list[dict]:
             try:
                 v = float(r[c])
             except (TypeError, ValueError):
-                raise UserError("--samples", f"{line}: {c}={r[c]!r} is not a number") from None
+                raise UserError("samples", f"{line}: {c}={r[c]!r} is not a number") from None
             if not math.isfinite(v):
-                raise UserError("--samples", f"{line}: {c} is missing or not finite")
+                raise UserError("samples", f"{line}: {c} is missing or not finite")
             s[c] = v
         sid = r.get("sample_id")
         if sid is None or (isinstance(sid, float) and math.isnan(sid)) or str(sid).strip() == "":
@@ -250,6 +276,6 @@ def load_samples(path: str) -> list[dict]:
 
     dup = sorted(i for i, c in Counter(s["sample_id"] for s in out).items() if c > 1)
     if dup:
-        raise UserError("--samples", f"{path}: duplicate sample id(s) {', '.join(dup[:5])} "
+        raise UserError("samples", f"{path}: duplicate sample id(s) {', '.join(dup[:5])} "
                                      "(identical rows, or a repeated sample_id)")
     return out

@@ -2,7 +2,8 @@
 
 Order of work (nothing is written before step 3, so bad input leaves no trace):
 
-1. parse and check every option (``UserError`` names the flag);
+1. check every setting against ``SweepConfig``'s declared rules (``UserError`` names the
+   parameter; the command line shows it as its flag);
 2. build the sample list (design + ``--samples`` + ``--phantoms``) and validate
    every sample's solve inputs;
 3. lock the output directory, check/extend its manifest (``_sweep.json``),
@@ -29,10 +30,11 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from elastimap.constraints import Interval, Options, Predicate, validate_params
 from elastimap.dataset import io, store
 from elastimap.errors import UserError
 from elastimap.provenance import code_version, host
-from elastimap.solver.params import Discretisation, SolveParams
+from elastimap.solver.params import INTERFACES, MESH_LEVELS, Discretisation, SolveParams
 
 from . import design as dsg
 from . import jobs
@@ -42,14 +44,17 @@ MAX_JOBS = 256
 
 @dataclass
 class SweepConfig:
-    n: int | None = None            # None: 512, or 0 when --samples is given
+    """One sweep's settings; ``ranges`` is a dict (see :func:`elastimap.sweep.design.check_ranges`),
+    ``None`` for the default ranges."""
+
+    n: int | None = None            # None: 512, or 0 when samples is given
     jobs: int = 2
     seed: int = 0
     out: str | None = None
     mesh: str = "default"
     interface: str = "tied"
     design: str = "lhs"
-    ranges: str | None = None
+    ranges: dict | None = None
     samples: str | None = None
     phantoms: bool = False
     retry_failed: bool = False
@@ -62,6 +67,23 @@ class SweepConfig:
     # None: the forward model; tests pass the SYNTHETIC stand-in (see sweep.jobs), which the
     # workers receive as a task argument
     solver: Callable | None = None
+
+    #: What each setting alone must be (relations between settings are checked in ``make_plan``).
+    _parameter_constraints = {
+        "n": [None, Interval(int, 0, dsg.MAX_N)],
+        "jobs": [Interval(int, 1, MAX_JOBS)],
+        "seed": [Interval(int, 0, None)],
+        "mesh": [Options(MESH_LEVELS)],
+        "interface": [Options(INTERFACES)],
+        "design": [Options(dsg.DESIGNS)],
+        "ranges": [None, Predicate(lambda r: isinstance(r, dict), "a dict {name: (lo, hi[, scale])}")],
+        "batch_rows": [Interval(int, 1, None)],
+        "timeout": [None, Interval(float, 0, None, unit="s")],
+    }
+
+    def validate(self) -> SweepConfig:
+        validate_params(vars(self), self._parameter_constraints)
+        return self
 
 
 @dataclass
@@ -90,54 +112,42 @@ def _jsonable(d: dict) -> dict:
 
 def make_plan(cfg: SweepConfig) -> Plan:
     """Check everything and list the samples; writes nothing."""
-    if cfg.jobs is None or cfg.jobs < 1 or cfg.jobs > MAX_JOBS:
-        raise UserError("--jobs", f"must be an integer in [1, {MAX_JOBS}] (got {cfg.jobs})")
-    if cfg.timeout is not None and not (cfg.timeout >= 0):
-        raise UserError("--timeout", f"must be >= 0 s (0: no limit; got {cfg.timeout})")
-    if cfg.batch_rows < 1:
-        raise UserError("--batch-rows", f"must be >= 1 (got {cfg.batch_rows})")
+    cfg.validate()
     n = cfg.n if cfg.n is not None else (0 if cfg.samples else 512)
-    dsg.check_n(n)
-    if cfg.design not in dsg.DESIGNS:
-        raise UserError("--design", f"must be one of {', '.join(dsg.DESIGNS)} (got {cfg.design!r})")
-    base = SolveParams(disc=Discretisation(mesh=cfg.mesh, interface=cfg.interface))
-    try:
-        base.validate()
-    except UserError as exc:
-        raise UserError(f"--{exc.param}" if exc.param in ("mesh", "interface") else exc.param, exc.message) from None
-    ranges = dsg.parse_ranges(cfg.ranges, base.tissue.thickness)
+    base = SolveParams(disc=Discretisation(mesh=cfg.mesh, interface=cfg.interface)).validate()
+    ranges = dsg.check_ranges(cfg.ranges, base.tissue.thickness)
     samples = dsg.design_points(n, cfg.design, cfg.seed, ranges, base.tissue.thickness)
     if cfg.samples:
         samples += dsg.load_samples(cfg.samples)
     if cfg.phantoms:
         samples += dsg.load_phantoms()
     if not samples:
-        raise UserError("--n", "nothing to run (--n 0 without --samples or --phantoms)")
+        raise UserError("n", "nothing to run (n = 0, and no samples table or phantoms)")
     seen: dict[str, dict] = {}
     for s in samples:
         if s["sample_id"] in seen:
-            raise UserError("--samples", f"sample id {s['sample_id']!r} occurs twice (in the design/phantoms and the table?)")
+            raise UserError("samples", f"sample id {s['sample_id']!r} occurs twice (in the design/phantoms and the table?)")
         seen[s["sample_id"]] = s
         try:
             jobs.sample_params(s, base).validate()
         except UserError as exc:
-            where = "--samples" if s["tag"] == "user" else ("--phantoms" if s["tag"].startswith("phantom") else "--ranges")
+            where = "samples" if s["tag"] == "user" else ("phantoms" if s["tag"].startswith("phantom") else "ranges")
             raise UserError(where, f"sample {s['sample_id']} (d={s['d']:g} mm, h={s['h']:g} mm, E={s['E']:g} kPa) "
                                    f"is not a valid solve: {exc}") from None
     out = Path(cfg.out or default_out(cfg, n))
     if out.exists() and not out.is_dir():
-        raise UserError("--out", f"{out} exists and is not a directory")
+        raise UserError("out", f"{out} exists and is not a directory")
     if out.is_dir():
         man = io.read_manifest(out)
         if man is None and any(out.iterdir()):
-            raise UserError("--out", f"{out} is not empty and holds no sweep manifest ({io.MANIFEST}); choose another --out")
+            raise UserError("out", f"{out} is not empty and holds no sweep manifest ({io.MANIFEST}); choose another --out")
         label = store.solver_label(cfg.solver)
         if man is not None and man.get("solver", store.FEM) != label:
-            raise UserError("--out", f"{out} holds a sweep by the {man.get('solver', store.FEM)!r} solver, not {label!r}; "
+            raise UserError("out", f"{out} holds a sweep by the {man.get('solver', store.FEM)!r} solver, not {label!r}; "
                                      "use another --out")
         if man is not None and man.get("base_params") != _jsonable(base.to_dict()):
             old = man.get("base_params", {}).get("disc", {})
-            raise UserError("--out", f"{out} holds a sweep with other solver settings (mesh={old.get('mesh')}, "
+            raise UserError("out", f"{out} holds a sweep with other solver settings (mesh={old.get('mesh')}, "
                                      f"interface={old.get('interface')}); use the same settings to resume, or another --out")
         _check_landed_match(out, samples)
     return Plan(cfg, base, samples, out, ranges)
@@ -157,7 +167,7 @@ def _check_landed_match(out: Path, samples: list[dict]) -> None:
             bad.append(f"{s['sample_id']} (landed d={got[0]:g}, h={got[1]:g}, E={got[2]:g}; "
                        f"now d={s['d']:g}, h={s['h']:g}, E={s['E']:g})")
     if bad:
-        raise UserError("--out", f"{out} already holds {len(bad)} sample id(s) with other parameters: "
+        raise UserError("out", f"{out} already holds {len(bad)} sample id(s) with other parameters: "
                                  f"{'; '.join(bad[:3])}; use another --out or other sample ids")
 
 
@@ -194,7 +204,7 @@ def _start_client(cfg: SweepConfig):
         try:
             client = Client(cfg.scheduler, timeout="20s")
         except Exception as exc:
-            raise UserError("--scheduler", f"cannot connect to {cfg.scheduler} ({type(exc).__name__}: {exc})") from None
+            raise UserError("scheduler", f"cannot connect to {cfg.scheduler} ({type(exc).__name__}: {exc})") from None
         return client, None
     # ":0": a free port for the scheduler's HTTP endpoint, so concurrent sweeps do not collide on 8787
     cluster = LocalCluster(n_workers=cfg.jobs, threads_per_worker=1, processes=True,

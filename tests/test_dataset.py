@@ -143,7 +143,7 @@ def test_cli_inspect_export_compact_plot(tmp_path, capsys):
 
 def test_cli_bad_path_is_one_line(tmp_path, capsys):
     code, out, err = _cli(["inspect", str(tmp_path / "nope")], capsys)
-    assert code == 2 and err.strip().count("\n") == 0 and err.startswith("error: path:")
+    assert code == 2 and err.strip().count("\n") == 0 and err.startswith("error: PATH:")  # the argument, as --help names it
     (tmp_path / "x.parquet").write_bytes(b"junk")
     code, out, err = _cli(["inspect", str(tmp_path / "x.parquet")], capsys)
     assert code == 2 and "not a readable Parquet file" in err

@@ -132,7 +132,7 @@ def test_invalid_options_clear_error_nothing_written(tmp_path, capsys, args, msg
     ("d,h,E\n5,6,50\n5,,50\n", "row 2: h is missing"),
     ("d,h,E\n5,6,50\n8,15,50\n", "is not a valid solve: h: centre depth must be in"),
     ("d,h,E\n5,6,50\n5,6,50\n", "duplicate sample id"),
-    ("d,h,E\n5,6,-1\n", "E: must be in"),
+    ("d,h,E\n5,6,-1\n", "E: must be > 0 kPa"),
 ])
 def test_bad_sample_tables(tmp_path, capsys, content, msg):
     f = tmp_path / "s.csv"

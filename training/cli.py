@@ -1,6 +1,6 @@
-"""``train``: validate the inverse MLP (HOV / LOOCV, LM / SCG) and save the ensemble.
+"""``elastimap train`` (alias ``train``): validate the inverse MLP (HOV / LOOCV, LM / SCG) and save the ensemble.
 
-    train --data runs/sweep512 --algo all --validate all --repeats 10 --out runs/train
+    elastimap train --data runs/sweep512 --algo all --validate all --repeats 10 --out runs/train
 
 Writes to ``--out``: ``results.csv``, ``results.md`` (also printed),
 ``curves-<algo>-<validation>.png``, ``run.json`` and, per algorithm,
@@ -17,19 +17,21 @@ import time
 
 import click
 
-from elastimap.cli_util import run
-from elastimap.errors import UserError, check_range
+from elastimap.cli_util import CONTEXT_SETTINGS, Choice, data_option, out_option, run
+from elastimap.errors import UserError
 
 ALGO_CHOICES = ("lm", "scg", "all")
 VALIDATE_CHOICES = ("hov", "loocv", "all")
 
 
-@click.command(context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--data", "data", type=str, default=None, help="Parquet file or directory of the sample table.")
+@click.command(context_settings=CONTEXT_SETTINGS)
+@data_option()
 @click.option("--synthetic", type=int, default=None, metavar="N",
               help="Use the SYNTHETIC analytic toy table with N rows instead of --data (development only).")
-@click.option("--algo", default="scg", show_default=True, help="lm, scg or all.")
-@click.option("--validate", default="hov", show_default=True, help="hov, loocv or all.")
+@click.option("--algo", type=Choice(ALGO_CHOICES), default="scg", show_default=True,
+              help="Levenberg–Marquardt, scaled conjugate gradient or both.")
+@click.option("--validate", type=Choice(VALIDATE_CHOICES), default="hov", show_default=True,
+              help="Hold-out (the phantom rows), leave-one-out or both.")
 @click.option("--repeats", default=10, show_default=True, type=int, help="Independent random initialisations.")
 @click.option("--epochs", default=100, show_default=True, type=int)
 @click.option("--hidden", default="25,10", show_default=True,
@@ -42,7 +44,7 @@ VALIDATE_CHOICES = ("hov", "loocv", "all")
 @click.option("--val-fraction", default=0.0, show_default=True, type=float,
               help="Validation rows per network for early stopping (6 failures); 0 = none.")
 @click.option("--seed", default=0, show_default=True, type=int)
-@click.option("--out", "out", default="runs/train", show_default=True, help="Output directory.")
+@out_option(default="runs/train")
 @click.option("--device", default=None, help="cpu or cuda (default: cuda when available).")
 @click.option("--threads", default=1, show_default=True, type=int,
               help="Torch CPU threads (0 = torch default); more threads were slower on the shared 2-core machine.")
@@ -58,48 +60,36 @@ def train(data, synthetic, algo, validate, repeats, epochs, hidden, activation, 
     """Train and validate the inverse MLP (O1, O2, O3) -> (d, h, E)."""
     import torch
 
+    from elastimap.constraints import validate_params
+
     from .perf import set_threads, tune_malloc
     from .api import fit_ensemble
     from .data import data_hash, load_samples, prepare, synthetic_table
-    from .experiment import ALGOS, VALIDATIONS, TrainConfig, run_validation
+    from .experiment import ALGOS, RUN_CONSTRAINTS, VALIDATIONS, TrainConfig, run_validation
     from .net import parse_hidden
     from .report import markdown, plot_curves, table
 
-    if algo not in ALGO_CHOICES:
-        raise UserError("--algo", f"must be one of {', '.join(ALGO_CHOICES)} (got {algo!r})")
-    if validate not in VALIDATE_CHOICES:
-        raise UserError("--validate", f"must be one of {', '.join(VALIDATE_CHOICES)} (got {validate!r})")
-    if repeats < 1:
-        raise UserError("--repeats", f"must be >= 1 (got {repeats})")
-    if epochs < 0:
-        raise UserError("--epochs", f"must be >= 0 (got {epochs})")
-    if workers < 0:
-        raise UserError("--workers", f"must be >= 0 (got {workers})")
-    check_range("--feature-noise", feature_noise, 0, 1)
-    check_range("--val-fraction", val_fraction, 0, 1, hi_open=True)
-    if test_split is not None:
-        check_range("--test-split", test_split, 0, 1, lo_open=True, hi_open=True)
+    # the rules are declared next to the parameters they govern; all checked before any work
+    validate_params(dict(repeats=repeats, seed=seed, test_split=test_split), RUN_CONSTRAINTS)
     if (data is None) == (synthetic is None):
-        raise UserError("--data", "give exactly one of --data PATH or --synthetic N")
-    if device not in (None, "cpu", "cuda") and not str(device).startswith("cuda:"):
-        raise UserError("--device", f"must be cpu or cuda (got {device!r})")
-    if device and device.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError("--device", "cuda requested but no GPU is available")
+        raise UserError("data", "give exactly one of --data PATH or --synthetic N")
     hidden_t = parse_hidden(hidden, activation)
+    cfg = TrainConfig(hidden=hidden_t, epochs=epochs, feature_noise=feature_noise, val_fraction=val_fraction,
+                      device=device, dtype=torch.float32 if float32 else torch.float64, progress=not quiet,
+                      workers=workers).validate()
+    if device and device.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError("device", "cuda requested but no GPU is available")
 
     tune_malloc()
     nthreads = set_threads(threads)
     if synthetic is not None:
         if synthetic < 10:
-            raise UserError("--synthetic", f"need at least 10 rows (got {synthetic})")
+            raise UserError("synthetic", f"need at least 10 rows (got {synthetic})")
         samples = prepare(synthetic_table(synthetic, seed=seed), source=f"SYNTHETIC toy table (n={synthetic})")
     else:
         samples = load_samples(data)
     algos = list(ALGOS) if algo == "all" else [algo]
     vals = list(VALIDATIONS) if validate == "all" else [validate]
-    cfg = TrainConfig(hidden=hidden_t, epochs=epochs, feature_noise=feature_noise, val_fraction=val_fraction,
-                      device=device, dtype=torch.float32 if float32 else torch.float64, progress=not quiet,
-                      workers=workers)
     os.makedirs(out, exist_ok=True)
     click.echo(samples.report(), err=True)
     click.echo(f"network {cfg.arch.describe()} ({cfg.arch.n_params} weights), device "

@@ -49,22 +49,22 @@ def load_samples(path: str) -> Samples:
     import pyarrow.dataset as pads
 
     if not os.path.exists(path):
-        raise UserError("--data", f"no such file or directory: {path}")
+        raise UserError("data", f"no such file or directory: {path}")
     try:
         ds = pads.dataset(path, format="parquet")
         names = set(ds.schema.names)
     except Exception as exc:  # pyarrow raises several types for unreadable input
-        raise UserError("--data", f"cannot read Parquet from {path}: {str(exc).splitlines()[0]}") from None
+        raise UserError("data", f"cannot read Parquet from {path}: {str(exc).splitlines()[0]}") from None
     missing = [c for c in FEATURES + TARGETS if c not in names]
     if missing:
-        raise UserError("--data", f"{path} lacks required column(s) {', '.join(missing)} "
+        raise UserError("data", f"{path} lacks required column(s) {', '.join(missing)} "
                                   f"(need {', '.join(FEATURES + TARGETS)})")
     cols = list(FEATURES + TARGETS) + [c for c in OPTIONAL if c in names]
     try:
         df = ds.to_table(columns=cols).to_pandas()
     except (OSError, ValueError) as exc:  # e.g. a running sweep compacted files while we read
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise UserError("--data", f"reading {path} failed ({first}); is a sweep still writing to it?") from None
+        raise UserError("data", f"reading {path} failed ({first}); is a sweep still writing to it?") from None
     return prepare(df, source=path)
 
 

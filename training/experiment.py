@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from elastimap.constraints import InstanceOf, Interval, Options, Predicate, validate_params
 from elastimap.errors import UserError
 
 from . import net as _net
@@ -66,6 +67,27 @@ class TrainConfig:
     mem_bytes: int | None = None   # memory budget for one chunk of networks
     progress: bool = True
     workers: int = 1               # CPU processes training chunks of networks in parallel (0 = one per core)
+
+    #: What each setting must be (the command line shows the names as its flags).
+    _parameter_constraints = {
+        "hidden": [Predicate(lambda h: len(h) >= 1 and all(int(n) >= 1 and a in _net.ACTIVATIONS for n, a in h),
+                             "a non-empty tuple of (size >= 1, transfer function) layers")],
+        "epochs": [Interval(int, 0, None)],
+        "feature_noise": [Interval(float, 0, 1)],
+        "val_fraction": [Interval(float, 0, 1, closed="left")],
+        "max_fail": [Interval(int, 1, None)],
+        "device": [None, InstanceOf(torch.device, "a torch.device"),
+                   Predicate(lambda d: d in ("cpu", "cuda") or (d.startswith("cuda:") and d[5:].isdigit()),
+                             "cpu, cuda or cuda:N")],
+        "dtype": [Options((torch.float32, torch.float64))],
+        "mem_bytes": [None, Interval(int, 1, None)],
+        "workers": [Interval(int, 0, None)],
+    }
+
+    def validate(self) -> TrainConfig:
+        """Raise :class:`UserError` naming the first setting that breaks its rule; return self."""
+        validate_params(vars(self), self._parameter_constraints)
+        return self
 
     @property
     def arch(self) -> Arch:
@@ -140,7 +162,7 @@ def make_batch(X: np.ndarray, T: np.ndarray, fit_rows: np.ndarray, test_rows: np
             rows = np.nonzero(fit_rows[b])[0]
             k = int(round(cfg.val_fraction * rows.size))
             if k < 1 or rows.size - k < 2:
-                raise UserError("--val-fraction", f"{cfg.val_fraction:g} leaves no usable validation or training rows")
+                raise UserError("val_fraction", f"{cfg.val_fraction:g} leaves no usable validation or training rows")
             pick = rng.choice(rows, size=k, replace=False)
             val[b, pick] = True
         train &= ~val
@@ -190,7 +212,7 @@ def train_batch(algo: str, obj: NetObjective, theta0: torch.Tensor, cfg: TrainCo
     as in the serial loop, so the results do not depend on the number of workers.
     """
     if algo not in ALGOS:
-        raise UserError("--algo", f"unknown algorithm {algo!r}; use one of {', '.join(ALGOS)}")
+        raise UserError("algo", f"unknown algorithm {algo!r}; use one of {', '.join(ALGOS)}")
     B = obj.B
     n = obj.X.shape[1]
     step = chunk_size(algo, cfg, n)
@@ -280,6 +302,16 @@ class ValidationResult:
     extra: dict = field(default_factory=dict)
 
 
+#: What the arguments of one validation run must be (:func:`run_validation`; the CLI checks them first).
+RUN_CONSTRAINTS = {
+    "algo": [Options(ALGOS)],
+    "validate": [Options(VALIDATIONS)],
+    "repeats": [Interval(int, 1, None)],
+    "seed": [Interval(int, 0, None)],
+    "test_split": [None, Interval(float, 0, 1, closed="neither")],
+}
+
+
 def split_rows(samples: Samples, validate: str, test_split: float | None, rng: np.random.Generator):
     """HOV test rows (bool ``(n,)``) and a note saying how they were chosen."""
     n = samples.n
@@ -287,7 +319,7 @@ def split_rows(samples: Samples, validate: str, test_split: float | None, rng: n
         return None, ""
     if test_split is not None:
         if not 0 < test_split < 1:
-            raise UserError("--test-split", f"must be in (0, 1) (got {test_split:g})")
+            raise UserError("test_split", f"must be in (0, 1) (got {test_split:g})")
         k = max(1, int(round(test_split * n)))
         test = np.zeros(n, bool)
         test[rng.choice(n, size=k, replace=False)] = True
@@ -312,10 +344,9 @@ def rng_for(seed: int, validate: str):
 def run_validation(samples: Samples, algo: str, validate: str, repeats: int, cfg: TrainConfig,
                    seed: int = 0, test_split: float | None = None) -> ValidationResult:
     """Train and score ``algo`` under ``validate`` with ``repeats`` random initialisations."""
-    if validate not in VALIDATIONS:
-        raise UserError("--validate", f"unknown validation {validate!r}; use one of {', '.join(VALIDATIONS)}")
-    if repeats < 1:
-        raise UserError("--repeats", f"must be >= 1 (got {repeats})")
+    validate_params(dict(algo=algo, validate=validate, repeats=repeats, seed=seed, test_split=test_split),
+                    RUN_CONSTRAINTS)
+    cfg.validate()
     df = samples.df
     X = df[list(FEATURES)].to_numpy(np.float64)
     T = df[list(TARGETS)].to_numpy(np.float64)

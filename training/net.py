@@ -85,7 +85,7 @@ class Arch:
         return f"{self.n_in} -> " + " -> ".join(parts)
 
 
-def parse_hidden(spec: str | tuple | list, activation: str = "tansig", param: str = "--hidden") -> tuple[tuple[int, str], ...]:
+def parse_hidden(spec: str | tuple | list, activation: str = "tansig", param: str = "hidden") -> tuple[tuple[int, str], ...]:
     """Parse ``"25,10"`` or ``"25,10,7:purelin"`` (per-layer ``:activation`` suffix).
 
     Also accepts a sequence of ints or ``(size, activation)`` pairs.

@@ -12,7 +12,7 @@ docs/identifiability.md) and only averages noise.  Solves are cached in data/ide
 import click
 import numpy as np
 
-from elastimap.cli_util import run
+from elastimap.cli_util import CONTEXT_SETTINGS, run
 from elastimap.identify.local import NoiseSpec, fd_jacobian_solves, fd_relstd, stack
 
 POINTS = ((8.0, 8.0, 30.0), (8.0, 8.0, 120.0))
@@ -24,7 +24,7 @@ def fd_crb(points=POINTS, noise: NoiseSpec = NOISE) -> dict:
     return fd_relstd(stack([fd_jacobian_solves(th) for th in points]), np.array(points, dtype=float), noise)
 
 
-@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.command(context_settings=CONTEXT_SETTINGS)
 def main():
     """Print the real-FD Cramér–Rao relative std of d, h, E at the two check points."""
     R = fd_crb()

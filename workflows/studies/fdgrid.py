@@ -18,7 +18,7 @@ import time
 import click
 import numpy as np
 
-from elastimap.cli_util import run
+from elastimap.cli_util import CONTEXT_SETTINGS, mesh_option, run
 from elastimap.dataset.schema import THICKNESS
 
 FD_D = (4.0, 7.0, 10.0, 13.0)
@@ -58,8 +58,8 @@ def compute(out: str, mesh: str = "default", progress: bool = True) -> dict:
     return out_d
 
 
-@click.command(context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--mesh", default="default", show_default=True)
+@click.command(context_settings=CONTEXT_SETTINGS)
+@mesh_option()
 @click.option("--out", default="data/identify/fdgrid.npz", show_default=True)
 def main(mesh, out):
     """Finite-difference Jacobians from real solves on the coarse study grid."""

@@ -16,11 +16,11 @@ import os
 import click
 import numpy as np
 
-from elastimap.cli_util import run
+from elastimap.cli_util import CONTEXT_SETTINGS, run
 from elastimap.errors import UserError
 
 
-@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--data", "data_path", default="data/sweep512", show_default=True,
               help="Sweep directory with stored elasticity images.")
 @click.option("--algo", default="scg", show_default=True, help="scg, lm or scg,lm.")

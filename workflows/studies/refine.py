@@ -14,7 +14,7 @@ from __future__ import annotations
 import click
 import numpy as np
 
-from elastimap.cli_util import run
+from elastimap.cli_util import CONTEXT_SETTINGS, jobs_option, mesh_option, run
 from elastimap.errors import UserError
 from elastimap.identify.refine import INTERVAL_SCALE, METHODS, fem_model, fit, interval
 
@@ -149,7 +149,7 @@ def plot(res: dict, path: str) -> str:
     return path
 
 
-@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--pred", "pred_path", required=True,
               help="pred-<algo>-loocv.npz of python -m elastimap.workflows.studies.imagenet (with image noise).")
 @click.option("--data", "data_path", default="data/sweep512", show_default=True, help="The sweep it was made from.")
@@ -159,8 +159,8 @@ def plot(res: dict, path: str) -> str:
 @click.option("--image-noise", default=None, type=float,
               help="Noise level of the prediction file (default: the one it records).")
 @click.option("--seed", default=None, type=int, help="Its seed (default: the one it records).")
-@click.option("--mesh", default="default", show_default=True, help="Must be the sweep's mesh.")
-@click.option("--jobs", default=2, show_default=True, type=int, help="Rows refined in parallel.")
+@mesh_option(help="Must be the sweep's mesh.")
+@jobs_option(default=2, help="Rows refined in parallel.")
 @click.option("--max-iter", default=12, show_default=True, type=int, help="trf only: trial points per row (each "
               "accepted one costs 6 more solves for the central-difference Jacobian).")
 @click.option("--method", default="rsm", show_default=True,
