@@ -46,15 +46,15 @@ STAGES = {
 }
 
 #: The identifiability studies behind the shipped map and the docs' tables:
-#: ``elastimap identify <study>`` -> ("module:attr", help line).  One row per study.
+#: ``elastimap identify <study>`` -> ("module:attr", help line).  One row per study, named as its module.
 STUDIES = {
     "crbmap": ("elastimap.workflows.studies.crbmap:main", "Cramér–Rao identifiability maps and the map inference uses."),
     "fdgrid": ("elastimap.workflows.studies.fdgrid:main", "Real finite-difference Jacobians on a grid of design points."),
-    "fd-check": ("elastimap.workflows.studies.fd_check:main", "Cramér–Rao bounds from real FD Jacobians at two points."),
+    "fd_check": ("elastimap.workflows.studies.fd_check:main", "Cramér–Rao bounds from real FD Jacobians at two points."),
     "mapcheck": ("elastimap.workflows.studies.mapcheck:main", "Compare the identifiability map with the real-FD bounds."),
-    "global-cv": ("elastimap.workflows.studies.global_cv:main", "Cross-validated error of d, h, E per measurement set."),
+    "global_cv": ("elastimap.workflows.studies.global_cv:main", "Cross-validated error of d, h, E per measurement set."),
     "imagenet": ("elastimap.workflows.studies.imagenet:main", "Validate the image-based inverse (image PCA -> MLP)."),
-    "region-score": ("elastimap.workflows.studies.region_score:main", "Score the identifiable region on held-out predictions."),
+    "region_score": ("elastimap.workflows.studies.region_score:main", "Score the identifiable region on held-out predictions."),
     "refine": ("elastimap.workflows.studies.refine:main", "Refine image-network estimates by a FEM maximum-likelihood fit."),
 }
 
