@@ -1,4 +1,4 @@
-"""Local identifiability: Jacobian, Fisher information and Cramér–Rao bounds (issue 7).
+"""Local identifiability: Jacobian, Fisher information and Cramér–Rao bounds.
 
 Jacobian of each measurement with respect to ``theta' = (d mm, h mm, ln E)`` by **central finite
 differences of a smooth surrogate** fitted to the sweep (:class:`Surrogate`: one Gaussian-process

@@ -3,7 +3,7 @@ SYNTHETIC camera → calibration; 30 SYNTHETIC frames of an inclusion not in the
 
 Stated tolerance: d within 15 %, h within 15 %.  E is NOT recovered: (O1, O2, O3) barely change with
 E above about ten times the tissue modulus and a smaller stiffer inclusion looks like a larger
-softer one (docs/training.md, issue 7).  Measured here: d 7.74 mm (−14 %), h 7.71 mm (+3 %),
+softer one (docs/training.md, docs/identifiability.md).  Measured here: d 7.74 mm (−14 %), h 7.71 mm (+3 %),
 E 131 kPa for a true 45 kPa, with a confidently narrow ensemble range (115–145 kPa).  That E
 result is kept as a strict xfail so that it is seen, and so that the day the inverse gets E right
 the test says so.  Inference now knows this: with the shipped identifiability map (elastimap.identify.region)
@@ -76,7 +76,7 @@ def test_fem_frames_modulus_is_flagged_with_an_interval_holding_the_truth(estima
     assert out["E_hi"] / out["E_lo"] > 3, out            # wide, not a confident number
 
 
-@pytest.mark.xfail(strict=True, reason="E is not identifiable from (O1, O2, O3) over this range (issue 7)")
+@pytest.mark.xfail(strict=True, reason="E is not identifiable from (O1, O2, O3) over this range (docs/identifiability.md)")
 def test_fem_frames_to_modulus(estimate_of_truth):
     out = estimate_of_truth
     EE = TRUTH[2]

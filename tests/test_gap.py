@@ -1,4 +1,4 @@
-"""Sim-to-real gap diagnosis (issue 6).  Most tests use the analytic TOY backend (not physics:
+"""Sim-to-real gap diagnosis.  Most tests use the analytic TOY backend (not physics:
 it only exercises the gap logic); one runs real tiny-mesh FEM solves through the cache."""
 
 import dataclasses

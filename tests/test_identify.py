@@ -1,4 +1,4 @@
-"""Identifiability helpers and the image-based inverse (issue 7), on SYNTHETIC arrays only."""
+"""Identifiability helpers and the image-based inverse, on SYNTHETIC arrays only."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Identifiability map (elastimap.identify.region) and its use by inference (issue 7); SYNTHETIC maps and models."""
+"""Identifiability map (elastimap.identify.region) and its use by inference; SYNTHETIC maps and models."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Solver effect switches for the sim-to-real gap work (issue 6): interface friction k_t and
+"""Solver effect switches for the sim-to-real gap diagnosis: interface friction k_t and
 finite-strain (neo-Hookean) tissue.  Tiny meshes; defaults stay bit-identical."""
 
 import numpy as np
