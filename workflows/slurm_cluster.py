@@ -97,7 +97,7 @@ def main() -> int:
             "export OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1",
             # each node compiles the DOLFINx forms into its own cache unless HOME is shared;
             # a node-local cache avoids NFS locking trouble:
-            'export XDG_CACHE_HOME="${TMPDIR:-/tmp}/elastimap-cache-$USER"',
+            'export XDG_CACHE_HOME="${TMPDIR:-/tmp}/elastimap-cache-${USER:-$(id -un)}"',
         ],
         worker_extra_args=lifetime,
         scheduler_options={"dashboard_address": args.dashboard},
