@@ -40,7 +40,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from elastimap.constraints import Interval, Options, Predicate, validate_params
@@ -256,7 +256,7 @@ def _check_landed_match(out: Path, samples: list[dict]) -> None:
 # ----------------------------------------------------------------------------- run
 
 def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
 def check_foreign_lock(out: Path, break_lock: bool) -> None:
@@ -265,7 +265,7 @@ def check_foreign_lock(out: Path, break_lock: bool) -> None:
     lock = out / io.LOCK
     try:
         text = lock.read_text()
-        since = _dt.datetime.fromtimestamp(lock.stat().st_mtime, _dt.timezone.utc).isoformat(timespec="seconds")
+        since = _dt.datetime.fromtimestamp(lock.stat().st_mtime, _dt.UTC).isoformat(timespec="seconds")
     except FileNotFoundError:
         return
     try:

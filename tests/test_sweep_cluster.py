@@ -38,13 +38,26 @@ def _env(**extra):
 
 
 def _sweep(args, env=None, timeout=60):
-    return subprocess.run([sys.executable, "-m", "elastimap.sweep.cli", *args], env=env or _env(),
-                          capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+    return subprocess.run(
+        [sys.executable, "-m", "elastimap.sweep.cli", *args],
+        env=env or _env(),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+    )
 
 
 def _popen(args, env=None):
-    return subprocess.Popen([sys.executable, "-m", "elastimap.sweep.cli", *args], env=env or _env(), cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "elastimap.sweep.cli", *args],
+        env=env or _env(),
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
 
 
 def _cli(args, capsys):
@@ -71,16 +84,20 @@ def _wait_rows(out: Path, k: int, proc, timeout=40) -> None:
 
 # ----------------------------------------------------------------------------- another design, --append
 
+
 def test_other_design_into_existing_out_refused_unless_append(tmp_path, capsys):
     out = tmp_path / "ds"
     base = ["run", "--mesh", "tiny", "--jobs", "1", "--no-progress", "--out", str(out)]
     r = _sweep([*base, "--n", "4", "--seed", "0"])
     assert r.returncode == 0, r.stderr
     before = _snapshot(out)
-    for extra, flag in [(["--n", "4", "--seed", "1"], "--seed"), (["--n", "5", "--seed", "0"], "--n"),
-                        (["--n", "4", "--seed", "0", "--design", "sobol"], "--design"),
-                        (["--n", "4", "--seed", "0", "--ranges", "E=20:100"], "--ranges"),
-                        (["--n", "4", "--seed", "0", "--phantoms"], "--phantoms")]:
+    for extra, flag in [
+        (["--n", "4", "--seed", "1"], "--seed"),
+        (["--n", "5", "--seed", "0"], "--n"),
+        (["--n", "4", "--seed", "0", "--design", "sobol"], "--design"),
+        (["--n", "4", "--seed", "0", "--ranges", "E=20:100"], "--ranges"),
+        (["--n", "4", "--seed", "0", "--phantoms"], "--phantoms"),
+    ]:
         code, _, err = _cli([*base, *extra], capsys)
         assert code == 2 and err.count("\n") == 1 and err.startswith("error: --out:"), (extra, err)
         assert flag in err and "--append" in err, (extra, err)
@@ -102,6 +119,7 @@ def test_other_design_into_existing_out_refused_unless_append(tmp_path, capsys):
 
 
 # ----------------------------------------------------------------------------- bad scheduler addresses
+
 
 @pytest.mark.parametrize("addr", ["", "   "])
 def test_empty_scheduler_is_an_error_not_a_local_cluster(tmp_path, capsys, addr):
@@ -127,6 +145,7 @@ def silent_listener():
                 conns.append(srv.accept()[0])
             except OSError:
                 pass
+
     t = threading.Thread(target=accept, daemon=True)
     t.start()
     yield f"tcp://127.0.0.1:{srv.getsockname()[1]}"
@@ -140,8 +159,22 @@ def silent_listener():
 def test_scheduler_that_never_answers_fails_within_the_connect_timeout(tmp_path, silent_listener):
     out = tmp_path / "ds"
     t0 = time.time()
-    r = _sweep(["run", "--n", "2", "--mesh", "tiny", "--out", str(out), "--scheduler", silent_listener,
-                "--connect-timeout", "3"], timeout=40)
+    r = _sweep(
+        [
+            "run",
+            "--n",
+            "2",
+            "--mesh",
+            "tiny",
+            "--out",
+            str(out),
+            "--scheduler",
+            silent_listener,
+            "--connect-timeout",
+            "3",
+        ],
+        timeout=40,
+    )
     took = time.time() - t0
     assert r.returncode == 2, r.stderr
     assert r.stderr.count("\n") == 1 and r.stderr.startswith("error: --scheduler:") and silent_listener in r.stderr
@@ -162,8 +195,22 @@ def test_http_port_is_not_a_scheduler(tmp_path, capsys):
     t.start()
     try:
         addr = f"tcp://127.0.0.1:{srv.server_address[1]}"
-        code, _, err = _cli(["run", "--n", "2", "--mesh", "tiny", "--out", str(tmp_path / "ds"),
-                             "--scheduler", addr, "--connect-timeout", "3"], capsys)
+        code, _, err = _cli(
+            [
+                "run",
+                "--n",
+                "2",
+                "--mesh",
+                "tiny",
+                "--out",
+                str(tmp_path / "ds"),
+                "--scheduler",
+                addr,
+                "--connect-timeout",
+                "3",
+            ],
+            capsys,
+        )
     finally:
         srv.shutdown()
     assert code == 2 and err.count("\n") == 1 and "not a dask scheduler" in err, err
@@ -171,6 +218,7 @@ def test_http_port_is_not_a_scheduler(tmp_path, capsys):
 
 
 # ----------------------------------------------------------------------------- a cluster that loses its workers
+
 
 def test_driver_notices_when_every_worker_is_gone(tmp_path, monkeypatch):
     from distributed import LocalCluster
@@ -181,8 +229,23 @@ def test_driver_notices_when_every_worker_is_gone(tmp_path, monkeypatch):
         if k.startswith("ELASTIMAP_"):
             monkeypatch.setenv(k, v)  # the workers started below inherit this process's environment
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
-        proc = _popen(["run", "--n", "40", "--mesh", "tiny", "--out", str(out), "--no-progress",
-                       "--scheduler", cluster.scheduler_address, "--worker-wait", "3"], env)
+        proc = _popen(
+            [
+                "run",
+                "--n",
+                "40",
+                "--mesh",
+                "tiny",
+                "--out",
+                str(out),
+                "--no-progress",
+                "--scheduler",
+                cluster.scheduler_address,
+                "--worker-wait",
+                "3",
+            ],
+            env,
+        )
         try:
             _wait_rows(out, 2, proc)
             cluster.scale(0)
@@ -203,6 +266,7 @@ def test_driver_notices_when_every_worker_is_gone(tmp_path, monkeypatch):
 
 
 # ----------------------------------------------------------------------------- SIGTERM, locks
+
 
 def test_sigterm_like_ctrl_c_then_resume(tmp_path):
     out = tmp_path / "ds"
@@ -244,6 +308,7 @@ def test_lock_of_another_host_refused_then_broken(tmp_path, capsys):
 
 # ----------------------------------------------------------------------------- worker warm-up, attempt counts
 
+
 def test_worker_plugin_warms_each_worker_once_when_it_joins(tmp_path, monkeypatch):
     from distributed import Client, LocalCluster
 
@@ -253,14 +318,17 @@ def test_worker_plugin_warms_each_worker_once_when_it_joins(tmp_path, monkeypatc
     (tmp_path / "warmprobe.py").write_text(
         "import os\n"
         "def warmup(params):\n"
-        f"    open({str(log)!r}, 'a').write(f'{{os.getpid()}} {{params.disc.mesh}}\\n')\n")
+        f"    open({str(log)!r}, 'a').write(f'{{os.getpid()}} {{params.disc.mesh}}\\n')\n"
+    )
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setenv("PYTHONPATH", f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
     from elastimap.solver.params import Discretisation, SolveParams
 
     base = SolveParams(disc=Discretisation(mesh="tiny")).to_dict()
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster,
+        Client(cluster) as client,
+    ):
         client.register_plugin(WarmUpWorkers("warmprobe", base), name="elastimap-warmup")
         cluster.scale(2)
         client.wait_for_workers(2, timeout=30)
@@ -285,10 +353,26 @@ def test_crash_message_counts_the_real_attempts(tmp_path, monkeypatch):
     for k, v in env.items():
         if k.startswith("ELASTIMAP_"):
             monkeypatch.setenv(k, v)
-    with dask.config.set({"distributed.scheduler.allowed-failures": 2}), \
-            LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
-        r = _sweep(["run", "--samples", str(table), "--mesh", "tiny", "--out", str(out), "--no-progress",
-                    "--scheduler", cluster.scheduler_address], env, timeout=90)
+    with (
+        dask.config.set({"distributed.scheduler.allowed-failures": 2}),
+        LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster,
+    ):
+        r = _sweep(
+            [
+                "run",
+                "--samples",
+                str(table),
+                "--mesh",
+                "tiny",
+                "--out",
+                str(out),
+                "--no-progress",
+                "--scheduler",
+                cluster.scheduler_address,
+            ],
+            env,
+            timeout=90,
+        )
     assert r.returncode == 0, r.stderr
     starts = [ln.split()[0] for ln in log.read_text().splitlines()].count("7.5")
     assert starts == 3

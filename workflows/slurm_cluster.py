@@ -52,12 +52,20 @@ def main() -> int:
     ap.add_argument("--account", default=None, help="SLURM account")
     ap.add_argument("--walltime", default="04:00:00", help="wall time of each worker job ([D-]HH:MM:SS)")
     ap.add_argument("--memory", default="4GiB", help="memory per worker (a default-mesh solve needs < 1.5 GiB)")
-    ap.add_argument("--venv", default=os.environ.get("VIRTUAL_ENV", ".venv"),
-                    help="virtual environment the workers activate (must be on a shared filesystem)")
-    ap.add_argument("--address-file", default="scheduler.address",
-                    help="written once the cluster is up, removed when it stops")
-    ap.add_argument("--wait-workers", type=int, default=1,
-                    help="workers that must have joined before the address file is written (0: scheduler only)")
+    ap.add_argument(
+        "--venv",
+        default=os.environ.get("VIRTUAL_ENV", ".venv"),
+        help="virtual environment the workers activate (must be on a shared filesystem)",
+    )
+    ap.add_argument(
+        "--address-file", default="scheduler.address", help="written once the cluster is up, removed when it stops"
+    )
+    ap.add_argument(
+        "--wait-workers",
+        type=int,
+        default=1,
+        help="workers that must have joined before the address file is written (0: scheduler only)",
+    )
     ap.add_argument("--log-dir", default=None, help="folder for the worker jobs' SLURM logs (default: SLURM's)")
     ap.add_argument("--dashboard", default=":8787", help="dashboard address (':0' for any free port)")
     args = ap.parse_args()
@@ -87,11 +95,21 @@ def main() -> int:
     # worker dies is retried once, then reported to the driver as KilledWorker and recorded failed).
     # worker-saturation 1.0: a worker holds only the task it runs, so a crash blames only that sample.
     # lost-worker-timeout: how soon a worker whose job ended is forgotten, and so replaced (default 15 s).
-    dask.config.set({"distributed.scheduler.allowed-failures": 1, "distributed.scheduler.worker-saturation": 1.0,
-                     "distributed.deploy.lost-worker-timeout": "5s"})
+    dask.config.set(
+        {
+            "distributed.scheduler.allowed-failures": 1,
+            "distributed.scheduler.worker-saturation": 1.0,
+            "distributed.deploy.lost-worker-timeout": "5s",
+        }
+    )
     cluster = SLURMCluster(
-        cores=1, processes=1, memory=args.memory, walltime=args.walltime,
-        queue=args.partition, account=args.account, log_directory=args.log_dir,
+        cores=1,
+        processes=1,
+        memory=args.memory,
+        walltime=args.walltime,
+        queue=args.partition,
+        account=args.account,
+        log_directory=args.log_dir,
         job_script_prologue=[
             f"source {os.path.abspath(args.venv)}/bin/activate",
             "export OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1",
@@ -105,8 +123,11 @@ def main() -> int:
     written = False
     try:
         cluster.scale(jobs=args.workers)
-        print(f"scheduler {cluster.scheduler_address}  (dashboard {cluster.dashboard_link}); "
-              f"{args.workers} worker job(s) submitted", flush=True)
+        print(
+            f"scheduler {cluster.scheduler_address}  (dashboard {cluster.dashboard_link}); "
+            f"{args.workers} worker job(s) submitted",
+            flush=True,
+        )
         print(cluster.job_script(), flush=True)
         t0 = time.monotonic()
         last_note = t0
@@ -119,8 +140,11 @@ def main() -> int:
                     fh.write(cluster.scheduler_address + "\n")
                 os.replace(tmp, address_file)
                 written = True
-                print(f"{n} worker(s) joined after {time.monotonic() - t0:.0f} s; address written to "
-                      f"{address_file}; Ctrl-C or SIGTERM stops the cluster", flush=True)
+                print(
+                    f"{n} worker(s) joined after {time.monotonic() - t0:.0f} s; address written to "
+                    f"{address_file}; Ctrl-C or SIGTERM stops the cluster",
+                    flush=True,
+                )
             # SpecCluster forgets a worker whose job ended (after distributed.deploy.lost-worker-timeout)
             # but keeps it in its spec: scale() opens a new job for every such name.
             cluster.scale(jobs=args.workers)
@@ -130,8 +154,11 @@ def main() -> int:
             replaced = [f"job {jobs[k]} by job {v}" for k, v in new.items() if jobs.get(k) and v and v != jobs[k]]
             jobs.update({k: v for k, v in new.items() if v})
             if replaced or now - last_note > 300:
-                print(f"[{time.strftime('%H:%M:%S')}] {n} worker(s) joined, {len(new)} job(s)"
-                      + (f"; replaced {', '.join(replaced)}" if replaced else ""), flush=True)
+                print(
+                    f"[{time.strftime('%H:%M:%S')}] {n} worker(s) joined, {len(new)} job(s)"
+                    + (f"; replaced {', '.join(replaced)}" if replaced else ""),
+                    flush=True,
+                )
                 last_note = now
     except KeyboardInterrupt:
         pass
