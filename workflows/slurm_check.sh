@@ -6,11 +6,15 @@
 #      worker job is scancel'ed mid-run; the cluster must replace it and the sweep must land
 #      every sample exactly once;
 #   B. `sbatch workflows/sweep.sbatch ...`: the same, with the driver itself a SLURM job;
+#   D. `sbatch workflows/sweep.sbatch ...` cancelled mid-run (the driver gets SIGTERM): it must
+#      print its summary and release its lock, leave no worker job behind, and the same line
+#      resubmitted must finish the sweep, exactly once;
 #   C. (LONG=1, default) one worker job with a 1-minute wall time and a sweep that outlasts it:
 #      the worker retires before its wall time, a replacement job finishes the sweep;
 # and stops everything it started.  Needs the repo's .venv with the slurm extra (make slurm).
 #     workflows/slurm_check.sh                  # from the repository root
 #     N=8 LONG=0 WORK=/tmp/sc workflows/slurm_check.sh
+#     PARTS="A D" workflows/slurm_check.sh        # only some parts (default: A B D, and C with LONG=1)
 set -euo pipefail
 T0=$(date +%s)
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
@@ -20,6 +24,8 @@ PY=$ROOT/.venv/bin/python
 N=${N:-8}
 LONG=${LONG:-1}
 N_LONG=${N_LONG:-24}
+PARTS=${PARTS:-A B D C}
+want() { case " $PARTS " in *" $1 "*) return 0 ;; *) return 1 ;; esac; }
 log() { echo "[slurm_check $(($(date +%s) - T0)) s] $*"; }
 fail() { echo "slurm_check: FAIL: $*" >&2; exit 1; }
 
@@ -169,6 +175,7 @@ stop_cluster() {  # NAME
 }
 
 # ------------------------------------------------------------------ A: slurm_cluster.py + sweep run --scheduler
+if want A; then
 tA=$(date +%s)
 start_cluster a 2 00:10:00
 OUT=$WORK/sweeps/a
@@ -186,33 +193,75 @@ exactly_once "$OUT" "$N" || fail "A: not exactly once"
 for _ in $(seq 30); do grep -q "replaced job" "$WORK/log/cluster-a.log" && break; sleep 1; done
 stop_cluster a
 log "A passed in $(($(date +%s) - tA)) s"
+fi
 
 # ------------------------------------------------------------------ B: sbatch workflows/sweep.sbatch
+submit() {  # NAME SEED: sbatch workflows/sweep.sbatch for an N-sample tiny sweep into $WORK/sweeps/NAME
+    WORKERS=2 WORKER_WALLTIME=00:10:00 WORKER_MEMORY=2GiB WORKER_LOG_DIR=$WORK/log \
+        sbatch --parsable -D "$ROOT" -o "$WORK/log/sweep-$1-%j.log" workflows/sweep.sbatch \
+        --n "$N" --mesh tiny --seed "$2" --out "$WORK/sweeps/$1"
+}
+alive() { squeue -h -j "$JOB" -o %i 2>/dev/null | grep -q .; }
+wait_job_rows() {  # PART: until 2 rows landed while $JOB runs
+    for _ in $(seq 600); do
+        [ "$(landed "$OUT")" -ge 2 ] && return 0
+        alive || fail "$1: job $JOB ended early: $(tail -5 "$WORK/log/sweep-$2-$JOB.log")"
+        sleep 0.5
+    done
+    fail "$1: no rows landed"
+}
+wait_job_end() {  # PART
+    for _ in $(seq 600); do alive || return 0; sleep 1; done
+    fail "$1: job $JOB still running after 600 s"
+}
+no_leftovers() {  # PART
+    [ -z "$(squeue -h -n dask-worker -o %i)" ] || { sleep 15; [ -z "$(squeue -h -n dask-worker -o %i)" ] \
+        || fail "$1: worker jobs left after the sweep job ended"; }
+    if ls "$ROOT"/scheduler.* >/dev/null 2>&1; then fail "$1: an address file was left in $ROOT"; fi
+}
+if want B; then
 tB=$(date +%s)
 OUT=$WORK/sweeps/b
-JOB=$(WORKERS=2 WORKER_WALLTIME=00:10:00 WORKER_MEMORY=2GiB WORKER_LOG_DIR=$WORK/log \
-      sbatch --parsable -D "$ROOT" -o "$WORK/log/sweep-b-%j.log" workflows/sweep.sbatch \
-      --n "$N" --mesh tiny --seed 12 --out "$OUT")
+JOB=$(submit b 12)
 log "B: submitted workflows/sweep.sbatch as job $JOB"
-alive() { squeue -h -j "$JOB" -o %i 2>/dev/null | grep -q .; }
-for _ in $(seq 600); do
-    [ "$(landed "$OUT")" -ge 2 ] && break
-    alive || fail "B: job $JOB ended early: $(tail -5 "$WORK/log/sweep-b-$JOB.log")"
-    sleep 0.5
-done
+wait_job_rows B b
 cancel_one_worker "$OUT"
-for _ in $(seq 600); do alive || break; sleep 1; done
-alive && fail "B: job $JOB still running after 600 s"
+wait_job_end B
 grep "sweep:\|dataset:" "$WORK/log/sweep-b-$JOB.log" | sed 's/^/  /' || true
 grep -q "done this run" "$WORK/log/sweep-b-$JOB.log" || fail "B: no summary: $(tail -5 "$WORK/log/sweep-b-$JOB.log")"
 exactly_once "$OUT" "$N" || fail "B: not exactly once"
-[ -z "$(squeue -h -n dask-worker -o %i)" ] || { sleep 15; [ -z "$(squeue -h -n dask-worker -o %i)" ] \
-    || fail "B: worker jobs left after the sweep job ended"; }
-ls "$ROOT"/scheduler.* >/dev/null 2>&1 && fail "B: an address file was left in $ROOT"
+no_leftovers B
 log "B passed in $(($(date +%s) - tB)) s"
+fi
+
+# ------------------------------------------------------------------ D: the sweep job cancelled, then resubmitted
+if want D; then
+tD=$(date +%s)
+OUT=$WORK/sweeps/d
+JOB=$(submit d 14)
+log "D: submitted workflows/sweep.sbatch as job $JOB"
+wait_job_rows D d
+scancel "$JOB"
+log "D: scancel sweep job $JOB mid-run ($(landed "$OUT") rows landed)"
+wait_job_end D
+LOG1=$WORK/log/sweep-d-$JOB.log
+grep -q "interrupted by SIGTERM" "$LOG1" || fail "D: the driver did not handle SIGTERM: $(tail -5 "$LOG1")"
+grep -q "done this run" "$LOG1" || fail "D: no summary after SIGTERM"
+[ ! -e "$OUT/.sweep.lock" ] || fail "D: the cancelled driver left its lock"
+if ls "$OUT"/.attempts-* >/dev/null 2>&1; then fail "D: the cancelled driver left attempt markers"; fi
+no_leftovers D
+first=$(landed "$OUT")
+JOB=$(submit d 14)
+log "D: $first rows kept; resubmitted the same line as job $JOB"
+wait_job_end D
+grep "sweep:\|dataset:" "$WORK/log/sweep-d-$JOB.log" | sed 's/^/  /' || true
+grep -q "skipped (already landed)" "$WORK/log/sweep-d-$JOB.log" || fail "D: resubmitted job: $(tail -5 "$WORK/log/sweep-d-$JOB.log")"
+exactly_once "$OUT" "$N" || fail "D: not exactly once"
+log "D passed in $(($(date +%s) - tD)) s"
+fi
 
 # ------------------------------------------------------------------ C: a sweep longer than a worker's wall time
-if [ "$LONG" = 1 ]; then
+if [ "$LONG" = 1 ] && want C; then
     tC=$(date +%s)
     start_cluster c 1 00:01:00
     OUT=$WORK/sweeps/c
@@ -225,4 +274,4 @@ if [ "$LONG" = 1 ]; then
     stop_cluster c
     log "C passed in $(($(date +%s) - tC)) s (a 1-minute worker wall time)"
 fi
-log "PASS: every sample landed exactly once (A: slurm_cluster.py, B: sweep.sbatch$([ "$LONG" = 1 ] && echo ', C: wall time'))"
+log "PASS: parts $PARTS$([ "$LONG" = 1 ] || echo ' (C skipped: LONG=0)'): every sample landed exactly once"
