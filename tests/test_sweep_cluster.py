@@ -2,8 +2,10 @@
 addresses, a cluster that loses every worker, SIGTERM, foreign locks, per-worker warm-up.
 
 Every dask cluster here lives on 127.0.0.1 (a ``LocalCluster`` started by the test or by the
-driver); the solves are the fast fake of :mod:`elastimap.sweep.testing`.  The real SLURM path is
-exercised by ``workflows/slurm_check.sh`` (see docs/sweep.md), not by this file.
+driver); the solves are the SYNTHETIC stand-in of :mod:`elastimap.solver.synthetic`, passed with
+the hidden option ``--solver synthetic[:...]`` (it travels to the workers with every task, so it
+also reaches the workers of an external scheduler).  The real SLURM path is exercised by
+``workflows/slurm_check.sh`` (see docs/sweep.md), not by this file.
 """
 
 from __future__ import annotations
@@ -24,7 +26,6 @@ from elastimap.dataset import io
 from elastimap.sweep.cli import main as sweep_main
 
 ROOT = Path(__file__).resolve().parent.parent
-FAKE = "elastimap.sweep.testing"
 
 
 def _env(**extra):
@@ -33,8 +34,14 @@ def _env(**extra):
     for k in list(env):
         if k.startswith("ELASTIMAP_"):
             del env[k]
-    env.update(ELASTIMAP_SWEEP_SOLVER=FAKE, **extra)
+    env.update(extra)
     return env
+
+
+def _synthetic(**faults) -> list[str]:
+    """The hidden option that runs the SYNTHETIC stand-in (with fault injection) instead of the FEM."""
+    spec = ",".join(f"{k}={v}" for k, v in faults.items())
+    return ["--solver", f"synthetic:{spec}" if spec else "synthetic"]
 
 
 def _sweep(args, env=None, timeout=180):
@@ -87,7 +94,7 @@ def _wait_rows(out: Path, k: int, proc, timeout=90) -> None:
 
 def test_other_design_into_existing_out_refused_unless_append(tmp_path, capsys):
     out = tmp_path / "ds"
-    base = ["run", "--mesh", "tiny", "--jobs", "1", "--no-progress", "--out", str(out)]
+    base = ["run", *_synthetic(), "--mesh", "tiny", "--jobs", "1", "--no-progress", "--out", str(out)]
     r = _sweep([*base, "--n", "4", "--seed", "0"])
     assert r.returncode == 0, r.stderr
     before = _snapshot(out)
@@ -124,7 +131,9 @@ def test_other_design_into_existing_out_refused_unless_append(tmp_path, capsys):
 @pytest.mark.parametrize("addr", ["", "   "])
 def test_empty_scheduler_is_an_error_not_a_local_cluster(tmp_path, capsys, addr):
     out = tmp_path / "ds"
-    code, _, err = _cli(["run", "--n", "2", "--mesh", "tiny", "--out", str(out), "--scheduler", addr], capsys)
+    code, _, err = _cli(
+        ["run", *_synthetic(), "--n", "2", "--mesh", "tiny", "--out", str(out), "--scheduler", addr], capsys
+    )
     assert code == 2 and err.count("\n") == 1 and err.startswith("error: --scheduler:"), err
     assert not out.exists()
 
@@ -162,6 +171,7 @@ def test_scheduler_that_never_answers_fails_within_the_connect_timeout(tmp_path,
     r = _sweep(
         [
             "run",
+            *_synthetic(),
             "--n",
             "2",
             "--mesh",
@@ -198,6 +208,7 @@ def test_http_port_is_not_a_scheduler(tmp_path, capsys):
         code, _, err = _cli(
             [
                 "run",
+                *_synthetic(),
                 "--n",
                 "2",
                 "--mesh",
@@ -220,18 +231,15 @@ def test_http_port_is_not_a_scheduler(tmp_path, capsys):
 # ----------------------------------------------------------------------------- a cluster that loses its workers
 
 
-def test_driver_notices_when_every_worker_is_gone(tmp_path, monkeypatch):
+def test_driver_notices_when_every_worker_is_gone(tmp_path):
     from distributed import LocalCluster
 
     out = tmp_path / "ds"
-    env = _env(ELASTIMAP_FAKE_SECONDS="0.3")
-    for k, v in env.items():
-        if k.startswith("ELASTIMAP_"):
-            monkeypatch.setenv(k, v)  # the workers started below inherit this process's environment
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
         proc = _popen(
             [
                 "run",
+                *_synthetic(seconds=0.3),
                 "--n",
                 "40",
                 "--mesh",
@@ -244,7 +252,6 @@ def test_driver_notices_when_every_worker_is_gone(tmp_path, monkeypatch):
                 "--worker-wait",
                 "3",
             ],
-            env,
         )
         try:
             _wait_rows(out, 2, proc)
@@ -270,8 +277,20 @@ def test_driver_notices_when_every_worker_is_gone(tmp_path, monkeypatch):
 
 def test_sigterm_like_ctrl_c_then_resume(tmp_path):
     out = tmp_path / "ds"
-    args = ["run", "--n", "16", "--mesh", "tiny", "--jobs", "1", "--out", str(out), "--no-progress"]
-    proc = _popen(args, _env(ELASTIMAP_FAKE_SECONDS="0.3"))
+    args = [
+        "run",
+        *_synthetic(seconds=0.3),
+        "--n",
+        "16",
+        "--mesh",
+        "tiny",
+        "--jobs",
+        "1",
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
+    proc = _popen(args)
     try:
         _wait_rows(out, 2, proc)
         proc.send_signal(signal.SIGTERM)
@@ -292,7 +311,7 @@ def test_sigterm_like_ctrl_c_then_resume(tmp_path):
 
 def test_lock_of_another_host_refused_then_broken(tmp_path, capsys):
     out = tmp_path / "ds"
-    args = ["run", "--n", "2", "--mesh", "tiny", "--jobs", "1", "--out", str(out), "--no-progress"]
+    args = ["run", *_synthetic(), "--n", "2", "--mesh", "tiny", "--jobs", "1", "--out", str(out), "--no-progress"]
     r = _sweep(args)
     assert r.returncode == 0, r.stderr
     (out / io.LOCK).write_text(json.dumps({"pid": 4242, "host": "node-17.elsewhere", "created": 0.0}))
@@ -342,19 +361,21 @@ def test_worker_plugin_warms_each_worker_once_when_it_joins(tmp_path, monkeypatc
     assert len(lines) == 2 and {int(p) for p, _ in lines} == pids and {m for _, m in lines} == {"tiny"}
 
 
-def test_crash_message_counts_the_real_attempts(tmp_path, monkeypatch):
+def test_crash_message_counts_the_real_attempts(tmp_path):
     """A scheduler with dask's allowed-failures 2 runs a crashing sample three times: say three."""
+    import pickle
+
     import dask
     from distributed import LocalCluster
+
+    from elastimap.solver.synthetic import SyntheticSolver
+    from elastimap.sweep.cluster import WarmUpWorkers
+    from elastimap.sweep.jobs import warmup
 
     table = tmp_path / "t.csv"
     table.write_text("d,h,E\n5,6,50\n7.5,8,70\n")
     out = tmp_path / "ds"
     log = tmp_path / "starts.log"
-    env = _env(ELASTIMAP_FAKE_CRASH="d=7.5", ELASTIMAP_FAKE_LOG=str(log))
-    for k, v in env.items():
-        if k.startswith("ELASTIMAP_"):
-            monkeypatch.setenv(k, v)
     with (
         dask.config.set({"distributed.scheduler.allowed-failures": 2}),
         LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster,
@@ -362,6 +383,7 @@ def test_crash_message_counts_the_real_attempts(tmp_path, monkeypatch):
         r = _sweep(
             [
                 "run",
+                *_synthetic(crash_d=7.5, log=log),
                 "--samples",
                 str(table),
                 "--mesh",
@@ -372,9 +394,12 @@ def test_crash_message_counts_the_real_attempts(tmp_path, monkeypatch):
                 "--scheduler",
                 cluster.scheduler_address,
             ],
-            env,
             timeout=240,  # three worker deaths and restarts: slow on a loaded machine
         )
+        # the driver registered the warm-up of the solver it was given (the stand-in), not the FEM's
+        plugin = pickle.loads(cluster.scheduler.worker_plugins["elastimap-warmup"])
+    assert isinstance(plugin, WarmUpWorkers) and plugin.warm.func is warmup
+    assert plugin.warm.args == (SyntheticSolver(crash_d=7.5, log=str(log)),)
     assert r.returncode == 0, r.stderr
     starts = [ln.split()[0] for ln in log.read_text().splitlines()].count("7.5")
     assert starts == 3
