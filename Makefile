@@ -1,6 +1,7 @@
 # Two commands for a fresh machine:
 #   make demo   set up .venv and run the main job on a small default
 #   make test   set up .venv and run the test suite (tiny meshes)
+#   make slurm  add the optional 'slurm' extra (dask-jobqueue) to .venv, for workflows/slurm_cluster.py
 SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -10,7 +11,7 @@ export OMP_NUM_THREADS := 1
 export OPENBLAS_NUM_THREADS := 1
 export MKL_NUM_THREADS := 1
 
-.PHONY: venv demo test lint format
+.PHONY: venv demo test lint format slurm
 
 venv: $(VENV)/.installed
 
@@ -33,3 +34,7 @@ lint: venv
 format: venv
 	$(VENV)/bin/ruff check --fix .
 	$(VENV)/bin/ruff format .
+
+# A uv venv has no pip: `pip install -e '.[slurm]'` fails there; uv installs into it instead.
+slurm: venv
+	python3 -m uv pip install -q --python $(PY) -e '.[slurm]'

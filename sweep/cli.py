@@ -57,8 +57,16 @@ _common = options(
 @click.option("--timeout", type=float, default=1800.0, show_default=True,
               help="seconds one sample may take before it is recorded as failed and its worker restarted (0: no limit)")
 @click.option("--no-progress", is_flag=True, help="no progress bar")
+@click.option("--append", is_flag=True,
+              help="add this command's samples to an OUT that holds another design (recorded in its manifest)")
+@click.option("--break-lock", is_flag=True,
+              help="remove OUT's lock left by a sweep that is gone (e.g. a cancelled job on another host)")
+@click.option("--connect-timeout", type=float, default=30.0, show_default=True,
+              help="seconds --scheduler has to answer")
+@click.option("--worker-wait", type=float, default=60.0, show_default=True,
+              help="seconds the run waits while the cluster has no worker, then ends with exit code 3")
 def run_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solver_spec, jobs, out, retry_failed,
-            scheduler, batch_rows, timeout, no_progress):
+            scheduler, batch_rows, timeout, no_progress, append, break_lock, connect_timeout, worker_wait):
     """Run one solve per sample (resumable) and land the rows in OUT."""
     from .jobs import resolve_solver
     from .run import SweepConfig, format_summary, make_plan, run
@@ -66,15 +74,20 @@ def run_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solver_
     cfg = SweepConfig(n=n, jobs=jobs, seed=seed, out=out, mesh=mesh, interface=interface, design=design,
                       ranges=dsg.parse_ranges_text(ranges), samples=samples, phantoms=phantoms, retry_failed=retry_failed,
                       scheduler=scheduler, batch_rows=batch_rows, timeout=timeout, progress=not no_progress,
-                      argv=sys.argv[1:], solver=resolve_solver(solver_spec))
+                      append=append, break_lock=break_lock, connect_timeout=connect_timeout,
+                      worker_wait=worker_wait, argv=sys.argv[1:], solver=resolve_solver(solver_spec))
     plan = make_plan(cfg)
     if scheduler and jobs != 2:
         click.echo("note: --jobs is ignored with --scheduler (the cluster decides the workers)", err=True)
     summary = run(cfg, plan)
     click.echo(format_summary(summary))
+    if summary.get("aborted"):
+        click.echo(f"error: {summary['aborted']}", err=True)
+        return 3
     if summary["interrupted"]:
-        click.echo("interrupted: landed rows are kept; rerun the same command to resume", err=True)
-        return 130
+        sig = summary.get("signal", "SIGINT")
+        click.echo(f"interrupted by {sig}: landed rows are kept; rerun the same command to resume", err=True)
+        return 143 if sig == "SIGTERM" else 130
     return 0
 
 

@@ -6,28 +6,41 @@ Order of work (nothing is written before step 3, so bad input leaves no trace):
    parameter; the command line shows it as its flag);
 2. build the sample list (design + ``--samples`` + ``--phantoms``) and validate
    every sample's solve inputs;
-3. lock the output directory, check/extend its manifest (``_sweep.json``),
-   read the ids that have landed, and keep the missing (and, with
-   ``--retry-failed``, the failed) samples;
-4. compile the solver's forms once here (``warmup``), start a dask
-   ``LocalCluster`` (processes, one thread each) or connect to ``--scheduler``,
+   an existing output directory must hold the same solver settings and the
+   same design (another ``--seed``, ``--n``, ``--design``, ``--ranges``,
+   ``--samples`` or ``--phantoms`` that adds samples is refused unless
+   ``--append``);
+3. connect to ``--scheduler`` (bounded, see :mod:`.cluster`), lock the output
+   directory, check/extend its manifest (``_sweep.json``), read the ids that
+   have landed, and keep the missing (and, with ``--retry-failed``, the
+   failed) samples;
+4. compile the solver's forms once here (``warmup``) and start a dask
+   ``LocalCluster`` (processes, one thread each), or, on an external
+   scheduler, register a worker plugin that warms every worker when it joins;
    submit one task per sample (each lands its own row), collect results with
    a progress bar, record worker crashes as failed rows, merge row files into
-   batches as they accumulate;
-5. stop the cluster, compact, print the summary.
+   batches as they accumulate; a cluster with no worker for ``--worker-wait``
+   seconds ends the run (exit 3);
+5. stop the cluster, compact, print the summary (what the whole folder holds).
+
+SIGTERM (``scancel``, a SLURM time limit) is handled like Ctrl-C: landed rows
+stay, the lock and the per-run markers are removed, the summary is printed.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 import json
 import logging
 import os
+import signal
 import sys
+import threading
 import time
 import uuid
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from elastimap.constraints import Interval, Options, Predicate, validate_params
@@ -59,6 +72,10 @@ class SweepConfig:
     phantoms: bool = False
     retry_failed: bool = False
     scheduler: str | None = None
+    append: bool = False            # extend an existing folder with another design
+    break_lock: bool = False        # remove another host's lock (a driver that is gone)
+    connect_timeout: float = 30.0   # s for --scheduler to answer
+    worker_wait: float = 60.0       # s the run goes on with no worker in the cluster
     batch_rows: int = io.BATCH_ROWS
     timeout: float | None = 1800.0  # s per sample; None or 0: no limit
     progress: bool = True
@@ -79,6 +96,10 @@ class SweepConfig:
         "ranges": [None, Predicate(lambda r: isinstance(r, dict), "a dict {name: (lo, hi[, scale])}")],
         "batch_rows": [Interval(int, 1, None)],
         "timeout": [None, Interval(float, 0, None, unit="s")],
+        "scheduler": [None, Predicate(lambda a: isinstance(a, str) and bool(a.strip()),
+                                      "a dask scheduler address like tcp://host:8786 (leave it out for a local cluster)")],
+        "connect_timeout": [Interval(float, 0, None, closed="neither", unit="s")],
+        "worker_wait": [Interval(float, 0, None, closed="neither", unit="s")],
     }
 
     def validate(self) -> SweepConfig:
@@ -93,6 +114,16 @@ class Plan:
     samples: list[dict]
     out: Path
     ranges: dict
+    design: dict = field(default_factory=dict)   # how the samples were chosen (recorded in the manifest)
+    new_ids: int = 0                              # planned ids the folder's manifest does not list yet
+
+
+class ClusterLost(RuntimeError):
+    """The cluster had no worker for ``--worker-wait`` seconds."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, handled like Ctrl-C."""
 
 
 def default_out(cfg: SweepConfig, n: int) -> str:
@@ -137,6 +168,7 @@ def make_plan(cfg: SweepConfig) -> Plan:
     out = Path(cfg.out or default_out(cfg, n))
     if out.exists() and not out.is_dir():
         raise UserError("out", f"{out} exists and is not a directory")
+    man = None
     if out.is_dir():
         man = io.read_manifest(out)
         if man is None and any(out.iterdir()):
@@ -150,7 +182,55 @@ def make_plan(cfg: SweepConfig) -> Plan:
             raise UserError("out", f"{out} holds a sweep with other solver settings (mesh={old.get('mesh')}, "
                                      f"interface={old.get('interface')}); use the same settings to resume, or another --out")
         _check_landed_match(out, samples)
-    return Plan(cfg, base, samples, out, ranges)
+    design = {"design": cfg.design, "n": n, "seed": cfg.seed, "ranges": dsg.ranges_text(ranges) if n else None,
+              "samples": cfg.samples, "phantoms": cfg.phantoms}
+    new_ids = len(samples)
+    if man is not None:
+        known = set(man.get("planned", []))
+        new_ids = sum(1 for s in samples if s["sample_id"] not in known)
+        if new_ids and known and not cfg.append:
+            raise UserError("out", _design_conflict(out, man, design, new_ids))
+    return Plan(cfg, base, samples, out, ranges, design, new_ids)
+
+
+_DESIGN_FLAGS = (("seed", "--seed"), ("n", "--n"), ("design", "--design"), ("ranges", "--ranges"),
+                 ("samples", "--samples"), ("phantoms", "--phantoms"))
+
+
+def _recorded_designs(man: dict) -> list[dict]:
+    """The designs a manifest records (older manifests: read from the run log)."""
+    if man.get("designs"):
+        return list(man["designs"])
+    out = []
+    for r in man.get("runs", []):
+        d = {"design": r.get("design"), "n": r.get("n") if r.get("n") is not None else (0 if r.get("samples") else 512),
+             "seed": r.get("seed"), "ranges": r.get("ranges"), "samples": r.get("samples"),
+             "phantoms": bool(r.get("phantoms"))}
+        if d not in out:
+            out.append(d)
+    return out
+
+
+def _design_text(d: dict) -> str:
+    parts = []
+    if d.get("n"):
+        parts.append(f"--design {d.get('design')} --n {d.get('n')} --seed {d.get('seed')} --ranges {d.get('ranges')}")
+    if d.get("samples"):
+        parts.append(f"--samples {d['samples']}")
+    if d.get("phantoms"):
+        parts.append("--phantoms")
+    return " ".join(parts) or "no samples"
+
+
+def _design_conflict(out: Path, man: dict, design: dict, new_ids: int) -> str:
+    rec = _recorded_designs(man)
+    last = rec[-1] if rec else {}
+    differ = [f"{flag} {design[k]!s} (folder: {last.get(k)!s})" for k, flag in _DESIGN_FLAGS
+              if last and design.get(k) != last.get(k) and not (k == "ranges" and not design.get("n"))]
+    what = ", ".join(differ) if differ else "other sample rows"
+    return (f"{out} holds a sweep of another design ({_design_text(last) if last else 'unrecorded'}); this command "
+            f"would add {new_ids} sample(s): {what}; rerun with the folder's options to resume, add --append to "
+            f"extend the folder, or choose another --out")
 
 
 def _check_landed_match(out: Path, samples: list[dict]) -> None:
@@ -176,7 +256,30 @@ def _check_landed_match(out: Path, samples: list[dict]) -> None:
 # ----------------------------------------------------------------------------- run
 
 def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+
+
+def check_foreign_lock(out: Path, break_lock: bool) -> None:
+    """A lock written on another host cannot be checked for life from here: refuse it, naming the
+    host, unless ``--break-lock`` (then remove it and say whose it was)."""
+    lock = out / io.LOCK
+    try:
+        text = lock.read_text()
+        since = _dt.datetime.fromtimestamp(lock.stat().st_mtime, _dt.UTC).isoformat(timespec="seconds")
+    except FileNotFoundError:
+        return
+    try:
+        other = json.loads(text or "{}")
+    except ValueError:
+        other = {}
+    who = f"pid {other.get('pid', '?')} on {other.get('host', '?')}, locked since {since}"
+    if break_lock:
+        print(f"note: --break-lock: removing {lock} ({who})", file=sys.stderr)
+        lock.unlink(missing_ok=True)
+        return
+    if other.get("host") and other["host"] != host():
+        raise UserError("out", f"{out} is locked by a sweep on another host ({who}); if that sweep is no longer "
+                                 "running (a cancelled or timed-out job), rerun with --break-lock")
 
 
 def _start_client(cfg: SweepConfig):
@@ -201,11 +304,9 @@ def _start_client(cfg: SweepConfig):
                          "distributed.admin.system-monitor.interval": "2s",
                          "distributed.admin.tick.interval": "200ms"})
     if cfg.scheduler:
-        try:
-            client = Client(cfg.scheduler, timeout="20s")
-        except Exception as exc:
-            raise UserError("scheduler", f"cannot connect to {cfg.scheduler} ({type(exc).__name__}: {exc})") from None
-        return client, None
+        from .cluster import connect
+
+        return connect(cfg.scheduler.strip(), cfg.connect_timeout), None
     # ":0": a free port for the scheduler's HTTP endpoint, so concurrent sweeps do not collide on 8787
     cluster = LocalCluster(n_workers=cfg.jobs, threads_per_worker=1, processes=True,
                            dashboard_address=":0", silence_logs=logging.CRITICAL)
@@ -224,11 +325,18 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
     t_start = time.perf_counter()
     plan = plan or make_plan(cfg)
     out = plan.out
+    check_foreign_lock(out, cfg.break_lock)
     remote = _start_client(cfg) if cfg.scheduler else None  # a bad address fails before anything is written
-    out.mkdir(parents=True, exist_ok=True)
-    lock = io.acquire_lock(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        lock = io.acquire_lock(out)
+    except BaseException:
+        if remote is not None:
+            remote[0].close()
+        raise
     summary = {"out": str(out), "planned": len(plan.samples), "done": 0, "ok": 0, "failed": 0, "skipped": 0,
                "todo": 0, "interrupted": False}
+    restore = _handle_sigterm()
     try:
         io.remove_stale_tmp(out)
         _clear_markers(out)
@@ -242,16 +350,24 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
                                         "solver": store.solver_label(cfg.solver),
                                         "planned": [], "runs": []}
         known = set(man["planned"])
-        man["planned"] += [s["sample_id"] for s in plan.samples if s["sample_id"] not in known]
+        new = [s["sample_id"] for s in plan.samples if s["sample_id"] not in known]
+        man["planned"] += new
+        designs = man.setdefault("designs", _recorded_designs(man) if man["runs"] else [])
+        if new or not designs:
+            designs.append({**plan.design, "added": _now(), "new_samples": len(new), "append": bool(known) and cfg.append})
         run_log = {"started": _now(), "argv": cfg.argv, "n": cfg.n, "design": cfg.design, "seed": cfg.seed,
                    "ranges": dsg.ranges_text(plan.ranges), "samples": cfg.samples, "phantoms": cfg.phantoms,
-                   "jobs": cfg.jobs, "scheduler": cfg.scheduler, "code_version": code_version(), "host": host()}
+                   "append": cfg.append, "jobs": cfg.jobs, "scheduler": cfg.scheduler,
+                   "code_version": code_version(), "host": host()}
         man["runs"].append(run_log)
         io.write_manifest(out, man)
         if todo:
             _fan_out(cfg, plan, todo, summary, remote)
-    except KeyboardInterrupt:
-        summary["interrupted"] = True  # landed rows stay; the caller reports and exits 130
+    except KeyboardInterrupt as exc:
+        summary["interrupted"] = True  # landed rows stay; the caller reports and exits 130 (143 for SIGTERM)
+        summary["signal"] = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
+    except ClusterLost as exc:
+        summary["aborted"] = str(exc)  # landed rows stay; the caller reports and exits 3
     finally:
         try:
             if cfg.compact and any(out.glob("r-*.parquet")) and not summary["interrupted"]:
@@ -261,6 +377,8 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
             summary["dataset_ok"] = sum(1 for k, v in final.items() if k in planned_ids and v == "ok")
             summary["dataset_failed"] = sum(1 for k, v in final.items() if k in planned_ids and v != "ok")
             summary["missing"] = len(planned_ids - set(final))
+            summary["folder_ok"] = sum(1 for v in final.values() if v == "ok")
+            summary["folder_failed"] = len(final) - summary["folder_ok"]
             summary["wall_s"] = time.perf_counter() - t_start
             summary["samples_per_min"] = 60.0 * summary["done"] / summary["wall_s"] if summary["wall_s"] > 0 else 0.0
             man = io.read_manifest(out)
@@ -270,9 +388,27 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
         finally:
             _clear_markers(out)
             lock.unlink(missing_ok=True)
+            restore()
             if remote is not None:
                 remote[0].close()
     return summary
+
+
+def _handle_sigterm():
+    """Turn the first SIGTERM into :class:`Terminated` (a KeyboardInterrupt) in the main thread;
+    later ones are ignored while the run cleans up (SLURM follows with SIGKILL after KillWait).
+    Returns a function that puts the previous handler back."""
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    fired = []
+
+    def _term(signum, frame):
+        if not fired:
+            fired.append(signum)
+            raise Terminated()
+
+    old = signal.signal(signal.SIGTERM, _term)
+    return lambda: signal.signal(signal.SIGTERM, old)
 
 
 def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remote=None) -> None:
@@ -283,13 +419,22 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
     out = str(plan.out.resolve())
     solver = cfg.solver
     t0 = time.perf_counter()
-    # with the base inclusion, not a sampled one: a sample whose geometry fails must fail as a
-    # sample, not stop the sweep.  If the warm-up itself fails the workers compile on first use.
-    try:
-        jobs.warmup(solver, plan.base)
-    except Exception as exc:
-        print(f"warning: solver warm-up failed ({type(exc).__name__}: {exc}); workers will compile "
-              "the forms themselves", file=sys.stderr)
+    if remote is None:
+        # The local workers share this machine's JIT cache: compile the forms once here, with the
+        # base inclusion, not a sampled one (a sample whose geometry fails must fail as a sample,
+        # not stop the sweep).  If the warm-up itself fails the workers compile on first use.
+        try:
+            jobs.warmup(solver, plan.base)
+        except Exception as exc:
+            print(f"warning: solver warm-up failed ({type(exc).__name__}: {exc}); workers will compile "
+                  "the forms themselves", file=sys.stderr)
+    elif solver is None or hasattr(solver, "warmup"):
+        # Remote workers have their own caches (node-local on SLURM): a worker plugin warms each
+        # worker once, now for those present and later for every worker that joins.
+        from .cluster import WarmUpWorkers
+
+        remote[0].register_plugin(WarmUpWorkers(functools.partial(jobs.warmup, solver), base),
+                                  name="elastimap-warmup")
     summary["warmup_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     client, cluster = remote if remote is not None else _start_client(cfg)
@@ -319,42 +464,50 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                    nrows=None if sized else 50, smoothing=0.1)
         since_compact = 0
         pending = as_completed(list(by_future))
-        for fut in pending:
-            s = by_future.pop(fut)
-            try:
-                r = fut.result()
-            except Exception as exc:  # KilledWorker (crashed twice) or a bug in the job itself
-                name = type(exc).__name__
-                sid = s["sample_id"]
-                n_started = jobs.attempts(out, sid)
-                if name == "KilledWorker" and n_started < 2 and resubmitted.get(sid, 0) < 3:
-                    # dask blames every task a dying worker held; this one did not crash twice
-                    # itself (it was waiting next to a crashing sample): run it again
-                    resubmitted[sid] = resubmitted.get(sid, 0) + 1
-                    again = client.submit(jobs.run_sample, s, base=base, out_dir=out, timeout=cfg.timeout or None,
-                                          solver=solver, key=f"sweep-retry-{uuid.uuid4().hex}", pure=False)
-                    by_future[again] = s
-                    pending.add(again)
-                    fut.release()
-                    continue
-                msg = (f"worker crashed twice on this sample (segfault, abort or out of memory): {name}"
-                       if name == "KilledWorker" else f"{name}: {exc}")
-                jobs.land_failure(s, base, out, msg[:2000], solver)
-                r = {"sample_id": s["sample_id"], "status": "failed", "seconds": float("nan"), "error": msg}
-            fut.release()
-            summary["done"] += 1
-            if r["status"] == "ok":
-                summary["ok"] += 1
-                solve_seconds += r["seconds"]
-            else:
-                summary["failed"] += 1
-                errors.append((r["sample_id"], r["error"]))
-            bar.set_postfix(ok=summary["ok"], failed=summary["failed"], refresh=False)
-            bar.update(1)
-            since_compact += 1
-            if cfg.compact and since_compact >= cfg.batch_rows:
-                io.compact(plan.out, cfg.batch_rows, only_rows=True)
-                since_compact = 0
+        watch = _WorkerWatch(client, cfg, cluster is not None)
+        while not pending.is_empty():
+            ready = pending.next_batch(block=False) if pending.has_ready() else []
+            if not ready:
+                watch.check()  # raises ClusterLost after --worker-wait s with no worker
+                time.sleep(0.05)
+                continue
+            for fut in ready:
+                s = by_future.pop(fut)
+                try:
+                    r = fut.result()
+                except Exception as exc:  # KilledWorker (its worker died on every attempt) or a bug in the job
+                    name = type(exc).__name__
+                    sid = s["sample_id"]
+                    n_started = jobs.attempts(out, sid)
+                    if name == "KilledWorker" and n_started < 2 and resubmitted.get(sid, 0) < 3:
+                        # dask blames every task a dying worker held; this one did not crash twice
+                        # itself (it was waiting next to a crashing sample): run it again
+                        resubmitted[sid] = resubmitted.get(sid, 0) + 1
+                        again = client.submit(jobs.run_sample, s, base=base, out_dir=out, timeout=cfg.timeout or None,
+                                              solver=solver, key=f"sweep-retry-{uuid.uuid4().hex}", pure=False)
+                        by_future[again] = s
+                        pending.add(again)
+                        fut.release()
+                        continue
+                    tries = f"all {n_started} attempts" if n_started > 1 else f"{n_started} attempt(s)"
+                    msg = (f"worker crashed on {tries} at this sample (segfault, abort, out of memory, "
+                           f"or a worker job ended): {name}" if name == "KilledWorker" else f"{name}: {exc}")
+                    jobs.land_failure(s, base, out, msg[:2000], solver)
+                    r = {"sample_id": s["sample_id"], "status": "failed", "seconds": float("nan"), "error": msg}
+                fut.release()
+                summary["done"] += 1
+                if r["status"] == "ok":
+                    summary["ok"] += 1
+                    solve_seconds += r["seconds"]
+                else:
+                    summary["failed"] += 1
+                    errors.append((r["sample_id"], r["error"]))
+                bar.set_postfix(ok=summary["ok"], failed=summary["failed"], refresh=False)
+                bar.update(1)
+                since_compact += 1
+                if cfg.compact and since_compact >= cfg.batch_rows:
+                    io.compact(plan.out, cfg.batch_rows, only_rows=True)
+                    since_compact = 0
         bar.close()
         fan_wall = time.perf_counter() - t_fan
         summary["fan_out_s"] = fan_wall
@@ -362,6 +515,9 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
         summary["mean_solve_s"] = solve_seconds / summary["ok"] if summary["ok"] else float("nan")
         if fan_wall > 0 and summary["ok"]:
             summary["worker_utilisation"] = solve_seconds / (fan_wall * max(summary["workers"], 1))
+    except ClusterLost:
+        client.cancel(list(by_future))  # nothing of this run stays queued on the scheduler
+        raise
     finally:
         summary["errors"] = errors
         if cluster is not None:  # a local cluster is ours to stop; a remote client is closed by run()
@@ -369,6 +525,32 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                 client.close()
             finally:
                 cluster.close()
+
+
+class _WorkerWatch:
+    """Counts the cluster's workers every few seconds while the driver waits for results; raises
+    :class:`ClusterLost` once there has been none for ``cfg.worker_wait`` seconds."""
+
+    def __init__(self, client, cfg: SweepConfig, local: bool):
+        self.client, self.wait = client, cfg.worker_wait
+        self.where = "in the local cluster" if local else f"at {cfg.scheduler}"
+        self.every = min(2.0, self.wait / 4)
+        self.last_seen = self.next_check = time.monotonic()
+
+    def check(self) -> None:
+        from .cluster import count_workers
+
+        if time.monotonic() < self.next_check:
+            return
+        n = count_workers(self.client)
+        now = time.monotonic()
+        self.next_check = now + self.every
+        if n:
+            self.last_seen = now
+        elif now - self.last_seen >= self.wait:
+            why = "the scheduler does not answer" if n is None else "all workers gone: wall time, scancel, lost nodes?"
+            raise ClusterLost(f"no dask worker {self.where} for {self.wait:g} s ({why}); landed rows are kept: "
+                              "rerun the same command to resume when the cluster has workers (--worker-wait to wait longer)")
 
 
 def format_summary(s: dict) -> str:
@@ -383,8 +565,10 @@ def format_summary(s: dict) -> str:
             extra.append(f"worker utilisation {100 * s['worker_utilisation']:.0f} %")
         extra.append(f"driver CPU {s.get('driver_cpu_ms_per_sample', 0):.1f} ms/sample")
         lines.append("       " + ", ".join(extra))
-    lines.append(f"       dataset: {s['dataset_ok']} ok, {s['dataset_failed']} failed, {s['missing']} missing "
-                 f"of {s['planned']} planned")
+    held = s.get("folder_ok", 0) + s.get("folder_failed", 0)
+    lines.append(f"       dataset: the folder holds {held} samples: {s.get('folder_ok', 0)} ok, "
+                 f"{s.get('folder_failed', 0)} failed; of this command's {s['planned']} planned: "
+                 f"{s['dataset_ok']} ok, {s['dataset_failed']} failed, {s['missing']} missing")
     for sid, err in s.get("errors", [])[:10]:
         lines.append(f"       failed {sid}: {err[:200]}")
     if len(s.get("errors", [])) > 10:

@@ -1,0 +1,408 @@
+"""Sweep driver on the cluster path: design changes into an existing folder, bad scheduler
+addresses, a cluster that loses every worker, SIGTERM, foreign locks, per-worker warm-up.
+
+Every dask cluster here lives on 127.0.0.1 (a ``LocalCluster`` started by the test or by the
+driver); the solves are the SYNTHETIC stand-in of :mod:`elastimap.solver.synthetic`, passed with
+the hidden option ``--solver synthetic[:...]`` (it travels to the workers with every task, so it
+also reaches the workers of an external scheduler).  The real SLURM path is exercised by
+``workflows/slurm_check.sh`` (see docs/sweep.md), not by this file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from elastimap.dataset import io
+from elastimap.sweep.cli import main as sweep_main
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _env(**extra):
+    env = dict(os.environ)
+    env.update({"OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)})
+    for k in list(env):
+        if k.startswith("ELASTIMAP_"):
+            del env[k]
+    env.update(extra)
+    return env
+
+
+def _synthetic(**faults) -> list[str]:
+    """The hidden option that runs the SYNTHETIC stand-in (with fault injection) instead of the FEM."""
+    spec = ",".join(f"{k}={v}" for k, v in faults.items())
+    return ["--solver", f"synthetic:{spec}" if spec else "synthetic"]
+
+
+def _sweep(args, env=None, timeout=180):
+    return subprocess.run(
+        [sys.executable, "-m", "elastimap.sweep.cli", *args],
+        env=env or _env(),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+    )
+
+
+def _popen(args, env=None):
+    return subprocess.Popen(
+        [sys.executable, "-m", "elastimap.sweep.cli", *args],
+        env=env or _env(),
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+
+
+def _cli(args, capsys):
+    with pytest.raises(SystemExit) as e:
+        sweep_main(args)
+    out = capsys.readouterr()
+    return e.value.code, out.out, out.err
+
+
+def _snapshot(path: Path) -> dict:
+    return {p.name: p.read_bytes() for p in sorted(path.iterdir())}
+
+
+def _wait_rows(out: Path, k: int, proc, timeout=90) -> None:
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        if len(io.landed_status(out)) >= k if out.is_dir() else False:
+            return
+        if proc.poll() is not None:
+            raise AssertionError(f"sweep ended early: {proc.communicate()}")
+        time.sleep(0.2)
+    raise AssertionError("no rows landed in time")
+
+
+# ----------------------------------------------------------------------------- another design, --append
+
+
+def test_other_design_into_existing_out_refused_unless_append(tmp_path, capsys):
+    out = tmp_path / "ds"
+    base = ["run", *_synthetic(), "--mesh", "tiny", "--jobs", "1", "--no-progress", "--out", str(out)]
+    r = _sweep([*base, "--n", "4", "--seed", "0"])
+    assert r.returncode == 0, r.stderr
+    before = _snapshot(out)
+    for extra, flag in [
+        (["--n", "4", "--seed", "1"], "--seed"),
+        (["--n", "5", "--seed", "0"], "--n"),
+        (["--n", "4", "--seed", "0", "--design", "sobol"], "--design"),
+        (["--n", "4", "--seed", "0", "--ranges", "E=20:100"], "--ranges"),
+        (["--n", "4", "--seed", "0", "--phantoms"], "--phantoms"),
+    ]:
+        code, _, err = _cli([*base, *extra], capsys)
+        assert code == 2 and err.count("\n") == 1 and err.startswith("error: --out:"), (extra, err)
+        assert flag in err and "--append" in err, (extra, err)
+        assert _snapshot(out) == before, extra  # nothing written, not even the lock
+    # the same design resumes (nothing to do)
+    code, stdout, err = _cli([*base, "--n", "4", "--seed", "0"], capsys)  # nothing to run: no cluster starts
+    assert code == 0 and "0 done this run" in stdout, stdout + err
+    # --append extends the folder and says so in the manifest; the summary counts the whole folder
+    r = _sweep([*base, "--n", "4", "--seed", "1", "--append"])
+    assert r.returncode == 0, r.stderr
+    assert "4 done this run (ok 4, failed 0)" in r.stdout
+    assert "folder holds 8 samples: 8 ok, 0 failed" in r.stdout, r.stdout
+    man = io.read_manifest(out)
+    assert len(man["planned"]) == 8 and man["runs"][-1]["append"] is True
+    assert [(d["seed"], d["n"]) for d in man["designs"]] == [(0, 4), (1, 4)]
+    # after the append either design resumes without --append
+    code, stdout, err = _cli([*base, "--n", "4", "--seed", "0"], capsys)
+    assert code == 0 and "4 skipped" in stdout and "folder holds 8 samples" in stdout, stdout + err
+
+
+# ----------------------------------------------------------------------------- bad scheduler addresses
+
+
+@pytest.mark.parametrize("addr", ["", "   "])
+def test_empty_scheduler_is_an_error_not_a_local_cluster(tmp_path, capsys, addr):
+    out = tmp_path / "ds"
+    code, _, err = _cli(
+        ["run", *_synthetic(), "--n", "2", "--mesh", "tiny", "--out", str(out), "--scheduler", addr], capsys
+    )
+    assert code == 2 and err.count("\n") == 1 and err.startswith("error: --scheduler:"), err
+    assert not out.exists()
+
+
+@pytest.fixture
+def silent_listener():
+    """A TCP port on 127.0.0.1 that accepts connections and never answers (not a dask scheduler)."""
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(8)
+    conns = []
+    stop = threading.Event()
+
+    def accept():
+        srv.settimeout(0.2)
+        while not stop.is_set():
+            try:
+                conns.append(srv.accept()[0])
+            except OSError:
+                pass
+
+    t = threading.Thread(target=accept, daemon=True)
+    t.start()
+    yield f"tcp://127.0.0.1:{srv.getsockname()[1]}"
+    stop.set()
+    t.join()
+    for c in conns:
+        c.close()
+    srv.close()
+
+
+def test_scheduler_that_never_answers_fails_within_the_connect_timeout(tmp_path, silent_listener):
+    out = tmp_path / "ds"
+    t0 = time.time()
+    r = _sweep(
+        [
+            "run",
+            *_synthetic(),
+            "--n",
+            "2",
+            "--mesh",
+            "tiny",
+            "--out",
+            str(out),
+            "--scheduler",
+            silent_listener,
+            "--connect-timeout",
+            "3",
+        ],
+        timeout=60,
+    )
+    took = time.time() - t0
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1 and r.stderr.startswith("error: --scheduler:") and silent_listener in r.stderr
+    assert "not a dask scheduler" in r.stderr
+    assert "Traceback" not in r.stderr and not out.exists()
+    assert took < 45, took  # --connect-timeout 3 s, plus start-up on a loaded machine; without the check it hangs
+
+
+def test_http_port_is_not_a_scheduler(tmp_path, capsys):
+    import http.server
+
+    class Quiet(http.server.BaseHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    srv = http.server.HTTPServer(("127.0.0.1", 0), Quiet)
+    t = threading.Thread(target=srv.serve_forever, daemon=True)
+    t.start()
+    try:
+        addr = f"tcp://127.0.0.1:{srv.server_address[1]}"
+        code, _, err = _cli(
+            [
+                "run",
+                *_synthetic(),
+                "--n",
+                "2",
+                "--mesh",
+                "tiny",
+                "--out",
+                str(tmp_path / "ds"),
+                "--scheduler",
+                addr,
+                "--connect-timeout",
+                "3",
+            ],
+            capsys,
+        )
+    finally:
+        srv.shutdown()
+    assert code == 2 and err.count("\n") == 1 and "not a dask scheduler" in err, err
+    assert not (tmp_path / "ds").exists()
+
+
+# ----------------------------------------------------------------------------- a cluster that loses its workers
+
+
+def test_driver_notices_when_every_worker_is_gone(tmp_path):
+    from distributed import LocalCluster
+
+    out = tmp_path / "ds"
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+        proc = _popen(
+            [
+                "run",
+                *_synthetic(seconds=0.3),
+                "--n",
+                "40",
+                "--mesh",
+                "tiny",
+                "--out",
+                str(out),
+                "--no-progress",
+                "--scheduler",
+                cluster.scheduler_address,
+                "--worker-wait",
+                "3",
+            ],
+        )
+        try:
+            _wait_rows(out, 2, proc)
+            cluster.scale(0)
+            t_gone = time.time()
+            stdout, stderr = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    noticed = time.time() - t_gone
+    assert proc.returncode == 3, stderr
+    assert "no dask worker" in stderr and "3 s" in stderr, stderr
+    assert "done this run" in stdout and "folder holds" in stdout, stdout
+    assert noticed < 30, noticed  # --worker-wait 3 s, plus the exit on a loaded machine
+    assert not (out / io.LOCK).exists() and not list(out.glob(".attempts-*"))
+    man = io.read_manifest(out)
+    assert "no dask worker" in man["runs"][-1]["summary"]["aborted"]
+    assert 2 <= len(io.landed_status(out)) < 40
+
+
+# ----------------------------------------------------------------------------- SIGTERM, locks
+
+
+def test_sigterm_like_ctrl_c_then_resume(tmp_path):
+    out = tmp_path / "ds"
+    args = [
+        "run",
+        *_synthetic(seconds=0.3),
+        "--n",
+        "16",
+        "--mesh",
+        "tiny",
+        "--jobs",
+        "1",
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
+    proc = _popen(args)
+    try:
+        _wait_rows(out, 2, proc)
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 143, stderr
+    assert "done this run" in stdout and "SIGTERM" in stderr, stdout + stderr
+    assert "Traceback" not in stderr
+    assert not (out / io.LOCK).exists() and not list(out.glob(".attempts-*"))
+    landed = len(io.landed_status(out))
+    assert 2 <= landed < 16
+    r = _sweep(args)
+    assert r.returncode == 0 and f"{landed} skipped" in r.stdout, r.stdout + r.stderr
+    assert len(io.read_samples(out)) == 16
+
+
+def test_lock_of_another_host_refused_then_broken(tmp_path, capsys):
+    out = tmp_path / "ds"
+    args = ["run", *_synthetic(), "--n", "2", "--mesh", "tiny", "--jobs", "1", "--out", str(out), "--no-progress"]
+    r = _sweep(args)
+    assert r.returncode == 0, r.stderr
+    (out / io.LOCK).write_text(json.dumps({"pid": 4242, "host": "node-17.elsewhere", "created": 0.0}))
+    before = _snapshot(out)
+    code, _, err = _cli(args, capsys)
+    assert code == 2 and err.count("\n") == 1 and "node-17.elsewhere" in err and "--break-lock" in err, err
+    assert _snapshot(out) == before
+    r = _sweep([*args, "--break-lock"])
+    assert r.returncode == 0, r.stderr
+    assert "node-17.elsewhere" in r.stderr  # says whose lock it broke
+    assert not (out / io.LOCK).exists()
+
+
+# ----------------------------------------------------------------------------- worker warm-up, attempt counts
+
+
+def test_worker_plugin_warms_each_worker_once_when_it_joins(tmp_path, monkeypatch):
+    from distributed import Client, LocalCluster
+
+    from elastimap.sweep.cluster import WarmUpWorkers
+
+    log = tmp_path / "warm.log"
+    (tmp_path / "warmprobe.py").write_text(
+        "import os\n"
+        "def warmup(params):\n"
+        f"    open({str(log)!r}, 'a').write(f'{{os.getpid()}} {{params.disc.mesh}}\\n')\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("PYTHONPATH", f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    import warmprobe
+
+    from elastimap.solver.params import Discretisation, SolveParams
+
+    base = SolveParams(disc=Discretisation(mesh="tiny")).to_dict()
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster,
+        Client(cluster) as client,
+    ):
+        client.register_plugin(WarmUpWorkers(warmprobe.warmup, base), name="elastimap-warmup")
+        cluster.scale(2)
+        client.wait_for_workers(2, timeout=30)
+        t0 = time.time()
+        while time.time() - t0 < 20 and len(log.read_text().splitlines()) < 2:
+            time.sleep(0.2)
+        pids = {int(w) for w in client.run(os.getpid).values()}
+    lines = [ln.split() for ln in log.read_text().splitlines()]
+    assert len(lines) == 2 and {int(p) for p, _ in lines} == pids and {m for _, m in lines} == {"tiny"}
+
+
+def test_crash_message_counts_the_real_attempts(tmp_path):
+    """A scheduler with dask's allowed-failures 2 runs a crashing sample three times: say three."""
+    import pickle
+
+    import dask
+    from distributed import LocalCluster
+
+    from elastimap.solver.synthetic import SyntheticSolver
+    from elastimap.sweep.cluster import WarmUpWorkers
+    from elastimap.sweep.jobs import warmup
+
+    table = tmp_path / "t.csv"
+    table.write_text("d,h,E\n5,6,50\n7.5,8,70\n")
+    out = tmp_path / "ds"
+    log = tmp_path / "starts.log"
+    with (
+        dask.config.set({"distributed.scheduler.allowed-failures": 2}),
+        LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster,
+    ):
+        r = _sweep(
+            [
+                "run",
+                *_synthetic(crash_d=7.5, log=log),
+                "--samples",
+                str(table),
+                "--mesh",
+                "tiny",
+                "--out",
+                str(out),
+                "--no-progress",
+                "--scheduler",
+                cluster.scheduler_address,
+            ],
+            timeout=240,  # three worker deaths and restarts: slow on a loaded machine
+        )
+        # the driver registered the warm-up of the solver it was given (the stand-in), not the FEM's
+        plugin = pickle.loads(cluster.scheduler.worker_plugins["elastimap-warmup"])
+    assert isinstance(plugin, WarmUpWorkers) and plugin.warm.func is warmup
+    assert plugin.warm.args == (SyntheticSolver(crash_d=7.5, log=str(log)),)
+    assert r.returncode == 0, r.stderr
+    starts = [ln.split()[0] for ln in log.read_text().splitlines()].count("7.5")
+    assert starts == 3
+    df = io.read_samples(out, status=None).set_index("d")
+    assert df.loc[7.5, "status"] == "failed"
+    assert "3 attempts" in df.loc[7.5, "error"] and "twice" not in df.loc[7.5, "error"], df.loc[7.5, "error"]
