@@ -168,24 +168,28 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
     ph = C.load_phantoms(phantoms)
     synthetic = camera_csv is None
     fem_fn = C.default_fem(mesh, delta)
+    pairs, results = [], None
     if synthetic:
         def progress(name, f, c):
             click.echo(f"  {name:14s} FEM {f[0]:.4g} {f[1]:.4g} {f[2]:.4g}   camera {c[0]:.4g} {c[1]:.4g} {c[2]:.4g}",
                        err=True)
-        fem, cam, _ = C.simulate_phantoms(ph, fem_fn, model, settings, frames, model.seed, write_frames, fmt, progress)
+        fem, cam, results = C.simulate_phantoms(ph, fem_fn, model, settings, frames, model.seed, write_frames, fmt,
+                                                progress, frames_out=pairs)
         if fem_features:
             fem = C.fem_features_from_csv(fem_features, ph)
     else:
-        cam = C.camera_features_from_csv(camera_csv, ph, model, settings)
+        cam = C.camera_features_from_csv(camera_csv, ph, model, settings, frames_out=pairs)
         if fem_features:
             fem = C.fem_features_from_csv(fem_features, ph)
         else:
-            fem = np.array([[r.O1, r.O2, r.O3] for r in
-                            (fem_fn(float(x["d"]), float(x["h"]), float(x["E"])) for _, x in ph.iterrows())])
+            results = [fem_fn(float(x["d"]), float(x["h"]), float(x["E"])) for _, x in ph.iterrows()]
+            fem = np.array([[r.O1, r.O2, r.O3] for r in results])
+    # camera frames -> FEM-equivalent difference images (image models, --refine) need the FEM solves
+    defl = C.deflection_calibration(results, pairs, model) if results else None
     cal = C.fit_calibration(ph, fem, cam, settings.to_dict(), model.to_dict(), synthetic,
                             {"mesh": mesh, "delta": delta, "frames": frames,
                              "phantoms_file": str(phantoms or C.DEFAULT_PHANTOMS),
-                             "camera_csv": camera_csv, "fem_features": fem_features})
+                             "camera_csv": camera_csv, "fem_features": fem_features}, defl)
     cal.save(out)
     png = plot or os.path.splitext(out)[0] + ".png"
     C.plot_calibration(cal, png)
