@@ -230,14 +230,17 @@ def deflection_calibration(results, pairs, sensor=None) -> dict:
     refs = np.array([background_deflection(r.image_raw, r.image) for r in results])
     ref = refs.mean(axis=0)
     spread = float(np.max(np.abs(refs - ref)) / max(np.max(np.abs(ref)), 1e-300))
-    if spread > 0.01:
+    # the nine share one press; remeshing alone moves the FEM's reference by a few % of its maximum
+    # (4.5 % on the tiny mesh, at the probe's edge peaks), a different tissue or press by far more
+    if spread > 0.2:
         raise UserError("calibration", f"the phantoms' reference presses differ by {100 * spread:.2g} % "
                                        "(different tissue or press): one deflection calibration needs one press")
     pixel = float(results[0].pixel)
     rec = [difference_image(F, B, sensor, ref, pixel).image for F, B in pairs]
     k, rel = fit_scale(rec, [np.asarray(r.image, float) for r in results])
     return {"model": "FEM difference image = scale x inverse-response image (elastimap.camera.deflection)",
-            "reference": ref.tolist(), "pixel": pixel, "shape": list(ref.shape), "scale": k, "rel_rms": rel}
+            "reference": ref.tolist(), "pixel": pixel, "shape": list(ref.shape), "scale": k, "rel_rms": rel,
+            "reference_spread": spread}
 
 
 def fit_calibration(phantoms, fem: np.ndarray, cam: np.ndarray, feature_settings: dict,
