@@ -89,12 +89,12 @@ def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, out):
         from elastimap.training.experiment import TrainConfig
 
         data = load(data_path, design_only=True)
-        model = fit_image_model(data, "scg", repeats=4, cfg=TrainConfig(epochs=300, progress=False), k=10,
+        model = fit_image_model(data, "scg", repeats=4, cfg=TrainConfig(hidden=((12, "tansig"), (6, "tansig")), epochs=300, progress=False), k=10,
                                 image_noise=0.01, log_e=True)
         model_dir = os.path.join(out, "image-model")
         os.makedirs(model_dir, exist_ok=True)
         model.save(model_dir)
-        say(f"image model: scg, 4 members, k 10, ln E, 300 epochs, 1 % image noise, {data.n} rows of {data_path} "
+        say(f"image model: scg, 4 members, k 10, 10-12-6-3, ln E, 300 epochs, 1 % image noise, {data.n} rows of {data_path} "
             f"({time.perf_counter() - t0:.0f} s)")
     from elastimap.camera.infer import load_model
 
