@@ -165,7 +165,7 @@ class Calibration:
             fh.write("\n")
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "Calibration":
+    def load(cls, path: str | os.PathLike) -> Calibration:
         p = str(path)
         if not os.path.exists(p):
             raise UserError("calibration", f"{p}: no such file")
@@ -255,7 +255,7 @@ def fit_calibration(phantoms, fem: np.ndarray, cam: np.ndarray, feature_settings
     fits = {k: fit_line(cam[:, j], fem[:, j], k) for j, k in enumerate(FEATURES)}
     recs = [{"name": str(r["name"]), "d": float(r["d"]), "h": float(r["h"]), "E": float(r["E"])}
             for _, r in phantoms.iterrows()]
-    m = {"created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
+    m = {"created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}
     try:
         from elastimap.provenance import code_version
         m["code_version"] = code_version()

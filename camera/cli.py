@@ -237,8 +237,15 @@ def infer(model_dir, calibration, feats, images, background, csv_path, fem_image
     """
     from .calibration import Calibration
     from .frames import expand
-    from .infer import (_is_image_model, estimate, estimate_fem_images, estimate_images, estimate_lesions_csv,
-                        load_identifiability, load_model)
+    from .infer import (
+        _is_image_model,
+        estimate,
+        estimate_fem_images,
+        estimate_images,
+        estimate_lesions_csv,
+        load_identifiability,
+        load_model,
+    )
 
     given = sum(x for x in (feats is not None, bool(images), csv_path is not None, fem_image is not None))
     if given != 1:

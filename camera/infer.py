@@ -156,7 +156,7 @@ def load_identifiability(identifiability="default"):
 
 def _plausibility(ests: list[Estimate]) -> list[Estimate]:
     """Add ``impossible:q`` and ``outside_interval:q`` (see the module docstring)."""
-    from elastimap.solver.params import depth_range   # pure python, no DOLFINx
+    from elastimap.solver.params import depth_range  # pure python, no DOLFINx
 
     for e in ests:
         e.flags = [f for f in e.flags if not f.startswith(("impossible:", "outside_interval:"))]
