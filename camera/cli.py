@@ -223,8 +223,9 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
                    "lesion); intervals from the local Cramér–Rao bound.  From frames, every pixel is weighted by "
                    "its own noise, measured from the frames' scatter.")
 @click.option("--image-noise", default=0.01, show_default=True, type=float,
-              help="--refine with --fem-image: pixel noise of the image, relative to its peak (frames measure "
-                   "their own).")
+              help="--refine: with --fem-image the pixel noise relative to the image's peak; from frames (which "
+                   "measure their own noise) the forward model's error floor relative to the peak, added in "
+                   "quadrature to the frames' noise.")
 @mesh_option(help="--refine: mesh of the forward model (the one the model's training sweep used).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also write .csv or .json here.")
@@ -289,7 +290,7 @@ def infer(model_dir, calibration, feats, images, background, csv_path, fem_image
 
         with tqdm(total=len(ests), desc="refine (FEM fit)", unit="lesion", disable=len(ests) < 2) as bar:
             ests = refine_estimates(ests, None, image_noise=image_noise, mesh=mesh, threshold=threshold,
-                                    progress=lambda i, n: bar.update(1))
+                                    progress=lambda i, n: bar.update(1), model_error=image_noise)
     rows = [e.to_dict() for e in ests]
     if out:
         if out.endswith(".json"):

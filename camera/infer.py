@@ -18,7 +18,8 @@ never silently extrapolated: every estimate carries ``flags``:
   the nine calibration phantoms (the linear map is extrapolated);
 * ``outside_training:Ok`` - the calibrated FEM feature k outside the
   network's training range (``ensemble.feature_range``);
-* ``no_signal`` - O1 at or below zero: no inclusion visible;
+* ``no_signal`` - O1 at or below zero, or (from frames) no pixel of the difference image
+  :data:`DETECT_SIGMA` standard errors above zero: no inclusion visible, nothing is reportable;
 * ``non_identifiable:q`` - at the estimate, the Cramér–Rao bound of the
   identifiability map (:mod:`elastimap.identify.region`; by default the one shipped,
   measured on the default 512-sample sweep) says ``q`` cannot be determined
@@ -60,6 +61,8 @@ from elastimap.errors import UserError
 
 from .calibration import Calibration
 
+DETECT_SIGMA = 5.0          # from frames: the inclusion is visible when some pixel is this many standard errors up
+MODEL_ERROR = 0.01          # --refine from frames: forward-model error floor, x the image's peak (see refine_estimates)
 TARGET_UNITS = {k: UNITS[k] for k in TARGETS}
 
 
@@ -93,7 +96,10 @@ class Estimate:
         return not self.flags
 
     def reportable(self, q: str) -> bool:
-        """``q`` may be printed as a number: identifiable, possible and inside its own interval."""
+        """``q`` may be printed as a number: a visible inclusion, identifiable, possible and inside its
+        own interval."""
+        if "no_signal" in self.flags:
+            return False
         return not any(f"{k}:{q}" in self.flags for k in ("non_identifiable", "impossible", "outside_interval"))
 
     def to_dict(self) -> dict:
@@ -283,7 +289,8 @@ def estimate_fem_images(images, model, ids: list[str] | None = None, identifiabi
         f = list(flags[i]) if flags is not None else []
         if not inr[i]:
             f.append("outside_training:image")
-        if not np.abs(imgs[i]).max() > 0:
+        if not np.abs(imgs[i]).max() > 0 or (sigma is not None and
+                                              not np.max(imgs[i] / np.asarray(sigma[i], float).ravel()) >= DETECT_SIGMA):
             f.insert(0, "no_signal")
         cam = np.asarray(cam_features[i], float) if cam_features is not None else np.full(3, math.nan)
         sg = None if sigma is None else np.asarray(sigma[i], float).reshape(-1)
@@ -294,12 +301,17 @@ def estimate_fem_images(images, model, ids: list[str] | None = None, identifiabi
 
 def refine_estimates(ests: list[Estimate], images=None, image_noise: float = 0.01, mesh: str = "default",
                      threshold: float = 0.10, chi2_limit: float = 3.0, method: str = "rsm",
-                     cache: str | None = None, progress=None) -> list[Estimate]:
+                     cache: str | None = None, progress=None, model_error: float = MODEL_ERROR) -> list[Estimate]:
     """Refine image-model estimates by a maximum-likelihood fit of the FEM image (:mod:`elastimap.identify.refine`).
 
     ``images`` as given to :func:`estimate_fem_images` (FEM difference images, mm, on the model's
-    grid; default: each estimate's own ``image``); pixel noise: each estimate's ``sigma`` where the
-    frames measured it (:func:`difference_of_frames`), else ``image_noise`` x the image's peak;
+    grid; default: each estimate's own ``image``); pixel noise: where the frames measured it
+    (:func:`difference_of_frames`) ``sqrt(sigma² + (model_error x peak)²)`` -- the frames' own
+    standard error and a floor for the forward model's own error (its remeshing jitter, about 1 %
+    of the peak, exceeds the noise of 30 frames, ~0.3 % of the peak, and a fit weighted by the
+    camera noise alone claims intervals the forward model cannot support; 1 % is also the noise
+    level :data:`elastimap.identify.refine.INTERVAL_SCALE` was measured at) -- else
+    ``image_noise`` x the image's peak;
     ``progress(i, n)`` is called after each lesion; ``method`` ``rsm`` (default, 30 forward
     solves per image) or ``trf`` (15-48, median about 30 in the study), see :mod:`elastimap.identify.refine`.  Runs the solver
     (DOLFINx).  Each estimate's mean becomes the fitted (d, h, E), ``sd``/``crb`` the local
@@ -322,7 +334,8 @@ def refine_estimates(ests: list[Estimate], images=None, image_noise: float = 0.0
     for i, (e, img) in enumerate(zip(ests, imgs)):
         if "no_signal" in e.flags:
             continue
-        sig = e.sigma if e.sigma is not None else image_noise * np.abs(img).max()
+        pk = np.abs(img).max()
+        sig = np.hypot(e.sigma, model_error * pk) if e.sigma is not None else image_noise * pk
         r = fit(img, sig, e.mean, model, method)
         e.mean = r.theta
         e.crb = r.relstd

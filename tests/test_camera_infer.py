@@ -313,3 +313,16 @@ def test_impossible_or_outside_interval_is_not_printed_as_a_number():
     assert "6.2" not in _quantity(bad.to_dict(), "E", "kPa") and "10-15.4" in _quantity(bad.to_dict(), "E", "kPa")
     [imp] = _plausibility([est((8, 2.0, -3), (7, 1, 1), (9, 3, 5))])    # h < 1 + d/2: crosses the surface
     assert {"impossible:h", "impossible:E"} <= set(imp.flags)
+
+
+def test_no_visible_inclusion_in_frames_is_not_reported(toy_image_model):
+    """From frames, an image whose largest pixel is below DETECT_SIGMA standard errors is no_signal."""
+    from elastimap.camera.infer import DETECT_SIGMA, estimate_fem_images, load_model
+
+    model = load_model(str(toy_image_model))
+    img = toy_solve(*TRUTH).image
+    loud = estimate_fem_images(img[None], model, identifiability=None, sigma=np.full((1,) + img.shape, img.max() / 50))[0]
+    quiet = estimate_fem_images(img[None], model, identifiability=None,
+                                sigma=np.full((1,) + img.shape, img.max() / (DETECT_SIGMA - 1)))[0]
+    assert "no_signal" not in loud.flags
+    assert "no_signal" in quiet.flags and not any(quiet.reportable(q) for q in "dhE")

@@ -65,8 +65,10 @@ def _table(name: str, truth: np.ndarray, ests) -> list[str]:
 @click.option("--frames", default=30, show_default=True, type=int)
 @click.option("--seed", default=101, show_default=True, type=int, help="Seed of the held-out design and the noise.")
 @click.option("--cache", default="data/identify/solves", show_default=True, help="Solve cache.")
+@click.option("--model-error", default=0.01, show_default=True, type=float,
+              help="Refine: forward-model error floor x peak, added in quadrature to the frames' noise.")
 @click.option("--out", required=True)
-def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, out):
+def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, model_error, out):
     from elastimap.camera import calibration as C
     from elastimap.camera.deflection import difference_image
     from elastimap.camera.features import FeatureSettings
@@ -152,7 +154,7 @@ def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, out):
 
         def progress(i, k):
             times.append(time.perf_counter())
-        ref_ests = refine_estimates(sub, None, mesh=mesh, cache=cache, progress=progress)
+        ref_ests = refine_estimates(sub, None, mesh=mesh, cache=cache, progress=progress, model_error=model_error)
         wall = time.perf_counter() - t
         lines += _table("network (FEM image) [refined subset]", truth[:len(sub)], net[:len(sub)])
         lines += _table("frames -> network [refined subset]", truth[:len(sub)],
@@ -161,7 +163,7 @@ def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, out):
         ts = time.perf_counter()
         cached_solve(8.1234, 7.0, 50.0, mesh=mesh, cache=os.path.join(out, "timing-cache"))
         one = time.perf_counter() - ts
-        extra.append(f"refine: {wall / len(sub):.0f} s per lesion ({len(sub)} lesions, 30 solves each); one uncached "
+        extra.append(f"refine (model error floor {model_error:g} x peak): {wall / len(sub):.0f} s per lesion ({len(sub)} lesions, 30 solves each); one uncached "
                      f"{mesh}-mesh solve (inclusion + reference) took {one:.1f} s at the time")
         with open(os.path.join(out, "refined.json"), "w") as fh:
             json.dump([e.to_dict() for e in ref_ests], fh, indent=2)
