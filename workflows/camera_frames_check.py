@@ -20,6 +20,7 @@ Not the ≥ 100-lesion benchmark unless ``--n 100`` (or more) and ``--refine-n``
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import sys
@@ -148,7 +149,7 @@ def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, model_err
     zr = [float(np.sqrt(np.mean(((x.image - f) / x.sigma) ** 2))) for x, f in zip(di, fem_imgs)]
     extra = [f"recovered image vs FEM image: z rms median {np.median(zr):.2f} (max {np.max(zr):.2f}) over {n} lesions"]
     if refine_n > 0:
-        sub = [cam[i] for i in range(min(refine_n, n))]
+        sub = [copy.deepcopy(cam[i]) for i in range(min(refine_n, n))]      # cam stays the network's
         t = time.perf_counter()
         times = []
 
