@@ -12,6 +12,12 @@ The calibration file (JSON) stores a, b, R^2, the residuals, the ranges of
 both feature sets over the nine phantoms (inputs outside them are flagged at
 inference), the camera-feature settings and, for synthetic calibrations, the
 sensor model, so that inference computes camera features the same way.
+
+For image models it also stores the *deflection calibration* (:func:`deflection_calibration`):
+the FEM reference press (no inclusion) that flat-fields the background frames, and the
+least-squares factor between the phantoms' difference images recovered from their frames
+(:mod:`elastimap.camera.deflection`) and their FEM difference images, with each phantom's relative
+rms residual (how well the camera's inverse response reproduces the FEM images).
 """
 
 from __future__ import annotations
@@ -101,6 +107,7 @@ class Calibration:
     sensor: dict | None = None           # the synthetic sensor model (None for real images)
     synthetic: bool = True
     meta: dict = field(default_factory=dict)
+    deflection: dict | None = None       # see deflection_calibration (None: image models cannot use frames)
 
     # ranges over the calibration set
     @property
@@ -148,6 +155,7 @@ class Calibration:
             "feature_settings": self.feature_settings,
             "sensor": self.sensor,
             "meta": self.meta,
+            "deflection": self.deflection,
         }
 
     def save(self, path: str | os.PathLike) -> None:
@@ -157,7 +165,7 @@ class Calibration:
             fh.write("\n")
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "Calibration":
+    def load(cls, path: str | os.PathLike) -> Calibration:
         p = str(path)
         if not os.path.exists(p):
             raise UserError("calibration", f"{p}: no such file")
@@ -181,7 +189,7 @@ class Calibration:
             raise UserError("calibration", f"{p}: malformed calibration file (missing {exc})") from None
         return cls(fits, [str(r["name"]) for r in phantoms], phantoms, fem, cam,
                    d.get("feature_settings", {}), d.get("sensor"), bool(d.get("synthetic", False)),
-                   d.get("meta", {}))
+                   d.get("meta", {}), d.get("deflection"))
 
     def report(self) -> str:
         lines = [f"calibration ({'SYNTHETIC camera' if self.synthetic else 'camera images'}), "
@@ -193,11 +201,51 @@ class Calibration:
         lines.append("  residuals (FEM units):")
         for i, n in enumerate(self.names):
             lines.append("    " + f"{n:14s}" + "  ".join(f"{k}={self.fits[k].residuals[i]:+.3g}" for k in FEATURES))
+        if self.deflection:
+            rel = self.deflection["rel_rms"]
+            lines.append(f"  difference images from frames (inverse response): scale {self.deflection['scale']:.4f}, "
+                         f"relative rms vs FEM {100 * min(rel):.2g}-{100 * max(rel):.2g} % over the phantoms")
         return "\n".join(lines)
+
+    def reference_image(self) -> tuple[np.ndarray, float]:
+        """The FEM reference press (mm) and its pixel side (mm), for :mod:`elastimap.camera.deflection`."""
+        if not self.deflection:
+            raise UserError("calibration", "this calibration has no deflection calibration (made by an older "
+                                           "version or without FEM solves): recalibrate to use camera frames "
+                                           "with an image model or --refine")
+        return np.asarray(self.deflection["reference"], float), float(self.deflection["pixel"])
+
+
+def deflection_calibration(results, pairs, sensor=None) -> dict:
+    """The deflection calibration from the phantoms' FEM results and their (lesion, background)
+    frame stacks: the reference press (mean of the phantoms' ``image_raw - image``; they share
+    tissue and press), the factor ``scale`` with FEM image ≈ scale x recovered image over all nine,
+    and the per-phantom relative rms residual after it."""
+    from .deflection import difference_image, fit_scale
+    from .optics import SensorModel, background_deflection
+
+    sensor = sensor or SensorModel()
+    if len(results) != len(pairs) or not results:
+        raise UserError("calibration", "need the FEM result and the frames of every phantom")
+    refs = np.array([background_deflection(r.image_raw, r.image) for r in results])
+    ref = refs.mean(axis=0)
+    spread = float(np.max(np.abs(refs - ref)) / max(np.max(np.abs(ref)), 1e-300))
+    # the nine share one press; remeshing alone moves the FEM's reference by a few % of its maximum
+    # (4.5 % on the tiny mesh, at the probe's edge peaks), a different tissue or press by far more
+    if spread > 0.2:
+        raise UserError("calibration", f"the phantoms' reference presses differ by {100 * spread:.2g} % "
+                                       "(different tissue or press): one deflection calibration needs one press")
+    pixel = float(results[0].pixel)
+    rec = [difference_image(F, B, sensor, ref, pixel).image for F, B in pairs]
+    k, rel = fit_scale(rec, [np.asarray(r.image, float) for r in results])
+    return {"model": "FEM difference image = scale x inverse-response image (elastimap.camera.deflection)",
+            "reference": ref.tolist(), "pixel": pixel, "shape": list(ref.shape), "scale": k, "rel_rms": rel,
+            "reference_spread": spread}
 
 
 def fit_calibration(phantoms, fem: np.ndarray, cam: np.ndarray, feature_settings: dict,
-                    sensor: dict | None = None, synthetic: bool = True, meta: dict | None = None) -> Calibration:
+                    sensor: dict | None = None, synthetic: bool = True, meta: dict | None = None,
+                    deflection: dict | None = None) -> Calibration:
     fem = np.asarray(fem, dtype=float)
     cam = np.asarray(cam, dtype=float)
     n = len(phantoms)
@@ -207,14 +255,15 @@ def fit_calibration(phantoms, fem: np.ndarray, cam: np.ndarray, feature_settings
     fits = {k: fit_line(cam[:, j], fem[:, j], k) for j, k in enumerate(FEATURES)}
     recs = [{"name": str(r["name"]), "d": float(r["d"]), "h": float(r["h"]), "E": float(r["E"])}
             for _, r in phantoms.iterrows()]
-    m = {"created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
+    m = {"created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}
     try:
         from elastimap.provenance import code_version
         m["code_version"] = code_version()
     except Exception:
         pass
     m.update(meta or {})
-    return Calibration(fits, [r["name"] for r in recs], recs, fem, cam, feature_settings, sensor, synthetic, m)
+    return Calibration(fits, [r["name"] for r in recs], recs, fem, cam, feature_settings, sensor, synthetic, m,
+                       deflection)
 
 
 def plot_calibration(cal: Calibration, path: str | os.PathLike) -> None:
@@ -263,12 +312,13 @@ def default_fem(mesh: str = "coarse", delta: float = 3.0):
 
 def simulate_phantoms(phantoms, fem_fn, sensor=None, settings=None, frames: int = 30,
                       seed: int = 0, write_dir: str | os.PathLike | None = None, fmt: str = "png",
-                      progress=None):
+                      progress=None, frames_out: list | None = None):
     """FEM features and SYNTHETIC camera features of each phantom.
 
     ``fem_fn(d, h, E, tissue_E, thickness)`` returns an object with ``image``,
     ``image_raw``, ``pixel``, ``O1``, ``O2``, ``O3`` (a SolveResult).  With
-    ``write_dir`` the frames are also written there as images.
+    ``write_dir`` the frames are also written there as images; ``frames_out`` (a list) receives
+    each phantom's (lesion, background) frame stacks.
     Returns (fem (n,3), cam (n,3), results list).
     """
     from .features import FeatureSettings, camera_features
@@ -287,6 +337,8 @@ def simulate_phantoms(phantoms, fem_fn, sensor=None, settings=None, frames: int 
             kw["thickness"] = float(r["tissue_thickness"])
         res = fem_fn(float(r["d"]), float(r["h"]), float(r["E"]), **kw)
         F, B = render_pair(sensor, res.image_raw, res.image, res.pixel, frames, rng)
+        if frames_out is not None:
+            frames_out.append((F, B))
         if write_dir is not None:
             meta = {"phantom": str(r["name"]), "d": float(r["d"]), "h": float(r["h"]), "E": float(r["E"]),
                     "sensor": sensor.to_dict()}
@@ -301,12 +353,14 @@ def simulate_phantoms(phantoms, fem_fn, sensor=None, settings=None, frames: int 
     return np.array(fem), np.array(cam), results
 
 
-def camera_features_from_csv(path: str | os.PathLike, phantoms, sensor=None, settings=None):
+def camera_features_from_csv(path: str | os.PathLike, phantoms, sensor=None, settings=None,
+                             frames_out: list | None = None):
     """Camera features of the phantoms from the user's images.
 
     The CSV has columns ``name`` (matching the phantom spec), ``images`` and
     ``background`` (each a ';'-separated list of files or glob patterns,
-    relative to the CSV's folder).  Returns (n, 3) in the phantom order.
+    relative to the CSV's folder).  Returns (n, 3) in the phantom order; ``frames_out`` (a list)
+    receives each phantom's (lesion, background) frame stacks (DN).
     """
     import pandas as pd
 
@@ -330,6 +384,12 @@ def camera_features_from_csv(path: str | os.PathLike, phantoms, sensor=None, set
         imgs = expand(str(r["images"]), p.parent)
         bg = expand(str(r["background"]), p.parent)
         out.append(features_from_files(imgs, bg, sensor, settings).values)
+        if frames_out is not None:
+            from .frames import read_stack
+            from .optics import SensorModel
+
+            m = sensor or SensorModel()
+            frames_out.append((read_stack(imgs, m.shape, m.window)[0], read_stack(bg, m.shape, m.window)[0]))
     return np.array(out)
 
 

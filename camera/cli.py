@@ -168,24 +168,28 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
     ph = C.load_phantoms(phantoms)
     synthetic = camera_csv is None
     fem_fn = C.default_fem(mesh, delta)
+    pairs, results = [], None
     if synthetic:
         def progress(name, f, c):
             click.echo(f"  {name:14s} FEM {f[0]:.4g} {f[1]:.4g} {f[2]:.4g}   camera {c[0]:.4g} {c[1]:.4g} {c[2]:.4g}",
                        err=True)
-        fem, cam, _ = C.simulate_phantoms(ph, fem_fn, model, settings, frames, model.seed, write_frames, fmt, progress)
+        fem, cam, results = C.simulate_phantoms(ph, fem_fn, model, settings, frames, model.seed, write_frames, fmt,
+                                                progress, frames_out=pairs)
         if fem_features:
             fem = C.fem_features_from_csv(fem_features, ph)
     else:
-        cam = C.camera_features_from_csv(camera_csv, ph, model, settings)
+        cam = C.camera_features_from_csv(camera_csv, ph, model, settings, frames_out=pairs)
         if fem_features:
             fem = C.fem_features_from_csv(fem_features, ph)
         else:
-            fem = np.array([[r.O1, r.O2, r.O3] for r in
-                            (fem_fn(float(x["d"]), float(x["h"]), float(x["E"])) for _, x in ph.iterrows())])
+            results = [fem_fn(float(x["d"]), float(x["h"]), float(x["E"])) for _, x in ph.iterrows()]
+            fem = np.array([[r.O1, r.O2, r.O3] for r in results])
+    # camera frames -> FEM-equivalent difference images (image models, --refine) need the FEM solves
+    defl = C.deflection_calibration(results, pairs, model) if results else None
     cal = C.fit_calibration(ph, fem, cam, settings.to_dict(), model.to_dict(), synthetic,
                             {"mesh": mesh, "delta": delta, "frames": frames,
                              "phantoms_file": str(phantoms or C.DEFAULT_PHANTOMS),
-                             "camera_csv": camera_csv, "fem_features": fem_features})
+                             "camera_csv": camera_csv, "fem_features": fem_features}, defl)
     cal.save(out)
     png = plot or os.path.splitext(out)[0] + ".png"
     C.plot_calibration(cal, png)
@@ -204,7 +208,7 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
 @click.option("--images", multiple=True, help="Lesion frames (files or globs; repeatable).")
 @click.option("--background", multiple=True, help="Background frames for --images.")
 @click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None,
-              help="Batch: CSV with id and O1,O2,O3 or images,background.")
+              help="Batch: CSV with id and O1,O2,O3, images,background (frame globs) or fem_image (.npy); docs/camera.md.")
 @click.option("--fem-image", "fem_image", type=click.Path(dir_okay=False), default=None,
               help="Image model only: .npy FEM difference image(s), mm, shape (ny, nx) or (n, ny, nx) on the "
                    "sweep's grid (no calibration needed).")
@@ -214,11 +218,14 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
 @click.option("--threshold", default=0.10, show_default=True, type=float,
               help="Cramér–Rao relative std above which an output is flagged non-identifiable.")
 @click.option("--refine", is_flag=True,
-              help="With --fem-image and an image model: refine each estimate by a maximum-likelihood fit of the "
-                   "FEM image (elastimap.identify.refine, response surface: runs the solver, 30 forward solves per image, "
-                   "about 1.5 min of one core on the default mesh); intervals from the local Cramér–Rao bound.")
+              help="Image models (--fem-image, --images or --csv): refine each estimate by a maximum-likelihood fit of "
+                   "the FEM image (elastimap.identify.refine, response surface: runs the solver, 30 forward solves per "
+                   "lesion); intervals from the local Cramér–Rao bound.  From frames, every pixel is weighted by "
+                   "its own noise, measured from the frames' scatter.")
 @click.option("--image-noise", default=0.01, show_default=True, type=float,
-              help="--refine: pixel noise of the image, relative to its peak.")
+              help="--refine: with --fem-image the pixel noise relative to the image's peak; from frames (which "
+                   "measure their own noise) the forward model's error floor relative to the peak, added in "
+                   "quadrature to the frames' noise.")
 @mesh_option(help="--refine: mesh of the forward model (the one the model's training sweep used).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also write .csv or .json here.")
@@ -231,8 +238,15 @@ def infer(model_dir, calibration, feats, images, background, csv_path, fem_image
     """
     from .calibration import Calibration
     from .frames import expand
-    from .infer import (estimate, estimate_camera, estimate_fem_images, features_of_images, load_identifiability,
-                        load_model, read_lesions_csv)
+    from .infer import (
+        _is_image_model,
+        estimate,
+        estimate_fem_images,
+        estimate_images,
+        estimate_lesions_csv,
+        load_identifiability,
+        load_model,
+    )
 
     given = sum(x for x in (feats is not None, bool(images), csv_path is not None, fem_image is not None))
     if given != 1:
@@ -240,39 +254,43 @@ def infer(model_dir, calibration, feats, images, background, csv_path, fem_image
                                  "--csv FILE, --fem-image FILE.npy")
     if not 0 < threshold < 10:
         raise UserError("--threshold", f"must be in (0, 10) (got {threshold:g})")
-    if refine and fem_image is None:
-        raise UserError("--refine", "needs --fem-image (the FEM fit works on FEM difference images)")
+    if refine and feats is not None:
+        raise UserError("--refine", "needs an image (--fem-image, --images or --csv) and an image model, not features")
     if refine and not 0 < image_noise < 1:
         raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
     if fem_image is not None and not os.path.isfile(fem_image):
         raise UserError("--fem-image", f"{fem_image}: no such file")
     idm = load_identifiability(None if identifiability == "none" else identifiability)
     model = load_model(model_dir)
+    if refine and not _is_image_model(model):
+        raise UserError("--refine", "needs an image model (python -m elastimap.workflows.studies.imagenet --save-model DIR)")
     if fem_image is not None:
         try:
             arr = np.load(fem_image, allow_pickle=False)
         except Exception as exc:
             raise UserError("--fem-image", f"{fem_image}: not a .npy array ({exc})") from None
         ests = estimate_fem_images(arr, model, identifiability=idm, threshold=threshold)
-        if refine:
-            from .infer import refine_estimates
-
-            ests = refine_estimates(ests, arr, image_noise=image_noise, mesh=mesh, threshold=threshold)
         cal = None
     else:
-        if calibration is None:
+        if calibration is None and not csv_path:
             raise UserError("--calibration", "camera features and frames need the FEM<->camera calibration file")
-        cal = Calibration.load(calibration)
+        cal = Calibration.load(calibration) if calibration is not None else None
         if images:
             if not background:
                 raise UserError("background", "--images needs --background frames (the same press without the lesion)")
-            cf = features_of_images(expand(list(images)), expand(list(background)), cal)
-            ests = [estimate_camera(cf, cal, model, "1", idm, threshold)]
+            ests = [estimate_images(expand(list(images)), expand(list(background)), cal, model, "1", idm, threshold)]
         elif csv_path:
-            ids, cam = read_lesions_csv(csv_path, cal)
-            ests = estimate(cam, cal, model, ids, idm, threshold)
+            ests = estimate_lesions_csv(csv_path, cal, model, idm, threshold)
         else:
             ests = estimate(np.array([feats]), cal, model, ["1"], idm, threshold)
+    if refine:
+        from tqdm import tqdm
+
+        from .infer import refine_estimates
+
+        with tqdm(total=len(ests), desc="refine (FEM fit)", unit="lesion", disable=len(ests) < 2) as bar:
+            ests = refine_estimates(ests, None, image_noise=image_noise, mesh=mesh, threshold=threshold,
+                                    progress=lambda i, n: bar.update(1), model_error=image_noise)
     rows = [e.to_dict() for e in ests]
     if out:
         if out.endswith(".json"):
@@ -293,8 +311,9 @@ def infer(model_dir, calibration, feats, images, background, csv_path, fem_image
 
 def _quantity(r: dict, q: str, unit: str) -> str:
     lo, hi = r[f"{q}_lo"], r[f"{q}_hi"]
-    if not r[f"{q}_identifiable"]:
-        return f"{q}: not identifiable here, {lo:.3g}-{hi:.3g} {unit}"
+    if not r[f"{q}_reportable"]:
+        why = "not identifiable here" if not r[f"{q}_identifiable"] else "no reliable estimate"
+        return f"{q}: {why}, {lo:.3g}-{hi:.3g} {unit}" if np.isfinite(lo) and np.isfinite(hi) else f"{q}: {why}"
     s = f"{q} = {r[q]:.3g} ± {r[f'{q}_sd']:.2g} {unit}"
     return s + (f" [{lo:.3g}, {hi:.3g}]" if np.isfinite(lo) else "")
 

@@ -47,7 +47,7 @@ class FeatureSettings:
     supersample: int = 8
     combine: str = "mean-image"
 
-    def validate(self) -> "FeatureSettings":
+    def validate(self) -> FeatureSettings:
         check_range("threshold", self.threshold, 0)
         check_range("smooth_px", self.smooth_px, 0, 20)
         if not (1 <= self.supersample <= 32):
@@ -60,7 +60,7 @@ class FeatureSettings:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "FeatureSettings":
+    def from_dict(cls, d: dict) -> FeatureSettings:
         known = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in known}).validate()
 

@@ -18,7 +18,8 @@ never silently extrapolated: every estimate carries ``flags``:
   the nine calibration phantoms (the linear map is extrapolated);
 * ``outside_training:Ok`` - the calibrated FEM feature k outside the
   network's training range (``ensemble.feature_range``);
-* ``no_signal`` - O1 at or below zero: no inclusion visible;
+* ``no_signal`` - O1 at or below zero, or (from frames) no pixel of the difference image
+  :data:`DETECT_SIGMA` standard errors above zero: no inclusion visible, nothing is reportable;
 * ``non_identifiable:q`` - at the estimate, the Cramér–Rao bound of the
   identifiability map (:mod:`elastimap.identify.region`; by default the one shipped,
   measured on the default 512-sample sweep) says ``q`` cannot be determined
@@ -26,16 +27,25 @@ never silently extrapolated: every estimate carries ``flags``:
   the whole image for an image model).  Such a ``q`` is reported as its
   interval ``[q_lo, q_hi]`` (at least the bound's 95 % interval, clipped to
   the training range), never as a confident number;
-* ``outside_identifiability_map`` - the estimate lies outside the map's box.
+* ``outside_identifiability_map`` - the estimate lies outside the map's box;
+* ``impossible:q`` - the estimate of ``q`` is not a possible inclusion (d, h or E at or below
+  zero, or a centre depth h outside ``elastimap.solver.params.depth_range(d)``: the inclusion
+  would cross the surface or the base);
+* ``outside_interval:q`` - the estimate of ``q`` lies outside its own interval ``[lo, hi]``
+  (e.g. below the training range to which the interval is clipped);
+* ``saturated`` - camera pixels beyond the response's saturation (frames of an image model).
+
+A ``q`` that is non-identifiable, impossible or outside its interval is not *reportable*
+(``q_reportable`` false): the command line prints its interval (or nothing), never the number.
 
 Every estimate carries ``lo``/``hi``: the bound's approximate 95 % interval
 widened to the ensemble's 10-90 % range (a bound: real errors can be larger).
 
 Image models (``python -m elastimap.workflows.studies.imagenet --save-model DIR``) take a FEM
-difference image (:func:`estimate_fem_images`) or camera frames
-(:func:`estimate_images`), which are mapped to the FEM image grid by
-:func:`fem_image_from_camera` (shape resampled by position, peak through the
-calibration's O1 line).
+difference image (:func:`estimate_fem_images`) or camera frames (:func:`estimate_images`),
+which become the FEM-equivalent difference image and its per-pixel standard error by the
+inverse sensor response (:func:`difference_of_frames`, :mod:`elastimap.camera.deflection`).
+:func:`refine_estimates` fits the FEM to that image, weighting each pixel by its own noise.
 """
 
 from __future__ import annotations
@@ -51,6 +61,8 @@ from elastimap.errors import UserError
 
 from .calibration import Calibration
 
+DETECT_SIGMA = 5.0          # from frames: the inclusion is visible when some pixel is this many standard errors up
+MODEL_ERROR = 0.01          # --refine from frames: forward-model error floor, x the image's peak (see refine_estimates)
 TARGET_UNITS = {k: UNITS[k] for k in TARGETS}
 
 
@@ -68,7 +80,9 @@ class Estimate:
     lo: np.ndarray | None = None          # interval (see the module docstring)
     hi: np.ndarray | None = None
     crb: np.ndarray | None = None         # Cramér–Rao relative std of d, h, E at the estimate
-    input: str = "features"               # features | image
+    input: str = "features"               # features | image | frames | ... +fem_refined
+    image: np.ndarray | None = None       # the difference image estimated from (mm, FEM grid; image models)
+    sigma: np.ndarray | None = None       # its per-pixel standard error (mm; from frames), else None
 
     d = property(lambda s: float(s.mean[0]))
     h = property(lambda s: float(s.mean[1]))
@@ -81,6 +95,13 @@ class Estimate:
     def ok(self) -> bool:
         return not self.flags
 
+    def reportable(self, q: str) -> bool:
+        """``q`` may be printed as a number: a visible inclusion, identifiable, possible and inside its
+        own interval."""
+        if "no_signal" in self.flags:
+            return False
+        return not any(f"{k}:{q}" in self.flags for k in ("non_identifiable", "impossible", "outside_interval"))
+
     def to_dict(self) -> dict:
         out: dict = {"id": self.id}
         for j, k in enumerate(TARGETS):
@@ -92,10 +113,15 @@ class Estimate:
             out[f"{k}_hi"] = float(self.hi[j]) if self.hi is not None else math.nan
             out[f"{k}_crb_rel"] = float(self.crb[j]) if self.crb is not None else math.nan
             out[f"{k}_identifiable"] = f"non_identifiable:{k}" not in self.flags
+            out[f"{k}_reportable"] = self.reportable(k)
         for j, k in enumerate(FEATURES):
             out[f"cam_{k}"] = float(self.cam[j])
         for j, k in enumerate(FEATURES):
             out[f"fem_{k}"] = float(self.fem[j])
+        if self.image is not None:
+            j = int(np.argmax(self.image))
+            out["image_peak_mm"] = float(self.image.ravel()[j])
+            out["image_peak_sigma_mm"] = float(self.sigma.ravel()[j]) if self.sigma is not None else math.nan
         out["input"] = self.input
         out["n_members"] = self.n_members
         out["flags"] = ";".join(self.flags)
@@ -134,16 +160,39 @@ def load_identifiability(identifiability="default"):
     return IdentifiabilityMap.load(None if identifiability == "default" else identifiability)
 
 
+def _plausibility(ests: list[Estimate]) -> list[Estimate]:
+    """Add ``impossible:q`` and ``outside_interval:q`` (see the module docstring)."""
+    from elastimap.solver.params import depth_range  # pure python, no DOLFINx
+
+    for e in ests:
+        e.flags = [f for f in e.flags if not f.startswith(("impossible:", "outside_interval:"))]
+        d, h, E = (float(v) for v in e.mean)
+        bad = {"d": not d > 0, "h": not h > 0, "E": not E > 0}
+        if d > 0 and h > 0:
+            try:
+                lo, hi = depth_range(d)
+                bad["h"] = bad["h"] or not lo <= h <= hi
+            except Exception:          # no admissible depth at all for this d
+                bad["d"] = bad["h"] = True
+        for j, q in enumerate(TARGETS):
+            if bad[q]:
+                e.flags.append(f"impossible:{q}")
+            elif e.lo is not None and np.isfinite(e.lo[j]) and np.isfinite(e.hi[j]) \
+                    and not e.lo[j] <= e.mean[j] <= e.hi[j]:
+                e.flags.append(f"outside_interval:{q}")
+    return ests
+
+
 def _assess(ests: list[Estimate], ensemble, idmap, mset: str, threshold: float) -> list[Estimate]:
     if idmap is None:
-        return ests
+        return _plausibility(ests)
     mean = np.array([e.mean for e in ests])
     a = idmap.assess(mean, mset, threshold, p10=np.array([e.p10 for e in ests]),
                      p90=np.array([e.p90 for e in ests]), target_range=getattr(ensemble, "target_range", None))
     for i, e in enumerate(ests):
         e.lo, e.hi, e.crb = a.lo[i], a.hi[i], a.r[i]
         e.flags.extend(a.flags[i])
-    return ests
+    return _plausibility(ests)
 
 
 def _members(Y: np.ndarray, n: int):
@@ -206,11 +255,12 @@ def load_model(directory: str | os.PathLike):
 
 
 def estimate_fem_images(images, model, ids: list[str] | None = None, identifiability="default",
-                        threshold: float = 0.10, cam_features=None, flags=None) -> list[Estimate]:
+                        threshold: float = 0.10, cam_features=None, flags=None, sigma=None) -> list[Estimate]:
     """(n, ny, nx) (or (n, ny*nx)) FEM difference images (mm) -> list of :class:`Estimate` (image model).
 
     ``cam``/``fem`` of each estimate hold the camera features (NaN for simulated input) and the
-    image's own FEM features O1..O3; ``identifiability`` uses the map's ``image`` set."""
+    image's own FEM features O1..O3; ``identifiability`` uses the map's ``image`` set; ``sigma``
+    (like ``images``, mm) their per-pixel standard errors where measured (kept for the refinement)."""
     from elastimap.solver.image import features as image_features
 
     if not _is_image_model(model):
@@ -239,20 +289,30 @@ def estimate_fem_images(images, model, ids: list[str] | None = None, identifiabi
         f = list(flags[i]) if flags is not None else []
         if not inr[i]:
             f.append("outside_training:image")
-        if not np.abs(imgs[i]).max() > 0:
+        if not np.abs(imgs[i]).max() > 0 or (sigma is not None and
+                                              not np.max(imgs[i] / np.asarray(sigma[i], float).ravel()) >= DETECT_SIGMA):
             f.insert(0, "no_signal")
         cam = np.asarray(cam_features[i], float) if cam_features is not None else np.full(3, math.nan)
-        ests.append(Estimate(ids[i], cam, fem, mean[i], sd[i], p10[i], p90[i], Y.shape[0], f, input="image"))
+        sg = None if sigma is None else np.asarray(sigma[i], float).reshape(-1)
+        ests.append(Estimate(ids[i], cam, fem, mean[i], sd[i], p10[i], p90[i], Y.shape[0], f, input="image",
+                             image=imgs[i].copy(), sigma=sg))
     return _assess(ests, model.ensemble, idmap, "image", threshold)
 
 
-def refine_estimates(ests: list[Estimate], images, image_noise: float = 0.01, mesh: str = "default",
+def refine_estimates(ests: list[Estimate], images=None, image_noise: float = 0.01, mesh: str = "default",
                      threshold: float = 0.10, chi2_limit: float = 3.0, method: str = "rsm",
-                     cache: str | None = None) -> list[Estimate]:
+                     cache: str | None = None, progress=None, model_error: float = MODEL_ERROR) -> list[Estimate]:
     """Refine image-model estimates by a maximum-likelihood fit of the FEM image (:mod:`elastimap.identify.refine`).
 
     ``images`` as given to :func:`estimate_fem_images` (FEM difference images, mm, on the model's
-    grid); pixel noise ``image_noise`` x each image's peak; ``method`` ``rsm`` (default, 30 forward
+    grid; default: each estimate's own ``image``); pixel noise: where the frames measured it
+    (:func:`difference_of_frames`) ``sqrt(sigma² + (model_error x peak)²)`` -- the frames' own
+    standard error and a floor for the forward model's own error (its remeshing jitter, about 1 %
+    of the peak, exceeds the noise of 30 frames, ~0.3 % of the peak, and a fit weighted by the
+    camera noise alone claims intervals the forward model cannot support; 1 % is also the noise
+    level :data:`elastimap.identify.refine.INTERVAL_SCALE` was measured at) -- else
+    ``image_noise`` x the image's peak;
+    ``progress(i, n)`` is called after each lesion; ``method`` ``rsm`` (default, 30 forward
     solves per image) or ``trf`` (15-48, median about 30 in the study), see :mod:`elastimap.identify.refine`.  Runs the solver
     (DOLFINx).  Each estimate's mean becomes the fitted (d, h, E), ``sd``/``crb`` the local
     Cramér–Rao bound at it, ``lo``/``hi`` that bound's 95 % interval widened by
@@ -264,12 +324,19 @@ def refine_estimates(ests: list[Estimate], images, image_noise: float = 0.01, me
 
     if not 0 < image_noise < 1:
         raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
-    imgs = np.asarray(images, dtype=float).reshape(len(ests), -1)
+    if images is None:
+        if any(e.image is None for e in ests):
+            raise UserError("images", "an estimate carries no image to refine against")
+        imgs = np.array([e.image for e in ests], dtype=float)
+    else:
+        imgs = np.asarray(images, dtype=float).reshape(len(ests), -1)
     model = fem_model(mesh, cache)
-    for e, img in zip(ests, imgs):
+    for i, (e, img) in enumerate(zip(ests, imgs)):
         if "no_signal" in e.flags:
             continue
-        r = fit(img, image_noise * np.abs(img).max(), e.mean, model, method)
+        pk = np.abs(img).max()
+        sig = np.hypot(e.sigma, model_error * pk) if e.sigma is not None else image_noise * pk
+        r = fit(img, sig, e.mean, model, method)
         e.mean = r.theta
         e.crb = r.relstd
         e.sd = r.relstd * r.theta          # (for E: std of ln E x E, first order)
@@ -278,33 +345,11 @@ def refine_estimates(ests: list[Estimate], images, image_noise: float = 0.01, me
         e.flags += [f"non_identifiable:{q}" for j, q in enumerate(TARGETS) if not r.relstd[j] <= threshold]
         if r.chi2_red > chi2_limit:
             e.flags.append("model_mismatch")
-        e.input = "image+fem_refined"
+        e.input = e.input + "+fem_refined"
+        _plausibility([e])
+        if progress:
+            progress(i + 1, len(ests))
     return ests
-
-
-def fem_image_from_camera(difference: np.ndarray, pixel_mm: float, o1_cam: float, calibration: Calibration,
-                          shape: tuple[int, int], pixel: float) -> np.ndarray:
-    """A camera difference image (FS, ``pixel_mm`` camera pixels over the centred footprint window)
-    on the FEM image grid (mm): its *shape* resampled by position (both grids centred on the probe
-    axis; outside the camera window 0), its *peak* ``calibration``'s O1 line applied to ``o1_cam``."""
-    from scipy.interpolate import RegularGridInterpolator
-
-    from elastimap.solver.image import pixel_centres
-
-    D = np.asarray(difference, float)
-    if D.ndim != 2:
-        raise UserError("images", f"the camera difference image must be 2-D (got shape {D.shape})")
-    peak_cam = float(np.max(D))
-    if not peak_cam > 0:
-        raise UserError("images", "no deformation in the camera difference image (peak <= 0): no inclusion visible")
-    yc = -D.shape[0] * pixel_mm / 2 + pixel_mm * (np.arange(D.shape[0]) + 0.5)
-    xc = -D.shape[1] * pixel_mm / 2 + pixel_mm * (np.arange(D.shape[1]) + 0.5)
-    ny, nx = shape
-    Y, X = np.meshgrid(pixel_centres(ny * pixel, pixel), pixel_centres(nx * pixel, pixel), indexing="ij")
-    S = RegularGridInterpolator((yc, xc), D / peak_cam, bounds_error=False, fill_value=0.0)(
-        np.column_stack([Y.ravel(), X.ravel()])).reshape(ny, nx)
-    peak_fem = float(calibration.apply(np.array([[o1_cam, 1.0, 1.0]]))[0, 0])
-    return S / max(S.max(), 1e-12) * peak_fem
 
 
 def sensor_of(calibration: Calibration):
@@ -327,31 +372,107 @@ def features_of_images(images: list[str], background: list[str], calibration: Ca
     return features_from_files(images, background, sensor_of(calibration), settings_of(calibration))
 
 
-def estimate_images(images: list[str], background: list[str], calibration: Calibration, ensemble,
+def difference_of_frames(images: list[str], background: list[str], calibration: Calibration, model=None):
+    """One lesion's frame files -> :class:`elastimap.camera.deflection.DeflectionImage`: the
+    FEM-equivalent difference image (mm) on the calibration's FEM grid and its per-pixel standard
+    error from the frames' scatter (inverse sensor response, flat field from the background
+    frames, the calibration's scale).  ``model`` (an image model): its grid must be that grid."""
+    from .deflection import difference_image
+    from .frames import read_stack
+
+    sensor = sensor_of(calibration)
+    ref, pixel = calibration.reference_image()
+    if model is not None:
+        if model.shape is None or not model.pixel:
+            raise UserError("model", "this image model does not record its image grid; re-save it with this version")
+        if tuple(model.shape) != ref.shape or abs(float(model.pixel) - pixel) > 1e-9:
+            raise UserError("model", f"the image model's grid ({model.shape[0]}x{model.shape[1]} of {model.pixel:g} mm) "
+                                     f"differs from the calibration's FEM grid ({ref.shape[0]}x{ref.shape[1]} of "
+                                     f"{pixel:g} mm)")
+    F, fs1 = read_stack(images, sensor.shape, sensor.window)
+    B, fs2 = read_stack(background, sensor.shape, sensor.window)
+    if fs1 != fs2:
+        raise UserError("background", f"{background[0]}: bit depth differs from the lesion frames ({images[0]})")
+    if fs1 != sensor.full_scale:
+        raise UserError("images", f"{images[0]}: frames of full scale {fs1}, the calibration's camera has "
+                                  f"{sensor.bits} bits (full scale {sensor.full_scale})")
+    return difference_image(F, B, sensor, ref, pixel, scale=float(calibration.deflection["scale"]))
+
+
+def estimate_images(images: list[str], background: list[str], calibration: Calibration, model,
                     id: str = "1", identifiability="default", threshold: float = 0.10) -> Estimate:
-    """One lesion's camera frames -> :class:`Estimate`, with a feature ensemble or an image model."""
+    """One lesion's camera frames -> :class:`Estimate`, with a feature ensemble or an image model.
+
+    Feature ensemble: camera features -> the calibration's lines -> the network.  Image model:
+    :func:`difference_of_frames` -> the network; the estimate keeps the image and its per-pixel
+    noise for :func:`refine_estimates`."""
     cf = features_of_images(images, background, calibration)
-    return estimate_camera(cf, calibration, ensemble, id, identifiability, threshold)
-
-
-def estimate_camera(cf, calibration: Calibration, model, id: str = "1", identifiability="default",
-                    threshold: float = 0.10) -> Estimate:
-    """:class:`elastimap.camera.features.CameraFeatures` -> :class:`Estimate` (feature or image model)."""
     if not _is_image_model(model):
         return estimate(cf.values[None], calibration, model, [id], identifiability, threshold)[0]
-    if model.shape is None or not model.pixel:
-        raise UserError("model", "this image model does not record its image grid; re-save it with this version")
     out_cal = calibration.outside(cf.values[None])[0]
     flags = [f"outside_calibration:{k}" for j, k in enumerate(FEATURES) if out_cal[j]]
-    img = fem_image_from_camera(cf.difference, sensor_of(calibration).pixel_mm, cf.O1, calibration,
-                                model.shape, model.pixel)
-    return estimate_fem_images(img[None], model, [id], identifiability, threshold, cam_features=cf.values[None],
-                               flags=[flags])[0]
+    di = difference_of_frames(images, background, calibration, model)
+    if di.saturated:
+        flags.append("saturated")
+    e = estimate_fem_images(di.image[None], model, [id], identifiability, threshold, cam_features=cf.values[None],
+                            flags=[flags], sigma=di.sigma[None])[0]
+    e.input = "frames"
+    return e
 
 
-def read_lesions_csv(path: str | os.PathLike, calibration: Calibration) -> tuple[list[str], np.ndarray]:
-    """Batch input: a CSV with ``id`` and either ``O1,O2,O3`` (camera features) or
-    ``images`` and ``background`` (';'-separated files or globs, relative to the CSV)."""
+def estimate_lesions_csv(path: str | os.PathLike, calibration: Calibration | None, model,
+                         identifiability="default", threshold: float = 0.10, progress=None) -> list[Estimate]:
+    """Batch of lesions from a CSV, for every model kind (format in :func:`read_lesions_table`).
+
+    Feature ensemble: ``O1,O2,O3`` or ``images,background``; image model: ``images,background``
+    (each lesion's frames -> :func:`estimate_images`) or ``fem_image`` (a ``.npy`` FEM difference
+    image, mm, no calibration needed).  ``progress(i, n)`` after each lesion."""
+    ids, kind, rows = read_lesions_table(path)
+    image_model = _is_image_model(model)
+    if kind == "features":
+        if image_model:
+            raise UserError("csv", f"{path}: an image model needs columns images,background (camera frames) or "
+                                   "fem_image, not camera features O1,O2,O3")
+        return estimate(rows, _need_cal(calibration), model, ids, identifiability, threshold)
+    if kind == "fem_image":
+        if not image_model:
+            raise UserError("csv", f"{path}: fem_image rows need an image model")
+        imgs = []
+        for i, f in zip(ids, rows):
+            try:
+                imgs.append(np.load(f, allow_pickle=False))
+            except Exception as exc:
+                raise UserError("csv", f"{path}: lesion {i}: {f} is not a .npy array ({exc})") from None
+        return estimate_fem_images(np.array(imgs, dtype=float), model, ids, identifiability, threshold)
+    cal = _need_cal(calibration)
+    if not image_model:
+        cam = np.array([features_of_images(im, bg, cal).values for im, bg in rows])
+        return estimate(cam, cal, model, ids, identifiability, threshold)
+    idm = load_identifiability(identifiability)
+    out = []
+    for k, (i, (im, bg)) in enumerate(zip(ids, rows)):
+        out.append(estimate_images(im, bg, cal, model, i, idm, threshold))
+        if progress:
+            progress(k + 1, len(rows))
+    return out
+
+
+def _need_cal(calibration):
+    if calibration is None:
+        raise UserError("--calibration", "camera features and frames need the FEM<->camera calibration file")
+    return calibration
+
+
+def read_lesions_table(path: str | os.PathLike):
+    """The batch CSV: ``(ids, kind, rows)``.
+
+    Columns: optional ``id`` (default 1, 2, ...) and one of
+
+    * ``O1,O2,O3`` - camera features (feature ensembles) -> kind ``features``, rows (n, 3);
+    * ``images,background`` - each a ';'-separated list of frame files or glob patterns, relative
+      to the CSV's folder (every kind of model) -> kind ``frames``, rows [(image files, background files)];
+    * ``fem_image`` - a ``.npy`` FEM difference image (mm, image models) -> kind ``fem_image``, rows [path].
+    """
     import pandas as pd
 
     from .frames import expand
@@ -366,17 +487,40 @@ def read_lesions_csv(path: str | os.PathLike, calibration: Calibration) -> tuple
     if len(df) == 0:
         raise UserError("csv", f"{p}: no lesions")
     ids = [str(x) for x in df["id"]] if "id" in df.columns else [str(i + 1) for i in range(len(df))]
+    if len(set(ids)) != len(ids):
+        raise UserError("csv", f"{p}: duplicate ids")
+    base = os.path.dirname(os.path.abspath(p))
     if all(k in df.columns for k in FEATURES):
         vals = df[list(FEATURES)].apply(pd.to_numeric, errors="coerce").to_numpy(float)
         bad = ~np.all(np.isfinite(vals), axis=1)
         if bad.any():
             raise UserError("csv", f"{p}: non-numeric features for lesion(s) {[ids[i] for i in np.flatnonzero(bad)]}")
-        return ids, vals
+        return ids, "features", vals
     if "images" in df.columns and "background" in df.columns:
-        base = os.path.dirname(os.path.abspath(p))
         rows = []
-        for _, r in df.iterrows():
-            rows.append(features_of_images(expand(str(r["images"]), base), expand(str(r["background"]), base),
-                                           calibration).values)
-        return ids, np.array(rows)
-    raise UserError("csv", f"{p}: needs columns O1,O2,O3 or images,background (plus optional id)")
+        for i, (_, r) in zip(ids, df.iterrows()):
+            if pd.isna(r["images"]) or pd.isna(r["background"]):
+                raise UserError("csv", f"{p}: lesion {i}: empty images or background")
+            rows.append((expand(str(r["images"]), base), expand(str(r["background"]), base)))
+        return ids, "frames", rows
+    if "fem_image" in df.columns:
+        rows = []
+        for i, f in zip(ids, df["fem_image"]):
+            f = str(f)
+            f = f if os.path.isabs(f) else os.path.join(base, f)
+            if not os.path.isfile(f):
+                raise UserError("csv", f"{p}: lesion {i}: {f}: no such file")
+            rows.append(f)
+        return ids, "fem_image", rows
+    raise UserError("csv", f"{p}: needs columns O1,O2,O3 or images,background or fem_image (plus optional id)")
+
+
+def read_lesions_csv(path: str | os.PathLike, calibration: Calibration) -> tuple[list[str], np.ndarray]:
+    """Camera features of a batch CSV (``O1,O2,O3`` or ``images,background`` rows, see
+    :func:`read_lesions_table`): ``(ids, (n, 3))``."""
+    ids, kind, rows = read_lesions_table(path)
+    if kind == "features":
+        return ids, rows
+    if kind == "frames":
+        return ids, np.array([features_of_images(im, bg, calibration).values for im, bg in rows])
+    raise UserError("csv", f"{path}: needs columns O1,O2,O3 or images,background (plus optional id)")

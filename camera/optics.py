@@ -90,7 +90,7 @@ class SensorModel:
     seed: int = 0
 
     # ---------------------------------------------------------------- checks
-    def validate(self) -> "SensorModel":
+    def validate(self) -> SensorModel:
         if self.bits not in (8, 16):
             raise UserError("bits", f"must be 8 or 16 (got {self.bits})")
         if not (1 <= self.binning <= 64):
@@ -115,7 +115,7 @@ class SensorModel:
         check_range("noise_scale", self.noise_scale, 0)
         return self
 
-    def replace(self, **changes) -> "SensorModel":
+    def replace(self, **changes) -> SensorModel:
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict:
@@ -124,7 +124,7 @@ class SensorModel:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "SensorModel":
+    def from_dict(cls, d: dict) -> SensorModel:
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = set(d) - known
         if unknown:

@@ -148,3 +148,6 @@ def test_cli_calibrate_with_fem_tiny(tmp_path):
     assert (tmp_path / "cal.png").exists()
     assert all(cal.fits[k].r2 > 0.95 for k in ("O1", "O2", "O3")), r.stdout
     assert cal.meta["mesh"] == "tiny"
+    # the deflection calibration (camera frames -> FEM difference images) comes with it
+    assert cal.deflection["shape"] == [50, 50] and 0.9 < cal.deflection["scale"] < 1.1, cal.deflection["scale"]
+    assert max(cal.deflection["rel_rms"]) < 0.25, cal.deflection["rel_rms"]    # 3 frames: noise-dominated

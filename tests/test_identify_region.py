@@ -129,26 +129,6 @@ def test_estimate_reports_non_identifiable_E_as_an_interval():
     assert e_none.ok and e_none.lo is None
 
 
-def _centred_bump(n, pixel, width=1.5, amp=0.02):
-    from elastimap.solver.image import pixel_centres
-
-    c = pixel_centres(n * pixel, pixel)
-    Y, X = np.meshgrid(c, c, indexing="ij")
-    return amp * np.exp(-(X ** 2 + Y ** 2) / (2 * width ** 2))
-
-
-def test_camera_difference_image_maps_onto_the_fem_grid():
-    from elastimap.camera.infer import fem_image_from_camera
-
-    fem = _centred_bump(20, 0.5)                      # 10 mm footprint, 0.5 mm FEM pixels
-    cam = _centred_bump(40, 0.25, amp=0.3)            # the same bump seen by a finer camera, FS units
-    out = fem_image_from_camera(cam, 0.25, float(cam.max()), _Cal(), (20, 20), 0.5)
-    assert out.max() == pytest.approx(2.0 * cam.max() + 0.001)      # the calibration's O1 line
-    np.testing.assert_allclose(out / out.max(), fem / fem.max(), atol=0.02)
-    with pytest.raises(UserError, match="no deformation"):
-        fem_image_from_camera(np.zeros((5, 5)), 0.25, 0.0, _Cal(), (20, 20), 0.5)
-
-
 def test_image_model_inference_from_fem_images(tmp_path):
     from test_identify import _synthetic_data
 
