@@ -12,7 +12,11 @@ Model, per camera pixel (electrons, for one frame)::
     e(x, y) = b^2 * FW * ( stray * L(x, y) + level * L(x, y) * s(w(x, y)) )
     s(w)    = 1 - exp(-max(w, 0) / w_sat)            (monotone, saturating)
     L(x, y) = vignette(x, y) * sum_k p_k / (1 + (r_k / r0)^2), normalised to mean 1
-    frame   = clip(round((dark + e + shot + read) / (e per DN)), 0, 2^bits - 1)
+    frame   = clip(round(FS * clip((dark + e + shot + read) / (b^2 FW), 0, 1)^gamma), 0, FS)
+
+Two effect switches are off in the nominal camera: ``blur_mm`` convolves the light image
+(stray + scattered) with a Gaussian point-spread of that sigma (mm on the probe), and
+``gamma`` != 1 makes the response a power law (FS = 2^bits - 1; gamma = 1 is the linear ADC).
 
 * ``w`` is the raw probe-bottom deflection of the FEM (``SolveResult.image_raw``,
   mm of probe compression *including* the flat-punch edge peaks), bilinearly
@@ -81,6 +85,9 @@ class SensorModel:
     led_gap: float = 3.0            # mm from the footprint edge to each LED
     led_r0: float = 15.0            # mm, LED fall-off radius
     vignetting: float = 0.15        # relative fall-off at the window corner
+    # effect switches (the nominal camera has neither): optical point-spread and response gamma
+    blur_mm: float = 0.0            # sigma (mm on the probe) of a Gaussian point-spread of the light image
+    gamma: float = 1.0              # response exponent: DN = FS * (electrons / (b^2 FW))^gamma
     # sensor noise
     full_well_e: float = 9000.0     # electrons per native pixel at full scale
     read_noise_e: float = 10.0      # electrons rms per native pixel
@@ -109,6 +116,8 @@ class SensorModel:
         check_range("led_gap", self.led_gap, 0, unit="mm")
         check_range("led_r0", self.led_r0, 0, lo_open=True, unit="mm")
         check_range("vignetting", self.vignetting, 0, 0.9)
+        check_range("blur_mm", self.blur_mm, 0, 5, unit="mm")
+        check_range("gamma", self.gamma, 0.3, 3)
         check_range("full_well_e", self.full_well_e, 1)
         check_range("read_noise_e", self.read_noise_e, 0)
         check_range("dark_e", self.dark_e, 0)
@@ -121,6 +130,9 @@ class SensorModel:
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["led_power"] = list(self.led_power)
+        for k, v in SWITCH_DEFAULTS.items():   # effect switches omitted at their defaults (stable files)
+            if d[k] == v:
+                del d[k]
         return d
 
     @classmethod
@@ -212,12 +224,20 @@ class SensorModel:
         inside[r0:r0 + n, c0:c0 + n] = True
         L = self.illumination()
         rel = self.stray * L + self.level * L * self.scatter(w) * inside
+        if self.blur_mm > 0:   # point-spread of the light image: Gaussian, sigma blur_mm on the probe
+            rel = ndimage.gaussian_filter(rel, self.blur_mm / self.pixel_mm, mode="nearest")
         return self.binning ** 2 * self.full_well_e * rel
+
+    def response(self, electrons: np.ndarray) -> np.ndarray:
+        """DN (float, unquantised) of a total charge per binned pixel (signal + dark, electrons):
+        FS * clip(x, 0, 1)^gamma with x = electrons / (b^2 FW); gamma = 1 is the linear ADC."""
+        x = np.clip(electrons / (self.binning ** 2 * self.full_well_e), 0.0, 1.0)
+        return self.full_scale * (x if self.gamma == 1.0 else x ** self.gamma)
 
     def expected(self, w_img: np.ndarray, pixel: float) -> np.ndarray:
         """Noise-free, unquantised frame in DN (float): the reference for noise tests."""
         e = self.expected_electrons(w_img, pixel) + self.binning ** 2 * self.dark_e
-        return np.clip(e / self.e_per_dn, 0.0, self.full_scale)
+        return self.response(e)
 
     def render(self, w_img: np.ndarray, pixel: float, frames: int = 1,
                rng: np.random.Generator | None = None) -> np.ndarray:
@@ -237,7 +257,7 @@ class SensorModel:
                 sig = e + self.noise_scale * shot + rng.normal(0.0, read_sd, e.shape)
             else:
                 sig = e
-            dn = np.rint((sig + dark) / self.e_per_dn)
+            dn = np.rint(self.response(sig + dark))
             out[i] = np.clip(dn, 0, self.full_scale).astype(dtype)
         return out
 
@@ -248,6 +268,10 @@ class SensorModel:
                 f"at {self.pixel_um} um, binning {self.binning}), footprint window {n}x{n} px at "
                 f"({r0},{c0}), {self.pixel_mm:.4g} mm/px, {self.bits}-bit, noise_scale {self.noise_scale:g}, "
                 f"seed {self.seed}")
+
+
+# effect switches of the camera left out of ``SensorModel.to_dict`` while at these defaults
+SWITCH_DEFAULTS = {"blur_mm": 0.0, "gamma": 1.0}
 
 
 def background_deflection(image_raw: np.ndarray, image_diff: np.ndarray) -> np.ndarray:
