@@ -1,36 +1,52 @@
-"""The diagnosis: where the sim-to-real gap lies, which effect explains it, how far it shrinks.
+"""The diagnosis: is there a gap beyond the model's own tolerance, which effect(s) explain it,
+where it lies, how far it shrinks, and which measurement would tell look-alikes apart.
 
-Notation: phantom i = 1..n with known (d, h, E)_i, measured camera features y_ij (j = O1, O2,
-O3) with standard error se_ij (noise floor from repeated frames), simulated camera features of
-the baseline model y0_ij and of candidate effect c at magnitude m, f_c(m)_ij.
+Notation: phantom i = 1..n with known (d, h, E)_i; for each phantom a vector of measured
+quantities y_iq from one or more *views* (:mod:`elastimap.gap.views`: the three camera
+features, the radial profile of the camera difference image, the plate force when measured)
+with standard errors se_iq from the frame scatter; the baseline model's prediction y0_iq and
+candidate c's prediction f_c(θ)_iq (θ its magnitude(s)).
 
-* **Normalised residual** r_ij(m) = (y_ij − f_c(m)_ij) / s_ij with
-  s_ij = sqrt(se_ij² + (ρ y0_ij)²); ρ (``model_floor``, default 0.5 %) is the model's own
-  tolerance (mesh, interpolation between sweep magnitudes).  χ²_i(m) = Σ_j r_ij².
-  The gap is **significant** when Σ_i χ²_i(nominal) exceeds the 99.9 % point of χ²(3n).
-* **Magnitude fit**: f_c(m) is the monotone cubic (PCHIP) interpolation of the sweep
-  magnitudes, evaluated on a dense grid; m̂ minimises Σ_i χ²_i(m) over the fitting phantoms.
-  Interval: bootstrap over phantoms (2.5–97.5 %).
-* **Ranking**: leave-one-out (n ≤ 15) or 10-fold cross-validation: m̂ is fitted without the
-  held-out phantoms, SSR_cv = Σ held-out χ².  Explained fraction EF = 1 − SSR_cv / SSR_0 with
-  SSR_0 the baseline's χ²; the ranking score is SSR_cv + k ln(3n) (a BIC-like penalty per
-  fitted parameter k).  A candidate **explains** the gap when EF ≥ ``explain_min`` and its
-  held-out reduced χ² is at most ``resid_max`` (the leftover is noise-like) once its own
-  sweep-interpolation error (leave-one-magnitude-out PCHIP miss / 4) is added to s;
-  otherwise the outcome is "no candidate explains the gap" (``unexplained``).
-* **Where**: by feature (relative gap, bootstrap CI), by region of (d, h, E) (terciles), by
-  stage (the share a per-feature affine recalibration y ≈ a y0 + b absorbs in cross-validation
-  is optics-like -- a camera gain/offset; the rest is mechanics-like; the inverse's own error
-  vs the error it makes on measured features), and by image region (mean residual map of the
-  camera difference images, noise from the window's outer ring).
-* **Shrink**: on withheld phantoms (every third phantom, never used for the magnitude fit of
-  this step) the gap before (baseline) and after (winner at the magnitude fitted on the rest),
-  in feature space (RMS normalised residual) and in (d, h, E) after retraining the inverse
-  (``elastimap.training.api.fit_ensemble``, camera features -> (d, h, E)) on simulations with the effect.
+* **Model error, measured.**  Every phantom's baseline is also solved on the next finer mesh
+  level (``error_mesh``).  With Δ_iq = y0_iq(h) − y0_iq(h/r) and the refinement ratio r of the
+  mesh sizes, the Richardson estimate of the discretisation error of the diagnosis mesh is
+  σ_disc,iq = κ · max(|Δ_iq|, median_i(|Δ_iq| / |y0_iq|) · |y0_iq|), κ = 1 / (1 − r^(−p)),
+  with the convergence order p per view (``order_image`` for features and profile,
+  ``order_force`` for the force; measured on three levels, see docs/gap.md).  The median floor
+  keeps a quantity whose two-level difference happens to cross zero from getting no error.
+  Without a second level the error is the assumed floor ρ |y0| (``model_floor``; the report
+  says "assumed").  Each candidate adds its magnitude-interpolation error σ_int,c (leave-one-
+  magnitude-out PCHIP miss of its sweep / 4).  Total, per phantom and quantity:
+  S_iq² = se_iq² + σ_disc,iq² + σ_int,c,iq²  (diagonal covariance).
+* **Calibrated tests.**  χ²_c = Σ_iq ((y − f_c)/S)² over N = n · Q terms.  The gap is
+  **significant** when the baseline's χ²_0 > χ²_N(1 − α) (α = ``alpha``, 1 %), i.e. beyond
+  the noise *and* the model's own tolerance.  A candidate **passes** when its held-out
+  (leave-one-phantom-out, or 10-fold for n > 15) χ² ≤ χ²_N(1 − α).  α is fixed before any
+  data are seen; nothing is tuned on the data scored.
+* **Fit and intervals.**  Single effects: θ̂ minimises χ² over a dense PCHIP interpolation of
+  the sweep; 95 % interval {θ : χ²(θ) − χ²_min ≤ 3.84 · c}, c = max(1, χ²_min / (N − 1)).
+  Families (k parameters, composed f = y0 + Σ_l (f_l(θ_l) − y0)): coordinate descent on the
+  members' dense grids; interval ±1.96 · sqrt(c · [2 H⁻¹]_ll) from the numerical Hessian H.
+* **Selection and ambiguity.**  score_c = held-out χ²_c + k_c ln N.  If the best candidate
+  passes, every candidate within ``ambiguity_margin`` (Δscore ≤ 2 ln 10 = 4.6, a likelihood
+  ratio below 10) of it is reported with it: one → **explained**, several → **ambiguous**
+  ("cannot be told apart with these phantoms").  Nothing passes → **unexplained**.
+* **What resolves an ambiguity** (:func:`propose`): the predicted separation in noise units
+  sqrt(Σ ((f_a − f_b) / S)²) of every pair of the set for (i) the plate force at the same
+  phantoms (force gauge error ``force_noise`` relative, plus the force model error), (ii) a
+  second indentation depth (solved) and (iii) new phantoms in the design box, predicted by a
+  linear emulator of z_c = (f_c − y0)/S in (ln d, h, ln E) over the measured phantoms and
+  checked with solves at the best proposal.
+* **Where**: by view and feature (relative gap, bootstrap CI), by region of (d, h, E), by
+  stage (affine-recalibration share), by image region (mean residual map and annuli with the
+  noise band sqrt(Σ_i se_i²)/n plus the per-pixel model error).
+* **Shrink**: on withheld phantoms (every third) before/after, and (d, h, E) after retraining the
+  inverse (``elastimap.training.api.fit_ensemble``) for a single-effect winner.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -41,17 +57,26 @@ from scipy.interpolate import PchipInterpolator
 from elastimap.errors import UserError
 
 from . import effects as fx
+from . import views as vw
 from .measured import FEATURES, Measured
-from .simulate import Simulator, base_params, camera_features_of
+from .simulate import Record, Simulator, base_params, camera_features_of
 
 NDENSE = 401
+FINER = {"tiny": "coarse", "coarse": "default", "default": "fine", "fine": None}
 
 
 @dataclass
 class Settings:
-    model_floor: float = 0.005
-    explain_min: float = 0.7
-    resid_max: float = 4.0
+    alpha: float = 0.01               # level of the calibrated χ² tests
+    ambiguity_margin: float = 4.6     # Δscore below which candidates cannot be told apart (2 ln 10)
+    model_floor: float = 0.005        # relative model error, used only without a second mesh level
+    order_image: float = 3.0          # convergence order p of features and profile (measured)
+    order_force: float = 1.0          # convergence order p of the plate force (measured)
+    force_noise: float = 0.01         # relative standard error assumed for a plate-force gauge (proposals)
+    second_delta: float = 4.5         # mm, the second indentation depth a proposal considers
+    propose_phantoms: int = 4         # phantoms solved at the second depth
+    propose_solves: bool = True       # run the solves that check a proposal
+    families: tuple = fx.DEFAULT_FAMILIES
     bootstrap: int = 200
     seed: int = 0
     inverse: bool = True
@@ -60,143 +85,346 @@ class Settings:
     train_epochs: int = 300
 
 
+# ------------------------------------------------------------------ simulated views
+def sim_views(recs, sensor, settings) -> tuple[dict, np.ndarray]:
+    """Views {"features" (n,3), "profile" (n,K), "force" (n,1)} and difference images of records."""
+    F, P, D, Fo = [], [], [], []
+    for r in recs:
+        v, d = camera_features_of(r, sensor, settings)
+        F.append(v)
+        D.append(d)
+        P.append(vw.radial_profile(d, sensor.pixel_mm) if np.all(np.isfinite(d)) else np.full(len(vw.EDGES) - 1, np.nan))
+        Fo.append([r.force])
+    return {"features": np.asarray(F), "profile": np.asarray(P), "force": np.asarray(Fo, float)}, np.asarray(D)
+
+
+def measured_views(meas: Measured, sensor, settings) -> dict:
+    """{view: (values (n,q), standard errors (n,q))} of the measured data."""
+    out = {"features": (meas.y, meas.se)}
+    if meas.has_images:
+        P, Pse = [], []
+        for D, Dse in zip(meas.difference, meas.difference_se):
+            P.append(vw.radial_profile(D, sensor.pixel_mm))
+            if Dse is None:   # no per-pixel noise given: the window's outer ring's scatter, uniform
+                ring = np.zeros(D.shape, bool)
+                w = max(2, D.shape[0] // 10)
+                ring[:w, :] = ring[-w:, :] = ring[:, :w] = ring[:, -w:] = True
+                Dse = np.full(D.shape, float(np.std(D[ring])))
+            Pse.append(vw.profile_se(Dse, sensor.pixel_mm, settings.smooth_px))
+        out["profile"] = (np.asarray(P), np.asarray(Pse))
+    if meas.has_force:
+        out["force"] = (meas.force[:, None], meas.force_se[:, None])
+    return out
+
+
+def decision_views(mv: dict) -> list[str]:
+    """The views the verdict uses: the image profile when every phantom has an image, else the
+    features; plus the force when measured (the features are always reported as a view)."""
+    names = ["profile"] if "profile" in mv else ["features"]
+    if "force" in mv:
+        names.append("force")
+    return names
+
+
+def cat(d: dict, names) -> np.ndarray:
+    return np.concatenate([d[k] for k in names], axis=-1)
+
+
+# ------------------------------------------------------------------ candidates
 @dataclass
 class Candidate:
+    """The sweep of one effect over the phantoms: views (K, n, q) and images (K, n, ny, nx)."""
     effect: fx.Effect
-    grid: np.ndarray                  # (K,)
-    Y: np.ndarray                     # (K, n, 3) camera features
-    D: np.ndarray | None              # (K, n, ny, nx) camera difference images
+    grid: np.ndarray
+    V: dict
+    D: np.ndarray | None
     dropped: list = field(default_factory=list)
-    dense_m: np.ndarray | None = None
-    dense_Y: np.ndarray | None = None
-
-    def prepare(self):
-        g, Y = self.grid, self.Y
-        if len(g) == 1:
-            self.dense_m, self.dense_Y = g.copy(), Y.copy()
-            return self
-        self.dense_m = np.linspace(g.min(), g.max(), NDENSE)
-        self.dense_Y = PchipInterpolator(g, Y, axis=0)(self.dense_m)
-        return self
-
-    def at(self, m: float) -> np.ndarray:
-        if len(self.grid) == 1:
-            return self.Y[0]
-        return PchipInterpolator(self.grid, self.Y, axis=0)(np.clip(m, self.grid.min(), self.grid.max()))
-
-    def image_at(self, m: float) -> np.ndarray | None:
-        if self.D is None:
-            return None
-        k = np.searchsorted(self.grid, m)
-        k = int(np.clip(k, 1, len(self.grid) - 1))
-        g0, g1 = self.grid[k - 1], self.grid[k]
-        t = float(np.clip((m - g0) / (g1 - g0), 0, 1)) if g1 > g0 else 0.0
-        return (1 - t) * self.D[k - 1] + t * self.D[k]
 
 
-# ------------------------------------------------------------------ simulation
 def phantom_params(meas: Measured, mesh: str):
     return [base_params(mesh, *meas.dhe[i], tissue_E=meas.tissue_E[i]) for i in range(meas.n)]
 
 
-def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, sensor, settings,
-                        want_images: bool = True) -> tuple[np.ndarray, np.ndarray | None, list[Candidate]]:
-    """Baseline camera features (n, 3) [and difference images] and every candidate's sweep."""
+def _scaled(rec: Record, s: float) -> Record:
+    """The record of the same linear problem at s times the plate travel (exact for linear models)."""
+    return Record(f"{rec.key}*{s:.12g}", rec.O1 * s, rec.O2 * s, rec.O3, rec.force * s, rec.pixel,
+                  rec.image * s, rec.image_raw * s, 0.0)
+
+
+def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, sensor, settings):
+    """Baseline views and images and every candidate's sweep (solves through the cache)."""
     p0 = phantom_params(meas, sim.mesh)
-    plan = []  # (effect, m, params list or None)
+    linear = not any(p.nonlinear for p in p0)
+    plan = []
     for e in cands:
         for m in e.grid:
-            if e.stage == "mechanics":
-                try:
-                    pl = [e.apply_params(p, m).validate() for p in p0]
-                except UserError:
-                    plan.append((e, m, None))
-                    continue
-                plan.append((e, m, pl))
-            else:
-                plan.append((e, m, p0))
-    flat = list(p0) + [p for _, _, pl in plan if pl is not None for p in pl]
+            if e.stage != "mechanics" or e.is_nominal(m) or (e.scales_with_delta and linear):
+                plan.append((e, m, None, "reuse"))
+                continue
+            try:
+                pl = [e.apply_params(p, m).validate() for p in p0]
+            except UserError:
+                plan.append((e, m, None, "invalid"))
+                continue
+            plan.append((e, m, pl, "solve"))
+    flat = list(p0) + [p for _, _, pl, _ in plan if pl is not None for p in pl]
     recs = sim.run(flat)
     base = recs[: meas.n]
-    y0, D0 = _cam(base, sensor, settings)
-    if not np.all(np.isfinite(y0)):
-        raise UserError("measured", "the baseline solve failed for phantom(s) "
-                                    f"{[meas.ids[i] for i in np.flatnonzero(~np.all(np.isfinite(y0), axis=1))]}")
+    V0, D0 = sim_views(base, sensor, settings)
+    if not np.all(np.isfinite(V0["features"])):
+        bad = np.flatnonzero(~np.all(np.isfinite(V0["features"]), axis=1))
+        raise UserError("measured", f"the baseline solve failed for phantom(s) {[meas.ids[i] for i in bad]}")
     pos = meas.n
     out = []
     for e in cands:
-        ms, Ys, Ds, dropped = [], [], [], []
-        for e2, m, pl in plan:
+        ms, Vs, Ds, dropped = [], [], [], []
+        for e2, m, pl, how in plan:
             if e2 is not e:
                 continue
-            if pl is None:
+            if how == "invalid":
                 dropped.append(float(m))
                 continue
-            if e.stage == "mechanics":
-                rr = recs[pos: pos + meas.n]
+            if how == "solve":
+                V, D = sim_views(recs[pos: pos + meas.n], sensor, settings)
                 pos += meas.n
-                Y, D = (y0, D0) if e.is_nominal(m) else _cam(rr, sensor, settings)
-            else:
-                pos += meas.n
-                Y, D = (y0, D0) if e.is_nominal(m) else _cam(base, e.apply_sensor(sensor, m), settings)
-            if not np.all(np.isfinite(Y)):
-                dropped.append(float(m))      # a failed solve: drop this magnitude
+            elif e.is_nominal(m):
+                V, D = V0, D0
+            elif e.stage == "optics":
+                V, D = sim_views(base, e.apply_sensor(sensor, m), settings)
+            else:   # plate travel of a linear model: scale the baseline solve
+                s = (p0[0].loading.delta + float(m)) / p0[0].loading.delta
+                V, D = sim_views([_scaled(r, s) for r in base], sensor, settings)
+            if not np.all(np.isfinite(V["features"])):
+                dropped.append(float(m))
                 continue
             ms.append(float(m))
-            Ys.append(Y)
+            Vs.append(V)
             Ds.append(D)
         order = np.argsort(ms)
-        out.append(Candidate(e, np.asarray(ms)[order], np.asarray(Ys)[order],
-                             np.asarray(Ds)[order] if want_images else None, dropped).prepare())
-    return y0, (D0 if want_images else None), out
+        out.append(Candidate(e, np.asarray(ms)[order], {k: np.asarray([Vs[i][k] for i in order]) for k in V0},
+                             np.asarray(Ds)[order] if Ds else None, dropped))
+    return V0, D0, out
 
 
-def _cam(recs, sensor, settings):
-    Y, D = [], []
-    for r in recs:
-        v, d = camera_features_of(r, sensor, settings)
-        Y.append(v)
-        D.append(d)
-    return np.asarray(Y), np.asarray(D)
+# ------------------------------------------------------------------ model error
+def model_error(meas: Measured, sim: Simulator, sim_fine: Simulator | None, sensor, settings, V0: dict, D0,
+                st: Settings) -> dict:
+    """Per-phantom, per-quantity model error of the baseline (module docstring)."""
+    if sim_fine is None or sim_fine.mesh == sim.mesh:
+        sig = {k: st.model_floor * np.abs(v) for k, v in V0.items()}
+        return {"kind": "assumed", "sigma": sig, "image_sigma": st.model_floor * np.abs(D0),
+                "note": f"assumed floor {100 * st.model_floor:g} % of each quantity (no second mesh level)"}
+    from elastimap.solver.geometry import LEVELS
+
+    recs1 = sim_fine.run(phantom_params(meas, sim_fine.mesh))
+    V1, D1 = sim_views(recs1, sensor, settings)
+    r = LEVELS[sim.mesh][0] / LEVELS[sim_fine.mesh][0]
+    sig, rel, delta = {}, {}, {}
+    for k, v in V0.items():
+        p = st.order_force if k == "force" else st.order_image
+        kappa = 1.0 / (1.0 - r ** (-p))
+        d = v - V1[k]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            frac = np.where(np.abs(v) > 0, np.abs(d) / np.abs(v), 0.0)
+        floor = np.nanmedian(frac, axis=0)
+        sig[k] = kappa * np.maximum(np.abs(d), floor * np.abs(v))
+        rel[k] = (np.median(sig[k] / np.maximum(np.abs(v), 1e-300), axis=0)).tolist()
+        delta[k] = d
+    kap_img = 1.0 / (1.0 - r ** (-st.order_image))
+    return {"kind": "measured", "sigma": sig, "image_sigma": kap_img * np.abs(D0 - D1), "delta": delta,
+            "fine_mesh": sim_fine.mesh, "ratio": r, "relative_median": rel, "fine_views": V1,
+            "note": f"Richardson estimate from meshes {sim.mesh} and {sim_fine.mesh} (h ratio {r:.3g}; "
+                    f"order {st.order_image:g} for image quantities, {st.order_force:g} for the force)"}
 
 
-# ------------------------------------------------------------------ statistics
-def scales(meas: Measured, y0: np.ndarray, rho: float) -> np.ndarray:
-    s = np.sqrt(meas.se ** 2 + (rho * np.abs(y0)) ** 2)
-    return np.maximum(s, 1e-12 * np.maximum(np.abs(y0), 1.0))
-
-
-def chi2_rows(y, f, s) -> np.ndarray:
-    """χ²_i = Σ_j ((y − f)/s)²; f may carry leading axes."""
-    return np.sum(((y - f) / s) ** 2, axis=-1)
-
-
-def interpolation_error(c: Candidate) -> np.ndarray:
-    """(n, 3) estimate of the sweep-interpolation error of candidate ``c``: each interior grid
-    magnitude is predicted from the others (leave-one-out PCHIP); the largest miss, scaled by
-    1/4 for the halved spacing of the full grid, is the error bar of f_c(m)."""
-    g, Y = c.grid, c.Y
+# ------------------------------------------------------------------ models (fit, predict, interval)
+def _interp_error(g: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Leave-one-magnitude-out PCHIP miss over the interior grid points, / 4 (halved spacing)."""
     if len(g) < 3:
         return np.zeros(Y.shape[1:])
     err = np.zeros(Y.shape[1:])
     for k in range(1, len(g) - 1):
         keep = np.r_[0:k, k + 1:len(g)]
-        pred = PchipInterpolator(g[keep], Y[keep], axis=0)(g[k])
-        err = np.maximum(err, np.abs(Y[k] - pred))
+        err = np.maximum(err, np.abs(Y[k] - PchipInterpolator(g[keep], Y[keep], axis=0)(g[k])))
     return 0.25 * err
 
 
-def fit_magnitude(c: Candidate, y, s, idx) -> float:
-    """m̂ minimising Σ_{i in idx} χ²_i over the dense magnitude grid."""
-    tot = chi2_rows(y[idx], c.dense_Y[:, idx], s[idx]).sum(axis=1)
-    return float(c.dense_m[int(np.argmin(tot))])
+def chi2(y, f, S) -> np.ndarray:
+    return np.sum(((y - f) / S) ** 2, axis=-1)
 
 
+class Single:
+    """One effect, one magnitude."""
+
+    def __init__(self, c: Candidate, names):
+        self.c, self.name, self.k, self.names = c, c.effect.name, 1, list(names)
+        self.effect, self.stage, self.unit = c.effect, c.effect.stage, c.effect.unit
+        self.grid = c.grid
+        self.Y = cat(c.V, self.names)                      # (K, n, Q)
+        if len(self.grid) > 1:
+            self.dense = np.linspace(self.grid.min(), self.grid.max(), NDENSE)
+            self._pchip = PchipInterpolator(self.grid, self.Y, axis=0)
+            self.dense_Y = self._pchip(self.dense)
+        else:
+            self.dense, self.dense_Y, self._pchip = self.grid.copy(), self.Y.copy(), None
+        self.interp = _interp_error(self.grid, self.Y)
+
+    @property
+    def labels(self):
+        return [self.name]
+
+    def predict(self, th, names=None) -> np.ndarray:
+        m = float(np.atleast_1d(th)[0])
+        if names is None or list(names) == self.names:
+            return self._pchip(np.clip(m, self.grid.min(), self.grid.max())) if self._pchip else self.Y[0]
+        Y = cat(self.c.V, names)
+        if len(self.grid) == 1:
+            return Y[0]
+        return PchipInterpolator(self.grid, Y, axis=0)(np.clip(m, self.grid.min(), self.grid.max()))
+
+    def image(self, th):
+        D, g = self.c.D, self.grid
+        if D is None:
+            return None
+        m = float(np.atleast_1d(th)[0])
+        k = int(np.clip(np.searchsorted(g, m), 1, len(g) - 1)) if len(g) > 1 else 0
+        if len(g) == 1:
+            return D[0]
+        t = float(np.clip((m - g[k - 1]) / (g[k] - g[k - 1]), 0, 1))
+        return (1 - t) * D[k - 1] + t * D[k]
+
+    def tie(self) -> np.ndarray:
+        """A negligible preference for the nominal magnitude, so that a flat χ² (an effect these
+        phantoms do not see) fits the nominal, not a grid end."""
+        span = max(float(self.grid.max() - self.grid.min()), 1e-300)
+        return 1e-9 * ((self.dense - self.effect.nominal) / span) ** 2
+
+    def fit(self, y, S, idx) -> np.ndarray:
+        tot = chi2(y[idx], self.dense_Y[:, idx], S[idx]).sum(axis=1)
+        return np.array([self.dense[int(np.argmin(tot + self.tie() * (1 + tot.min())))]])
+
+    def interval(self, y, S, th) -> list[tuple[float, float]]:
+        tot = chi2(y, self.dense_Y, S).sum(axis=1)
+        N = y.size
+        c = max(1.0, float(tot.min()) / max(N - 1, 1))
+        ok = self.dense[tot - tot.min() <= 3.84 * c]
+        return [(float(ok.min()), float(ok.max()))]
+
+    def at_edge(self, th) -> bool:
+        m = float(th[0])
+        return bool(len(self.grid) > 1 and (abs(m - self.grid.min()) < 1e-9 or abs(m - self.grid.max()) < 1e-9))
+
+    def params_at(self, p, th):
+        return self.effect.apply_params(p, float(th[0]))
+
+    def sensor_at(self, s, th):
+        return self.effect.apply_sensor(s, float(th[0]))
+
+    def nominal(self):
+        return [self.effect.nominal]
+
+    def units(self):
+        return [self.unit]
+
+
+class Composed:
+    """A family: f(θ) = y0 + Σ_l (f_l(θ_l) − y0), fitted by coordinate descent."""
+
+    def __init__(self, fam: fx.Family, members: list[Single], y0: np.ndarray, V0: dict):
+        self.fam, self.name, self.members, self.k = fam, fam.name, members, len(members)
+        self.names, self.stage, self.y0, self.V0 = members[0].names, fam.stage, y0, V0
+        self.unit = "/".join(m.unit for m in members)
+        self.interp = np.sqrt(sum(m.interp ** 2 for m in members))
+        self.grid = members[0].grid
+        self.effect = None
+
+    @property
+    def labels(self):
+        return [m.name for m in self.members]
+
+    def predict(self, th, names=None) -> np.ndarray:
+        base = self.y0 if names is None or list(names) == self.names else cat(self.V0, names)
+        return base + sum(m.predict(t, names) - base for m, t in zip(self.members, th))
+
+    def image(self, th):
+        Ds = [m.image(t) for m, t in zip(self.members, th)]
+        if any(D is None for D in Ds):
+            return None
+        D0 = self.members[0].c.D[np.argmin(np.abs(self.members[0].grid - self.members[0].effect.nominal))]
+        return D0 + sum(D - D0 for D in Ds)
+
+    def fit(self, y, S, idx) -> np.ndarray:
+        th = np.array([m.effect.nominal for m in self.members], float)
+        parts = [m.predict(t) - self.y0 for m, t in zip(self.members, th)]
+        for _ in range(4):
+            for l, m in enumerate(self.members):
+                rest = self.y0 + sum(p for j, p in enumerate(parts) if j != l)
+                f = rest[None] + (m.dense_Y - self.y0[None])
+                tot = chi2(y[idx], f[:, idx], S[idx]).sum(axis=1)
+                th[l] = m.dense[int(np.argmin(tot + m.tie() * (1 + tot.min())))]
+                parts[l] = m.predict(th[l]) - self.y0
+        return th
+
+    def interval(self, y, S, th) -> list[tuple[float, float]]:
+        th = np.asarray(th, float)
+        spans = np.array([m.grid.max() - m.grid.min() for m in self.members])
+        h = 0.01 * spans
+
+        def F(t):
+            return float(chi2(y, self.predict(t), S).sum())
+
+        k = self.k
+        H = np.zeros((k, k))
+        f0 = F(th)
+        for a in range(k):
+            for b in range(a, k):
+                ea, eb = np.eye(k)[a] * h[a], np.eye(k)[b] * h[b]
+                H[a, b] = H[b, a] = (F(th + ea + eb) - F(th + ea - eb) - F(th - ea + eb) + F(th - ea - eb)) / (4 * h[a] * h[b])
+        c = max(1.0, f0 / max(y.size - k, 1))
+        try:
+            cov = 2.0 * np.linalg.inv(H) * c
+            sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+            if not np.all(np.isfinite(sd)) or np.any(np.diag(cov) <= 0):
+                raise np.linalg.LinAlgError
+        except np.linalg.LinAlgError:
+            sd = spans   # not identifiable from these phantoms: the whole grid
+        return [(float(max(m.grid.min(), t - 1.96 * s)), float(min(m.grid.max(), t + 1.96 * s)))
+                for m, t, s in zip(self.members, th, sd)]
+
+    def at_edge(self, th) -> bool:
+        return any(m.at_edge([t]) for m, t in zip(self.members, th))
+
+    def params_at(self, p, th):
+        for m, t in zip(self.members, th):
+            p = m.params_at(p, [t])
+        return p
+
+    def sensor_at(self, s, th):
+        for m, t in zip(self.members, th):
+            s = m.sensor_at(s, [t])
+        return s
+
+    def nominal(self):
+        return [m.effect.nominal for m in self.members]
+
+    def units(self):
+        return [m.unit for m in self.members]
+
+
+def build_models(C: list[Candidate], names, V0: dict, st: Settings) -> list:
+    singles = [Single(c, names) for c in C]
+    byname = {m.name: m for m in singles}
+    y0 = cat(V0, names)
+    fams = [Composed(f, [byname[n] for n in f.members], y0, V0)
+            for f in fx.families_for([c.effect for c in C], st.families)]
+    return singles + fams
+
+
+# ------------------------------------------------------------------ statistics
 def folds(n: int, seed: int) -> list[np.ndarray]:
     if n <= 15:
         return [np.array([i]) for i in range(n)]
-    rng = np.random.default_rng(seed)
-    perm = rng.permutation(n)
+    perm = np.random.default_rng(seed).permutation(n)
     return [perm[k::10] for k in range(10)]
 
 
@@ -208,77 +436,98 @@ def bootstrap_ci(values: np.ndarray, stat, B: int, rng) -> tuple[float, float]:
     return float(np.percentile(bs, 2.5)), float(np.percentile(bs, 97.5))
 
 
-def evaluate(meas: Measured, y0, cands: list[Candidate], st: Settings) -> dict:
-    """Ranking of the candidates (cross-validated), fitted magnitudes and intervals, outcome."""
-    y, n = meas.y, meas.n
-    s = scales(meas, y0, st.model_floor)
-    chi0 = chi2_rows(y, y0, s)
-    ssr0 = float(chi0.sum())
-    N = 3 * n
-    thr = float(stats.chi2.ppf(0.999, N))
-    rng = np.random.default_rng(st.seed)
+def slices(V: dict, names) -> dict:
+    out, a = {}, 0
+    for k in names:
+        q = V[k].shape[-1]
+        out[k] = slice(a, a + q)
+        a += q
+    return out
+
+
+def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict) -> dict:
+    """Calibrated significance, per-candidate held-out fit, ranking, ambiguity set, outcome."""
+    N = y.size
+    chi0 = float(chi2(y, y0, S0).sum())
+    thr = float(stats.chi2.ppf(1 - st.alpha, N))
     F = folds(n, st.seed)
     rows = []
-    for c in cands:
-        held = np.zeros(n)
-        pred = np.zeros((n, 3))
+    for mdl in models:
+        S = np.sqrt(S0 ** 2 + mdl.interp ** 2)
+        pred = np.zeros_like(y)
         for te in F:
             tr = np.setdiff1d(np.arange(n), te)
-            m = fit_magnitude(c, y, s, tr)
-            f = c.at(m)
-            held[te] = chi2_rows(y[te], f[te], s[te])
-            pred[te] = f[te]
-        m_all = fit_magnitude(c, y, s, np.arange(n))
-        boots = [fit_magnitude(c, y, s, rng.integers(0, n, n)) for _ in range(st.bootstrap)]
+            pred[te] = mdl.predict(mdl.fit(y, S, tr))[te]
+        held = ((y - pred) / S) ** 2
         ssr_cv = float(held.sum())
-        ef = 1.0 - ssr_cv / ssr0 if ssr0 > 0 else 0.0
-        # the "explains" test allows for the candidate's own sweep-interpolation error
-        sc = np.sqrt(s ** 2 + interpolation_error(c) ** 2)
-        held_c = np.zeros(n)
-        for te in F:
-            tr = np.setdiff1d(np.arange(n), te)
-            held_c[te] = chi2_rows(y[te], c.at(fit_magnitude(c, y, sc, tr))[te], sc[te])
+        th = mdl.fit(y, S, np.arange(n))
+        ci = mdl.interval(y, S, th)
+        f = mdl.predict(th)
         rows.append({
-            "effect": c.effect.name, "stage": c.effect.stage, "unit": c.effect.unit,
-            "magnitude": m_all, "magnitude_ci": [float(np.percentile(boots, 2.5)), float(np.percentile(boots, 97.5))],
-            "nominal": c.effect.nominal, "grid": c.grid.tolist(), "dropped_magnitudes": c.dropped,
-            "ssr_cv": ssr_cv, "explained_fraction": ef, "reduced_chi2_cv": ssr_cv / N,
-            "reduced_chi2_cv_with_interpolation": float(held_c.sum()) / N,
-            "score": ssr_cv + c.effect.n_params * math.log(N), "n_params": c.effect.n_params,
-            "at_grid_edge": bool(abs(m_all - c.grid.min()) < 1e-9 or abs(m_all - c.grid.max()) < 1e-9),
-            "_pred_cv": pred,
-        })
+            "effect": mdl.name, "members": mdl.labels, "stage": mdl.stage, "unit": mdl.unit, "n_params": mdl.k,
+            "magnitude": [float(t) for t in th], "magnitude_ci": [list(c) for c in ci], "nominal": mdl.nominal(),
+            "units": mdl.units(), "ssr_cv": ssr_cv, "chi2_fit": float(chi2(y, f, S).sum()),
+            "explained_fraction": 1.0 - ssr_cv / chi0 if chi0 > 0 else 0.0,
+            "reduced_chi2_cv": ssr_cv / N, "passes": bool(ssr_cv <= thr),
+            "p_value_cv": float(stats.chi2.sf(ssr_cv, N)),
+            "chi2_cv_by_view": {k: float(held[:, s].sum()) for k, s in sl.items()},
+            "score": ssr_cv + mdl.k * math.log(N), "at_grid_edge": mdl.at_edge(th),
+            "dropped_magnitudes": getattr(getattr(mdl, "c", None), "dropped", []),
+            "_model": mdl, "_theta": th, "_S": S})
     rows.sort(key=lambda r: r["score"])
-    significant = ssr0 > thr
-    win = rows[0] if rows else None
-    explains = bool(win and significant and win["explained_fraction"] >= st.explain_min
-                    and win["reduced_chi2_cv_with_interpolation"] <= st.resid_max)
+    significant = chi0 > thr
+    best = rows[0] if rows else None
+    ambiguity = []
     if not significant:
         outcome = "no significant gap"
-    elif explains:
-        outcome = "explained"
+    elif best and best["passes"]:
+        ambiguity = [r["effect"] for r in rows if r["score"] - best["score"] <= st.ambiguity_margin]
+        outcome = "explained" if len(ambiguity) == 1 else "ambiguous"
     else:
         outcome = "unexplained"
-    return {"ssr0": ssr0, "chi2_threshold": thr, "reduced_chi2_baseline": ssr0 / N, "significant": significant,
-            "ranking": rows, "outcome": outcome,
-            "winner": win["effect"] if outcome == "explained" else None,
-            "best": win["effect"] if win else None,
-            "runner_up": rows[1]["effect"] if len(rows) > 1 else None, "scales": s}
+    for r in rows:
+        r["delta_score"] = r["score"] - best["score"]
+    return {"chi2_baseline": chi0, "n_terms": N, "chi2_threshold": thr, "alpha": st.alpha,
+            "reduced_chi2_baseline": chi0 / N, "p_value_baseline": float(stats.chi2.sf(chi0, N)),
+            "significant": significant, "ranking": rows, "outcome": outcome,
+            "winner": best["effect"] if outcome == "explained" else None,
+            "ambiguous_set": ambiguity if outcome in ("explained", "ambiguous") else [],
+            "best": best["effect"] if best else None,
+            "runner_up": rows[1]["effect"] if len(rows) > 1 else None}
 
 
-def where(meas: Measured, y0, D0, st: Settings) -> dict:
-    """Where the gap lies: by feature, by (d, h, E) region, by stage (affine share), by image region."""
+def view_baselines(mv: dict, V0: dict, me: dict, st: Settings) -> dict:
+    """Per view: χ² of the baseline with noise only and with noise + model error (a view table)."""
+    out = {}
+    for k, (v, se) in mv.items():
+        S = np.sqrt(se ** 2 + me["sigma"][k] ** 2)
+        S = np.maximum(S, 1e-12 * np.maximum(np.abs(V0[k]), 1e-300))
+        Sn = np.maximum(se, 1e-12 * np.maximum(np.abs(V0[k]), 1e-300))
+        N = v.size
+        c = float(chi2(v, V0[k], S).sum())
+        out[k] = {"n_terms": N, "chi2_noise_only": float(chi2(v, V0[k], Sn).sum()), "chi2": c,
+                  "threshold": float(stats.chi2.ppf(1 - st.alpha, N)), "significant": bool(c > stats.chi2.ppf(1 - st.alpha, N)),
+                  "model_error_relative_median": np.median(me["sigma"][k] / np.maximum(np.abs(V0[k]), 1e-300), axis=0).tolist(),
+                  "noise_relative_median": np.median(se / np.maximum(np.abs(v), 1e-300), axis=0).tolist()}
+    return out
+
+
+def where(meas: Measured, mv: dict, V0: dict, D0, me: dict, st: Settings) -> dict:
+    """Where the gap lies: by feature, by (d, h, E) region, by stage, by image region."""
     y, n = meas.y, meas.n
-    s = scales(meas, y0, st.model_floor)
+    y0 = V0["features"]
+    S = np.sqrt(meas.se ** 2 + me["sigma"]["features"] ** 2)
+    S = np.maximum(S, 1e-12)
     rng = np.random.default_rng(st.seed + 1)
     rel = (y - y0) / np.where(np.abs(y0) > 0, np.abs(y0), 1.0)
-    r = (y - y0) / s
+    r = (y - y0) / S
     by_feature = {}
     for j, k in enumerate(FEATURES):
         by_feature[k] = {"relative_gap_mean": float(rel[:, j].mean()),
                          "relative_gap_ci": bootstrap_ci(rel[:, j], np.mean, st.bootstrap, rng),
                          "noise_units_rms": float(np.sqrt(np.mean(r[:, j] ** 2))),
-                         "noise_floor_relative": float(np.median(meas.se[:, j] / np.maximum(np.abs(y[:, j]), 1e-300)))}
+                         "noise_floor_relative": float(np.median(meas.se[:, j] / np.maximum(np.abs(y[:, j]), 1e-300))),
+                         "model_error_relative": float(np.median(me["sigma"]["features"][:, j] / np.maximum(np.abs(y0[:, j]), 1e-300)))}
     rms_i = np.sqrt(np.mean(r ** 2, axis=1))
     by_region = {}
     for q, name in enumerate(("d", "h", "E")):
@@ -294,7 +543,6 @@ def where(meas: Measured, y0, D0, st: Settings) -> dict:
                          "rms_ci": bootstrap_ci(rms_i[sel], lambda a: float(np.sqrt(np.mean(a ** 2))), st.bootstrap, rng),
                          "relative_gap_mean": {k: float(rel[sel, j].mean()) for j, k in enumerate(FEATURES)}})
         by_region[name] = bins
-    # stage: how much a per-feature affine recalibration absorbs (held-out)
     ssr0 = float(np.sum(r ** 2))
     held = 0.0
     for te in folds(n, st.seed):
@@ -304,23 +552,144 @@ def where(meas: Measured, y0, D0, st: Settings) -> dict:
             A = np.column_stack([y0[tr, j], np.ones(len(tr))])
             coef, *_ = np.linalg.lstsq(A, y[tr, j], rcond=None)
             pred[:, j] = coef[0] * y0[te, j] + coef[1]
-        held += float(np.sum(((y[te] - pred) / s[te]) ** 2))
+        held += float(np.sum(((y[te] - pred) / S[te]) ** 2))
     affine_share = float(np.clip(1 - held / ssr0, 0, 1)) if ssr0 > 0 else 0.0
     out = {"by_feature": by_feature, "by_region": by_region, "per_phantom_rms_noise_units": rms_i.tolist(),
            "stage": {"optics_like_affine_share": affine_share, "mechanics_like_share": 1 - affine_share},
            "relative_gap": rel, "normalised_residual": r}
-    have = [i for i in range(n) if meas.difference[i] is not None]
-    if have and D0 is not None and meas.difference[have[0]].shape == D0[0].shape:
-        R = np.array([meas.difference[i] - D0[i] for i in have])
+    if meas.has_images and D0 is not None and meas.difference[0].shape == D0[0].shape:
+        out["image"] = image_residual(meas, D0, me, None)
+    return out
+
+
+def image_residual(meas: Measured, Dsim, me: dict, sensor) -> dict:
+    """Mean residual map over the phantoms with its noise band, and its annulus table."""
+    n = meas.n
+    R = np.array([meas.difference[i] - Dsim[i] for i in range(n)])
+    if all(s is not None for s in meas.difference_se):
+        se = np.sqrt(np.sum([s ** 2 for s in meas.difference_se], axis=0)) / n
+        noise_kind = "per-pixel, from the frame scatter"
+    else:
         ring = np.zeros(R.shape[1:], bool)
         w = max(2, R.shape[1] // 10)
         ring[:w, :] = ring[-w:, :] = ring[:, :w] = ring[:, -w:] = True
-        noise = float(np.std(R[:, ring]))
-        out["image"] = {"n": len(have), "mean_residual": R.mean(axis=0), "noise_px": noise,
-                        "mean_measured": np.mean([meas.difference[i] for i in have], axis=0),
-                        "mean_simulated": D0[have].mean(axis=0),
-                        "max_abs_mean_residual_noise_units": float(np.max(np.abs(R.mean(axis=0))) /
-                                                                   (noise / math.sqrt(len(have)) + 1e-300))}
+        se = np.full(R.shape[1:], float(np.std(R[:, ring])) / math.sqrt(n))
+        noise_kind = "uniform, from the window's outer ring"
+    mer = np.mean(me["image_sigma"], axis=0)
+    band = np.sqrt(se ** 2 + mer ** 2)
+    mean = R.mean(axis=0)
+    pix = meas.sensor_model().pixel_mm
+    rings = []
+    for a, b, msk in zip(vw.EDGES[:-1], vw.EDGES[1:], vw._bins(mean.shape, pix)):
+        if not msk.any():
+            continue
+        n_eff = max(1.0, msk.sum() / (4 * math.pi * max(meas.settings().smooth_px, 0.5) ** 2))
+        bnd = float(np.sqrt((se[msk].mean() / math.sqrt(n_eff)) ** 2 + mer[msk].mean() ** 2))
+        rings.append({"r_mm": [a, b], "mean_residual": float(mean[msk].mean()), "band": bnd,
+                      "noise_units": float(mean[msk].mean() / bnd) if bnd > 0 else 0.0})
+    return {"n": n, "mean_residual": mean, "band": band, "z": mean / np.maximum(band, 1e-300),
+            "noise_kind": noise_kind, "mean_measured": np.mean(meas.difference, axis=0),
+            "mean_simulated": Dsim.mean(axis=0), "rings": rings,
+            "max_abs_z": float(np.max(np.abs(mean) / np.maximum(band, 1e-300))),
+            "noise_px": float(np.median(se) * math.sqrt(n))}
+
+
+# ------------------------------------------------------------------ ambiguity: what separates
+def _sep(fa, fb, S) -> float:
+    return float(np.sqrt(np.sum(((fa - fb) / S) ** 2)))
+
+
+def propose(meas: Measured, rows_set: list[dict], V0: dict, me: dict, names, sim: Simulator, sensor, settings,
+            st: Settings) -> dict:
+    """Predicted separation (noise units) of every pair of the ambiguity set by (i) the plate force,
+    (ii) a second indentation depth, (iii) new phantoms in the design box."""
+    mods = [(r["effect"], r["_model"], r["_theta"], r["_S"]) for r in rows_set]
+    pairs = list(itertools.combinations(range(len(mods)), 2))
+    out = {"set": [m[0] for m in mods], "now": {}, "force": {}, "second_depth": {}, "phantoms": []}
+    for a, b in pairs:
+        na, nb = mods[a][0], mods[b][0]
+        out["now"][f"{na} vs {nb}"] = _sep(mods[a][1].predict(mods[a][2]), mods[b][1].predict(mods[b][2]), mods[a][3])
+    S_all = mods[0][3]
+    # (i) plate force at the measured phantoms (unless it is measured already)
+    F0 = V0["force"][:, 0]
+    sF = np.sqrt((st.force_noise * F0) ** 2 + me["sigma"]["force"][:, 0] ** 2)
+    Fp = [m.predict(t, ["force"])[:, 0] for _, m, t, _ in mods]
+    for a, b in pairs:
+        if "force" not in names:
+            out["force"][f"{mods[a][0]} vs {mods[b][0]}"] = _sep(Fp[a], Fp[b], sF)
+    out["force_note"] = (f"plate force at the {meas.n} phantoms, gauge error {100 * st.force_noise:g} % "
+                         "(assumed) plus the force's model error")
+    # (ii) a second indentation depth (solved) at the phantoms with the largest signal
+    if st.propose_solves and st.propose_phantoms > 0:
+        idx = np.argsort(-V0["features"][:, 0])[: st.propose_phantoms]
+        p0 = [phantom_params(meas, sim.mesh)[i] for i in idx]
+        import dataclasses
+        pd_ = [p.replace(loading=dataclasses.replace(p.loading, delta=st.second_delta)) for p in p0]
+        plist, ok = [], True
+        try:
+            for _, m, t, _ in mods:
+                plist += [m.params_at(p, t).validate() for p in pd_]
+        except UserError:
+            ok = False
+        if ok:
+            recs = sim.run(plist)
+            img = [k for k in names if k != "force"]
+            sl = slices(V0, names)
+            cols = np.concatenate([np.arange(S_all.shape[1])[sl[k]] for k in img])
+            Pv = []
+            for j, (_, m, t, _) in enumerate(mods):
+                V, _ = sim_views(recs[j * len(idx):(j + 1) * len(idx)], m.sensor_at(sensor, t), settings)
+                Pv.append(cat(V, img))
+            Sd = S_all[idx][:, cols]
+            for a, b in pairs:
+                out["second_depth"][f"{mods[a][0]} vs {mods[b][0]}"] = _sep(Pv[a], Pv[b], Sd)
+            out["second_depth_note"] = (f"indentation {st.second_delta:g} mm at phantoms "
+                                        f"{[meas.ids[i] for i in idx]} (solved), noise as measured at 3 mm")
+    # (iii) new phantoms: linear emulator of z = (f - y0)/S over (ln d, h, ln E)
+    y0 = cat(V0, names)
+    S = mods[0][3]
+    X = np.column_stack([np.ones(meas.n), np.log(meas.dhe[:, 0]), meas.dhe[:, 1], np.log(meas.dhe[:, 2])])
+    Z = [(m.predict(t) - y0) / S for _, m, t, _ in mods]
+    coefs = [np.linalg.lstsq(X, z, rcond=None)[0] for z in Z]
+    from .synth import phantom_design
+    pool = phantom_design(200, st.seed + 7)
+    Xp = np.column_stack([np.ones(len(pool)), np.log(pool[:, 0]), pool[:, 1], np.log(pool[:, 2])])
+    seps = np.full(len(pool), np.inf)
+    for a, b in pairs:
+        dz = Xp @ (coefs[a] - coefs[b])
+        seps = np.minimum(seps, np.sqrt(np.sum(dz ** 2, axis=1)))
+    top = np.argsort(-seps)[:3]
+    for i in top:
+        out["phantoms"].append({"d": float(pool[i, 0]), "h": float(pool[i, 1]), "E": float(pool[i, 2]),
+                                "predicted_min_pair_separation": float(seps[i])})
+    out["phantoms_note"] = ("new phantom (d, h, E) within the design box (d 5-12 mm, E 30-150 kPa, valid depths); "
+                            "separation emulated by a linear fit of each candidate's effect over the measured phantoms")
+    if st.propose_solves and out["phantoms"]:
+        best = out["phantoms"][0]
+        p = base_params(sim.mesh, best["d"], best["h"], best["E"])
+        try:
+            plist = [p] + [m.params_at(p, t).validate() for _, m, t, _ in mods]
+            recs = sim.run(plist)
+            Vb, _ = sim_views(recs[:1], sensor, settings)
+            f = []
+            for j, (_, m, t, _) in enumerate(mods):
+                V, _ = sim_views(recs[j + 1:j + 2], m.sensor_at(sensor, t), settings)
+                f.append(cat(V, names)[0])
+            Sm = np.median(S, axis=0)
+            best["solved_pair_separation"] = {f"{mods[a][0]} vs {mods[b][0]}": _sep(f[a], f[b], Sm) for a, b in pairs}
+        except UserError:
+            pass
+    opts = [("plate force at the same phantoms", min(out["force"].values()))] if out["force"] else []
+    if out["second_depth"]:
+        opts.append((f"second indentation depth {st.second_delta:g} mm", min(out["second_depth"].values())))
+    if out["phantoms"]:
+        ph = out["phantoms"][0]
+        sv = ph.get("solved_pair_separation")
+        opts.append((f"one more phantom d {ph['d']:.3g} mm, h {ph['h']:.3g} mm, E {ph['E']:.3g} kPa",
+                     min(sv.values()) if sv else ph["predicted_min_pair_separation"]))
+    opts.sort(key=lambda t: -t[1])
+    out["recommendation"] = {"measurement": opts[0][0], "min_pair_separation_noise_units": opts[0][1]}
+    out["options"] = [{"measurement": a, "min_pair_separation_noise_units": b} for a, b in opts]
     return out
 
 
@@ -330,17 +699,21 @@ def withheld_split(n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.setdiff1d(np.arange(n), te), te
 
 
-def shrink_features(meas: Measured, y0, c: Candidate, st: Settings) -> dict:
-    y = meas.y
-    s = scales(meas, y0, st.model_floor)
+def shrink_features(meas: Measured, y, y0, S, mdl, names) -> dict:
+    """Gap before/after on withheld phantoms, magnitude fitted on the rest (decision view), and
+    the relative gap of the three features."""
     tr, te = withheld_split(meas.n)
-    m = fit_magnitude(c, y, s, tr)
-    f = c.at(m)
-    before = float(np.sqrt(np.mean(((y[te] - y0[te]) / s[te]) ** 2)))
-    after = float(np.sqrt(np.mean(((y[te] - f[te]) / s[te]) ** 2)))
-    relb = np.mean(np.abs(y[te] - y0[te]) / np.abs(y[te]), axis=0)
-    rela = np.mean(np.abs(y[te] - f[te]) / np.abs(y[te]), axis=0)
-    return {"fit_phantoms": [meas.ids[i] for i in tr], "withheld": [meas.ids[i] for i in te], "magnitude": m,
+    th = mdl.fit(y, S, tr)
+    f = mdl.predict(th)
+    before = float(np.sqrt(np.mean(((y[te] - y0[te]) / S[te]) ** 2)))
+    after = float(np.sqrt(np.mean(((y[te] - f[te]) / S[te]) ** 2)))
+    ff = mdl.predict(th, ["features"])
+    yf = meas.y
+    y0f = mdl.predict(np.asarray(mdl.nominal(), float), ["features"])
+    relb = np.mean(np.abs(yf[te] - y0f[te]) / np.abs(yf[te]), axis=0)
+    rela = np.mean(np.abs(yf[te] - ff[te]) / np.abs(yf[te]), axis=0)
+    return {"fit_phantoms": [meas.ids[i] for i in tr], "withheld": [meas.ids[i] for i in te],
+            "magnitude": [float(t) for t in th], "views": list(names),
             "rms_noise_units_before": before, "rms_noise_units_after": after,
             "shrink": 1 - after / before if before > 0 else 0.0,
             "relative_gap_before": {k: float(relb[j]) for j, k in enumerate(FEATURES)},
@@ -373,15 +746,14 @@ def _train_inverse(X, T, st: Settings):
     return fit_ensemble(df, algo="scg", repeats=st.train_repeats, epochs=st.train_epochs, hidden=(10,), seed=st.seed)
 
 
-def shrink_inverse(meas: Measured, c: Candidate, m: float, sim: Simulator, sensor, settings, st: Settings) -> dict:
+def shrink_inverse(meas: Measured, mdl, th, sim: Simulator, sensor, settings, st: Settings) -> dict:
     """(d, h, E) error on the withheld phantoms: inverse trained on baseline sims vs on sims with
-    the effect at ``m`` (camera features -> (d, h, E), ``fit_ensemble`` SCG)."""
+    the effect at ``th`` (camera features -> (d, h, E), ``fit_ensemble`` SCG)."""
     tr, te = withheld_split(meas.n)
-    aspect_hi = max(1.0, c.effect.hi if c.effect.name == "aspect" else 1.0)
+    aspect_hi = max(1.0, max(float(t) for t, n in zip(th, mdl.labels) if n == "aspect") if "aspect" in mdl.labels else 1.0)
     T = training_design(meas, st.n_train, st.seed, aspect_hi)
     p_base = [base_params(sim.mesh, *t) for t in T]
-    e = c.effect
-    p_eff = [e.apply_params(p, m) for p in p_base] if e.stage == "mechanics" else p_base
+    p_eff = [mdl.params_at(p, th) for p in p_base]
     ok = []
     for i, p in enumerate(p_eff):
         try:
@@ -392,21 +764,18 @@ def shrink_inverse(meas: Measured, c: Candidate, m: float, sim: Simulator, senso
     ok = np.array(ok)
     recs = sim.run([p_base[i] for i in ok] + [p_eff[i] for i in ok])
     k = len(ok)
-    Xb, _ = _cam(recs[:k], sensor, settings)
-    s_eff = e.apply_sensor(sensor, m) if e.stage == "optics" else sensor
-    Xe, _ = _cam(recs[k:], s_eff, settings)
-    # a failed solve (NaN record) drops its design point from both training sets (paired design)
+    Vb, _ = sim_views(recs[:k], sensor, settings)
+    Ve, _ = sim_views(recs[k:], mdl.sensor_at(sensor, th), settings)
+    Xb, Xe = Vb["features"], Ve["features"]
     fin = np.all(np.isfinite(Xb), axis=1) & np.all(np.isfinite(Xe), axis=1)
     Xb, Xe, Tk = Xb[fin], Xe[fin], T[ok][fin]
     ens_b = _train_inverse(Xb, Tk, st)
     ens_e = _train_inverse(Xe, Tk, st)
     truth = meas.dhe[te]
     out = {"n_train": int(fin.sum()), "n_failed_solves": int(k - fin.sum()),
-           "withheld": [meas.ids[i] for i in te], "magnitude": m}
-    # the inverse's own error: baseline inverse on noise-free baseline simulations of the withheld phantoms
-    own_recs = sim.run(phantom_params(meas.subset(te), sim.mesh))
-    Xown, _ = _cam(own_recs, sensor, settings)
-    for name, ens, X in (("inverse_own", ens_b, Xown), ("before", ens_b, meas.y[te]), ("after", ens_e, meas.y[te])):
+           "withheld": [meas.ids[i] for i in te], "magnitude": [float(t) for t in th]}
+    own, _ = sim_views(sim.run(phantom_params(meas.subset(te), sim.mesh)), sensor, settings)
+    for name, ens, X in (("inverse_own", ens_b, own["features"]), ("before", ens_b, meas.y[te]), ("after", ens_e, meas.y[te])):
         est = ens.predict(X).mean(axis=0)
         err = np.abs(est - truth) / truth
         out[name] = {"mean_relative_error": {q: float(err[:, j].mean()) for j, q in enumerate(("d", "h", "E"))},
@@ -419,20 +788,42 @@ def shrink_inverse(meas: Measured, c: Candidate, m: float, sim: Simulator, senso
 
 
 # ------------------------------------------------------------------ driver
-def diagnose(meas: Measured, cands: list[fx.Effect], sim: Simulator, st: Settings | None = None) -> dict:
+def diagnose(meas: Measured, cands: list[fx.Effect], sim: Simulator, st: Settings | None = None,
+             sim_fine: Simulator | None = None) -> dict:
+    """The whole diagnosis.  ``sim_fine``: the simulator of the next finer mesh level for the
+    measured model error (None: the assumed floor ``model_floor``)."""
+    import time
+
+    t0 = time.perf_counter()
     st = st or Settings()
     if not cands:
         raise UserError("effects", "no candidate effects to test")
     sensor, settings = meas.sensor_model(), meas.settings()
-    y0, D0, C = simulate_candidates(meas, cands, sim, sensor, settings)
-    ev = evaluate(meas, y0, C, st)
-    wh = where(meas, y0, D0, st)
-    byname = {c.effect.name: c for c in C}
-    best = byname[ev["best"]] if ev["best"] else None
-    shrink = shrink_features(meas, y0, best, st) if best else None
+    solved0 = sim.stats["solved"]
+    V0, D0, C = simulate_candidates(meas, cands, sim, sensor, settings)
+    me = model_error(meas, sim, sim_fine, sensor, settings, V0, D0, st)
+    mv = measured_views(meas, sensor, settings)
+    names = decision_views(mv)
+    sl = slices(V0, names)
+    y = cat({k: v for k, (v, _) in mv.items()}, names)
+    se = cat({k: s for k, (_, s) in mv.items()}, names)
+    y0 = cat(V0, names)
+    S0 = np.sqrt(se ** 2 + cat(me["sigma"], names) ** 2)
+    S0 = np.maximum(S0, 1e-12 * np.maximum(np.abs(y0), 1e-300))
+    models = build_models(C, names, V0, st)
+    ev = evaluate(y, S0, y0, models, meas.n, st, sl)
+    ev["views"] = names
+    ev["by_view"] = view_baselines(mv, V0, me, st)
+    wh = where(meas, mv, V0, D0, me, st)
+    rows = {r["effect"]: r for r in ev["ranking"]}
+    best = rows[ev["best"]] if ev["best"] else None
+    shrink = shrink_features(meas, y, y0, best["_S"], best["_model"], names) if best else None
+    prop = None
+    if ev["outcome"] == "ambiguous":
+        prop = propose(meas, [rows[n] for n in ev["ambiguous_set"]], V0, me, names, sim, sensor, settings, st)
     inv = None
-    if st.inverse and best is not None and ev["outcome"] != "no significant gap":
-        inv = shrink_inverse(meas, best, shrink["magnitude"], sim, sensor, settings, st)
+    if st.inverse and best is not None and ev["outcome"] not in ("no significant gap",):
+        inv = shrink_inverse(meas, best["_model"], shrink["magnitude"], sim, sensor, settings, st)
     stage = wh["stage"]
     bm = [r for r in ev["ranking"] if r["stage"] == "mechanics"]
     bo = [r for r in ev["ranking"] if r["stage"] == "optics"]
@@ -441,17 +832,22 @@ def diagnose(meas: Measured, cands: list[fx.Effect], sim: Simulator, st: Setting
     if inv:
         stage["inverse_own_error"] = inv["inverse_own"]["mean_relative_error"]
         stage["inverse_error_on_measured"] = inv["before"]["mean_relative_error"]
-    resid_after = None
     if best is not None and "image" in wh:
-        have = [i for i in range(meas.n) if meas.difference[i] is not None]
-        m_best = next(r["magnitude"] for r in ev["ranking"] if r["effect"] == best.effect.name)
-        Dw = best.image_at(m_best)
+        Dw = best["_model"].image(best["_theta"])
         if Dw is not None:
-            resid_after = np.array([meas.difference[i] - Dw[i] for i in have]).mean(axis=0)
-            wh["image"]["mean_residual_after"] = resid_after
+            wh["image_after"] = image_residual(meas, Dw, me, sensor)
+            wh["image_after"]["effect"] = best["effect"]
     return {"measured": {"source": meas.source, "n": meas.n, "synthetic": meas.synthetic,
                          "description": meas.description, "mesh": sim.mesh, "ids": meas.ids,
-                         "dhe": meas.dhe.tolist()},
-            "settings": st.__dict__, "candidates": [c.effect.to_dict() for c in C],
-            "baseline": y0, "evaluation": ev, "where": wh, "shrink_features": shrink, "shrink_inverse": inv,
-            "simulator": dict(sim.stats, backend=sim.backend, mesh=sim.mesh)}
+                         "dhe": meas.dhe.tolist(), "views_available": list(mv)},
+            "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in st.__dict__.items()},
+            "candidates": [c.effect.to_dict() for c in C],
+            "model_error": {k: v for k, v in me.items() if k in ("kind", "note", "fine_mesh", "ratio", "relative_median")},
+            "_model_error": me, "_views": mv, "_V0": V0,
+            "baseline": V0["features"], "evaluation": ev, "where": wh, "shrink_features": shrink,
+            "shrink_inverse": inv, "proposal": prop,
+            "simulator": dict(sim.stats, backend=sim.backend, mesh=sim.mesh,
+                              solved_this_diagnosis=sim.stats["solved"] - solved0,
+                              fine_solved=(sim_fine.stats["solved"] if sim_fine is not None else 0),
+                              fine_mesh=(sim_fine.mesh if sim_fine is not None else None)),
+            "seconds": time.perf_counter() - t0}

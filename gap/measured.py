@@ -11,8 +11,10 @@ A measured dataset is a folder (or the path of its table) holding
   | ``O1``, ``O2``, ``O3`` | FS, FS mm², mm² | yes, unless ``images``/``background`` | camera features (:mod:`elastimap.camera.features`) |
   | ``O1_se``, ``O2_se``, ``O3_se`` | same | no | standard error of each feature from repeated frames (the noise floor) |
   | ``n_frames`` | | no | frames averaged |
-  | ``images``, ``background`` | | no | lesion / background frame files or globs, ``;``-separated, relative to the folder; features (and their standard errors) are then computed here |
-  | ``difference`` | | no | ``.npy`` file: the denoised camera difference image over the footprint window (FS), for the residual map |
+  | ``images``, ``background`` | | no | lesion / background frame files or globs, ``;``-separated, relative to the folder; features, their standard errors, the difference image and its per-pixel standard error are then computed here |
+  | ``difference`` | | no | ``.npy`` file: the denoised camera difference image over the footprint window (FS), for the residual map and the radial profile |
+  | ``difference_se`` | | no | ``.npy`` file: per-pixel standard error of that image (FS), from the frame scatter (:mod:`elastimap.gap.views`) |
+  | ``force``, ``force_se`` | mN | no | measured plate force and its standard error |
   | ``tissue_E`` | kPa | no | background modulus if not the nominal 5 kPa |
 
 * ``measured.json`` (optional sidecar): ``{"kind": "elastimap.gap.measured", "version": 1,
@@ -59,6 +61,26 @@ class Measured:
     synthetic: bool = False
     description: str = ""
     source: str = ""
+    difference_se: list | None = None    # per phantom: 2-D per-pixel standard error (FS) or None
+    force: np.ndarray | None = None      # (n,) measured plate force (mN), NaN = not measured
+    force_se: np.ndarray | None = None   # (n,) its standard error (mN)
+
+    def __post_init__(self):
+        n = len(self.ids)
+        if self.difference_se is None:
+            self.difference_se = [None] * n
+        if self.force is None:
+            self.force = np.full(n, np.nan)
+        if self.force_se is None:
+            self.force_se = np.zeros(n)
+
+    @property
+    def has_force(self) -> bool:
+        return bool(np.all(np.isfinite(self.force)))
+
+    @property
+    def has_images(self) -> bool:
+        return all(d is not None for d in self.difference)
 
     @property
     def n(self) -> int:
@@ -76,7 +98,8 @@ class Measured:
         idx = np.asarray(idx)
         return Measured([self.ids[i] for i in idx], self.dhe[idx], self.y[idx], self.se[idx], self.tissue_E[idx],
                         [self.difference[i] for i in idx], self.sensor, self.feature_settings, self.mesh,
-                        self.synthetic, self.description, self.source)
+                        self.synthetic, self.description, self.source, [self.difference_se[i] for i in idx],
+                        self.force[idx], self.force_se[idx])
 
 
 def _table_path(path: Path) -> Path:
@@ -151,45 +174,85 @@ def load(path: str | os.PathLike) -> Measured:
                 raise UserError("measured", f"{tp}: {k}_se must be >= 0")
             se[:, j] = np.where(np.isfinite(v), v, 0.0)
     need = ~np.all(np.isfinite(y), axis=1)
-    if need.any():
-        if not has_img:
-            raise UserError("measured", f"{tp}: non-numeric features for {df['id'][need].tolist()[:5]}")
-        from elastimap.camera.features import FeatureSettings, features_from_files
-        from elastimap.camera.frames import expand
+    from_frames: dict[int, dict] = {}
+    if need.any() and not has_img:
+        raise UserError("measured", f"{tp}: non-numeric features for {df['id'][need].tolist()[:5]}")
+    if has_img:
+        # frames given: features (where not in the table), the difference image and its
+        # per-pixel noise always come from the frames, so the residual map is never lost
+        from elastimap.camera.features import FeatureSettings
+        from elastimap.camera.frames import expand, read_stack
         from elastimap.camera.optics import SensorModel
+
+        from .views import from_frames as views_from_frames
 
         sm = SensorModel.from_dict(sensor) if sensor else SensorModel()
         fs = FeatureSettings.from_dict(settings or {})
-        for i in np.flatnonzero(need):
+        for i in range(n):
             r = df.iloc[i]
-            cf = features_from_files(expand(str(r["images"]), base), expand(str(r["background"]), base), sm, fs)
-            y[i] = cf.values
-            se[i] = np.asarray(cf.frame_sd) / np.sqrt(max(cf.n_frames, 1))
-    diffs = []
-    for i in range(n):
-        f = df["difference"].iloc[i] if "difference" in df.columns else None
+            if not isinstance(r["images"], str) or not r["images"].strip():
+                continue
+            F, fs1 = read_stack(expand(str(r["images"]), base), sm.shape, sm.window)
+            B, fs2 = read_stack(expand(str(r["background"]), base), sm.shape, sm.window)
+            if fs1 != fs2:
+                raise UserError("background", f"{r['background']}: bit depth differs from the lesion frames")
+            v = views_from_frames(F, B, sm, fs, fs1)
+            from_frames[i] = v
+            if need[i]:
+                y[i], se[i] = v["values"], v["se"]
+
+    miss = [df["id"].iloc[i] for i in np.flatnonzero(~np.all(np.isfinite(y), axis=1))]
+    if miss:
+        raise UserError("measured", f"{tp}: no features and no frames for {miss[:5]}")
+
+    def npy(col, i, what):
+        f = df[col].iloc[i] if col in df.columns else None
         if f is None or (isinstance(f, float) and np.isnan(f)) or str(f).strip() == "":
-            diffs.append(None)
-            continue
+            return None
         fp = base / str(f)
         if not fp.exists():
-            raise UserError("measured", f"{tp}: difference image {fp} of {df['id'].iloc[i]} does not exist")
+            raise UserError("measured", f"{tp}: {what} {fp} of {df['id'].iloc[i]} does not exist")
         try:
             a = np.load(fp, allow_pickle=False)
         except Exception as exc:
             raise UserError("measured", f"{fp}: not a .npy array ({exc})") from None
         if a.ndim != 2 or not np.all(np.isfinite(a)):
             raise UserError("measured", f"{fp}: must be a finite 2-D array (got shape {a.shape})")
-        diffs.append(a.astype(float))
+        return a.astype(float)
+
+    diffs, dses = [], []
+    for i in range(n):
+        a, b = npy("difference", i, "difference image"), npy("difference_se", i, "difference standard-error image")
+        if a is None and i in from_frames:
+            a = from_frames[i]["difference"]
+        if b is None and i in from_frames:
+            b = from_frames[i]["difference_se"]
+        if b is not None and a is not None and b.shape != a.shape:
+            raise UserError("measured", f"{tp}: difference_se of {df['id'].iloc[i]} has shape {b.shape}, its image {a.shape}")
+        if b is not None and np.any(b < 0):
+            raise UserError("measured", f"{tp}: difference_se of {df['id'].iloc[i]} must be >= 0")
+        diffs.append(a)
+        dses.append(b)
     shapes = {a.shape for a in diffs if a is not None}
     if len(shapes) > 1:
         raise UserError("measured", f"{tp}: difference images have different shapes {sorted(shapes)}")
+    force, force_se = np.full(n, np.nan), np.zeros(n)
+    if "force" in df.columns:
+        force = pd.to_numeric(df["force"], errors="coerce").to_numpy(float)
+        if np.any(force[np.isfinite(force)] <= 0):
+            raise UserError("measured", f"{tp}: force must be > 0 mN")
+        if "force_se" in df.columns:
+            v = pd.to_numeric(df["force_se"], errors="coerce").to_numpy(float)
+            if np.any(v[np.isfinite(v)] < 0):
+                raise UserError("measured", f"{tp}: force_se must be >= 0")
+            force_se = np.where(np.isfinite(v), v, 0.0)
     tE = pd.to_numeric(df["tissue_E"], errors="coerce").to_numpy(float) if "tissue_E" in df.columns else np.full(n, np.nan)
     mesh = str(side.get("mesh", "coarse"))
     if mesh not in ("tiny", "coarse", "default", "fine"):
         raise UserError("measured", f"{sp}: mesh must be tiny, coarse, default or fine (got {mesh!r})")
     return Measured(df["id"].tolist(), df[["d", "h", "E"]].to_numpy(float), y, se, tE, diffs, sensor, settings,
-                    mesh, bool(side.get("synthetic", False)), str(side.get("description", "")), str(tp))
+                    mesh, bool(side.get("synthetic", False)), str(side.get("description", "")), str(tp), dses,
+                    force, force_se)
 
 
 def write(m: Measured, folder: str | os.PathLike, fmt: str = "csv") -> Path:
@@ -208,10 +271,16 @@ def write(m: Measured, folder: str | os.PathLike, fmt: str = "csv") -> Path:
             r[f"{k}_se"] = m.se[i, j]
         if np.isfinite(m.tissue_E[i]):
             r["tissue_E"] = m.tissue_E[i]
+        if np.isfinite(m.force[i]):
+            r["force"], r["force_se"] = m.force[i], m.force_se[i]
         if m.difference[i] is not None:
             fn = f"{prefix}difference_{id_}.npy"
             np.save(out / fn, np.asarray(m.difference[i], np.float32))
             r["difference"] = fn
+        if m.difference_se[i] is not None:
+            fn = f"{prefix}difference_se_{id_}.npy"
+            np.save(out / fn, np.asarray(m.difference_se[i], np.float32))
+            r["difference_se"] = fn
         rows.append(r)
     df = pd.DataFrame(rows)
     tp = out / ("measured.parquet" if fmt == "parquet" else "measured.csv")

@@ -21,7 +21,7 @@ from elastimap.errors import UserError
 
 from . import effects as fx
 from .measured import SEALED, Measured
-from .simulate import Simulator, base_params, measure
+from .simulate import Simulator, base_params
 
 DEFAULT_N = 12
 
@@ -42,7 +42,11 @@ def phantom_design(n: int = DEFAULT_N, seed: int = 0) -> np.ndarray:
 
 def synthesize(dhe: np.ndarray, effects: list[tuple[fx.Effect, float]], sim: Simulator, sensor=None,
                settings=None, frames: int = 10, seed: int = 0, ids: list[str] | None = None,
-               noise_scale: float = 1.0) -> tuple[Measured, dict]:
+               noise_scale: float = 1.0, disc: dict | None = None,
+               force_noise: float | None = None) -> tuple[Measured, dict]:
+    """``disc`` overrides fields of the solver's ``Discretisation`` (e.g. ``{"interface": "contact"}``)
+    so that the data come from another formulation than the diagnosis; ``force_noise`` (relative
+    standard error) adds a measured plate force."""
     from elastimap.camera.features import FeatureSettings
     from elastimap.camera.optics import SensorModel
 
@@ -52,6 +56,9 @@ def synthesize(dhe: np.ndarray, effects: list[tuple[fx.Effect, float]], sim: Sim
     plist = []
     for row in dhe:
         p = base_params(sim.mesh, *row)
+        if disc:
+            import dataclasses
+            p = p.replace(disc=dataclasses.replace(p.disc, **disc))
         for e, m in effects:
             if e.stage == "mechanics":
                 p = e.apply_params(p, m)
@@ -60,22 +67,35 @@ def synthesize(dhe: np.ndarray, effects: list[tuple[fx.Effect, float]], sim: Sim
         plist.append(p)
     recs = sim.run(plist)
     rng = np.random.default_rng(seed)
-    y, se, D = [], [], []
+    from elastimap.camera.optics import render_pair
+
+    from .views import from_frames
+
+    y, se, D, Dse = [], [], [], []
     bad = [i for i, r in enumerate(recs) if not np.isfinite(r.O1)]
     if bad:
         raise UserError("synth", f"the forward solve failed for phantom(s) {bad} with these effects")
     for r in recs:
-        v, s, d = measure(r, true_sensor, settings, frames, rng)
-        y.append(v)
-        se.append(s)
-        D.append(d)
+        L, B = render_pair(true_sensor, r.image_raw, r.image, r.pixel, frames, rng)
+        v = from_frames(L, B, true_sensor, settings)
+        y.append(v["values"])
+        se.append(v["se"])
+        D.append(v["difference"])
+        Dse.append(v["difference_se"])
     n = len(dhe)
+    force = np.full(n, np.nan)
+    force_se = np.zeros(n)
+    if force_noise:
+        F = np.array([r.force for r in recs])
+        force_se = force_noise * F
+        force = F + rng.normal(0.0, 1.0, n) * force_se
     ids = ids or [f"P{i + 1:02d}" for i in range(n)]
     label = ", ".join(f"{e.name}={m:g}" for e, m in effects) or "none"
+    form = f"mesh {sim.mesh}" + "".join(f", {k} {v}" for k, v in (disc or {}).items())
     meas = Measured(ids, np.asarray(dhe, float), np.asarray(y), np.asarray(se), np.full(n, np.nan), D,
                     sensor.to_dict(), settings.to_dict(), sim.mesh, True,
-                    f"SYNTHETIC measured data: baseline model + sealed unmodelled effect(s), {frames} frames, "
-                    f"noise_scale {noise_scale:g}, seed {seed}, backend {sim.backend}", "synthetic")
+                    f"SYNTHETIC measured data: forward model ({form}) + sealed unmodelled effect(s), {frames} frames, "
+                    f"noise_scale {noise_scale:g}, seed {seed}, backend {sim.backend}", "synthetic", Dse, force, force_se)
     truth = {"effects": [{"name": e.name, "magnitude": float(m), "unit": e.unit} for e, m in effects],
              "label": label}
     return meas, truth
