@@ -1,8 +1,8 @@
 """``elastimap gap`` (alias ``gap``): synth, diagnose, selftest, effects.
 
     elastimap gap synth --out M --effect friction=0.3 [--mesh tiny] [--n 12]
-    elastimap gap diagnose --measured M --out DIR [--effects a,b] [--no-inverse]
-    elastimap gap selftest --trials 20 --out DIR [--mesh tiny]
+    elastimap gap diagnose --measured M --out DIR [--effects a,b] [--no-inverse] [--error-mesh default]
+    elastimap gap selftest --trials 30 --out DIR [--mesh tiny] [--data-mesh coarse] [--data-interface contact]
     elastimap gap effects
 
 User errors print one ``error:`` line and exit 2.  Solves are cached under ``--cache``
@@ -70,8 +70,11 @@ def effects_cmd():
 @click.option("--noise-scale", type=float, default=1.0, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--format", "fmt", type=click.Choice(["csv", "parquet"]), default="csv", show_default=True)
+@click.option("--interface", type=click.Choice(["tied", "contact", "bonded"]), default="tied", show_default=True,
+              help="probe-tissue interface of the data's forward model")
+@click.option("--force-noise", type=float, default=None, help="also 'measure' the plate force with this relative error")
 @common
-def synth_cmd(out, effect, phantoms, n, mesh, frames, noise_scale, seed, fmt, cache, backend, jobs, quiet):
+def synth_cmd(out, effect, phantoms, n, mesh, frames, noise_scale, seed, fmt, interface, force_noise, cache, backend, jobs, quiet):
     """Generate a SYNTHETIC measured dataset (truth sealed in SEALED_truth.json)."""
     import numpy as np
 
@@ -92,7 +95,10 @@ def synth_cmd(out, effect, phantoms, n, mesh, frames, noise_scale, seed, fmt, ca
             raise UserError("n", "need at least 4 phantoms")
         dhe = synth.phantom_design(n, seed)
     sim = _sim(cache or default_cache(), mesh, backend, jobs, quiet)
-    meas, truth = synth.synthesize(dhe, effs, sim, frames=frames, seed=seed, ids=ids, noise_scale=noise_scale)
+    if force_noise is not None and not force_noise > 0:
+        raise UserError("force-noise", "must be > 0")
+    meas, truth = synth.synthesize(dhe, effs, sim, frames=frames, seed=seed, ids=ids, noise_scale=noise_scale,
+                                   disc={"interface": interface} if interface != "tied" else None, force_noise=force_noise)
     tp = measured.write(meas, out, fmt)
     synth.seal(truth, out)
     click.echo(f"SYNTHETIC measured data: {tp} ({meas.n} phantoms, truth sealed in {Path(out) / measured.SEALED})")
@@ -106,13 +112,14 @@ def synth_cmd(out, effect, phantoms, n, mesh, frames, noise_scale, seed, fmt, ca
 @mesh_option(default=None, help="override the sidecar's mesh level")
 @click.option("--no-inverse", is_flag=True, help="skip the (d, h, E) retraining step")
 @click.option("--n-train", type=int, default=40, show_default=True, help="simulations per inverse training set")
-@click.option("--model-floor", type=float, default=0.005, show_default=True)
-@click.option("--explain-min", type=float, default=0.7, show_default=True)
-@click.option("--resid-max", type=float, default=4.0, show_default=True)
+@click.option("--error-mesh", default=None,
+              help="finer mesh level for the measured model error (default: the next finer level; 'none': assumed floor)")
+@click.option("--model-floor", type=float, default=0.005, show_default=True, help="relative model error used only with --error-mesh none")
+@click.option("--alpha", type=float, default=0.01, show_default=True, help="level of the calibrated chi-square tests")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="print the summary as JSON")
 @common
-def diagnose_cmd(mpath, out, effects, mesh, no_inverse, n_train, model_floor, explain_min, resid_max, seed,
+def diagnose_cmd(mpath, out, effects, mesh, no_inverse, n_train, error_mesh, model_floor, alpha, seed,
                  as_json, cache, backend, jobs, quiet):
     """Diagnose the sim-to-real gap of a measured dataset: report.md, PNG figures, diagnosis.json."""
     from . import measured, report
@@ -120,44 +127,73 @@ def diagnose_cmd(mpath, out, effects, mesh, no_inverse, n_train, model_floor, ex
 
     meas = measured.load(mpath)
     cands = fx.parse_list(effects)
-    st = Settings(model_floor=model_floor, explain_min=explain_min, resid_max=resid_max, seed=seed,
-                  inverse=not no_inverse, n_train=n_train)
+    if not 0 < alpha < 0.5:
+        raise UserError("alpha", "must be in (0, 0.5)")
+    st = Settings(model_floor=model_floor, alpha=alpha, seed=seed, inverse=not no_inverse, n_train=n_train)
     sim = _sim(cache or default_cache(), mesh or meas.mesh, backend, jobs, quiet)
-    res = diagnose(meas, cands, sim, st)
+    fine = error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet)
+    res = diagnose(meas, cands, sim, st, fine)
     doc = report.write(res, out)
     s = doc["summary"]
     if as_json:
         click.echo(json.dumps(report._jsonable(s), indent=2))
     else:
-        click.echo(f"{'SYNTHETIC data: ' if meas.synthetic else ''}outcome: {s['outcome']}"
-                   + (f"; winner {s['winner']} = {s['magnitude']:.4g} {s['unit']} "
-                      f"[{s['magnitude_ci'][0]:.4g}, {s['magnitude_ci'][1]:.4g}], runner-up {s['runner_up']}"
-                      if s["winner"] else f"; best candidate {s.get('best_candidate')}"))
+        click.echo(f"{'SYNTHETIC data: ' if meas.synthetic else ''}{report.verdict_line(res)}")
         click.echo(f"report: {Path(out) / 'report.md'}")
     return 0
 
 
+def error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet):
+    """The simulator of the finer mesh level for the model error (None: assumed floor)."""
+    from .diagnose import FINER
+
+    level = FINER.get(sim.mesh) if error_mesh is None else (None if error_mesh == "none" else error_mesh)
+    if level is None:
+        return None
+    if level not in FINER or level == sim.mesh:
+        raise UserError("error-mesh", f"must be a mesh level other than {sim.mesh} (tiny, coarse, default, fine) or none")
+    return _sim(cache or default_cache(), level, backend, jobs, quiet)
+
+
 @main_group.command("selftest", context_settings=CONTEXT_SETTINGS)
-@click.option("--trials", type=int, default=20, show_default=True)
+@click.option("--trials", type=int, default=30, show_default=True)
 @click.option("--out", type=click.Path(file_okay=False), default=None)
-@mesh_option(default="tiny")
-@click.option("--effects", default=None)
+@mesh_option(default="tiny", help="the diagnosis's mesh level")
+@click.option("--error-mesh", default=None, help="model-error mesh level (default: next finer; 'none': assumed floor)")
+@click.option("--data-mesh", default=None, help="mesh level of the measured data (default: the next finer level)")
+@click.option("--data-interface", type=click.Choice(["tied", "contact", "bonded"]), default="contact", show_default=True,
+              help="probe-tissue interface of the measured data (the diagnosis uses tied)")
+@click.option("--effects", default=None, help="candidates (default: all defaults but the outside ones)")
+@click.option("--outside", default="aspect,skin,led_imbalance,stray_light", show_default=True,
+              help="effects drawn for out-of-library trials (never candidates)")
 @click.option("--n-phantoms", type=int, default=12, show_default=True)
 @click.option("--frames", type=int, default=10, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--inverse", is_flag=True, help="also retrain the inverse in every trial (slow)")
-@click.option("--no-withheld", is_flag=True, help="skip the true-effect-removed mode")
 @common
-def selftest_cmd(trials, out, mesh, effects, n_phantoms, frames, seed, inverse, no_withheld, cache, backend, jobs, quiet):
-    """Blind check: random sealed effect + magnitude, diagnose, score (SYNTHETIC)."""
+def selftest_cmd(trials, out, mesh, error_mesh, data_mesh, data_interface, effects, outside, n_phantoms, frames, seed,
+                 inverse, cache, backend, jobs, quiet):
+    """Blind benchmark with model-form error: no-effect, in-library and out-of-library trials (SYNTHETIC)."""
     from . import selftest
-    from .diagnose import Settings
+    from .diagnose import FINER, Settings
 
     if trials < 1:
         raise UserError("trials", "must be >= 1")
+    if out and Path(out).exists() and any(Path(out).iterdir()):
+        raise UserError("out", f"{out} exists and is not empty (not overwritten)")
+    outs = fx.parse_list(outside)
+    cands = selftest.default_candidates([e.name for e in outs]) if effects is None else fx.parse_list(effects)
+    if {e.name for e in cands} & {e.name for e in outs}:
+        raise UserError("outside", "an outside effect is also a candidate")
     sim = _sim(cache or default_cache(), mesh, backend, jobs, quiet)
-    res = selftest.run(trials, sim, fx.parse_list(effects), n_phantoms, frames, seed, Settings(inverse=inverse),
-                       not no_withheld, log=None if quiet else lambda s: click.echo(s, err=True))
+    fine = error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet)
+    dm = data_mesh or FINER.get(mesh) or mesh
+    if dm not in FINER:
+        raise UserError("data-mesh", "must be tiny, coarse, default or fine")
+    sim_data = sim if dm == mesh else _sim(cache or default_cache(), dm, backend, jobs, quiet)
+    res = selftest.run(trials, sim, sim_data, cands, outs, fine, n_phantoms, frames, seed, Settings(inverse=inverse),
+                       data_disc={"interface": data_interface} if data_interface != "tied" else None,
+                       log=None if quiet else lambda s: click.echo(s, err=True))
     md = selftest.markdown(res)
     if out:
         Path(out).mkdir(parents=True, exist_ok=True)

@@ -1,7 +1,10 @@
-"""Write a diagnosis as Markdown (``report.md``), PNG figures and JSON (``diagnosis.json``)."""
+"""Write a diagnosis as Markdown (``report.md``), a self-contained HTML page (``report.html``,
+figures embedded), PNG figures and JSON (``diagnosis.json``)."""
 
 from __future__ import annotations
 
+import base64
+import html
 import json
 import math
 from pathlib import Path
@@ -17,7 +20,7 @@ def _jsonable(o):
     if isinstance(o, (list, tuple)):
         return [_jsonable(v) for v in o]
     if isinstance(o, np.ndarray):
-        return o.tolist() if o.ndim <= 2 and o.size <= 200 else f"<array {o.shape}>"
+        return o.tolist() if o.ndim <= 2 and o.size <= 400 else f"<array {o.shape}>"
     if isinstance(o, (np.floating, float)):
         return None if not math.isfinite(float(o)) else float(o)
     if isinstance(o, (np.integer,)):
@@ -27,30 +30,63 @@ def _jsonable(o):
     return o
 
 
+def _mag(r: dict) -> str:
+    return "; ".join(f"{n} {m:.4g} {u} [{c[0]:.4g}, {c[1]:.4g}]"
+                     for n, m, u, c in zip(r["members"], r["magnitude"], r["units"], r["magnitude_ci"]))
+
+
 def summary(res: dict) -> dict:
     """The small JSON-ready verdict of a diagnosis."""
     ev = res["evaluation"]
+    rows = {r["effect"]: r for r in ev["ranking"]}
     top = ev["ranking"][0] if ev["ranking"] else None
-    out = {"outcome": ev["outcome"], "winner": ev["winner"], "best_candidate": ev["best"],
-           "runner_up": ev["runner_up"], "gap_significant": ev["significant"],
-           "reduced_chi2_baseline": ev["reduced_chi2_baseline"]}
+    out = {"outcome": ev["outcome"], "winner": ev["winner"], "ambiguous_set": ev["ambiguous_set"],
+           "best_candidate": ev["best"], "runner_up": ev["runner_up"], "gap_significant": ev["significant"],
+           "chi2_baseline": ev["chi2_baseline"], "chi2_threshold": ev["chi2_threshold"], "n_terms": ev["n_terms"],
+           "reduced_chi2_baseline": ev["reduced_chi2_baseline"], "views": ev["views"],
+           "model_error": res["model_error"]["kind"]}
     if top:
         out.update(magnitude=top["magnitude"], magnitude_ci=top["magnitude_ci"], unit=top["unit"],
-                   explained_fraction_cv=top["explained_fraction"], reduced_chi2_cv=top["reduced_chi2_cv_with_interpolation"])
+                   explained_fraction_cv=top["explained_fraction"], reduced_chi2_cv=top["reduced_chi2_cv"])
+    out["set_magnitudes"] = {n: {"magnitude": rows[n]["magnitude"], "ci": rows[n]["magnitude_ci"],
+                                 "members": rows[n]["members"]} for n in ev["ambiguous_set"]}
+    if res.get("proposal"):
+        out["proposal"] = res["proposal"]["recommendation"]
     if res.get("shrink_features"):
-        out["feature_gap_shrink_withheld"] = res["shrink_features"]["shrink"]
+        out["gap_shrink_withheld"] = res["shrink_features"]["shrink"]
     if res.get("shrink_inverse"):
         out["dhe_error_shrink_withheld"] = res["shrink_inverse"]["shrink"]
     return out
+
+
+def verdict_line(res: dict) -> str:
+    ev = res["evaluation"]
+    rows = {r["effect"]: r for r in ev["ranking"]}
+    o = ev["outcome"]
+    if o == "no significant gap":
+        return (f"outcome: no significant gap beyond the model's own tolerance (χ² {ev['chi2_baseline']:.4g} ≤ "
+                f"{ev['chi2_threshold']:.4g} at α = {ev['alpha']:g})")
+    if o == "explained":
+        return f"outcome: explained by {ev['winner']}: {_mag(rows[ev['winner']])}"
+    if o == "ambiguous":
+        s = "; ".join(f"{n}: {_mag(rows[n])}" for n in ev["ambiguous_set"])
+        p = res.get("proposal") or {}
+        rec = p.get("recommendation")
+        tail = (f"; to separate them: {rec['measurement']} (≥ {rec['min_pair_separation_noise_units']:.3g} noise units)"
+                if rec else "")
+        return f"outcome: ambiguous, cannot be told apart with these phantoms: {s}{tail}"
+    return f"outcome: unexplained by the candidates (best {ev['best']}, held-out reduced χ² {ev['ranking'][0]['reduced_chi2_cv']:.3g})"
 
 
 def write(res: dict, out: str | Path) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     figs = _figures(res, out)
-    doc = {"kind": "elastimap.gap.diagnosis", "version": 1, "summary": summary(res), **res, "figures": figs}
+    doc = {"kind": "elastimap.gap.diagnosis", "version": 2, "summary": summary(res), **res, "figures": figs}
     (out / "diagnosis.json").write_text(json.dumps(_jsonable(doc), indent=2) + "\n")
-    (out / "report.md").write_text(markdown(res, figs))
+    md = markdown(res, figs)
+    (out / "report.md").write_text(md)
+    (out / "report.html").write_text(to_html(md, out))
     return doc
 
 
@@ -59,46 +95,68 @@ def _pct(x) -> str:
 
 
 def markdown(res: dict, figs: list[str]) -> str:
-    ev, wh, m = res["evaluation"], res["where"], res["measured"]
+    ev, wh, m, me = res["evaluation"], res["where"], res["measured"], res["model_error"]
     syn = "SYNTHETIC " if m["synthetic"] else ""
     L = [f"# {syn}sim-to-real gap diagnosis", ""]
     if m["synthetic"]:
-        L += ["> **SYNTHETIC measured data** — generated by `gap synth` from the forward model plus sealed "
+        L += ["> **SYNTHETIC measured data** — generated by `gap synth` from a forward model plus sealed "
               "effects; not laboratory measurements.", ""]
+    sm = res["simulator"]
     L += [f"Measured data: `{m['source']}` ({m['n']} phantoms; {m['description'] or 'no description'}).  "
-          f"Forward model mesh `{m['mesh']}`, backend `{res['simulator']['backend']}`; "
-          f"{res['simulator']['solved']} solves run, {res['simulator']['hits']} from the cache.", ""]
-    s = summary(res)
-    L += ["## Verdict", ""]
-    if ev["outcome"] == "no significant gap":
-        L.append(f"**No significant gap**: baseline reduced χ² = {ev['reduced_chi2_baseline']:.3g} "
-                 f"(99.9 % noise threshold {ev['chi2_threshold'] / (3 * m['n']):.3g}).")
-    elif ev["outcome"] == "explained":
-        L.append(f"**Winner: `{s['winner']}`**, fitted magnitude {s['magnitude']:.4g} {s['unit']} "
-                 f"(95 % bootstrap interval {s['magnitude_ci'][0]:.4g} – {s['magnitude_ci'][1]:.4g}); it explains "
-                 f"{100 * s['explained_fraction_cv']:.1f} % of the gap on held-out phantoms (held-out reduced χ² "
-                 f"{s['reduced_chi2_cv']:.3g}).  Runner-up: `{s['runner_up']}`.")
-    else:
-        L.append(f"**No candidate explains the gap.**  The best, `{s['best_candidate']}` at {s['magnitude']:.4g} "
-                 f"{s['unit']}, explains {100 * s['explained_fraction_cv']:.1f} % held-out and leaves reduced χ² "
-                 f"{s['reduced_chi2_cv']:.3g} (needs ≥ {100 * res['settings']['explain_min']:.0f} % and ≤ "
-                 f"{res['settings']['resid_max']:g}).  The gap is unexplained by the effects tested.")
+          f"Forward model mesh `{m['mesh']}`, backend `{sm['backend']}`; {sm['solved_this_diagnosis']} solves run "
+          f"on `{m['mesh']}`" + (f" and {sm['fine_solved']} on `{sm['fine_mesh']}`" if sm.get("fine_mesh") else "")
+          + f", {sm['hits']} from the cache; {res['seconds']:.0f} s.", "",
+          f"Views compared: **{' + '.join(ev['views'])}** (verdict); available: {', '.join(m['views_available'])}.  "
+          f"Model error: **{me['kind']}** — {me['note']}.", ""]
+    L += ["## Verdict", "", f"**{verdict_line(res)}**", ""]
+    L.append(f"Baseline χ² = {ev['chi2_baseline']:.4g} over N = {ev['n_terms']} terms (reduced {ev['reduced_chi2_baseline']:.3g}, "
+             f"p = {ev['p_value_baseline']:.3g}); the calibrated threshold χ²_N(1 − α) at α = {ev['alpha']:g} is "
+             f"{ev['chi2_threshold']:.4g}.  A candidate passes when its held-out χ² is below the same threshold; "
+             f"candidates within Δscore ≤ {res['settings']['ambiguity_margin']:g} of a passing best cannot be told apart.")
+    if ev["outcome"] == "ambiguous" and res.get("proposal"):
+        p = res["proposal"]
+        cols = ["now (these phantoms)"] + (["plate force"] if p["force"] else []) + (["second depth"] if p["second_depth"] else [])
+        L += ["", "### Cannot be told apart with these phantoms — what would separate them", "",
+              "Predicted separation of each pair in noise units, sqrt(Σ ((f_a − f_b)/S)²):", "",
+              "| pair | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
+        for k, v in p["now"].items():
+            vals = [v] + ([p["force"][k]] if p["force"] else []) + ([p["second_depth"][k]] if p["second_depth"] else [])
+            L.append(f"| {k} | " + " | ".join(f"{x:.3g}" for x in vals) + " |")
+        L += [""]
+        if p.get("force_note") and p["force"]:
+            L.append(f"* plate force: {p['force_note']}.")
+        if p.get("second_depth_note"):
+            L.append(f"* second depth: {p['second_depth_note']}.")
+        for ph in p["phantoms"]:
+            sv = ph.get("solved_pair_separation")
+            L.append(f"* new phantom d {ph['d']:.3g} mm, h {ph['h']:.3g} mm, E {ph['E']:.3g} kPa: emulated min pair "
+                     f"separation {ph['predicted_min_pair_separation']:.3g}"
+                     + (f"; solved: {', '.join(f'{k} {v:.3g}' for k, v in sv.items())}" if sv else ""))
+        L += [f"* ({p['phantoms_note']}.)", "",
+              f"**Recommended next measurement: {p['recommendation']['measurement']}** "
+              f"(smallest pair separation {p['recommendation']['min_pair_separation_noise_units']:.3g} noise units)."]
     L += ["", "## Which effect (cross-validated ranking)", "",
-          "| rank | effect | stage | fitted magnitude | 95 % CI | nominal | held-out explained | held-out red. χ² | score |",
-          "|---|---|---|---|---|---|---|---|---|"]
+          "| rank | effect | k | fitted magnitude [95 % interval] | held-out χ² | red. | passes | Δscore | explained | χ² by view (held-out) |",
+          "|---|---|---|---|---|---|---|---|---|---|"]
     for k, r in enumerate(ev["ranking"], 1):
         edge = " (grid edge)" if r["at_grid_edge"] else ""
-        L.append(f"| {k} | {r['effect']} | {r['stage']} | {r['magnitude']:.4g} {r['unit']}{edge} | "
-                 f"{r['magnitude_ci'][0]:.4g} – {r['magnitude_ci'][1]:.4g} | {r['nominal']:g} | "
-                 f"{100 * r['explained_fraction']:.1f} % | {r['reduced_chi2_cv']:.3g} | {r['score']:.4g} |")
-    L += ["", f"Baseline χ² = {ev['ssr0']:.4g} over {3 * m['n']} terms (reduced {ev['reduced_chi2_baseline']:.4g}); "
-          f"score = held-out χ² + k ln(3n).", ""]
-    L += ["## Where the gap lies", "", "### By feature", "",
-          "| feature | mean relative gap | 95 % CI | RMS in noise units | noise floor (relative) |", "|---|---|---|---|---|"]
+        byv = ", ".join(f"{a} {b:.3g}" for a, b in r["chi2_cv_by_view"].items())
+        L.append(f"| {k} | {r['effect']} | {r['n_params']} | {_mag(r)}{edge} | {r['ssr_cv']:.4g} | {r['reduced_chi2_cv']:.3g} | "
+                 f"{'yes' if r['passes'] else 'no'} | {r['delta_score']:.3g} | {100 * r['explained_fraction']:.1f} % | {byv} |")
+    L += ["", "score = held-out χ² + k ln N; explained = 1 − held-out χ² / baseline χ² (descriptive only).", ""]
+    L += ["## Every view", "", "| view | terms | χ² noise only | χ² noise + model error | threshold | significant | "
+          "median model error (relative) | median noise (relative) |", "|---|---|---|---|---|---|---|---|"]
+    for k, b in ev["by_view"].items():
+        L.append(f"| {k} | {b['n_terms']} | {b['chi2_noise_only']:.4g} | {b['chi2']:.4g} | {b['threshold']:.4g} | "
+                 f"{'yes' if b['significant'] else 'no'} | {', '.join(f'{100 * x:.2g} %' for x in b['model_error_relative_median'])} | "
+                 f"{', '.join(f'{100 * x:.2g} %' for x in b['noise_relative_median'])} |")
+    L += ["", "## Where the gap lies", "", "### By feature", "",
+          "| feature | mean relative gap | 95 % CI | RMS (noise + model units) | noise (relative) | model error (relative) |",
+          "|---|---|---|---|---|---|"]
     for k in FEATURES:
         b = wh["by_feature"][k]
         L.append(f"| {k} | {_pct(b['relative_gap_mean'])} | {_pct(b['relative_gap_ci'][0])} – {_pct(b['relative_gap_ci'][1])} "
-                 f"| {b['noise_units_rms']:.3g} | {100 * b['noise_floor_relative']:.3g} % |")
+                 f"| {b['noise_units_rms']:.3g} | {100 * b['noise_floor_relative']:.3g} % | {100 * b['model_error_relative']:.3g} % |")
     L += ["", "### By region of (d, h, E)", "", "| parameter | range | n | RMS gap (noise units) | 95 % CI | rel. gap O1 / O2 / O3 |",
           "|---|---|---|---|---|---|"]
     for q, bins in wh["by_region"].items():
@@ -109,8 +167,8 @@ def markdown(res: dict, figs: list[str]) -> str:
     st = wh["stage"]
     L += ["", "### By pipeline stage", "",
           f"* optics-like share (what a per-feature affine camera recalibration absorbs, held-out): "
-          f"{100 * st['optics_like_affine_share']:.1f} %; mechanics-like remainder {100 * st['mechanics_like_share']:.1f} %.  "
-          "(An upper bound for optics: a mechanical effect that scales a feature uniformly also looks affine.)"]
+          f"{100 * st['optics_like_affine_share']:.1f} %; mechanics-like remainder {100 * st['mechanics_like_share']:.1f} % "
+          "(an upper bound for optics: a mechanical effect that scales a feature uniformly also looks affine)."]
     if st.get("best_mechanics_candidate"):
         L.append(f"* best mechanics effect: `{st['best_mechanics_candidate'][0]}` ({100 * st['best_mechanics_candidate'][1]:.1f} % explained); "
                  + (f"best optics effect: `{st['best_optics_candidate'][0]}` ({100 * st['best_optics_candidate'][1]:.1f} %)."
@@ -119,26 +177,34 @@ def markdown(res: dict, figs: list[str]) -> str:
         own, mea = st["inverse_own_error"], st["inverse_error_on_measured"]
         L.append("* inverse stage (mean relative error on the withheld phantoms): own error on noise-free baseline "
                  f"simulations d {100 * own['d']:.1f} %, h {100 * own['h']:.1f} %, E {100 * own['E']:.1f} %; on the measured "
-                 f"features d {100 * mea['d']:.1f} %, h {100 * mea['h']:.1f} %, E {100 * mea['E']:.1f} % (the difference is the "
-                 "forward gap propagated through the inverse).")
+                 f"features d {100 * mea['d']:.1f} %, h {100 * mea['h']:.1f} %, E {100 * mea['E']:.1f} %.")
     if "image" in wh:
         im = wh["image"]
         L += ["", "### By image region", "",
-              f"Mean residual map of the camera difference images over {im['n']} phantoms (`residual_map.png`); "
-              f"pixel noise {im['noise_px']:.3g} FS (window outer ring); largest |mean residual| = "
-              f"{im['max_abs_mean_residual_noise_units']:.3g} × the noise of the mean."]
+              f"Mean residual (measured − baseline) of the camera difference images over {im['n']} phantoms "
+              f"(`residual_map.png`); noise band = noise of the mean ({im['noise_kind']}) and the model error per pixel; "
+              f"largest |mean residual| = {im['max_abs_z']:.3g} × its band.", "",
+              "| annulus (mm) | mean residual (FS) | band (FS) | noise units |" + (" after |" if "image_after" in wh else ""),
+              "|---|---|---|---|" + ("---|" if "image_after" in wh else "")]
+        after = {tuple(r["r_mm"]): r for r in wh["image_after"]["rings"]} if "image_after" in wh else {}
+        for r in im["rings"]:
+            a = after.get(tuple(r["r_mm"]))
+            L.append(f"| {r['r_mm'][0]:g} – {r['r_mm'][1]:g} | {r['mean_residual']:.3g} | {r['band']:.3g} | {r['noise_units']:+.2f} |"
+                     + (f" {a['noise_units']:+.2f} |" if a else ""))
+        if "image_after" in wh:
+            L.append(f"\n(after: residual once `{wh['image_after']['effect']}` at its fitted magnitude is added.)")
     L += ["", "## How far it shrinks (withheld phantoms)", ""]
     sf = res.get("shrink_features")
     if sf:
         L += [f"Magnitude refitted on {len(sf['fit_phantoms'])} phantoms, gap measured on {len(sf['withheld'])} withheld "
-              f"({', '.join(sf['withheld'])}) with `{ev['best']}` at {sf['magnitude']:.4g}:", "",
-              "| | RMS (noise units) | rel. gap O1 | O2 | O3 |", "|---|---|---|---|---|",
+              f"({', '.join(sf['withheld'])}) with `{ev['best']}` at {', '.join(f'{x:.4g}' for x in sf['magnitude'])}:", "",
+              f"| | RMS ({' + '.join(sf['views'])}, noise + model units) | rel. gap O1 | O2 | O3 |", "|---|---|---|---|---|",
               f"| before (baseline) | {sf['rms_noise_units_before']:.3g} | " + " | ".join(f"{100 * sf['relative_gap_before'][k]:.2f} %" for k in FEATURES) + " |",
               f"| after | {sf['rms_noise_units_after']:.3g} | " + " | ".join(f"{100 * sf['relative_gap_after'][k]:.2f} %" for k in FEATURES) + " |",
-              "", f"Feature-space gap shrink: **{100 * sf['shrink']:.1f} %**."]
+              "", f"Gap shrink: **{100 * sf['shrink']:.1f} %**."]
     si = res.get("shrink_inverse")
     if si:
-        L += ["", f"(d, h, E) after retraining the inverse (SCG ensemble, {si['n_train']} simulations each, camera features → d, h, E):", "",
+        L += ["", f"(d, h, E) after retraining the inverse (SCG ensemble, {si['n_train']} simulations each):", "",
               "| inverse | d | h | E | mean |", "|---|---|---|---|---|"]
         for name, lab in (("inverse_own", "baseline inverse on noise-free baseline sims (own error)"),
                           ("before", "baseline inverse on measured"), ("after", "retrained with the effect, on measured")):
@@ -147,9 +213,60 @@ def markdown(res: dict, figs: list[str]) -> str:
                      f"{100 * np.mean(list(e.values())):.1f} % |")
         L += ["", f"(d, h, E) error shrink: **{100 * si['shrink']:.1f} %**."]
     L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figs]
-    L += ["", "Method: docs/gap.md.  Model floor ρ = "
-          f"{100 * res['settings']['model_floor']:.2g} % of each simulated feature is added in quadrature to the noise floor.", ""]
+    L += ["", "Method and equations: docs/gap.md.", ""]
     return "\n".join(L)
+
+
+def to_html(md: str, folder: Path) -> str:
+    """A plain self-contained HTML page from the Markdown (tables, headings, lists, images inlined)."""
+    import re
+
+    def inline(t: str) -> str:
+        t = html.escape(t)
+        t = re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", t)
+        t = re.sub(r"`(.+?)`", r"<code>\1</code>", t)
+        return t
+
+    out, table = [], False
+    for line in md.splitlines():
+        if line.startswith("|"):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if all(set(c) <= set("-: ") for c in cells):
+                continue
+            if not table:
+                out.append("<table>")
+                table = True
+                out.append("<tr>" + "".join(f"<th>{inline(c)}</th>" for c in cells) + "</tr>")
+            else:
+                out.append("<tr>" + "".join(f"<td>{inline(c)}</td>" for c in cells) + "</tr>")
+            continue
+        if table:
+            out.append("</table>")
+            table = False
+        m = re.match(r"!\[(.*?)\]\((.*?)\)", line)
+        if m:
+            p = folder / m.group(2)
+            if p.exists():
+                b64 = base64.b64encode(p.read_bytes()).decode()
+                out.append(f'<p><img alt="{html.escape(m.group(1))}" src="data:image/png;base64,{b64}" style="max-width:100%"></p>')
+            continue
+        h = re.match(r"(#+) (.*)", line)
+        if h:
+            n = len(h.group(1))
+            out.append(f"<h{n}>{inline(h.group(2))}</h{n}>")
+        elif line.startswith("* "):
+            out.append(f"<ul><li>{inline(line[2:])}</li></ul>")
+        elif line.startswith("> "):
+            out.append(f"<blockquote>{inline(line[2:])}</blockquote>")
+        elif line.strip():
+            out.append(f"<p>{inline(line)}</p>")
+    if table:
+        out.append("</table>")
+    style = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;line-height:1.4}"
+             "table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #bbb;padding:2px 6px;font-size:90%}"
+             "blockquote{background:#fee;padding:.5em 1em;border-left:4px solid #c00}")
+    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>gap diagnosis</title><style>{style}</style>"
+            f"</head><body>{''.join(out)}</body></html>\n")
 
 
 def _figures(res: dict, out: Path) -> list[str]:
@@ -162,51 +279,94 @@ def _figures(res: dict, out: Path) -> list[str]:
     ev, wh = res["evaluation"], res["where"]
     dhe = np.asarray(res["measured"]["dhe"])
     rel = wh["relative_gap"]
+    me = res["_model_error"]
+    y0 = res["_V0"]["features"]
+    yv, se = res["_views"]["features"]
+    band = np.sqrt(se ** 2 + me["sigma"]["features"] ** 2) / np.abs(y0)
     fig, axes = plt.subplots(3, 3, figsize=(11, 9))
     for q, name in enumerate(("d (mm)", "h (mm)", "E (kPa)")):
         for j, k in enumerate(FEATURES):
             ax = axes[j, q]
-            ax.scatter(dhe[:, q], 100 * rel[:, j], s=18)
+            ax.errorbar(dhe[:, q], 100 * rel[:, j], yerr=100 * band[:, j], fmt="o", ms=4, capsize=2,
+                        label="gap ± (noise + model error)")
             ax.axhline(0, color="k", lw=0.5)
             ax.set_xlabel(name)
             ax.set_ylabel(f"{k} gap (%)")
+    axes[0, 0].legend(fontsize=7)
     fig.suptitle(f"{syn}measured − simulated (baseline), relative, per phantom")
     fig.tight_layout()
-    fig.savefig(out / "gap_by_region.png", dpi=90)
+    fig.savefig(out / "gap_by_region.png", dpi=80)
     plt.close(fig)
     figs.append("gap_by_region.png")
 
     rows = ev["ranking"]
-    fig, ax = plt.subplots(figsize=(7, 0.45 * len(rows) + 1.5))
+    fig, ax = plt.subplots(figsize=(7, 0.32 * len(rows) + 1.6))
     names = [r["effect"] for r in rows][::-1]
-    ax.barh(names, [100 * r["explained_fraction"] for r in rows][::-1],
-            color=["C2" if r["effect"] == ev["winner"] else "C0" for r in rows][::-1])
-    ax.axvline(100 * res["settings"]["explain_min"], color="r", ls="--", lw=1, label="explain threshold")
-    ax.set_xlabel("held-out explained fraction of the gap (%)")
-    ax.set_xlim(min(0, min(100 * r["explained_fraction"] for r in rows) - 5) if rows else 0, 105)
+    setn = set(ev["ambiguous_set"])
+    ax.barh(names, [r["ssr_cv"] for r in rows][::-1], color=["C2" if r["effect"] in setn else "C0" for r in rows][::-1])
+    ax.axvline(ev["chi2_threshold"], color="r", ls="--", lw=1, label=f"χ²_N(1−α), α={ev['alpha']:g}")
+    ax.axvline(ev["chi2_baseline"], color="k", ls=":", lw=1, label="baseline")
+    ax.set_xscale("log")
+    ax.set_xlabel("held-out χ² (noise + model error)")
     ax.legend(fontsize=8)
-    ax.set_title(f"{syn}candidate effects (cross-validated)")
+    ax.set_title(f"{syn}candidates (green: reported set)")
     fig.tight_layout()
-    fig.savefig(out / "candidates.png", dpi=90)
+    fig.savefig(out / "candidates.png", dpi=80)
     plt.close(fig)
     figs.append("candidates.png")
 
+    if "profile" in res["_views"]:
+        P, Pse = res["_views"]["profile"]
+        P0 = res["_V0"]["profile"]
+        Pme = me["sigma"]["profile"]
+        from .views import EDGES
+        rc = 0.5 * (np.asarray(EDGES[:-1]) + np.asarray(EDGES[1:]))
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        S = np.sqrt(Pse ** 2 + Pme ** 2)
+        z = (P - P0) / S
+        for i in range(len(P)):
+            axes[0].plot(rc, P[i], "o-", ms=3, lw=0.8, color=f"C{i % 10}")
+            axes[0].plot(rc, P0[i], "--", lw=0.8, color=f"C{i % 10}")
+            axes[1].plot(rc, z[i], "o-", ms=3, lw=0.6, color=f"C{i % 10}", alpha=0.7)
+        best = next((r for r in rows if r["effect"] == ev["best"]), None)
+        if best is not None and "profile" in ev["views"]:
+            f = best["_model"].predict(best["_theta"], ["profile"])
+            za = (P - f) / np.sqrt(Pse ** 2 + Pme ** 2)
+            axes[1].plot(rc, np.sqrt(np.mean(za ** 2, axis=0)), "k-", lw=2, label=f"RMS after {ev['best']}")
+            axes[1].plot(rc, np.sqrt(np.mean(z ** 2, axis=0)), "k:", lw=2, label="RMS baseline")
+        axes[1].axhspan(-1, 1, color="0.85", label="±1 (noise + model error)")
+        axes[0].set_xlabel("r (mm)")
+        axes[0].set_ylabel("radial profile (FS): measured o, model --")
+        axes[1].set_xlabel("r (mm)")
+        axes[1].set_ylabel("(measured − baseline) / band")
+        axes[1].legend(fontsize=7)
+        fig.suptitle(f"{syn}radial profile of the camera difference images")
+        fig.tight_layout()
+        fig.savefig(out / "profile.png", dpi=80)
+        plt.close(fig)
+        figs.append("profile.png")
+
     if "image" in wh:
         im = wh["image"]
-        panels = [("mean measured", im["mean_measured"]), ("mean simulated (baseline)", im["mean_simulated"]),
-                  ("mean residual", im["mean_residual"])]
-        if "mean_residual_after" in im:
-            panels.append((f"residual after `{ev['best']}`", im["mean_residual_after"]))
-        fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 3.8))
+        panels = [("mean measured", im["mean_measured"], "FS"), ("mean simulated (baseline)", im["mean_simulated"], "FS"),
+                  ("mean residual", im["mean_residual"], "FS"), ("residual / noise band", im["z"], "band units")]
+        if "image_after" in wh:
+            panels.append((f"after `{wh['image_after']['effect']}` / band", wh["image_after"]["z"], "band units"))
+        fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.6))
         vr = max(float(np.max(np.abs(im["mean_residual"]))), 1e-12)
-        for ax, (t, a) in zip(axes, panels):
-            kw = dict(cmap="RdBu_r", vmin=-vr, vmax=vr) if "residual" in t else dict(cmap="viridis")
+        for ax, (t, a, u) in zip(axes, panels):
+            if "band" in t:
+                kw = dict(cmap="RdBu_r", vmin=-3, vmax=3)
+            elif "residual" in t:
+                kw = dict(cmap="RdBu_r", vmin=-vr, vmax=vr)
+            else:
+                kw = dict(cmap="viridis")
             h = ax.imshow(a, origin="lower", **kw)
             ax.set_title(t, fontsize=9)
-            fig.colorbar(h, ax=ax, shrink=0.8, label="FS")
-        fig.suptitle(f"{syn}camera difference images")
+            fig.colorbar(h, ax=ax, shrink=0.8, label=u)
+        fig.suptitle(f"{syn}camera difference images (band: noise of the mean + model error; ±3 shown)")
         fig.tight_layout()
-        fig.savefig(out / "residual_map.png", dpi=90)
+        fig.savefig(out / "residual_map.png", dpi=80)
         plt.close(fig)
         figs.append("residual_map.png")
     return figs
