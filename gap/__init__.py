@@ -1,8 +1,11 @@
-"""Sim-to-real gap diagnosis (issue 6): where the gap lies, which unmodelled effect causes it,
-how far it shrinks once the effect is added, and a blind self-test on withheld effects.
+"""Sim-to-real gap diagnosis: is there a gap beyond the model's own tolerance, which unmodelled
+effect(s) explain it, where it lies, how far it shrinks, which measurement would separate
+look-alike effects, and a blind benchmark on data from another discretisation.
 
-Modules: :mod:`elastimap.gap.effects` (effects library), :mod:`elastimap.gap.simulate` (cached forward solves and
-camera features), :mod:`elastimap.gap.measured` (measured-data format), :mod:`elastimap.gap.synth` (SYNTHETIC
-measured data), :mod:`elastimap.gap.diagnose` (the analysis), :mod:`elastimap.gap.report` (Markdown/PNG/JSON),
-:mod:`elastimap.gap.selftest` (blind check), :mod:`elastimap.gap.cli`.  See docs/gap.md.
+Modules: :mod:`elastimap.gap.effects` (effects library and families), :mod:`elastimap.gap.simulate`
+(cached forward solves and camera features), :mod:`elastimap.gap.views` (features, image profile,
+force; noise from frames), :mod:`elastimap.gap.measured` (measured-data format),
+:mod:`elastimap.gap.synth` (SYNTHETIC measured data), :mod:`elastimap.gap.diagnose` (the analysis),
+:mod:`elastimap.gap.report` (Markdown/HTML/PNG/JSON), :mod:`elastimap.gap.selftest` (blind
+benchmark), :mod:`elastimap.gap.cli`.  See docs/gap.md.
 """

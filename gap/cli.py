@@ -56,8 +56,10 @@ def main_group():
 def effects_cmd():
     """List the effects library."""
     for e in fx.EFFECTS.values():
-        click.echo(f"{e.name:13s} {e.stage:9s} nominal {e.nominal:g} {e.unit}; grid {list(e.grid)}; "
+        click.echo(f"{e.name:14s} {e.stage:9s} nominal {e.nominal:g} {e.unit}; grid {list(e.grid)}; "
                    f"blind {list(e.blind)}  {e.description}")
+    for f in fx.FAMILIES.values():
+        click.echo(f"{f.name:14s} family    k = {f.n_params}: {', '.join(f.members)}  {f.description}")
 
 
 @main_group.command("synth", context_settings=CONTEXT_SETTINGS)
