@@ -53,6 +53,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 from scipy.interpolate import PchipInterpolator
+from scipy.optimize import brentq, minimize_scalar
 
 from elastimap.errors import UserError
 
@@ -299,16 +300,46 @@ class Single:
         span = max(float(self.grid.max() - self.grid.min()), 1e-300)
         return 1e-9 * ((self.dense - self.effect.nominal) / span) ** 2
 
+    def _chi(self, m, y, S, idx) -> float:
+        return float(chi2(y[idx], self.predict(m)[idx], S[idx]).sum())
+
     def fit(self, y, S, idx) -> np.ndarray:
+        """Dense-grid argmin, then refined between the neighbouring dense points (bounded Brent):
+        with precise data the dense spacing alone is coarser than the fit's resolution."""
         tot = chi2(y[idx], self.dense_Y[:, idx], S[idx]).sum(axis=1)
-        return np.array([self.dense[int(np.argmin(tot + self.tie() * (1 + tot.min())))]])
+        k = int(np.argmin(tot + self.tie() * (1 + tot.min())))
+        if len(self.dense) < 3:
+            return np.array([self.dense[k]])
+        lo, hi = self.dense[max(k - 1, 0)], self.dense[min(k + 1, len(self.dense) - 1)]
+        r = minimize_scalar(lambda m: self._chi(m, y, S, idx), bounds=(lo, hi), method="bounded",
+                            options={"xatol": 1e-7 * (self.grid.max() - self.grid.min())})
+        m = float(r.x) if r.fun < tot[k] else float(self.dense[k])
+        return np.array([m])
 
     def interval(self, y, S, th) -> list[tuple[float, float]]:
-        tot = chi2(y, self.dense_Y, S).sum(axis=1)
+        """{m : χ²(m) − χ²(m̂) ≤ 3.84 c}: the crossings located on the dense grid, then refined (Brent)."""
+        m0 = float(th[0])
+        idx = np.arange(y.shape[0])
+        f0 = self._chi(m0, y, S, idx)
         N = y.size
-        c = max(1.0, float(tot.min()) / max(N - 1, 1))
-        ok = self.dense[tot - tot.min() <= 3.84 * c]
-        return [(float(ok.min()), float(ok.max()))]
+        c = max(1.0, f0 / max(N - 1, 1))
+        thr = 3.84 * c
+        tot = chi2(y, self.dense_Y, S).sum(axis=1) - f0 - thr
+        g = lambda m: self._chi(m, y, S, idx) - f0 - thr   # noqa: E731
+        out = []
+        left = np.flatnonzero((self.dense < m0) & (tot > 0))
+        if len(left):
+            a = self.dense[left[-1]]
+            out.append(float(brentq(g, a, m0)) if g(a) > 0 > g(m0) else float(a))
+        else:
+            out.append(float(self.grid.min()))
+        right = np.flatnonzero((self.dense > m0) & (tot > 0))
+        if len(right):
+            b = self.dense[right[0]]
+            out.append(float(brentq(g, m0, b)) if g(b) > 0 > g(m0) else float(b))
+        else:
+            out.append(float(self.grid.max()))
+        return [(out[0], out[1])]
 
     def at_edge(self, th) -> bool:
         m = float(th[0])
@@ -363,6 +394,18 @@ class Composed:
                 tot = chi2(y[idx], f[:, idx], S[idx]).sum(axis=1)
                 th[l] = m.dense[int(np.argmin(tot + m.tie() * (1 + tot.min())))]
                 parts[l] = m.predict(th[l]) - self.y0
+        for _ in range(2):   # refine each parameter between its neighbouring dense points
+            for l, m in enumerate(self.members):
+                step = (m.grid.max() - m.grid.min()) / (NDENSE - 1)
+                if step <= 0:
+                    continue
+                rest = self.y0 + sum(p for j, p in enumerate(parts) if j != l)
+                fun = lambda t: float(chi2(y[idx], (rest + m.predict(t) - self.y0)[idx], S[idx]).sum())  # noqa: E731
+                lo, hi = max(m.grid.min(), th[l] - step), min(m.grid.max(), th[l] + step)
+                r = minimize_scalar(fun, bounds=(lo, hi), method="bounded", options={"xatol": 1e-7 * step * NDENSE})
+                if r.fun < fun(th[l]):
+                    th[l] = float(r.x)
+                    parts[l] = m.predict(th[l]) - self.y0
         return th
 
     def interval(self, y, S, th) -> list[tuple[float, float]]:
