@@ -73,6 +73,9 @@ class Settings:
     model_floor: float = 0.005        # relative model error, used only without a second mesh level
     order_image: float = 3.0          # convergence order p of features and profile (measured)
     order_force: float = 1.0          # convergence order p of the plate force (measured)
+    richardson: bool = True           # correct the model by its Richardson estimate; σ = its spread over the orders below
+    order_range_image: tuple = (2.0, 4.0)   # orders p bracketing the measured image order (3.4-3.8)
+    order_range_force: tuple = (0.75, 1.5)  # orders p bracketing the measured force order (about 1)
     force_noise: float = 0.01         # relative standard error assumed for a plate-force gauge (proposals)
     second_delta: float = 4.5         # mm, the second indentation depth a proposal considers
     propose_phantoms: int = 4         # phantoms solved at the second depth
@@ -232,10 +235,40 @@ def model_error(meas: Measured, sim: Simulator, sim_fine: Simulator | None, sens
         rel[k] = (np.median(sig[k] / np.maximum(np.abs(v), 1e-300), axis=0)).tolist()
         delta[k] = d
     kap_img = 1.0 / (1.0 - r ** (-st.order_image))
+    kap = {k: 1.0 / (1.0 - r ** (-(st.order_force if k == "force" else st.order_image))) for k in V0}
     return {"kind": "measured", "sigma": sig, "image_sigma": kap_img * np.abs(D0 - D1), "delta": delta,
+            "kappa": kap, "image_delta": D0 - D1, "kappa_image": kap_img,
             "fine_mesh": sim_fine.mesh, "ratio": r, "relative_median": rel, "fine_views": V1,
             "note": f"Richardson estimate from meshes {sim.mesh} and {sim_fine.mesh} (h ratio {r:.3g}; "
                     f"order {st.order_image:g} for image quantities, {st.order_force:g} for the force)"}
+
+
+def richardson_correct(V0: dict, D0, C: list[Candidate], me: dict, st: Settings) -> tuple[dict, np.ndarray]:
+    """Extrapolate every prediction to the converged mesh with the measured error: a view q of
+    phantom i is multiplied by (1 − κ_q Δ_iq / y0_iq) (clipped to [0.5, 1.5]); images get
+    D − κ (D0 − D1).  Returns the corrected baseline; candidates are corrected in place.  The
+    model error σ (in ``me``, replaced) becomes the uncertainty of this extrapolation: the spread
+    |κ(p_lo) − κ(p_hi)| · max(|Δ|, median floor) over the bracketing orders."""
+    r = me["ratio"]
+
+    def kap(p):
+        return 1.0 / (1.0 - r ** (-p))
+
+    fac = {}
+    for k, v in V0.items():
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f = 1.0 - me["kappa"][k] * me["delta"][k] / v
+        fac[k] = np.clip(np.where(np.isfinite(f), f, 1.0), 0.5, 1.5)
+        lo, hi = st.order_range_force if k == "force" else st.order_range_image
+        me["sigma"][k] = me["sigma"][k] / me["kappa"][k] * abs(kap(lo) - kap(hi))
+    lo, hi = st.order_range_image
+    me["image_sigma"] = me["image_sigma"] / me["kappa_image"] * abs(kap(lo) - kap(hi))
+    dD = me["kappa_image"] * me["image_delta"]
+    for c in C:
+        c.V = {k: v * fac[k][None] for k, v in c.V.items()}
+        if c.D is not None:
+            c.D = c.D - dD[None]
+    return {k: v * fac[k] for k, v in V0.items()}, D0 - dD
 
 
 # ------------------------------------------------------------------ models (fit, predict, interval)
@@ -252,6 +285,24 @@ def _interp_error(g: np.ndarray, Y: np.ndarray) -> np.ndarray:
 
 def chi2(y, f, S) -> np.ndarray:
     return np.sum(((y - f) / S) ** 2, axis=-1)
+
+
+def with_systematic(mdl, y, S, th, stat: list, sys) -> list[tuple[float, float]]:
+    """Widen statistical intervals by the shift a coherent model error causes: refit with the
+    data moved by +σ_sys and by −σ_sys in every quantity at once (the mesh error is one-signed
+    across phantoms), and add the larger shift on each side in quadrature."""
+    if sys is None or not np.any(sys > 0):
+        return stat
+    idx = np.arange(y.shape[0])
+    tp, tm = mdl.fit(y + sys, S, idx), mdl.fit(y - sys, S, idx)
+    out = []
+    for l, (lo, hi) in enumerate(stat):
+        t = float(th[l])
+        dlo = max(0.0, t - min(tp[l], tm[l]))
+        dhi = max(0.0, max(tp[l], tm[l]) - t)
+        g = mdl.grid_of(l)
+        out.append((float(max(g.min(), t - math.hypot(t - lo, dlo))), float(min(g.max(), t + math.hypot(hi - t, dhi)))))
+    return out
 
 
 class Single:
@@ -273,6 +324,9 @@ class Single:
     @property
     def labels(self):
         return [self.name]
+
+    def grid_of(self, l):
+        return self.grid
 
     def predict(self, th, names=None) -> np.ndarray:
         m = float(np.atleast_1d(th)[0])
@@ -372,6 +426,9 @@ class Composed:
     @property
     def labels(self):
         return [m.name for m in self.members]
+
+    def grid_of(self, l):
+        return self.members[l].grid
 
     def predict(self, th, names=None) -> np.ndarray:
         base = self.y0 if names is None or list(names) == self.names else cat(self.V0, names)
@@ -488,7 +545,7 @@ def slices(V: dict, names) -> dict:
     return out
 
 
-def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict) -> dict:
+def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None) -> dict:
     """Calibrated significance, per-candidate held-out fit, ranking, ambiguity set, outcome."""
     N = y.size
     chi0 = float(chi2(y, y0, S0).sum())
@@ -504,7 +561,7 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict) -> dict:
         held = ((y - pred) / S) ** 2
         ssr_cv = float(held.sum())
         th = mdl.fit(y, S, np.arange(n))
-        ci = mdl.interval(y, S, th)
+        ci = with_systematic(mdl, y, S, th, mdl.interval(y, S, th), sys)
         f = mdl.predict(th)
         rows.append({
             "effect": mdl.name, "members": mdl.labels, "stage": mdl.stage, "unit": mdl.unit, "n_params": mdl.k,
@@ -845,6 +902,10 @@ def diagnose(meas: Measured, cands: list[fx.Effect], sim: Simulator, st: Setting
     solved0 = sim.stats["solved"]
     V0, D0, C = simulate_candidates(meas, cands, sim, sensor, settings)
     me = model_error(meas, sim, sim_fine, sensor, settings, V0, D0, st)
+    if st.richardson and me["kind"] == "measured":
+        V0, D0 = richardson_correct(V0, D0, C, me, st)
+        me["note"] += ("; predictions extrapolated by it, σ = the spread of that extrapolation over orders "
+                       f"p in {list(st.order_range_image)} (image), {list(st.order_range_force)} (force)")
     mv = measured_views(meas, sensor, settings)
     names = decision_views(mv)
     sl = slices(V0, names)
@@ -854,7 +915,7 @@ def diagnose(meas: Measured, cands: list[fx.Effect], sim: Simulator, st: Setting
     S0 = np.sqrt(se ** 2 + cat(me["sigma"], names) ** 2)
     S0 = np.maximum(S0, 1e-12 * np.maximum(np.abs(y0), 1e-300))
     models = build_models(C, names, V0, st)
-    ev = evaluate(y, S0, y0, models, meas.n, st, sl)
+    ev = evaluate(y, S0, y0, models, meas.n, st, sl, cat(me["sigma"], names))
     ev["views"] = names
     ev["by_view"] = view_baselines(mv, V0, me, st)
     wh = where(meas, mv, V0, D0, me, st)
