@@ -127,10 +127,10 @@ def diagnose_cmd(mpath, out, effects, mesh, no_inverse, n_train, error_mesh, mod
     from . import measured, report
     from .diagnose import Settings, diagnose
 
-    meas = measured.load(mpath)
-    cands = fx.parse_list(effects)
     if not 0 < alpha < 0.5:
         raise UserError("alpha", "must be in (0, 0.5)")
+    meas = measured.load(mpath)
+    cands = fx.parse_list(effects)
     st = Settings(model_floor=model_floor, alpha=alpha, seed=seed, inverse=not no_inverse, n_train=n_train)
     sim = _sim(cache or default_cache(), mesh or meas.mesh, backend, jobs, quiet)
     fine = error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet)

@@ -313,8 +313,8 @@ def test_cli_end_to_end_and_errors(tmp_path):
     for args, word in ((["diagnose", "--measured", str(tmp_path / "none"), "--out", str(out)], "no such"),
                        (["synth", "--out", str(m), "--effect", "bogus=1"], "unknown effect"),
                        (["diagnose", "--measured", str(m), "--out", str(out), "--effects", "x"], "unknown effect"),
-                       (["diagnose", "--measured", str(m), "--out", str(out), "--alpha", "2"], "--alpha"),
-                       (["diagnose", "--measured", str(m), "--out", str(out), "--error-mesh", "huge", "--backend", "toy"], "--error-mesh"),
-                       (["selftest", "--outside", "friction", "--effects", "friction", "--backend", "toy"], "--outside")):
+                       (["diagnose", "--measured", str(m), "--out", str(out), "--alpha", "2"], "alpha"),
+                       (["diagnose", "--measured", str(m), "--out", str(out), "--error-mesh", "huge", "--backend", "toy"], "error-mesh"),
+                       (["selftest", "--outside", "friction", "--effects", "friction", "--backend", "toy"], "outside")):
         r = subprocess.run(py + args, capture_output=True, text=True, cwd=ROOT)
         assert r.returncode == 2 and word in r.stderr and r.stderr.count("\n") == 1, r.stderr
