@@ -182,7 +182,7 @@ def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, 
     out = []
     for e in cands:
         ms, Vs, Ds, dropped = [], [], [], []
-        for e2, m, pl, how in plan:
+        for e2, m, _pl, how in plan:
             if e2 is not e:
                 continue
             if how == "invalid":
@@ -457,7 +457,7 @@ class Composed:
                 if step <= 0:
                     continue
                 rest = self.y0 + sum(p for j, p in enumerate(parts) if j != l)
-                fun = lambda t: float(chi2(y[idx], (rest + m.predict(t) - self.y0)[idx], S[idx]).sum())  # noqa: E731
+                fun = lambda t, rest=rest, m=m: float(chi2(y[idx], (rest + m.predict(t) - self.y0)[idx], S[idx]).sum())
                 lo, hi = max(m.grid.min(), th[l] - step), min(m.grid.max(), th[l] + step)
                 r = minimize_scalar(fun, bounds=(lo, hi), method="bounded", options={"xatol": 1e-7 * step * NDENSE})
                 if r.fun < fun(th[l]):
