@@ -261,6 +261,7 @@ def richardson_correct(V0: dict, D0, C: list[Candidate], me: dict, st: Settings)
         fac[k] = np.clip(np.where(np.isfinite(f), f, 1.0), 0.5, 1.5)
         lo, hi = st.order_range_force if k == "force" else st.order_range_image
         me["sigma"][k] = me["sigma"][k] / me["kappa"][k] * abs(kap(lo) - kap(hi))
+        me["relative_median"][k] = np.median(me["sigma"][k] / np.maximum(np.abs(v), 1e-300), axis=0).tolist()
     lo, hi = st.order_range_image
     me["image_sigma"] = me["image_sigma"] / me["kappa_image"] * abs(kap(lo) - kap(hi))
     dD = me["kappa_image"] * me["image_delta"]
