@@ -29,6 +29,8 @@ import time
 import click
 import numpy as np
 
+from elastimap.dataset.schema import THICKNESS
+
 
 def _lesions(n: int, seed: int) -> np.ndarray:
     from scipy.stats import qmc
@@ -104,7 +106,7 @@ def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, model_err
     model = load_model(model_dir)
     sensor = SensorModel(seed=seed)
 
-    def fem(d, h, E, tissue_E=5.0, thickness=20.0):
+    def fem(d, h, E, tissue_E=5.0, thickness=THICKNESS):
         from types import SimpleNamespace
 
         from elastimap.solver.image import features
