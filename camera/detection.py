@@ -154,11 +154,11 @@ def run_detection(fem_results: list, model: SensorModel | None = None,
                   for i in range(s.n_threshold)]
     threshold = float(np.quantile(thr_scores, s.threshold_quantile))
     pos, neg, pos_id = [], [], []
-    for rep in range(s.repeats):
+    for _ in range(s.repeats):
         for i, raw in enumerate(raws):
             pos.append(detection_score(_scan(model, raw, pixel, s, rng), reference, model, s))
             pos_id.append(i)
-        for i, bg in enumerate(bgs):
+        for bg in bgs:
             neg.append(detection_score(_scan(model, bg, pixel, s, rng), reference, model, s))
     pos, neg = np.array(pos), np.array(neg)
     tp = int(np.sum(pos > threshold))

@@ -85,7 +85,7 @@ def build_mesh(p: SolveParams) -> RawMesh:
 
     t0 = time.perf_counter()
     T, L = p.tissue.thickness, p.tissue.size
-    P, H = p.probe.size, p.probe.height
+    P = p.probe.size
     inc = p.inclusion
     quarter = p.disc.symmetry == "quarter"
     x0 = 0.0 if quarter else -L / 2

@@ -7,10 +7,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:  # `gap` is not yet in the installed package list (pyproject is the lead's)
-    sys.path.insert(0, str(ROOT))
-
 import numpy as np
 import pandas as pd
 import pytest
@@ -20,6 +16,8 @@ from elastimap.gap import effects as fx
 from elastimap.gap import measured, synth
 from elastimap.gap.diagnose import Settings, diagnose
 from elastimap.gap.simulate import Simulator
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture(scope="module")

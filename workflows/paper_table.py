@@ -80,7 +80,7 @@ def main(out, n, jobs, mesh, repeats, lm_loocv_repeats, lm_loocv_float32, worker
     lines = ["| algorithm | validation | repeats | feature noise | MSE×100 d (%) | MSE×100 h (%) | MSE×100 E (%) | "
              "MRE d (%) | MRE h (%) | MRE E (%) | precision | wall s |", "|" + "---|" * 12]
     for _, r in table.iterrows():
-        def ci(k):
+        def ci(k, r=r):
             return f"{r[k + '_mean']:.3g} [{r[k + '_lo']:.3g}, {r[k + '_hi']:.3g}]"
         lines.append(f"| {r['algo'].upper()} | {r['validate'].upper()} | {r['repeats']} | {100 * r['feature_noise']:g} % | "
                      f"{ci('mse100_d')} | {ci('mse100_h')} | {ci('mse100_E')} | {ci('mre_d')} | {ci('mre_h')} | "
