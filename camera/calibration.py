@@ -400,11 +400,16 @@ def fem_features_from_csv(path: str | os.PathLike, phantoms) -> np.ndarray:
     p = Path(path)
     if not p.exists():
         raise UserError("fem-features", f"{p}: no such file")
-    if p.suffix == ".parquet":
-        df = pd.read_parquet(p)
-        if "name" not in df.columns and "tag" in df.columns:
-            df = df[df["tag"].astype(str).str.startswith("phantom:")].copy()
-            df["name"] = df["tag"].str.slice(len("phantom:"))
+    if p.is_dir() or p.suffix == ".parquet":
+        # a sample dataset (a sweep's folder or one of its files): the one reader, with its schema check
+        from elastimap.dataset.io import read_samples
+
+        try:
+            df = read_samples(p, columns=["tag", *FEATURES])
+        except UserError as exc:
+            raise UserError("fem-features", exc.message) from None
+        df = df[df["tag"].astype(str).str.startswith("phantom:")].copy()
+        df["name"] = df["tag"].str.slice(len("phantom:"))
     else:
         df = pd.read_csv(p, comment="#", skipinitialspace=True)
     for c in ("name", "O1", "O2", "O3"):

@@ -100,6 +100,8 @@ def main():
 @sensor_options
 def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, seed, noise_scale, bits, binning):
     """Render SYNTHETIC camera frames of one inclusion and its background press (runs the FEM)."""
+    from elastimap.outputs import check_out_dir
+
     from .calibration import default_fem
     from .frames import write_frames
     from .optics import render_pair
@@ -107,6 +109,7 @@ def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, s
     model = _sensor(sensor_json, **_model_kw(seed, noise_scale, bits, binning))
     if frames < 1:
         raise UserError("frames", f"must be >= 1 (got {frames})")
+    check_out_dir(out, "--out", allow_existing=True)
     res = default_fem(mesh, delta)(d, h, E, tissue_E=tissue_e)
     F, B = render_pair(model, res.image_raw, res.image, res.pixel, frames)
     stem = name or f"d{d:g}_h{h:g}_E{E:g}"
@@ -161,11 +164,22 @@ def features(images, background, sensor_json, threshold, smooth_px, combine, as_
 def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_frames, fmt, out, plot,
               sensor_json, seed, noise_scale, bits, binning, threshold, smooth_px, combine):
     """Fit O_FEM = a O_cam + b per feature on the nine calibration phantoms (paper 3.3)."""
+    from elastimap.outputs import check_out_dir, check_out_file
+
     from . import calibration as C
 
     model = _sensor(sensor_json, **_model_kw(seed, noise_scale, bits, binning))
     settings = _settings(threshold, smooth_px, combine)
+    if frames < 1:
+        raise UserError("--frames", f"must be >= 1 (got {frames})")
     ph = C.load_phantoms(phantoms)
+    # every input read and every output location checked before anything is solved or written
+    fem_given = C.fem_features_from_csv(fem_features, ph) if fem_features else None
+    check_out_file(out, "--out")
+    png = plot or os.path.splitext(out)[0] + ".png"
+    check_out_file(png, "--plot")
+    if write_frames:
+        check_out_dir(write_frames, "--write-frames", allow_existing=True)
     synthetic = camera_csv is None
     fem_fn = C.default_fem(mesh, delta)
     pairs, results = [], None
@@ -175,12 +189,12 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
                        err=True)
         fem, cam, results = C.simulate_phantoms(ph, fem_fn, model, settings, frames, model.seed, write_frames, fmt,
                                                 progress, frames_out=pairs)
-        if fem_features:
-            fem = C.fem_features_from_csv(fem_features, ph)
+        if fem_given is not None:
+            fem = fem_given
     else:
         cam = C.camera_features_from_csv(camera_csv, ph, model, settings, frames_out=pairs)
-        if fem_features:
-            fem = C.fem_features_from_csv(fem_features, ph)
+        if fem_given is not None:
+            fem = fem_given
         else:
             results = [fem_fn(float(x["d"]), float(x["h"]), float(x["E"])) for _, x in ph.iterrows()]
             fem = np.array([[r.O1, r.O2, r.O3] for r in results])
@@ -190,8 +204,9 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
                             {"mesh": mesh, "delta": delta, "frames": frames,
                              "phantoms_file": str(phantoms or C.DEFAULT_PHANTOMS),
                              "camera_csv": camera_csv, "fem_features": fem_features}, defl)
-    cal.save(out)
-    png = plot or os.path.splitext(out)[0] + ".png"
+    from elastimap.outputs import write_or_fallback
+
+    write_or_fallback(cal.save, out, "--out")
     C.plot_calibration(cal, png)
     click.echo(cal.report())
     click.echo(f"wrote {out} and {png}")
@@ -260,6 +275,10 @@ def infer(model_dir, calibration, feats, images, background, csv_path, fem_image
         raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
     if fem_image is not None and not os.path.isfile(fem_image):
         raise UserError("--fem-image", f"{fem_image}: no such file")
+    if out:
+        from elastimap.outputs import check_out_file
+
+        check_out_file(out, "--out")
     idm = load_identifiability(None if identifiability == "none" else identifiability)
     model = load_model(model_dir)
     if refine and not _is_image_model(model):
@@ -293,12 +312,16 @@ def infer(model_dir, calibration, feats, images, background, csv_path, fem_image
                                     progress=lambda i, n: bar.update(1), model_error=image_noise)
     rows = [e.to_dict() for e in ests]
     if out:
-        if out.endswith(".json"):
-            with open(out, "w") as fh:
-                json.dump(rows, fh, indent=2)
-        else:
-            import pandas as pd
-            pd.DataFrame(rows).to_csv(out, index=False)
+        from elastimap.outputs import write_or_fallback
+
+        def _write(path):
+            if out.endswith(".json"):
+                with open(path, "w") as fh:
+                    json.dump(rows, fh, indent=2)
+            else:
+                import pandas as pd
+                pd.DataFrame(rows).to_csv(path, index=False)
+        write_or_fallback(_write, out, "--out")
     if as_json:
         click.echo(json.dumps(rows, indent=2))
     else:
@@ -329,16 +352,27 @@ def _quantity(r: dict, q: str, unit: str) -> str:
 @sensor_options
 def detect(mesh, repeats, clutter_mm, press_jitter, out, noise_scales, sensor_json, seed, noise_scale, bits, binning):
     """SYNTHETIC detection study (paper 5.3): sensitivity, specificity, ROC, AUC with bootstrap CI."""
+    from elastimap.outputs import check_out_dir
+
     from .calibration import default_fem
     from .detection import DETECTION_INCLUSIONS, PAPER, DetectionSettings, plot_roc, run_detection
 
     model = _sensor(sensor_json, **_model_kw(seed, noise_scale, bits, binning))
     kw = {k: v for k, v in dict(clutter_mm=clutter_mm, press_jitter=press_jitter).items() if v is not None}
+    if repeats < 1:
+        raise UserError("--repeats", f"must be >= 1 (got {repeats})")
+    try:
+        extra = [float(x) for x in noise_scales.split(",")] if noise_scales else []
+    except ValueError:
+        raise UserError("--noise-scales", f"expected numbers like 0.5,2 (got {noise_scales!r})") from None
+    if any(not (np.isfinite(x) and x >= 0) for x in extra):
+        raise UserError("--noise-scales", f"must be finite numbers >= 0 (got {noise_scales!r})")
+    check_out_dir(out, "--out", allow_existing=True)  # before the solves; created only when results exist
     s = DetectionSettings(repeats=repeats, seed=model.seed, **kw)
     fem = default_fem(mesh)
     results = [fem(d, h, E) for d, h, E in DETECTION_INCLUSIONS]
     os.makedirs(out, exist_ok=True)
-    scales = [model.noise_scale] + ([float(x) for x in noise_scales.split(",")] if noise_scales else [])
+    scales = [model.noise_scale] + extra
     table = []
     for ns in scales:
         r = run_detection(results, model.replace(noise_scale=ns), s)

@@ -487,8 +487,9 @@ def read_lesions_table(path: str | os.PathLike):
     if len(df) == 0:
         raise UserError("csv", f"{p}: no lesions")
     ids = [str(x) for x in df["id"]] if "id" in df.columns else [str(i + 1) for i in range(len(df))]
-    if len(set(ids)) != len(ids):
-        raise UserError("csv", f"{p}: duplicate ids")
+    dup = sorted({i for i in ids if ids.count(i) > 1})
+    if dup:
+        raise UserError("csv", f"{p}: duplicate id(s) {', '.join(dup[:5])} (every lesion needs its own id)")
     base = os.path.dirname(os.path.abspath(p))
     if all(k in df.columns for k in FEATURES):
         vals = df[list(FEATURES)].apply(pd.to_numeric, errors="coerce").to_numpy(float)

@@ -59,22 +59,25 @@ def plot_cmd(path, out, images):
               help="include the image as one column of space-separated values")
 def export_cmd(path, csv_path, status, images):
     """One CSV table for spreadsheets (one row per sample, parameters, features, status, statistics)."""
+    from elastimap.outputs import check_out_file
+
     from . import io
 
+    src = Path(path).resolve()
+    target = csv_path or str(src.with_suffix(".csv") if src.is_file() else src.with_name(src.name + ".csv"))
+    if target != "-":
+        check_out_file(target, "--csv")  # before reading
     df = io.read_samples(path, status=None if status == "all" else status)
     if images:
         df["image"] = [" ".join(f"{x:.6g}" for x in v) if v is not None else "" for v in df["image"]]
     else:
         df = df.drop(columns=["image"])
-    src = Path(path).resolve()
-    target = csv_path or str(src.with_suffix(".csv") if src.is_file() else src.with_name(src.name + ".csv"))
     if target == "-":
         click.echo(df.to_csv(index=False), nl=False)
         return 0
-    t = Path(target)
-    if not t.parent.is_dir():
-        raise UserError("--csv", f"directory {t.parent} does not exist")
-    df.to_csv(t, index=False)
+    from elastimap.outputs import write_or_fallback
+
+    t = write_or_fallback(lambda f: df.to_csv(f, index=False), target, "--csv")
     click.echo(f"wrote {len(df)} rows to {t}")
     return 0
 
@@ -88,6 +91,8 @@ def compact_cmd(path, batch_rows):
 
     if not Path(path).is_dir():
         raise UserError("path", f"{path} is not a dataset directory")
+    if batch_rows < 1:
+        raise UserError("--batch-rows", f"must be >= 1 (got {batch_rows})")
     lock = io.acquire_lock(path, param="path")
     try:
         r = io.compact(path, batch_rows)

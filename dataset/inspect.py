@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from elastimap.errors import UserError
+
 from . import io
 from .schema import FEATURES, TARGETS, THICKNESS, depth_range
 
@@ -46,6 +48,8 @@ def _coverage(df) -> dict:
 
 
 def report(path, top: int = 5) -> dict:
+    if isinstance(top, bool) or not isinstance(top, int) or top < 0:
+        raise UserError("top", f"must be an integer >= 0 (got {top!r})")
     info = io.dataset_info(path)
     df = io.read_table(path)
     man = io.read_manifest(path) if Path(path).is_dir() else None

@@ -50,14 +50,14 @@ def plot_all(path, out_dir, n_images: int = 12) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from elastimap.outputs import check_out_dir
+
     if n_images < 1:
         raise UserError("--images", f"must be >= 1 (got {n_images})")
+    out = check_out_dir(out_dir, "--out", allow_existing=True)  # before reading and plotting
     df = io.read_samples(path, status="ok")
     if len(df) == 0:
         raise UserError("path", f"{path} has no ok samples to plot")
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise UserError("--out", f"{out} exists and is not a directory")
     out.mkdir(parents=True, exist_ok=True)
     files = []
     d, h, E = (df[c].to_numpy(dtype=float) for c in TARGETS)

@@ -67,8 +67,8 @@ class Interval(Constraint):
         if self.kind is int:
             if not isinstance(value, numbers.Integral):
                 return False
-        elif not isinstance(value, numbers.Real) or math.isnan(value):
-            return False
+        elif not isinstance(value, numbers.Real) or not math.isfinite(value):
+            return False  # NaN and ±inf: no parameter of the project is infinite
         lo_closed = self.closed in ("both", "left")
         hi_closed = self.closed in ("both", "right")
         if self.lo is not None and (value < self.lo if lo_closed else value <= self.lo):

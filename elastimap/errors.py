@@ -10,6 +10,7 @@ without a traceback; the Python API raises it like any other ``ValueError``.
 from __future__ import annotations
 
 
+
 class UserError(ValueError):
     """Bad input from the user: ``param`` names what is wrong, ``message`` what is allowed."""
 
@@ -23,7 +24,7 @@ def check_range(param: str, value: float, lo: float | None = None, hi: float | N
                 *, lo_open: bool = False, hi_open: bool = False, unit: str = "") -> float:
     """Return ``value`` as a float if it lies in the interval, else raise :class:`UserError`.
 
-    ``lo_open``/``hi_open`` make the bound strict.  NaN is always rejected.  Meant for bounds
+    ``lo_open``/``hi_open`` make the bound strict.  NaN and ±inf are always rejected.  Meant for bounds
     that depend on other parameters; fixed rules belong in a declared table
     (:mod:`elastimap.constraints`), which words its messages the same way.
     """

@@ -32,6 +32,9 @@ def default_cache() -> str:
 def _sim(cache, mesh, backend, jobs, quiet):
     from .simulate import Simulator
 
+    if jobs < 1:
+        raise UserError("jobs", f"must be >= 1 (got {jobs})")
+
     def prog(i, n):
         if not quiet:
             click.echo(f"\rsolves {i}/{n}", nl=(i == n), err=True)
@@ -63,7 +66,10 @@ def effects_cmd():
 
 
 @main_group.command("synth", context_settings=CONTEXT_SETTINGS)
-@click.option("--out", required=True, type=click.Path(file_okay=False))
+@click.option("--out", required=True, type=click.Path(file_okay=False),
+              help="new folder for the SYNTHETIC measured dataset (an existing one only with --overwrite)")
+@click.option("--overwrite", is_flag=True,
+              help="replace an earlier SYNTHETIC dataset in --out (real measured data is never replaced)")
 @click.option("--effect", "effect", default="", help="NAME=MAGNITUDE[,NAME=MAGNITUDE] (empty: baseline only)")
 @click.option("--phantoms", type=click.Path(), default=None, help="CSV with id (or name), d, h, E; default an LHS design")
 @click.option("--n", "n", type=int, default=12, show_default=True)
@@ -76,33 +82,33 @@ def effects_cmd():
               help="probe-tissue interface of the data's forward model")
 @click.option("--force-noise", type=float, default=None, help="also 'measure' the plate force with this relative error")
 @common
-def synth_cmd(out, effect, phantoms, n, mesh, frames, noise_scale, seed, fmt, interface, force_noise, cache, backend, jobs, quiet):
+def synth_cmd(out, overwrite, effect, phantoms, n, mesh, frames, noise_scale, seed, fmt, interface, force_noise, cache,
+              backend, jobs, quiet):
     """Generate a SYNTHETIC measured dataset (truth sealed in SEALED_truth.json)."""
-    import numpy as np
+    from elastimap.outputs import staged_dir
 
     from . import measured, synth
 
+    synth.check_out(out, overwrite)
     effs = fx.parse_spec(effect) if effect else []
+    if frames < 1:
+        raise UserError("frames", f"must be >= 1 (got {frames})")
     ids = None
     if phantoms:
-        from elastimap.camera.calibration import load_phantoms
-        df = load_phantoms(phantoms) if "name" in open(phantoms).read(2000) else None
-        if df is None:
-            import pandas as pd
-            df = pd.read_csv(phantoms, comment="#").rename(columns={"id": "name"})
-        dhe = df[["d", "h", "E"]].to_numpy(float)
-        ids = [str(x) for x in df["name"]]
+        dhe, ids = synth.load_phantoms(phantoms)
     else:
         if n < 4:
-            raise UserError("n", "need at least 4 phantoms")
+            raise UserError("n", f"need at least 4 phantoms (got {n})")
         dhe = synth.phantom_design(n, seed)
     sim = _sim(cache or default_cache(), mesh, backend, jobs, quiet)
     if force_noise is not None and not force_noise > 0:
         raise UserError("force-noise", "must be > 0")
     meas, truth = synth.synthesize(dhe, effs, sim, frames=frames, seed=seed, ids=ids, noise_scale=noise_scale,
                                    disc={"interface": interface} if interface != "tied" else None, force_noise=force_noise)
-    tp = measured.write(meas, out, fmt)
-    synth.seal(truth, out)
+    with staged_dir(out, "out", overwrite=overwrite) as tmp:
+        tp = measured.write(meas, tmp, fmt)
+        synth.seal(truth, tmp)
+    tp = Path(out) / tp.name
     click.echo(f"SYNTHETIC measured data: {tp} ({meas.n} phantoms, truth sealed in {Path(out) / measured.SEALED})")
     return 0
 
@@ -124,18 +130,34 @@ def synth_cmd(out, effect, phantoms, n, mesh, frames, noise_scale, seed, fmt, in
 def diagnose_cmd(mpath, out, effects, mesh, no_inverse, n_train, error_mesh, model_floor, alpha, seed,
                  as_json, cache, backend, jobs, quiet):
     """Diagnose the sim-to-real gap of a measured dataset: report.md, PNG figures, diagnosis.json."""
+    import math
+    import tempfile
+
+    from elastimap.outputs import check_out_dir
+
     from . import measured, report
     from .diagnose import Settings, diagnose
 
     if not 0 < alpha < 0.5:
         raise UserError("alpha", "must be in (0, 0.5)")
+    if not (math.isfinite(model_floor) and model_floor >= 0):
+        raise UserError("model_floor", f"must be a finite number >= 0 (got {model_floor:g})")
+    if n_train < 2:
+        raise UserError("n_train", f"must be >= 2 (got {n_train})")
+    check_out_dir(out, "out", allow_existing=True)
     meas = measured.load(mpath)
     cands = fx.parse_list(effects)
     st = Settings(model_floor=model_floor, alpha=alpha, seed=seed, inverse=not no_inverse, n_train=n_train)
     sim = _sim(cache or default_cache(), mesh or meas.mesh, backend, jobs, quiet)
     fine = error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet)
     res = diagnose(meas, cands, sim, st, fine)
-    doc = report.write(res, out)
+    try:
+        doc = report.write(res, out)
+    except OSError as exc:  # the diagnosis is done: keep it
+        fb = tempfile.mkdtemp(prefix="elastimap-gap-diagnosis-")
+        report.write(res, fb)
+        raise UserError("out", f"cannot write the report to {out} ({exc.strerror or exc}); "
+                               f"it was written to {fb} instead") from None
     s = doc["summary"]
     if as_json:
         click.echo(json.dumps(report._jsonable(s), indent=2))
@@ -180,7 +202,15 @@ def selftest_cmd(trials, out, mesh, error_mesh, data_mesh, data_interface, effec
     from .diagnose import FINER, Settings
 
     if trials < 1:
-        raise UserError("trials", "must be >= 1")
+        raise UserError("trials", f"must be >= 1 (got {trials})")
+    if n_phantoms < 4:
+        raise UserError("n_phantoms", f"need at least 4 phantoms (got {n_phantoms})")
+    if frames < 1:
+        raise UserError("frames", f"must be >= 1 (got {frames})")
+    if out:
+        from elastimap.outputs import check_out_dir
+
+        check_out_dir(out, "out", allow_existing=True)
     if out and Path(out).exists() and any(Path(out).iterdir()):
         raise UserError("out", f"{out} exists and is not empty (not overwritten)")
     outs = fx.parse_list(outside)

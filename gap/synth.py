@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -20,10 +21,66 @@ import numpy as np
 from elastimap.errors import UserError
 
 from . import effects as fx
-from .measured import SEALED, Measured
+from .measured import SEALED, SIDECAR, Measured
 from .simulate import Simulator, base_params
 
 DEFAULT_N = 12
+
+
+def check_out(out: str | os.PathLike, overwrite: bool = False) -> Path:
+    """Refuse an output folder a generator must not write into (checked before any solve).
+
+    A folder that holds files is refused unless ``overwrite`` is given AND it holds a
+    SYNTHETIC measured dataset (its ``measured.json`` says ``"synthetic": true``); real
+    measured data (``"synthetic": false``, or no readable sidecar) and any other content are
+    never replaced by a generator, with or without ``overwrite``."""
+    from elastimap.outputs import check_out_dir, is_empty_dir
+
+    p = Path(out)
+    if p.is_dir() and not is_empty_dir(p):
+        side = p / SIDECAR
+        info = None
+        if side.is_file():
+            try:
+                info = json.loads(side.read_text())
+            except (OSError, ValueError):
+                info = None
+        if not isinstance(info, dict):
+            raise UserError("out", f"{p} holds files that are not a SYNTHETIC measured dataset; "
+                                   "a generator never writes there (choose another folder)")
+        if info.get("synthetic") is not True:
+            raise UserError("out", f"{p} holds real (non-synthetic) measured data; a generator never overwrites "
+                                   "it, not even with --overwrite (choose another folder)")
+        if not overwrite:
+            raise UserError("out", f"{p} already holds a SYNTHETIC measured dataset; give --overwrite to replace it")
+    return check_out_dir(p, "out", overwrite=overwrite)
+
+
+def load_phantoms(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
+    """``(dhe (n, 3), ids)`` of a phantom table: the calibration-phantom CSV (name, d, h, E) or
+    a CSV with id, d, h, E."""
+    import pandas as pd
+
+    p = Path(path)
+    if not p.is_file():
+        raise UserError("phantoms", f"{p}: no such file (a CSV with columns id or name, d, h, E)")
+    try:
+        df = pd.read_csv(p, comment="#", skipinitialspace=True)
+    except Exception as exc:  # pandas raises several types for a bad CSV
+        raise UserError("phantoms", f"{p}: not a readable CSV ({type(exc).__name__})") from None
+    df = df.rename(columns={"id": "name"})
+    missing = [c for c in ("name", "d", "h", "E") if c not in df.columns]
+    if missing:
+        raise UserError("phantoms", f"{p}: missing column(s) {', '.join(missing)} (need id or name, d, h, E)")
+    if len(df) < 4:
+        raise UserError("phantoms", f"{p}: need at least 4 phantoms (got {len(df)})")
+    ids = [str(x) for x in df["name"]]
+    if len(set(ids)) != len(ids):
+        raise UserError("phantoms", f"{p}: duplicate names/ids")
+    dhe = df[["d", "h", "E"]].apply(pd.to_numeric, errors="coerce").to_numpy(float)
+    if not (np.isfinite(dhe).all() and (dhe > 0).all()):
+        raise UserError("phantoms", f"{p}: d, h and E must be positive numbers")
+    return dhe, ids
 
 
 def phantom_design(n: int = DEFAULT_N, seed: int = 0) -> np.ndarray:
@@ -50,6 +107,10 @@ def synthesize(dhe: np.ndarray, effects: list[tuple[fx.Effect, float]], sim: Sim
     from elastimap.camera.features import FeatureSettings
     from elastimap.camera.optics import SensorModel
 
+    if int(frames) < 1:
+        raise UserError("frames", f"must be >= 1 (got {frames})")
+    if not (np.isfinite(noise_scale) and noise_scale >= 0):
+        raise UserError("noise_scale", f"must be a finite number >= 0 (got {noise_scale:g})")
     sensor = (sensor or SensorModel()).validate()
     settings = settings or FeatureSettings()
     true_sensor = sensor.replace(noise_scale=noise_scale)

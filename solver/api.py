@@ -31,9 +31,23 @@ def _solve_at(model, E_inc: float, p: SolveParams):
     force = model.plate_force(sol)
     if ld.force is None:
         return sol, diag, delta, force
+    from elastimap.errors import UserError
+
+    from .params import delta_limit
+
+    limit = delta_limit(p)
+
+    def too_far(d: float) -> UserError:
+        return UserError("force", f"{ld.force:g} mN needs a plate travel of about {d:.3g} mm; at most "
+                                  f"{limit:g} mm is allowed (the same limit as --delta)")
+
+    if not (np.isfinite(force) and force > 0):
+        raise SolverError(f"force control: the plate force at delta = {delta:g} mm is {force:g} mN")
     if not p.nonlinear:
         # linear problem: displacements and force scale with δ
         s = ld.force / force
+        if delta * s > limit:
+            raise too_far(delta * s)
         sol.u *= s
         sol.reaction *= s
         for k in ("pressure_mean_kPa", "pressure_min_kPa", "pressure_max_kPa", "gap_min_mm"):
@@ -44,6 +58,8 @@ def _solve_at(model, E_inc: float, p: SolveParams):
         if abs(force - ld.force) <= 1e-6 * ld.force:
             break
         delta = delta * ld.force / force
+        if delta > limit:
+            raise too_far(delta)
         sol, diag = model.solve(E_inc, delta)
         its += sol.iterations
         force = model.plate_force(sol)

@@ -25,6 +25,22 @@ def _layers(text: str | None):
     return out
 
 
+def _check_outputs(image_png: str | None, image_npy: str | None, vtx: str | None) -> None:
+    """Every output location is checked before the solve starts."""
+    from elastimap.errors import UserError
+    from elastimap.outputs import check_out_dir, check_out_file
+
+    if image_png:
+        check_out_file(image_png, "--image")
+    if image_npy:
+        if not str(image_npy).endswith(".npy"):
+            raise UserError("--image-npy", f"{image_npy}: the file name must end in .npy")
+        check_out_file(image_npy, "--image-npy")
+    if vtx:
+        # ADIOS2 writes a folder; onto an existing file it aborts the whole process
+        check_out_dir(vtx, "--vtx", allow_existing=True)
+
+
 @param_flags({"probe.layer*": "--layers"})
 @click.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--d", "d", type=float, default=8.0, show_default=True, help="Inclusion diameter (mm).")
@@ -73,6 +89,7 @@ def command(d, h, E, mesh, interface, full, delta, force, tissue_E, thickness, n
         disc=Discretisation(mesh=mesh, degree=degree, interface=interface, symmetry="full" if full else "quarter"),
         image=ImageSpec(pixel=pixel, threshold=threshold),
     ).validate()
+    _check_outputs(image_png, image_npy, vtx)  # before the solve, not after it
     from .api import solve
 
     if vtx:
@@ -80,14 +97,17 @@ def command(d, h, E, mesh, interface, full, delta, force, tissue_E, thickness, n
         res = solve_with_fields(p, vtx)
     else:
         res = solve(p)
+    from elastimap.outputs import write_or_fallback
+
+    if image_npy:  # the array first: if the PNG then fails, the numbers are already safe
+        import numpy as np
+        write_or_fallback(lambda f: np.save(f, res.image), image_npy, "--image-npy")
     if image_png:
         from .plot import save_image_png
-        save_image_png(image_png, res.image, res.pixel,
-                       f"difference image d={d:g} mm h={h:g} mm E={E:g} kPa\nO1={res.O1:.4g} mm O2={res.O2:.4g} mm O3={res.O3:.4g} mm²",
-                       raw=res.image_raw)
-    if image_npy:
-        import numpy as np
-        np.save(image_npy, res.image)
+        title = (f"difference image d={d:g} mm h={h:g} mm E={E:g} kPa\n"
+                 f"O1={res.O1:.4g} mm O2={res.O2:.4g} mm O3={res.O3:.4g} mm²")
+        write_or_fallback(lambda f: save_image_png(f, res.image, res.pixel, title, raw=res.image_raw),
+                          image_png, "--image")
     if as_json:
         click.echo(json.dumps(res.summary()))
     else:

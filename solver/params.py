@@ -232,7 +232,7 @@ class SolveParams:
             validate_params({f"probe.layer{i}.thickness": th, f"probe.layer{i}.E": E},
                             {f"probe.layer{i}.thickness": [_POSITIVE_MM], f"probe.layer{i}.E": [_POSITIVE_KPA]})
         if ld.force is None:
-            check_range("delta", ld.delta, 0, min(p.height, t.thickness) / 2, lo_open=True, unit="mm")
+            check_range("delta", ld.delta, 0, delta_limit(self), lo_open=True, unit="mm")
         if ds.symmetry == "quarter" and (inc.offset_x != 0 or inc.offset_y != 0):
             raise UserError("symmetry", "an off-axis inclusion breaks quarter symmetry: use the full model")
         check_range("pixel", im.pixel, 0, p.size / 4, lo_open=True, unit="mm")
@@ -241,7 +241,27 @@ class SolveParams:
             raise UserError("pixel", f"must divide the probe size {p.size:g} mm into a whole number of pixels (got {im.pixel:g})")
         if ds.symmetry == "quarter" and round(n) % 2:
             raise UserError("pixel", "the quarter model needs an even number of pixels across the probe")
+        # geometry the mesh and the image can resolve in reasonable time and memory
+        if t.thickness > t.size:
+            raise UserError("tissue.thickness", f"must be <= the slab size {t.size:g} mm (got {t.thickness:g} mm); "
+                                                "a thicker slab would need an unreasonable mesh")
+        if p.height > t.size / 2:
+            raise UserError("probe.layers", f"the probe layers add up to {p.height:g} mm; at most {t.size / 2:g} mm "
+                                            "(half the slab size) can be meshed in reasonable time")
+        if round(n) > MAX_PIXELS:
+            raise UserError("pixel", f"gives {round(n)} pixels across the probe; at most {MAX_PIXELS} "
+                                     f"(pixel >= {p.size / MAX_PIXELS:g} mm)")
         return self
+
+
+#: most image pixels across the probe (an image of MAX_PIXELS² float32 values is 16 MiB)
+MAX_PIXELS = 2048
+
+
+def delta_limit(params: "SolveParams") -> float:
+    """Largest plate travel δ (mm) a solve may use, with ``--delta`` or found under force control:
+    half the thinner of probe and tissue (beyond it the small-strain model means nothing)."""
+    return min(params.probe.height, params.tissue.thickness) / 2
 
 
 # effect switches omitted from ``SolveParams.to_dict`` while at these defaults

@@ -40,8 +40,8 @@ def fit_ensemble(df: pd.DataFrame | Samples, algo: str = "scg", repeats: int = 1
         raise UserError("algo", f"unknown algorithm {algo!r}; use one of {', '.join(ALGOS)}")
     if int(repeats) < 1:
         raise UserError("repeats", f"must be >= 1 (got {repeats})")
-    if int(epochs) < 0:
-        raise UserError("epochs", f"must be >= 0 (got {epochs})")
+    if int(epochs) < 1:
+        raise UserError("epochs", f"must be >= 1 (got {epochs})")
     samples = df if isinstance(df, Samples) else prepare(df)
     cfg = TrainConfig(hidden=parse_hidden(hidden, activation), epochs=int(epochs), feature_noise=float(feature_noise),
                       val_fraction=float(val_fraction), device=device, dtype=dtype, progress=progress)

@@ -6,7 +6,10 @@ Writes to ``--out``: ``results.csv``, ``results.md`` (also printed),
 ``curves-<algo>-<validation>.png``, ``run.json`` and, per algorithm,
 ``model-<algo>/`` -- the ensemble of ``--repeats`` networks trained on all
 non-test rows (all rows unless only HOV was asked for), loadable with
-:meth:`elastimap.training.model.Ensemble.load`.
+:meth:`elastimap.training.model.Ensemble.load`.  ``--out`` holds exactly one
+run: the run writes into a hidden temporary sibling folder that replaces
+``--out`` whole when it finishes (and is removed if it fails); an existing
+``--out`` that holds files is refused unless ``--overwrite``.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import click
 
 from elastimap.cli_util import CONTEXT_SETTINGS, Choice, data_option, out_option, run
 from elastimap.errors import UserError
+from elastimap.outputs import check_out_dir, staged_dir
 
 ALGO_CHOICES = ("lm", "scg", "all")
 VALIDATE_CHOICES = ("hov", "loocv", "all")
@@ -44,7 +48,8 @@ VALIDATE_CHOICES = ("hov", "loocv", "all")
 @click.option("--val-fraction", default=0.0, show_default=True, type=float,
               help="Validation rows per network for early stopping (6 failures); 0 = none.")
 @click.option("--seed", default=0, show_default=True, type=int)
-@out_option(default="runs/train")
+@out_option(default="runs/train", help="Output directory (one run; an existing one only with --overwrite).")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out folder whole (after the new run has finished).")
 @click.option("--device", default=None, help="cpu or cuda (default: cuda when available).")
 @click.option("--threads", default=1, show_default=True, type=int,
               help="Torch CPU threads (0 = torch default); more threads were slower on the shared 2-core machine.")
@@ -56,18 +61,16 @@ VALIDATE_CHOICES = ("hov", "loocv", "all")
 @click.option("--no-model", is_flag=True, help="Skip training the saved ensemble.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def train(data, synthetic, algo, validate, repeats, epochs, hidden, activation, feature_noise, test_split,
-          val_fraction, seed, out, device, threads, float32, workers, no_model, quiet):
+          val_fraction, seed, out, overwrite, device, threads, float32, workers, no_model, quiet):
     """Train and validate the inverse MLP (O1, O2, O3) -> (d, h, E)."""
     import torch
 
     from elastimap.constraints import validate_params
 
+    from .data import load_samples, prepare, synthetic_table
+    from .experiment import ALGOS, RUN_CONSTRAINTS, VALIDATIONS, TrainConfig
     from .perf import set_threads, tune_malloc
-    from .api import fit_ensemble
-    from .data import data_hash, load_samples, prepare, synthetic_table
-    from .experiment import ALGOS, RUN_CONSTRAINTS, VALIDATIONS, TrainConfig, run_validation
     from .net import parse_hidden
-    from .report import markdown, plot_curves, table
 
     # the rules are declared next to the parameters they govern; all checked before any work
     validate_params(dict(repeats=repeats, seed=seed, test_split=test_split), RUN_CONSTRAINTS)
@@ -79,18 +82,35 @@ def train(data, synthetic, algo, validate, repeats, epochs, hidden, activation, 
                       workers=workers).validate()
     if device and device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError("device", "cuda requested but no GPU is available")
+    if threads < 0:
+        raise UserError("threads", f"must be >= 0 (0 = torch's default; got {threads})")
+    check_out_dir(out, "out", overwrite=overwrite)  # before any work; the run is staged below
 
-    tune_malloc()
-    nthreads = set_threads(threads)
     if synthetic is not None:
         if synthetic < 10:
             raise UserError("synthetic", f"need at least 10 rows (got {synthetic})")
         samples = prepare(synthetic_table(synthetic, seed=seed), source=f"SYNTHETIC toy table (n={synthetic})")
     else:
         samples = load_samples(data)
+    tune_malloc()
+    nthreads = set_threads(threads)
     algos = list(ALGOS) if algo == "all" else [algo]
     vals = list(VALIDATIONS) if validate == "all" else [validate]
-    os.makedirs(out, exist_ok=True)
+    with staged_dir(out, "out", overwrite=overwrite) as tmp:
+        _run(samples, algos, vals, cfg, repeats, epochs, hidden, hidden_t, activation, feature_noise, test_split,
+             val_fraction, seed, device, nthreads, workers, no_model, quiet, str(tmp), out)
+    click.echo(f"wrote {out}", err=True)
+    return 0
+
+
+def _run(samples, algos, vals, cfg, repeats, epochs, hidden, hidden_t, activation, feature_noise, test_split,
+         val_fraction, seed, device, nthreads, workers, no_model, quiet, out, final):
+    """The run itself, writing into ``out`` (the staged folder that becomes ``final``)."""
+    from .api import fit_ensemble
+    from .data import data_hash, prepare
+    from .experiment import run_validation
+    from .report import markdown, plot_curves, table
+
     click.echo(samples.report(), err=True)
     click.echo(f"network {cfg.arch.describe()} ({cfg.arch.n_params} weights), device "
                f"{cfg.resolved_device()}, {nthreads} thread(s)", err=True)
@@ -129,7 +149,8 @@ def train(data, synthetic, algo, validate, repeats, epochs, hidden, activation, 
             ens = fit_ensemble(s, algo=a, repeats=repeats, epochs=epochs, hidden=hidden_t, seed=seed,
                                feature_noise=feature_noise, val_fraction=val_fraction, device=device,
                                progress=not quiet, dtype=cfg.dtype)
-            path = ens.save(os.path.join(out, f"model-{a}"))
+            ens.save(os.path.join(out, f"model-{a}"))
+            path = os.path.join(final, f"model-{a}")
             models[a] = path
             click.echo(f"saved {ens.n_members}-member {a} ensemble ({s.n} training rows) to {path}", err=True)
     with open(os.path.join(out, "run.json"), "w") as f:

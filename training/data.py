@@ -8,7 +8,6 @@ Training only knows the sample-table columns of :mod:`elastimap.dataset.schema`
 from __future__ import annotations
 
 import hashlib
-import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,27 +44,22 @@ class Samples:
 
 
 def load_samples(path: str) -> Samples:
-    """Read a Parquet file or a directory of Parquet files (the sweep's output)."""
-    import pyarrow.dataset as pads
+    """Read a sample dataset (a sweep's folder or one of its Parquet files) for training.
 
-    if not os.path.exists(path):
-        raise UserError("data", f"no such file or directory: {path}")
+    It goes through the one reader of sample datasets, :func:`elastimap.dataset.io.read_samples`
+    (the one ``dataset inspect`` uses): every file's schema is checked (a foreign Parquet file is
+    refused, naming it), only the folder's own files are read (a sweep in a subfolder is not
+    merged), and a sample id is read once (duplicates left by an interrupted compaction or a
+    retried failure collapse to one row).  Errors name ``data``.
+    """
+    from elastimap.dataset.io import read_samples
+
+    cols = [*FEATURES, *TARGETS, *OPTIONAL]
     try:
-        ds = pads.dataset(path, format="parquet")
-        names = set(ds.schema.names)
-    except Exception as exc:  # pyarrow raises several types for unreadable input
-        raise UserError("data", f"cannot read Parquet from {path}: {str(exc).splitlines()[0]}") from None
-    missing = [c for c in FEATURES + TARGETS if c not in names]
-    if missing:
-        raise UserError("data", f"{path} lacks required column(s) {', '.join(missing)} "
-                                  f"(need {', '.join(FEATURES + TARGETS)})")
-    cols = list(FEATURES + TARGETS) + [c for c in OPTIONAL if c in names]
-    try:
-        df = ds.to_table(columns=cols).to_pandas()
-    except (OSError, ValueError) as exc:  # e.g. a running sweep compacted files while we read
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise UserError("data", f"reading {path} failed ({first}); is a sweep still writing to it?") from None
-    return prepare(df, source=path)
+        df = read_samples(path, columns=cols, status=None)
+    except UserError as exc:
+        raise UserError("data", exc.message) from None
+    return prepare(df, source=str(path))
 
 
 def prepare(df: pd.DataFrame, source: str = "<dataframe>") -> Samples:

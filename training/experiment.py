@@ -72,7 +72,7 @@ class TrainConfig:
     _parameter_constraints = {
         "hidden": [Predicate(lambda h: len(h) >= 1 and all(int(n) >= 1 and a in _net.ACTIVATIONS for n, a in h),
                              "a non-empty tuple of (size >= 1, transfer function) layers")],
-        "epochs": [Interval(int, 0, None)],
+        "epochs": [Interval(int, 1, None)],  # 0 epochs would save the untrained initial weights
         "feature_noise": [Interval(float, 0, 1)],
         "val_fraction": [Interval(float, 0, 1, closed="left")],
         "max_fail": [Interval(int, 1, None)],

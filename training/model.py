@@ -7,8 +7,12 @@ On disk a model is a directory with
   safetensors holds plain arrays only, so loading never executes code;
 * ``model.json`` -- architecture, the ``mapminmax`` scaling of inputs and
   targets (fitted on the training rows), feature/target names and units,
-  feature and target ranges of the training data, and training provenance
-  (algorithm, epochs, seed, SHA-256 of the training data, code version).
+  feature and target ranges of the training data, training provenance
+  (algorithm, epochs, seed, SHA-256 of the training data, code version) and
+  ``weights_sha256``, the SHA-256 of ``ensemble.safetensors``, checked on load.
+
+The folder is written atomically (a temporary sibling renamed into place) and
+every kind of damage is refused on load with one line naming the file.
 
 Prediction is plain NumPy: ``Ensemble.predict`` works without torch on the
 device and gives every member's estimate so callers can report the spread.
@@ -135,46 +139,140 @@ class Ensemble:
         }
 
     def save(self, directory: str) -> str:
+        """Write the model folder atomically: a temporary sibling folder is filled (weights, then
+        ``model.json`` with the SHA-256 of the weights file) and renamed onto ``directory``, which
+        it replaces whole; a crash leaves either the old folder or the new one, never a mix."""
+        import tempfile
+
         from safetensors.numpy import save_file
 
-        os.makedirs(directory, exist_ok=True)
-        tensors = {}
-        for l, (W, b, _) in enumerate(self.layers()):
-            tensors[f"layer{l}.weight"] = np.ascontiguousarray(W)
-            tensors[f"layer{l}.bias"] = np.ascontiguousarray(b)
-        save_file(tensors, os.path.join(directory, WEIGHTS_FILE), metadata={"format": FORMAT})
-        with open(os.path.join(directory, META_FILE), "w") as f:
-            json.dump(self.to_json(), f, indent=2)
-            f.write("\n")
+        from elastimap.outputs import publish_dir
+
+        final = os.path.abspath(directory)
+        os.makedirs(os.path.dirname(final), exist_ok=True)
+        tmp = tempfile.mkdtemp(prefix=f".{os.path.basename(final)}.", suffix=".partial", dir=os.path.dirname(final))
+        try:
+            tensors = {}
+            for l, (W, b, _) in enumerate(self.layers()):
+                tensors[f"layer{l}.weight"] = np.ascontiguousarray(W)
+                tensors[f"layer{l}.bias"] = np.ascontiguousarray(b)
+            w_p = os.path.join(tmp, WEIGHTS_FILE)
+            save_file(tensors, w_p, metadata={"format": FORMAT})
+            doc = self.to_json()
+            doc["weights_sha256"] = _sha256(w_p)
+            with open(os.path.join(tmp, META_FILE), "w") as f:
+                json.dump(doc, f, indent=2)
+                f.write("\n")
+            from pathlib import Path
+
+            publish_dir(Path(tmp), Path(final), "model")
+        except BaseException:
+            import shutil
+
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
         return directory
 
     @classmethod
     def load(cls, directory: str) -> "Ensemble":
+        """Read a model folder; any damage is ONE :class:`UserError` naming the file.
+
+        Checked: ``model.json`` is JSON with the format, architecture, scaling, names and
+        ranges; the weights file matches the SHA-256 recorded in ``model.json`` (folders
+        written before the hash was recorded skip this check); it is a readable safetensors
+        file holding exactly the tensors the architecture needs, with their shapes, all finite.
+        """
         from safetensors.numpy import load_file
 
         meta_p = os.path.join(directory, META_FILE)
         w_p = os.path.join(directory, WEIGHTS_FILE)
+        if not os.path.isdir(directory):
+            raise UserError("model", f"{directory}: no such model directory")
         for p in (meta_p, w_p):
             if not os.path.isfile(p):
                 raise UserError("model", f"{directory} is not a trained model directory (missing {os.path.basename(p)})")
-        with open(meta_p) as f:
-            try:
+
+        def bad_meta(why: str) -> UserError:
+            return UserError("model", f"{meta_p}: {why}")
+
+        def bad_weights(why: str) -> UserError:
+            return UserError("model", f"{w_p}: {why}")
+
+        try:
+            with open(meta_p, encoding="utf-8") as f:
                 meta = json.load(f)
-            except json.JSONDecodeError as exc:
-                raise UserError("model", f"{meta_p} is not valid JSON ({exc})") from None
-        if meta.get("format") != FORMAT or int(meta.get("format_version", -1)) > FORMAT_VERSION:
-            raise UserError("model", f"{meta_p}: unsupported model format {meta.get('format')!r} "
-                                     f"version {meta.get('format_version')!r}")
-        arch = Arch.from_json(meta["architecture"])
-        t = load_file(w_p)
-        parts = []
-        for l in range(len(arch.layers)):
-            W, b = t[f"layer{l}.weight"], t[f"layer{l}.bias"]
-            parts.append(np.concatenate([W, b[:, :, None]], axis=2).reshape(W.shape[0], -1))
-        theta = np.concatenate(parts, axis=1).astype(np.float64)
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise bad_meta(f"not valid JSON ({exc})") from None
+        if not isinstance(meta, dict):
+            raise bad_meta("not a JSON object")
+        try:
+            version = int(meta.get("format_version", -1))
+        except (TypeError, ValueError):
+            version = -1
+        if meta.get("format") != FORMAT or not 1 <= version <= FORMAT_VERSION:
+            raise bad_meta(f"unsupported model format {meta.get('format')!r} version {meta.get('format_version')!r}")
+        for key in ("architecture", "scaling", "feature_names", "target_names", "feature_range", "target_range"):
+            if key not in meta:
+                raise bad_meta(f"missing '{key}'")
+        try:
+            arch = Arch.from_json(meta["architecture"])
+            if arch.n_in < 1 or arch.n_out < 1 or any(n < 1 for n, _ in arch.hidden):
+                raise ValueError("layer sizes must be >= 1")
+        except (KeyError, TypeError, ValueError) as exc:
+            raise bad_meta(f"unreadable 'architecture' ({type(exc).__name__}: {exc})") from None
         sc = meta["scaling"]
-        return cls(arch=arch, theta=theta, x_min=sc["x_min"], x_max=sc["x_max"], y_min=sc["t_min"],
-                   y_max=sc["t_max"], feature_names=tuple(meta["feature_names"]),
-                   target_names=tuple(meta["target_names"]), units=dict(meta.get("units", {})),
-                   feature_range=np.asarray(meta["feature_range"]), target_range=np.asarray(meta["target_range"]),
+        try:
+            scal = {k: np.asarray(sc[k], dtype=np.float64) for k in ("x_min", "x_max", "t_min", "t_max")}
+            fr = np.asarray(meta["feature_range"], dtype=np.float64)
+            tr = np.asarray(meta["target_range"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise bad_meta(f"unreadable 'scaling' or ranges ({type(exc).__name__}: {exc})") from None
+        for k, v in scal.items():
+            n = arch.n_in if k.startswith("x") else arch.n_out
+            if v.shape != (n,) or not np.isfinite(v).all():
+                raise bad_meta(f"scaling {k} must be {n} finite numbers")
+        if not ((scal["x_max"] > scal["x_min"]).all() and (scal["t_max"] > scal["t_min"]).all()):
+            raise bad_meta("scaling maxima must exceed the minima")
+        if fr.shape != (2, arch.n_in) or tr.shape != (2, arch.n_out):
+            raise bad_meta("feature_range / target_range do not match the architecture")
+        names_f, names_t = list(meta["feature_names"]), list(meta["target_names"])
+        if len(names_f) != arch.n_in or len(names_t) != arch.n_out:
+            raise bad_meta("feature/target names do not match the architecture")
+        want_sha = meta.get("weights_sha256")
+        if want_sha is not None and _sha256(w_p) != want_sha:
+            raise bad_weights("does not match the SHA-256 recorded in model.json (damaged or edited)")
+        try:
+            t = load_file(w_p)
+        except Exception as exc:  # safetensors raises several types for damaged files
+            raise bad_weights(f"not a readable safetensors file ({type(exc).__name__})") from None
+        want = {f"layer{l}.{k}" for l in range(len(arch.layers)) for k in ("weight", "bias")}
+        if set(t) != want:
+            missing, extra = sorted(want - set(t)), sorted(set(t) - want)
+            raise bad_weights("tensors do not match the architecture in model.json"
+                              + (f"; missing {', '.join(missing)}" if missing else "")
+                              + (f"; unexpected {', '.join(extra)}" if extra else ""))
+        parts, M = [], None
+        for l, (fi, fo, _) in enumerate(arch.layers):
+            W, b = t[f"layer{l}.weight"], t[f"layer{l}.bias"]
+            M = W.shape[0] if M is None else M
+            if W.shape != (M, fo, fi) or b.shape != (M, fo) or M < 1:
+                raise bad_weights(f"layer{l} has shapes {W.shape} and {b.shape}; model.json's architecture "
+                                  f"needs ({M}, {fo}, {fi}) and ({M}, {fo})")
+            parts.append(np.concatenate([W, b[:, :, None]], axis=2).reshape(M, -1))
+        theta = np.concatenate(parts, axis=1).astype(np.float64)
+        if not np.isfinite(theta).all():
+            raise bad_weights("holds NaN or inf weights")
+        return cls(arch=arch, theta=theta, x_min=scal["x_min"], x_max=scal["x_max"], y_min=scal["t_min"],
+                   y_max=scal["t_max"], feature_names=tuple(names_f), target_names=tuple(names_t),
+                   units=dict(meta.get("units", {})), feature_range=fr, target_range=tr,
                    meta=dict(meta.get("training", {})))
+
+
+def _sha256(path: str) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()

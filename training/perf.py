@@ -36,6 +36,10 @@ def set_threads(threads: int | None) -> int:
     """Torch intra-op threads (``0``/None = torch's default); with an explicit count the BLAS
     libraries loaded next to torch (scipy's OpenBLAS, used for LM's Cholesky steps) get the
     same limit, so worker processes do not oversubscribe the cores."""
+    from elastimap.errors import UserError
+
+    if threads is not None and (isinstance(threads, bool) or int(threads) != threads or threads < 0):
+        raise UserError("threads", f"must be an integer >= 0 (0 = torch's default; got {threads})")
     import torch
 
     if threads:
