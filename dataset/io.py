@@ -75,6 +75,12 @@ def _retrying(fn):
 
 
 
+def _first_line(exc: BaseException) -> str:
+    """``Type: first line of the message`` (pyarrow's messages run over several lines)."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    return f"{type(exc).__name__}: {lines[0]}" if lines else type(exc).__name__
+
+
 def _files(path: str | os.PathLike, *, must_exist: bool = True) -> list[Path]:
     p = Path(path)
     if not p.exists():
@@ -102,7 +108,7 @@ def _meta(f: Path) -> tuple[pa.Schema, dict, dict | None]:
     except Exception as exc:  # pyarrow raises several types for corrupt/foreign files
         if not f.exists():
             raise _Vanished(f) from None
-        raise UserError("path", f"{f} is not a readable Parquet file ({type(exc).__name__}: {exc})") from None
+        raise UserError("path", f"{f} is not a readable Parquet file ({_first_line(exc)})") from None
     md = schema.metadata or {}
     raw = md.get(SCHEMA_KEY.encode())
     if raw is None:
@@ -111,6 +117,8 @@ def _meta(f: Path) -> tuple[pa.Schema, dict, dict | None]:
         info = json.loads(raw)
     except ValueError:
         raise UserError("path", f"{f}: the '{SCHEMA_KEY}' metadata is not JSON") from None
+    if not isinstance(info, dict):
+        raise UserError("path", f"{f}: the '{SCHEMA_KEY}' metadata is not a JSON object")
     version = info.get("version")
     if not isinstance(version, int) or version > SCHEMA_VERSION:
         raise UserError("path", f"{f} has schema version {version!r}; this code reads versions <= {SCHEMA_VERSION}")
@@ -123,7 +131,13 @@ def _meta(f: Path) -> tuple[pa.Schema, dict, dict | None]:
         if not got.equals(want):
             raise UserError("path", f"{f}: column {c} is {got}, expected {want}")
     image = md.get(IMAGE_KEY.encode())
-    return schema, info, (json.loads(image) if image else None)
+    try:
+        img = json.loads(image) if image else None
+    except ValueError:
+        img = "bad"
+    if img is not None and not (isinstance(img, dict) and isinstance(img.get("shape", []), list)):
+        raise UserError("path", f"{f}: the '{IMAGE_KEY}' metadata is not a JSON object with a shape")
+    return schema, info, img
 
 
 @_retrying
@@ -203,10 +217,11 @@ def read_table(path, columns: list[str] | None = None) -> pd.DataFrame:
             want = [c for c in dict.fromkeys([*_KEY_COLS, *columns]) if c in s.names]
         try:
             t = pq.read_table(f, columns=want)
+            t.validate(full=True)  # e.g. invalid UTF-8 in a damaged string column
         except Exception as exc:
             if isinstance(exc, FileNotFoundError) or not f.exists():
                 raise _Vanished(f) from None
-            raise UserError("path", f"{f} cannot be read ({type(exc).__name__}: {exc})") from None
+            raise UserError("path", f"{f} cannot be read ({_first_line(exc)})") from None
         frames.append(t.to_pandas())
     frames = [f for f in frames if len(f)]
     if not frames:

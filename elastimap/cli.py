@@ -93,8 +93,13 @@ def _step(title: str, argv: list[str]) -> None:
 @click.option("--jobs", type=int, default=2, show_default=True, help="Sweep worker processes.")
 def demo(out, n, mesh, jobs):
     """Run the pipeline on a small default: solve → sweep → inspect/plot → train."""
+    from .outputs import check_out_dir
+
     if n < 1:
         raise UserError("n", f"must be >= 1 (got {n})")
+    if jobs < 1:
+        raise UserError("jobs", f"must be >= 1 (got {jobs})")
+    check_out_dir(out, "out", allow_existing=True)  # the demo resumes in its folder
     os.makedirs(out, exist_ok=True)
     data = os.path.join(out, "data")
     _step("one forward solve (default mesh)", ["solve", "--d", "8", "--h", "7", "--E", "50",
@@ -107,7 +112,7 @@ def demo(out, n, mesh, jobs):
     # trains a 6-neuron net instead (workflows/paper_table.py runs the real thing)
     _step("train an MLP (SCG, hold-out on the phantoms; 6 hidden neurons for this small demo)",
           ["train", "--algo", "scg", "--validate", "hov", "--repeats", "3", "--hidden", "6", "--data", data,
-           "--out", os.path.join(out, "train")])
+           "--out", os.path.join(out, "train"), "--overwrite"])  # a rerun of the demo replaces its run
     click.secho(f"\ndemo done: results in {out}/", bold=True)
 
 

@@ -138,7 +138,7 @@ def load(path: str | os.PathLike) -> Measured:
         raise UserError("measured", f"{tp}: duplicate id(s) {dup[:5]}")
     for c in ("d", "h", "E"):
         v = pd.to_numeric(df[c], errors="coerce")
-        bad = df["id"][v.isna() | ~(v > 0)].tolist()
+        bad = df["id"][v.isna() | ~(v > 0) | ~np.isfinite(v.astype(float))].tolist()
         if bad:
             raise UserError("measured", f"{tp}: column {c} must be a positive number (rows {bad[:5]})")
         df[c] = v.astype(float)
@@ -149,9 +149,11 @@ def load(path: str | os.PathLike) -> Measured:
             side = json.loads(sp.read_text())
         except json.JSONDecodeError as exc:
             raise UserError("measured", f"{sp}: not valid JSON ({exc})") from None
+        if not isinstance(side, dict):
+            raise UserError("measured", f"{sp}: must hold a JSON object")
         if side.get("kind") != KIND:
             raise UserError("measured", f"{sp}: not an elastimap gap measured-data sidecar (kind {side.get('kind')!r})")
-        if int(side.get("version", -1)) != VERSION:
+        if side.get("version", -1) != VERSION:
             raise UserError("measured", f"{sp}: version {side.get('version')!r} not supported (expected {VERSION})")
     sensor = side.get("sensor")
     settings = side.get("feature_settings", {})

@@ -180,6 +180,8 @@ def design_points(n: int, design: str, seed: int, ranges: dict[str, Range],
     check_n(n)
     if design not in DESIGNS:
         raise UserError("design", f"must be one of {', '.join(DESIGNS)} (got {design!r})")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise UserError("seed", f"must be an integer >= 0 (got {seed!r})")
     if n == 0:
         return []
     from scipy.stats import qmc

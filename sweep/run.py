@@ -168,6 +168,9 @@ def make_plan(cfg: SweepConfig) -> Plan:
     out = Path(cfg.out or default_out(cfg, n))
     if out.exists() and not out.is_dir():
         raise UserError("out", f"{out} exists and is not a directory")
+    from elastimap.outputs import check_out_dir
+
+    check_out_dir(out, "out", allow_existing=True)  # writable (or creatable), before any solve
     man = None
     if out.is_dir():
         man = io.read_manifest(out)
