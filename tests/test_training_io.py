@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from elastimap.cli_util import run
+from elastimap.dataset import io as dio
 from elastimap.errors import UserError
 from elastimap.training.api import fit_ensemble
 from elastimap.training.cli import train
@@ -25,6 +26,11 @@ from elastimap.training.model import Ensemble
 
 torch.set_num_threads(1)
 SMALL = dict(hidden=(5, 3), epochs=20)
+
+
+def write_samples(df: pd.DataFrame, path) -> None:
+    """Write rows as a sample-dataset Parquet file (the schema the one reader checks)."""
+    dio.write_atomic(dio.to_table(df.to_dict("records")), path)
 
 
 @pytest.fixture(scope="module")
@@ -43,26 +49,26 @@ def test_import_does_not_pull_solver():
 def test_load_directory_of_parquet_and_failed_rows(tmp_path, toy):
     d = tmp_path / "ds"
     d.mkdir()
-    toy.iloc[:30].to_parquet(d / "part-0.parquet")
-    toy.iloc[30:].to_parquet(d / "part-1.parquet")
+    write_samples(toy.iloc[:30], d / "part-0.parquet")
+    write_samples(toy.iloc[30:], d / "part-1.parquet")
     s = load_samples(str(d))
     assert s.n == 60 and s.n_failed == 3 and s.n_total == 63
     assert "3 failed sample(s) excluded" in s.report() and "9 calibration-phantom" in s.report()
     assert list(s.df["sample_id"]) == sorted(s.df["sample_id"])
     # row order in the files does not change the hash
-    toy.iloc[::-1].to_parquet(tmp_path / "rev.parquet")
+    write_samples(toy.iloc[::-1], tmp_path / "rev.parquet")
     assert data_hash(load_samples(str(tmp_path / "rev.parquet")).df) == data_hash(s.df)
 
 
 def test_bad_data_errors(tmp_path, toy):
     p = tmp_path / "noO2.parquet"
-    toy.drop(columns=["O2"]).to_parquet(p)
-    with pytest.raises(UserError, match="lacks required column.*O2"):
+    toy.drop(columns=["O2"]).to_parquet(p)  # a foreign file (pandas, no sample schema)
+    with pytest.raises(UserError, match="noO2.parquet is not an elastimap sample file"):
         load_samples(str(p))
-    with pytest.raises(UserError, match="no such file"):
+    with pytest.raises(UserError, match="does not exist"):
         load_samples(str(tmp_path / "missing"))
     (tmp_path / "junk.parquet").write_text("not parquet")
-    with pytest.raises(UserError, match="cannot read Parquet"):
+    with pytest.raises(UserError, match="junk.parquet is not a readable Parquet file"):
         load_samples(str(tmp_path / "junk.parquet"))
     nan = toy.copy()
     nan.loc[5, "O3"] = np.nan
@@ -155,7 +161,7 @@ def _cli(args, capsys):
     (["--synthetic", "60", "--feature-noise", "-1"], "--feature-noise"),
     (["--synthetic", "60", "--test-split", "1.5"], "--test-split"),
     ([], "--data"),
-    (["--data", "/nonexistent/x.parquet"], "no such file"),
+    (["--data", "/nonexistent/x.parquet"], "does not exist"),
     (["--synthetic", "60", "--bogus"], "no such option"),
 ])
 def test_cli_bad_options_exit_2(args, msg, capsys):
@@ -166,7 +172,7 @@ def test_cli_bad_options_exit_2(args, msg, capsys):
 
 def test_cli_run_writes_tables_curves_and_models(tmp_path, toy, capsys):
     data = tmp_path / "toy.parquet"
-    toy.to_parquet(data)
+    write_samples(toy, data)
     out = tmp_path / "out"
     code, stdout, err = _cli(["--data", str(data), "--algo", "all", "--validate", "hov", "--repeats", "2",
                               "--epochs", "8", "--hidden", "5,3", "--out", str(out), "--quiet", "--threads", "1"],
@@ -184,19 +190,19 @@ def test_cli_run_writes_tables_curves_and_models(tmp_path, toy, capsys):
     assert ens.n_members == 2 and ens.meta["n_train"] == 51       # HOV only: phantom rows held out
 
 
-def test_files_vanishing_during_read_is_a_user_error(tmp_path, toy, monkeypatch):
-    import pyarrow.dataset as pads
-
+def test_files_vanishing_during_read_are_read_again(tmp_path, toy, monkeypatch):
+    """A running sweep's compaction replaces files while training reads: the one reader lists again."""
     d = tmp_path / "ds"
     d.mkdir()
-    toy.to_parquet(d / "part-0.parquet")
-    real = pads.dataset
+    write_samples(toy, d / "r-part-0.parquet")
+    real = dio._meta
+    calls = []
 
-    def racing(path, **kw):
-        ds = real(path, **kw)
-        os.remove(d / "part-0.parquet")          # a sweep compacting its files meanwhile
-        return ds
+    def racing(f):
+        if not calls:
+            calls.append(f)
+            os.replace(d / "r-part-0.parquet", d / "b-part-0.parquet")   # compaction meanwhile
+        return real(f)
 
-    monkeypatch.setattr(pads, "dataset", racing)
-    with pytest.raises(UserError, match="sweep still writing"):
-        load_samples(str(d))
+    monkeypatch.setattr(dio, "_meta", racing)
+    assert load_samples(str(d)).n == 60
