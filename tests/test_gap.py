@@ -309,7 +309,8 @@ def test_cli_end_to_end_and_errors(tmp_path):
     assert json.loads(r.stdout)["winner"] == "saturation"
     assert (out / "report.md").exists() and (out / "candidates.png").exists() and (out / "report.html").exists()
     for args, word in ((["diagnose", "--measured", str(tmp_path / "none"), "--out", str(out)], "no such"),
-                       (["synth", "--out", str(m), "--effect", "bogus=1"], "unknown effect"),
+                       (["synth", "--out", str(tmp_path / "m2"), "--effect", "bogus=1"], "unknown effect"),
+                       (["synth", "--out", str(m), "--effect", "friction=0.3"], "--overwrite"),
                        (["diagnose", "--measured", str(m), "--out", str(out), "--effects", "x"], "unknown effect"),
                        (["diagnose", "--measured", str(m), "--out", str(out), "--alpha", "2"], "alpha"),
                        (["diagnose", "--measured", str(m), "--out", str(out), "--error-mesh", "huge", "--backend", "toy"], "error-mesh"),
