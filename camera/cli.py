@@ -175,9 +175,9 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
     ph = C.load_phantoms(phantoms)
     # every input read and every output location checked before anything is solved or written
     fem_given = C.fem_features_from_csv(fem_features, ph) if fem_features else None
-    check_out_file(out, "--out")
+    check_out_file(out, "--out", create_parents=True)
     png = plot or os.path.splitext(out)[0] + ".png"
-    check_out_file(png, "--plot")
+    check_out_file(png, "--plot", create_parents=True)
     if write_frames:
         check_out_dir(write_frames, "--write-frames", allow_existing=True)
     synthetic = camera_csv is None
@@ -207,7 +207,8 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
     from elastimap.outputs import write_or_fallback
 
     write_or_fallback(cal.save, out, "--out")
-    C.plot_calibration(cal, png)
+    os.makedirs(os.path.dirname(os.path.abspath(png)), exist_ok=True)
+    write_or_fallback(lambda f: C.plot_calibration(cal, f), png, "--plot")
     click.echo(cal.report())
     click.echo(f"wrote {out} and {png}")
 

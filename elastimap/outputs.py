@@ -53,14 +53,18 @@ def is_empty_dir(p: str | os.PathLike) -> bool:
     return p.is_dir() and not any(p.iterdir())
 
 
-def check_out_file(path: str | os.PathLike, param: str) -> Path:
-    """A file about to be written: not a folder, in an existing folder we may write in.
+def check_out_file(path: str | os.PathLike, param: str, *, create_parents: bool = False) -> Path:
+    """A file about to be written: not a folder, in an existing folder we may write in
+    (with ``create_parents``: in a folder the writer may create).
 
     An existing file is allowed (the caller decides whether replacing it is right)."""
     p = Path(path)
     if p.is_dir():
         raise UserError(param, f"{p} is a folder; give a file name")
     parent = p.parent if str(p.parent) else Path(".")
+    if create_parents and not os.path.lexists(parent):
+        _check_creatable(parent, param)
+        return p
     if not parent.is_dir():
         what = "is a file, not a folder" if parent.exists() else "does not exist"
         raise UserError(param, f"cannot write {p}: the folder {parent} {what}")

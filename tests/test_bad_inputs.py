@@ -286,7 +286,8 @@ CASES = [
      ("foreign.parquet",)),
     ("calibrate", ["--phantoms", "missing.csv", *TINY, "--frames", "1", "--out", "c.json"], ("phantoms", "missing")),
     ("calibrate", [*TINY, "--frames", "0", "--out", "c.json"], ("frames",)),
-    ("calibrate", [*TINY, "--frames", "1", "--out", "nodir/c.json"], ("out", "nodir")),
+    ("calibrate", [*TINY, "--frames", "1", "--out", "{A}/a-file/c.json"], ("out", "a-file")),
+    ("calibrate", [*TINY, "--frames", "1", "--out", "{A}/ds"], ("out", "ds")),
     ("calibrate", [*TINY, "--frames", "1", "--out", "c.json", "--write-frames", "{A}/a-file"],
      ("write-frames", "write_frames", "a-file")),
     # ---- infer
