@@ -371,7 +371,7 @@ SUBPROCESS = [
     ("solve", ["--E", "inf", "--mesh", "tiny"], ("E",)),
     ("train", ["--synthetic", "30", "--epochs", "0", "--out", "tr"], ("epochs",)),
     ("dataset", ["inspect", "{A}/ds", "--top", "-1"], ("top",)),
-    ("gap", ["synth", "--out", "{A}/M", "--overwrite", *SYNTH], ("--out",)),
+    ("gap", ["synth", "--out", "{A}/M", "--overwrite", *SYNTH], ("out", "real")),
     ("infer", ["--model", "{A}/model-truncated", *INFER], ("ensemble.safetensors",)),
 ]
 
