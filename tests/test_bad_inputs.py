@@ -335,6 +335,13 @@ CASES = [
     ("elastimap", ["demo", "--jobs", "0"], ("jobs",)),
     ("elastimap", ["demo", "--out", "{A}/a-file"], ("out", "a-file")),
     ("elastimap", ["nope"], ("nope",)),
+    # the same refusals through the one command
+    ("elastimap", ["solve", "--E", "inf", *TINY], ("--E", "E:")),
+    ("elastimap", ["train", *TRAIN, "--epochs", "0"], ("epochs",)),
+    ("elastimap", ["train", *TRAIN[:-1], "{A}/run"], ("out", "run")),
+    ("elastimap", ["dataset", "inspect", "{A}/ds", "--top", "-1"], ("top",)),
+    ("elastimap", ["gap", "synth", "--out", "{A}/M", "--overwrite", *SYNTH], ("out", "real")),
+    ("elastimap", ["sweep", "run", "--seed", "-1", "--n", "2", *TINY, "--out", "sw"], ("seed",)),
 ]
 
 
