@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_bad_inputs import SYNTH, invoke, make_dataset, make_model, snapshot
 
 from elastimap.errors import UserError, check_range
-from test_bad_inputs import SYNTH, invoke, make_dataset, make_model, snapshot
 
 REPO = Path(__file__).resolve().parent.parent
 ROOMS = ("solver", "sweep", "dataset", "training", "camera", "gap", "identify", "elastimap", "workflows")
@@ -304,8 +304,16 @@ def test_check_range_accepts_exactly_the_interval(v, lo, hi, lo_open, hi_open):
        delta=finite_or_not, force=st.one_of(st.none(), finite_or_not), pixel=finite_or_not)
 def test_solve_params_validate_or_refuse(d, h, E, tissue_E, thickness, delta, force, pixel):
     """Any numbers: either a UserError naming a parameter, or parameters a mesh can be built for."""
-    from elastimap.solver.params import (MAX_PIXELS, Discretisation, ImageSpec, Inclusion, Loading, SolveParams,
-                                         Tissue, delta_limit)
+    from elastimap.solver.params import (
+        MAX_PIXELS,
+        Discretisation,
+        ImageSpec,
+        Inclusion,
+        Loading,
+        SolveParams,
+        Tissue,
+        delta_limit,
+    )
 
     p = SolveParams(inclusion=Inclusion(d=d, h=h, E=E), tissue=Tissue(E=tissue_E, thickness=thickness),
                     loading=Loading(delta=delta, force=force), disc=Discretisation(mesh="tiny"),

@@ -174,7 +174,7 @@ class Ensemble:
         return directory
 
     @classmethod
-    def load(cls, directory: str) -> "Ensemble":
+    def load(cls, directory: str) -> Ensemble:
         """Read a model folder; any damage is ONE :class:`UserError` naming the file.
 
         Checked: ``model.json`` is JSON with the format, architecture, scaling, names and
