@@ -423,7 +423,7 @@ def acquire_lock(out, param: str = "--out") -> Path:
                 alive = True  # another machine: cannot check, assume it is running
             if alive:
                 raise UserError(param, f"{out} is being written by another sweep or compaction (pid {other.get('pid')} "
-                                       f"on {other.get('host')}); if that is wrong, remove {lock}")
+                                       f"on {other.get('host')}); if that is wrong, remove {lock}") from None
             try:
                 lock.unlink()
             except FileNotFoundError:

@@ -10,7 +10,6 @@ without a traceback; the Python API raises it like any other ``ValueError``.
 from __future__ import annotations
 
 
-
 class UserError(ValueError):
     """Bad input from the user: ``param`` names what is wrong, ``message`` what is allowed."""
 

@@ -94,7 +94,7 @@ class Measured:
         from elastimap.camera.features import FeatureSettings
         return FeatureSettings.from_dict(self.feature_settings or {})
 
-    def subset(self, idx) -> "Measured":
+    def subset(self, idx) -> Measured:
         idx = np.asarray(idx)
         return Measured([self.ids[i] for i in idx], self.dhe[idx], self.y[idx], self.se[idx], self.tissue_E[idx],
                         [self.difference[i] for i in idx], self.sensor, self.feature_settings, self.mesh,

@@ -22,7 +22,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import dolfinx_solver  # noqa: E402,F401  (must precede dolfinx / petsc4py / mpi4py)
 import petsc4py  # noqa: E402
-
 from mpi4py import MPI  # noqa: E402
 
 petsc4py.init(comm=MPI.COMM_SELF)

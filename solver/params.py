@@ -157,10 +157,10 @@ class SolveParams:
     disc: Discretisation = field(default_factory=Discretisation)
     image: ImageSpec = field(default_factory=ImageSpec)
 
-    def replace(self, **changes) -> "SolveParams":
+    def replace(self, **changes) -> SolveParams:
         return dataclasses.replace(self, **changes)
 
-    def with_inclusion(self, **changes) -> "SolveParams":
+    def with_inclusion(self, **changes) -> SolveParams:
         return dataclasses.replace(self, inclusion=dataclasses.replace(self.inclusion, **changes))
 
     def to_dict(self) -> dict:
@@ -178,7 +178,7 @@ class SolveParams:
         return self.tissue.nonlinearity > 0 or self.disc.interface == "contact"
 
     @classmethod
-    def from_dict(cls, d: dict) -> "SolveParams":
+    def from_dict(cls, d: dict) -> SolveParams:
         probe = dict(d.get("probe", {}))
         if "layers" in probe:
             probe["layers"] = tuple(tuple(map(float, l)) for l in probe["layers"])
@@ -201,7 +201,7 @@ class SolveParams:
                 "mesh": ds.mesh, "degree": ds.degree, "interface": ds.interface, "friction_kt": ds.friction_kt,
                 "symmetry": ds.symmetry, "threshold": im.threshold, "supersample": im.supersample}
 
-    def validate(self) -> "SolveParams":
+    def validate(self) -> SolveParams:
         """Raise :class:`UserError` naming the first bad parameter; return self.
 
         What each parameter alone must be is declared in ``PARAMETER_CONSTRAINTS``; the rules
@@ -258,7 +258,7 @@ class SolveParams:
 MAX_PIXELS = 2048
 
 
-def delta_limit(params: "SolveParams") -> float:
+def delta_limit(params: SolveParams) -> float:
     """Largest plate travel δ (mm) a solve may use, with ``--delta`` or found under force control:
     half the thinner of probe and tissue (beyond it the small-strain model means nothing)."""
     return min(params.probe.height, params.tissue.thickness) / 2

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from elastimap.camera import calibration as C
-from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 from elastimap.camera.features import FeatureSettings
 from elastimap.camera.optics import SensorModel
 from elastimap.errors import UserError
+from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 
 REPO = Path(__file__).resolve().parent.parent
 PHANTOMS_FALLBACK = """# temporary copy for tests

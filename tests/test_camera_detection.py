@@ -1,12 +1,18 @@
 """Detection study (paper 5.3) on SYNTHETIC scans: scores, ROC, AUC, bootstrap (toy forward model)."""
 
 import numpy as np
-import pytest
 
-from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
-from elastimap.camera.detection import (DETECTION_INCLUSIONS, DetectionSettings, auc, bootstrap_auc, plot_roc, roc_curve,
-                              run_detection)
+from elastimap.camera.detection import (
+    DETECTION_INCLUSIONS,
+    DetectionSettings,
+    auc,
+    bootstrap_auc,
+    plot_roc,
+    roc_curve,
+    run_detection,
+)
 from elastimap.camera.optics import SensorModel
+from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 
 
 def test_auc_and_roc_basics():

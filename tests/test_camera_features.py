@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 from elastimap.camera.features import FeatureSettings, camera_features, features_from_files
 from elastimap.camera.frames import write_frames
 from elastimap.camera.optics import SensorModel, background_deflection, render_pair
 from elastimap.errors import UserError
+from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 
 
 @pytest.fixture(scope="module")

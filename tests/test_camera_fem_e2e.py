@@ -17,8 +17,8 @@ from scipy.stats import qmc
 
 from elastimap.camera.calibration import fit_calibration, load_phantoms, simulate_phantoms
 from elastimap.camera.features import FeatureSettings
-from elastimap.camera.infer import estimate_images
 from elastimap.camera.frames import write_frames
+from elastimap.camera.infer import estimate_images
 from elastimap.camera.optics import SensorModel, render_pair
 from elastimap.solver import solve
 from elastimap.solver.params import Discretisation, SolveParams

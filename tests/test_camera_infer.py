@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from elastimap.camera import calibration as C
-from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 from elastimap.camera.features import FeatureSettings
 from elastimap.camera.frames import write_frames
 from elastimap.camera.infer import estimate, estimate_images, read_lesions_csv
 from elastimap.camera.optics import SensorModel, render_pair
 from elastimap.errors import UserError
+from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 
 REPO = Path(__file__).resolve().parent.parent
 PHANTOMS = [("size-1", 5, 8, 80), ("size-2", 8, 8, 80), ("size-3", 12, 8, 80), ("depth-1", 8, 6, 80),

@@ -5,10 +5,10 @@ import warnings
 import numpy as np
 import pytest
 
-from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 from elastimap.camera.frames import CameraWarning, read_frame, read_metadata, read_stack, write_frames
 from elastimap.camera.optics import SensorModel, render_pair
 from elastimap.errors import UserError
+from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 
 
 @pytest.fixture(scope="module")

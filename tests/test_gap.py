@@ -50,7 +50,6 @@ def test_effect_spec_parsing_and_switches():
 
 
 def test_phantom_design_is_valid_for_every_effect():
-    from elastimap.solver.params import SolveParams
     from elastimap.gap.simulate import base_params
     for row in synth.phantom_design(30, 3):
         for e in fx.EFFECTS.values():

@@ -11,7 +11,7 @@ import pytest
 
 from elastimap.errors import UserError
 from elastimap.solver.image import features, mirror_quarter, upsample_bilinear
-from elastimap.solver.params import Discretisation, Inclusion, Loading, SolveParams, depth_range
+from elastimap.solver.params import Discretisation, Loading, SolveParams, depth_range
 
 TINY = Discretisation(mesh="tiny")
 

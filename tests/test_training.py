@@ -9,8 +9,16 @@ import numpy as np
 import pytest
 import torch
 
-from elastimap.training.net import (Arch, forward, gn_system, init_nguyen_widrow, parse_hidden, residual_jacobian, sse,
-                          sse_grad)
+from elastimap.training.net import (
+    Arch,
+    forward,
+    gn_system,
+    init_nguyen_widrow,
+    parse_hidden,
+    residual_jacobian,
+    sse,
+    sse_grad,
+)
 from elastimap.training.optim import _lm_step_torch, lm_step, train_lm, train_scg
 from elastimap.training.problem import NetObjective, mapminmax_apply, mapminmax_fit, mapminmax_reverse
 
@@ -172,7 +180,7 @@ def test_lm_reaches_scipy_least_squares_loss():
     obj = NetObjective(arch, X, T, w)
 
     def fun(th):
-        return ((forward(torch.as_tensor(th)[None], X, arch) - T)).reshape(-1).numpy()
+        return (forward(torch.as_tensor(th)[None], X, arch) - T).reshape(-1).numpy()
 
     def jac(th):
         return residual_jacobian(torch.as_tensor(th)[None], X, T, w, arch)[1][0].numpy()
@@ -274,8 +282,8 @@ def test_batched_equals_unbatched(algo):
 
 
 def test_chunked_training_equals_one_chunk():
+    from elastimap.training.data import FEATURES, TARGETS, synthetic_table
     from elastimap.training.experiment import TrainConfig, make_batch, train_batch
-    from elastimap.training.data import synthetic_table, FEATURES, TARGETS
 
     df = synthetic_table(40, seed=2, phantoms=False)
     X, T = df[list(FEATURES)].to_numpy(), df[list(TARGETS)].to_numpy()
@@ -291,8 +299,8 @@ def test_chunked_training_equals_one_chunk():
 @pytest.mark.parametrize("algo", ["lm", "scg"])
 def test_worker_processes_give_the_serial_result(algo):
     """Chunks shared out to two spawned processes reproduce the serial loop exactly."""
+    from elastimap.training.data import FEATURES, TARGETS, synthetic_table
     from elastimap.training.experiment import TrainConfig, make_batch, train_batch
-    from elastimap.training.data import synthetic_table, FEATURES, TARGETS
 
     df = synthetic_table(40, seed=3, phantoms=False)
     X, T = df[list(FEATURES)].to_numpy(), df[list(TARGETS)].to_numpy()

@@ -47,10 +47,10 @@ def bench(n, repeats, folds, algo, epochs, hidden, device, threads, float32, wor
     """Time batched LOOCV training on the SYNTHETIC toy table."""
     import torch
 
-    from .perf import set_threads, tune_malloc
     from .data import FEATURES, TARGETS, synthetic_table
     from .experiment import TrainConfig, make_batch, train_batch
     from .net import parse_hidden
+    from .perf import set_threads, tune_malloc
 
     algos = [a.strip() for a in algo.split(",") if a.strip()]
     for a in algos:

@@ -69,8 +69,8 @@ def train(data, synthetic, algo, validate, repeats, epochs, hidden, activation, 
 
     from .data import load_samples, prepare, synthetic_table
     from .experiment import ALGOS, RUN_CONSTRAINTS, VALIDATIONS, TrainConfig
-    from .perf import set_threads, tune_malloc
     from .net import parse_hidden
+    from .perf import set_threads, tune_malloc
 
     # the rules are declared next to the parameters they govern; all checked before any work
     validate_params(dict(repeats=repeats, seed=seed, test_split=test_split), RUN_CONSTRAINTS)

@@ -76,7 +76,7 @@ class Arch:
                 "output_activation": "purelin", "n_params": self.n_params}
 
     @classmethod
-    def from_json(cls, obj: dict) -> "Arch":
+    def from_json(cls, obj: dict) -> Arch:
         return cls(n_in=int(obj["n_in"]), n_out=int(obj["n_out"]),
                    hidden=tuple((int(h["size"]), str(h["activation"])) for h in obj["hidden"]))
 

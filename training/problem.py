@@ -82,7 +82,7 @@ class NetObjective:
     def B(self) -> int:
         return self.X.shape[0]
 
-    def subset(self, idx) -> "NetObjective":
+    def subset(self, idx) -> NetObjective:
         sel = (lambda t: None if t is None else t[idx])
         return NetObjective(self.arch, self.X[idx], self.T[idx], self.w[idx], sel(self.w_val), sel(self.w_test),
                             self.work_bytes, {k: (i[idx], w[idx]) for k, (i, w) in self._rows.items()})
