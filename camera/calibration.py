@@ -72,7 +72,7 @@ class LineFit:
     slope: float
     intercept: float
     r2: float
-    residuals: list[float]          # O_FEM - (a O_cam + b), per phantom, FEM units
+    residuals: list[float]  # O_FEM - (a O_cam + b), per phantom, FEM units
     rmse: float
 
     def to_dict(self) -> dict:
@@ -92,22 +92,22 @@ def fit_line(x_cam: np.ndarray, y_fem: np.ndarray, name: str = "feature") -> Lin
     a, b = np.polyfit(x, y, 1)
     res = y - (a * x + b)
     ss_tot = float(np.sum((y - y.mean()) ** 2))
-    r2 = 1.0 - float(np.sum(res ** 2)) / ss_tot if ss_tot > 0 else float("nan")
-    return LineFit(float(a), float(b), r2, [float(r) for r in res], float(np.sqrt(np.mean(res ** 2))))
+    r2 = 1.0 - float(np.sum(res**2)) / ss_tot if ss_tot > 0 else float("nan")
+    return LineFit(float(a), float(b), r2, [float(r) for r in res], float(np.sqrt(np.mean(res**2))))
 
 
 @dataclass
 class Calibration:
     fits: dict[str, LineFit]
     names: list[str]
-    phantoms: list[dict]                 # name, d, h, E of each calibration inclusion
-    fem: np.ndarray                      # (n, 3) FEM features
-    cam: np.ndarray                      # (n, 3) camera features
+    phantoms: list[dict]  # name, d, h, E of each calibration inclusion
+    fem: np.ndarray  # (n, 3) FEM features
+    cam: np.ndarray  # (n, 3) camera features
     feature_settings: dict
-    sensor: dict | None = None           # the synthetic sensor model (None for real images)
+    sensor: dict | None = None  # the synthetic sensor model (None for real images)
     synthetic: bool = True
     meta: dict = field(default_factory=dict)
-    deflection: dict | None = None       # see deflection_calibration (None: image models cannot use frames)
+    deflection: dict | None = None  # see deflection_calibration (None: image models cannot use frames)
 
     # ranges over the calibration set
     @property
@@ -147,9 +147,14 @@ class Calibration:
             "model": "O_FEM = slope * O_cam + intercept, per feature",
             "units": {"fem": FEM_UNITS, "camera": {"O1": "FS", "O2": "FS mm^2", "O3": "mm^2"}},
             "fits": {k: self.fits[k].to_dict() for k in FEATURES},
-            "phantoms": [dict(p, **{f"fem_{k}": float(self.fem[i, j]) for j, k in enumerate(FEATURES)},
-                              **{f"cam_{k}": float(self.cam[i, j]) for j, k in enumerate(FEATURES)})
-                         for i, p in enumerate(self.phantoms)],
+            "phantoms": [
+                dict(
+                    p,
+                    **{f"fem_{k}": float(self.fem[i, j]) for j, k in enumerate(FEATURES)},
+                    **{f"cam_{k}": float(self.cam[i, j]) for j, k in enumerate(FEATURES)},
+                )
+                for i, p in enumerate(self.phantoms)
+            ],
             "cam_range": self.cam_range.tolist(),
             "fem_range": self.fem_range.tolist(),
             "feature_settings": self.feature_settings,
@@ -177,8 +182,10 @@ class Calibration:
         if not isinstance(d, dict) or d.get("kind") != "elastimap.camera.calibration":
             raise UserError("calibration", f"{p}: not an elastimap camera calibration file")
         if d.get("version") != CALIBRATION_VERSION:
-            raise UserError("calibration", f"{p}: calibration version {d.get('version')} not supported "
-                                           f"(expected {CALIBRATION_VERSION})")
+            raise UserError(
+                "calibration",
+                f"{p}: calibration version {d.get('version')} not supported (expected {CALIBRATION_VERSION})",
+            )
         try:
             fits = {k: LineFit(**d["fits"][k]) for k in FEATURES}
             ph = d["phantoms"]
@@ -187,32 +194,50 @@ class Calibration:
             phantoms = [{k: r[k] for k in r if not k.startswith(("fem_", "cam_"))} for r in ph]
         except (KeyError, TypeError) as exc:
             raise UserError("calibration", f"{p}: malformed calibration file (missing {exc})") from None
-        return cls(fits, [str(r["name"]) for r in phantoms], phantoms, fem, cam,
-                   d.get("feature_settings", {}), d.get("sensor"), bool(d.get("synthetic", False)),
-                   d.get("meta", {}), d.get("deflection"))
+        return cls(
+            fits,
+            [str(r["name"]) for r in phantoms],
+            phantoms,
+            fem,
+            cam,
+            d.get("feature_settings", {}),
+            d.get("sensor"),
+            bool(d.get("synthetic", False)),
+            d.get("meta", {}),
+            d.get("deflection"),
+        )
 
     def report(self) -> str:
-        lines = [f"calibration ({'SYNTHETIC camera' if self.synthetic else 'camera images'}), "
-                 f"{len(self.names)} phantoms: O_FEM = a * O_cam + b"]
+        lines = [
+            f"calibration ({'SYNTHETIC camera' if self.synthetic else 'camera images'}), "
+            f"{len(self.names)} phantoms: O_FEM = a * O_cam + b"
+        ]
         for k in FEATURES:
             f = self.fits[k]
-            lines.append(f"  {k}: a = {f.slope:.6g}  b = {f.intercept:.6g} {FEM_UNITS[k]}  R^2 = {f.r2:.5f}  "
-                         f"rmse = {f.rmse:.3g} {FEM_UNITS[k]}")
+            lines.append(
+                f"  {k}: a = {f.slope:.6g}  b = {f.intercept:.6g} {FEM_UNITS[k]}  R^2 = {f.r2:.5f}  "
+                f"rmse = {f.rmse:.3g} {FEM_UNITS[k]}"
+            )
         lines.append("  residuals (FEM units):")
         for i, n in enumerate(self.names):
             lines.append("    " + f"{n:14s}" + "  ".join(f"{k}={self.fits[k].residuals[i]:+.3g}" for k in FEATURES))
         if self.deflection:
             rel = self.deflection["rel_rms"]
-            lines.append(f"  difference images from frames (inverse response): scale {self.deflection['scale']:.4f}, "
-                         f"relative rms vs FEM {100 * min(rel):.2g}-{100 * max(rel):.2g} % over the phantoms")
+            lines.append(
+                f"  difference images from frames (inverse response): scale {self.deflection['scale']:.4f}, "
+                f"relative rms vs FEM {100 * min(rel):.2g}-{100 * max(rel):.2g} % over the phantoms"
+            )
         return "\n".join(lines)
 
     def reference_image(self) -> tuple[np.ndarray, float]:
         """The FEM reference press (mm) and its pixel side (mm), for :mod:`elastimap.camera.deflection`."""
         if not self.deflection:
-            raise UserError("calibration", "this calibration has no deflection calibration (made by an older "
-                                           "version or without FEM solves): recalibrate to use camera frames "
-                                           "with an image model or --refine")
+            raise UserError(
+                "calibration",
+                "this calibration has no deflection calibration (made by an older "
+                "version or without FEM solves): recalibrate to use camera frames "
+                "with an image model or --refine",
+            )
         return np.asarray(self.deflection["reference"], float), float(self.deflection["pixel"])
 
 
@@ -233,42 +258,64 @@ def deflection_calibration(results, pairs, sensor=None) -> dict:
     # the nine share one press; remeshing alone moves the FEM's reference by a few % of its maximum
     # (4.5 % on the tiny mesh, at the probe's edge peaks), a different tissue or press by far more
     if spread > 0.2:
-        raise UserError("calibration", f"the phantoms' reference presses differ by {100 * spread:.2g} % "
-                                       "(different tissue or press): one deflection calibration needs one press")
+        raise UserError(
+            "calibration",
+            f"the phantoms' reference presses differ by {100 * spread:.2g} % "
+            "(different tissue or press): one deflection calibration needs one press",
+        )
     pixel = float(results[0].pixel)
     rec = [difference_image(F, B, sensor, ref, pixel).image for F, B in pairs]
     k, rel = fit_scale(rec, [np.asarray(r.image, float) for r in results])
-    return {"model": "FEM difference image = scale x inverse-response image (elastimap.camera.deflection)",
-            "reference": ref.tolist(), "pixel": pixel, "shape": list(ref.shape), "scale": k, "rel_rms": rel,
-            "reference_spread": spread}
+    return {
+        "model": "FEM difference image = scale x inverse-response image (elastimap.camera.deflection)",
+        "reference": ref.tolist(),
+        "pixel": pixel,
+        "shape": list(ref.shape),
+        "scale": k,
+        "rel_rms": rel,
+        "reference_spread": spread,
+    }
 
 
-def fit_calibration(phantoms, fem: np.ndarray, cam: np.ndarray, feature_settings: dict,
-                    sensor: dict | None = None, synthetic: bool = True, meta: dict | None = None,
-                    deflection: dict | None = None) -> Calibration:
+def fit_calibration(
+    phantoms,
+    fem: np.ndarray,
+    cam: np.ndarray,
+    feature_settings: dict,
+    sensor: dict | None = None,
+    synthetic: bool = True,
+    meta: dict | None = None,
+    deflection: dict | None = None,
+) -> Calibration:
     fem = np.asarray(fem, dtype=float)
     cam = np.asarray(cam, dtype=float)
     n = len(phantoms)
     if fem.shape != (n, 3) or cam.shape != (n, 3):
-        raise UserError("calibration", f"need (n, 3) FEM and camera features for the {n} phantoms "
-                                       f"(got {fem.shape} and {cam.shape})")
+        raise UserError(
+            "calibration", f"need (n, 3) FEM and camera features for the {n} phantoms (got {fem.shape} and {cam.shape})"
+        )
     fits = {k: fit_line(cam[:, j], fem[:, j], k) for j, k in enumerate(FEATURES)}
-    recs = [{"name": str(r["name"]), "d": float(r["d"]), "h": float(r["h"]), "E": float(r["E"])}
-            for _, r in phantoms.iterrows()]
+    recs = [
+        {"name": str(r["name"]), "d": float(r["d"]), "h": float(r["h"]), "E": float(r["E"])}
+        for _, r in phantoms.iterrows()
+    ]
     m = {"created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}
     try:
         from elastimap.provenance import code_version
+
         m["code_version"] = code_version()
     except Exception:
         pass
     m.update(meta or {})
-    return Calibration(fits, [r["name"] for r in recs], recs, fem, cam, feature_settings, sensor, synthetic, m,
-                       deflection)
+    return Calibration(
+        fits, [r["name"] for r in recs], recs, fem, cam, feature_settings, sensor, synthetic, m, deflection
+    )
 
 
 def plot_calibration(cal: Calibration, path: str | os.PathLike) -> None:
     """PNG of the three fits (camera feature vs FEM feature, with the fitted line)."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -282,8 +329,7 @@ def plot_calibration(cal: Calibration, path: str | os.PathLike) -> None:
         for xi, yi, n in zip(x, y, cal.names):
             ax.annotate(n, (xi, yi), fontsize=7, xytext=(3, 3), textcoords="offset points")
         xs = np.linspace(x.min(), x.max(), 50)
-        ax.plot(xs, f.slope * xs + f.intercept, "C1-",
-                label=f"a={f.slope:.4g}, b={f.intercept:.3g}\nR²={f.r2:.4f}")
+        ax.plot(xs, f.slope * xs + f.intercept, "C1-", label=f"a={f.slope:.4g}, b={f.intercept:.3g}\nR²={f.r2:.4f}")
         ax.set_xlabel(f"camera {k} ({cam_units[k]})")
         ax.set_ylabel(f"FEM {k} ({fem_units[k]})")
         ax.legend(fontsize=8, loc="upper left")
@@ -300,19 +346,31 @@ def plot_calibration(cal: Calibration, path: str | os.PathLike) -> None:
 # ---------------------------------------------------------------- simulation
 def default_fem(mesh: str = "coarse", delta: float = 3.0):
     """A function (d, h, E, tissue_E, thickness) -> SolveResult using the DOLFINx solver (imported lazily)."""
+
     def fem(d: float, h: float, E: float, tissue_E: float = 5.0, thickness: float = THICKNESS):
         from elastimap.solver import solve  # noqa: PLC0415 - keeps DOLFINx out of import time
         from elastimap.solver.params import Discretisation, Loading, SolveParams, Tissue
 
-        p = SolveParams(tissue=Tissue(E=tissue_E, thickness=thickness), loading=Loading(delta=delta),
-                        disc=Discretisation(mesh=mesh)).with_inclusion(d=d, h=h, E=E)
+        p = SolveParams(
+            tissue=Tissue(E=tissue_E, thickness=thickness), loading=Loading(delta=delta), disc=Discretisation(mesh=mesh)
+        ).with_inclusion(d=d, h=h, E=E)
         return solve(p)
+
     return fem
 
 
-def simulate_phantoms(phantoms, fem_fn, sensor=None, settings=None, frames: int = 30,
-                      seed: int = 0, write_dir: str | os.PathLike | None = None, fmt: str = "png",
-                      progress=None, frames_out: list | None = None):
+def simulate_phantoms(
+    phantoms,
+    fem_fn,
+    sensor=None,
+    settings=None,
+    frames: int = 30,
+    seed: int = 0,
+    write_dir: str | os.PathLike | None = None,
+    fmt: str = "png",
+    progress=None,
+    frames_out: list | None = None,
+):
     """FEM features and SYNTHETIC camera features of each phantom.
 
     ``fem_fn(d, h, E, tissue_E, thickness)`` returns an object with ``image``,
@@ -340,8 +398,13 @@ def simulate_phantoms(phantoms, fem_fn, sensor=None, settings=None, frames: int 
         if frames_out is not None:
             frames_out.append((F, B))
         if write_dir is not None:
-            meta = {"phantom": str(r["name"]), "d": float(r["d"]), "h": float(r["h"]), "E": float(r["E"]),
-                    "sensor": sensor.to_dict()}
+            meta = {
+                "phantom": str(r["name"]),
+                "d": float(r["d"]),
+                "h": float(r["h"]),
+                "E": float(r["E"]),
+                "sensor": sensor.to_dict(),
+            }
             write_frames(F, write_dir, f"synthetic_{r['name']}", fmt, dict(meta, frame="lesion"))
             write_frames(B, write_dir, f"synthetic_{r['name']}_background", fmt, dict(meta, frame="background"))
         cf = camera_features(F, B, sensor.full_scale, sensor.window, sensor.pixel_mm, settings)
@@ -353,8 +416,9 @@ def simulate_phantoms(phantoms, fem_fn, sensor=None, settings=None, frames: int 
     return np.array(fem), np.array(cam), results
 
 
-def camera_features_from_csv(path: str | os.PathLike, phantoms, sensor=None, settings=None,
-                             frames_out: list | None = None):
+def camera_features_from_csv(
+    path: str | os.PathLike, phantoms, sensor=None, settings=None, frames_out: list | None = None
+):
     """Camera features of the phantoms from the user's images.
 
     The CSV has columns ``name`` (matching the phantom spec), ``images`` and

@@ -47,24 +47,40 @@ def _sensor(sensor_json: str | None, **overrides):
 
 
 def sensor_options(f):
-    for opt in reversed([
-        click.option("--sensor", "sensor_json", type=click.Path(dir_okay=False),
-                     help="JSON object of SensorModel parameters (camera geometry, optics, noise)."),
-        click.option("--seed", type=int, default=None, help="Noise seed (default 0)."),
-        click.option("--noise-scale", type=float, default=None, help="Multiply shot + read noise (0 = noise-free)."),
-        click.option("--bits", type=click.Choice(["8", "16"]), default=None, help="Bit depth of frames."),
-        click.option("--binning", type=int, default=None, help="Software binning of the 1392x1042 sensor (default 10)."),
-    ]):
+    for opt in reversed(
+        [
+            click.option(
+                "--sensor",
+                "sensor_json",
+                type=click.Path(dir_okay=False),
+                help="JSON object of SensorModel parameters (camera geometry, optics, noise).",
+            ),
+            click.option("--seed", type=int, default=None, help="Noise seed (default 0)."),
+            click.option(
+                "--noise-scale", type=float, default=None, help="Multiply shot + read noise (0 = noise-free)."
+            ),
+            click.option("--bits", type=click.Choice(["8", "16"]), default=None, help="Bit depth of frames."),
+            click.option(
+                "--binning", type=int, default=None, help="Software binning of the 1392x1042 sensor (default 10)."
+            ),
+        ]
+    ):
         f = opt(f)
     return f
 
 
 def feature_options(f):
-    for opt in reversed([
-        click.option("--threshold", type=float, default=None, help="O3 threshold, fraction of full scale (default 0.0012)."),
-        click.option("--smooth-px", type=float, default=None, help="Gaussian denoising sigma, camera pixels (default 1.5)."),
-        click.option("--combine", type=click.Choice(["mean-image", "mean-features"]), default=None),
-    ]):
+    for opt in reversed(
+        [
+            click.option(
+                "--threshold", type=float, default=None, help="O3 threshold, fraction of full scale (default 0.0012)."
+            ),
+            click.option(
+                "--smooth-px", type=float, default=None, help="Gaussian denoising sigma, camera pixels (default 1.5)."
+            ),
+            click.option("--combine", type=click.Choice(["mean-image", "mean-features"]), default=None),
+        ]
+    ):
         f = opt(f)
     return f
 
@@ -113,14 +129,26 @@ def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, s
     res = default_fem(mesh, delta)(d, h, E, tissue_E=tissue_e)
     F, B = render_pair(model, res.image_raw, res.image, res.pixel, frames)
     stem = name or f"d{d:g}_h{h:g}_E{E:g}"
-    meta = {"d": d, "h": h, "E": E, "tissue_E": tissue_e, "delta": delta, "mesh": mesh,
-            "fem_O1": res.O1, "fem_O2": res.O2, "fem_O3": res.O3, "sensor": model.to_dict()}
+    meta = {
+        "d": d,
+        "h": h,
+        "E": E,
+        "tissue_E": tissue_e,
+        "delta": delta,
+        "mesh": mesh,
+        "fem_O1": res.O1,
+        "fem_O2": res.O2,
+        "fem_O3": res.O3,
+        "sensor": model.to_dict(),
+    }
     pl = write_frames(F, out, f"synthetic_{stem}", fmt, dict(meta, frame="lesion"))
     pb = write_frames(B, out, f"synthetic_{stem}_background", fmt, dict(meta, frame="background"))
     with open(os.path.join(out, f"synthetic_{stem}.json"), "w") as fh:
         json.dump(dict(meta, synthetic=True, lesion_frames=pl, background_frames=pb), fh, indent=2)
-    click.echo(f"{model.describe()}\nwrote {len(pl)} lesion + {len(pb)} background SYNTHETIC frames to {out}/ "
-               f"(FEM O1={res.O1:.4g} mm O2={res.O2:.4g} mm O3={res.O3:.4g} mm^2)")
+    click.echo(
+        f"{model.describe()}\nwrote {len(pl)} lesion + {len(pb)} background SYNTHETIC frames to {out}/ "
+        f"(FEM O1={res.O1:.4g} mm O2={res.O2:.4g} mm O3={res.O3:.4g} mm^2)"
+    )
 
 
 # ----------------------------------------------------------------- features
@@ -135,34 +163,71 @@ def features(images, background, sensor_json, threshold, smooth_px, combine, as_
     from .features import features_from_files
     from .frames import expand
 
-    cf = features_from_files(expand(list(images)), expand(list(background)), _sensor(sensor_json),
-                             _settings(threshold, smooth_px, combine))
+    cf = features_from_files(
+        expand(list(images)), expand(list(background)), _sensor(sensor_json), _settings(threshold, smooth_px, combine)
+    )
     if as_json:
         click.echo(json.dumps(cf.to_dict(), indent=2))
     else:
-        click.echo(f"O1 = {cf.O1:.6g} FS  O2 = {cf.O2:.6g} FS mm^2  O3 = {cf.O3:.6g} mm^2  "
-                   f"({cf.n_frames} frames, {cf.n_background} background)")
+        click.echo(
+            f"O1 = {cf.O1:.6g} FS  O2 = {cf.O2:.6g} FS mm^2  O3 = {cf.O3:.6g} mm^2  "
+            f"({cf.n_frames} frames, {cf.n_background} background)"
+        )
 
 
 # ---------------------------------------------------------------- calibrate
 @main.command(context_settings=CONTEXT_SETTINGS)
-@click.option("--phantoms", type=click.Path(dir_okay=False), default=None,
-              help="Phantom spec CSV (name,d,h,E[,tissue_E,tissue_thickness]); default dataset/phantoms.csv.")
-@click.option("--camera-csv", type=click.Path(dir_okay=False), default=None,
-              help="CSV name,images,background of YOUR phantom images; without it the camera is SYNTHETIC.")
-@click.option("--fem-features", type=click.Path(dir_okay=False), default=None,
-              help="Take FEM features from a CSV/Parquet (name or tag 'phantom:<name>', O1,O2,O3) instead of solving.")
+@click.option(
+    "--phantoms",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Phantom spec CSV (name,d,h,E[,tissue_E,tissue_thickness]); default dataset/phantoms.csv.",
+)
+@click.option(
+    "--camera-csv",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="CSV name,images,background of YOUR phantom images; without it the camera is SYNTHETIC.",
+)
+@click.option(
+    "--fem-features",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Take FEM features from a CSV/Parquet (name or tag 'phantom:<name>', O1,O2,O3) instead of solving.",
+)
 @mesh_option()
 @click.option("--delta", type=float, default=3.0, show_default=True)
 @click.option("--frames", type=int, default=30, show_default=True)
-@click.option("--write-frames", type=click.Path(file_okay=False), default=None, help="Also save the synthetic frames here.")
+@click.option(
+    "--write-frames", type=click.Path(file_okay=False), default=None, help="Also save the synthetic frames here."
+)
 @click.option("--format", "fmt", type=click.Choice(["png", "tiff"]), default="png")
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="Calibration JSON to write.")
-@click.option("--plot", type=click.Path(dir_okay=False), default=None, help="PNG of the three fits (default <out>.png).")
+@click.option(
+    "--plot", type=click.Path(dir_okay=False), default=None, help="PNG of the three fits (default <out>.png)."
+)
 @sensor_options
 @feature_options
-def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_frames, fmt, out, plot,
-              sensor_json, seed, noise_scale, bits, binning, threshold, smooth_px, combine):
+def calibrate(
+    phantoms,
+    camera_csv,
+    fem_features,
+    mesh,
+    delta,
+    frames,
+    write_frames,
+    fmt,
+    out,
+    plot,
+    sensor_json,
+    seed,
+    noise_scale,
+    bits,
+    binning,
+    threshold,
+    smooth_px,
+    combine,
+):
     """Fit O_FEM = a O_cam + b per feature on the nine calibration phantoms (paper 3.3)."""
     from elastimap.outputs import check_out_dir, check_out_file
 
@@ -184,11 +249,15 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
     fem_fn = C.default_fem(mesh, delta)
     pairs, results = [], None
     if synthetic:
+
         def progress(name, f, c):
-            click.echo(f"  {name:14s} FEM {f[0]:.4g} {f[1]:.4g} {f[2]:.4g}   camera {c[0]:.4g} {c[1]:.4g} {c[2]:.4g}",
-                       err=True)
-        fem, cam, results = C.simulate_phantoms(ph, fem_fn, model, settings, frames, model.seed, write_frames, fmt,
-                                                progress, frames_out=pairs)
+            click.echo(
+                f"  {name:14s} FEM {f[0]:.4g} {f[1]:.4g} {f[2]:.4g}   camera {c[0]:.4g} {c[1]:.4g} {c[2]:.4g}", err=True
+            )
+
+        fem, cam, results = C.simulate_phantoms(
+            ph, fem_fn, model, settings, frames, model.seed, write_frames, fmt, progress, frames_out=pairs
+        )
         if fem_given is not None:
             fem = fem_given
     else:
@@ -200,10 +269,23 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
             fem = np.array([[r.O1, r.O2, r.O3] for r in results])
     # camera frames -> FEM-equivalent difference images (image models, --refine) need the FEM solves
     defl = C.deflection_calibration(results, pairs, model) if results else None
-    cal = C.fit_calibration(ph, fem, cam, settings.to_dict(), model.to_dict(), synthetic,
-                            {"mesh": mesh, "delta": delta, "frames": frames,
-                             "phantoms_file": str(phantoms or C.DEFAULT_PHANTOMS),
-                             "camera_csv": camera_csv, "fem_features": fem_features}, defl)
+    cal = C.fit_calibration(
+        ph,
+        fem,
+        cam,
+        settings.to_dict(),
+        model.to_dict(),
+        synthetic,
+        {
+            "mesh": mesh,
+            "delta": delta,
+            "frames": frames,
+            "phantoms_file": str(phantoms or C.DEFAULT_PHANTOMS),
+            "camera_csv": camera_csv,
+            "fem_features": fem_features,
+        },
+        defl,
+    )
     from elastimap.outputs import write_or_fallback
 
     write_or_fallback(cal.save, out, "--out")
@@ -215,38 +297,88 @@ def calibrate(phantoms, camera_csv, fem_features, mesh, delta, frames, write_fra
 
 # -------------------------------------------------------------------- infer
 @main.command(context_settings=CONTEXT_SETTINGS)
-@click.option("--model", "model_dir", type=click.Path(), required=True,
-              help="Trained model directory: a feature ensemble (elastimap train) or an image model "
-                   "(elastimap identify imagenet --save-model).")
-@click.option("--calibration", type=click.Path(dir_okay=False), default=None,
-              help="FEM<->camera calibration (calibrate); needed for camera features and frames.")
+@click.option(
+    "--model",
+    "model_dir",
+    type=click.Path(),
+    required=True,
+    help="Trained model directory: a feature ensemble (elastimap train) or an image model "
+    "(elastimap identify imagenet --save-model).",
+)
+@click.option(
+    "--calibration",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="FEM<->camera calibration (calibrate); needed for camera features and frames.",
+)
 @click.option("--features", "feats", type=float, nargs=3, default=None, help="Camera features O1 O2 O3.")
 @click.option("--images", multiple=True, help="Lesion frames (files or globs; repeatable).")
 @click.option("--background", multiple=True, help="Background frames for --images.")
-@click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None,
-              help="Batch: CSV with id and O1,O2,O3, images,background (frame globs) or fem_image (.npy); docs/camera.md.")
-@click.option("--fem-image", "fem_image", type=click.Path(dir_okay=False), default=None,
-              help="Image model only: .npy FEM difference image(s), mm, shape (ny, nx) or (n, ny, nx) on the "
-                   "sweep's grid (no calibration needed).")
-@click.option("--identifiability", default="default", show_default=True,
-              help="Identifiability map (crb_grid.npz of elastimap identify crbmap), 'default' (shipped, "
-                   "default 512-sample sweep) or 'none'.")
-@click.option("--threshold", default=0.10, show_default=True, type=float,
-              help="Cramér–Rao relative std above which an output is flagged non-identifiable.")
-@click.option("--refine", is_flag=True,
-              help="Image models (--fem-image, --images or --csv): refine each estimate by a maximum-likelihood fit of "
-                   "the FEM image (elastimap.identify.refine, response surface: runs the solver, 30 forward solves per "
-                   "lesion); intervals from the local Cramér–Rao bound.  From frames, every pixel is weighted by "
-                   "its own noise, measured from the frames' scatter.")
-@click.option("--image-noise", default=0.01, show_default=True, type=float,
-              help="--refine: with --fem-image the pixel noise relative to the image's peak; from frames (which "
-                   "measure their own noise) the forward model's error floor relative to the peak, added in "
-                   "quadrature to the frames' noise.")
+@click.option(
+    "--csv",
+    "csv_path",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Batch: CSV with id and O1,O2,O3, images,background (frame globs) or fem_image (.npy); docs/camera.md.",
+)
+@click.option(
+    "--fem-image",
+    "fem_image",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Image model only: .npy FEM difference image(s), mm, shape (ny, nx) or (n, ny, nx) on the "
+    "sweep's grid (no calibration needed).",
+)
+@click.option(
+    "--identifiability",
+    default="default",
+    show_default=True,
+    help="Identifiability map (crb_grid.npz of elastimap identify crbmap), 'default' (shipped, "
+    "default 512-sample sweep) or 'none'.",
+)
+@click.option(
+    "--threshold",
+    default=0.10,
+    show_default=True,
+    type=float,
+    help="Cramér–Rao relative std above which an output is flagged non-identifiable.",
+)
+@click.option(
+    "--refine",
+    is_flag=True,
+    help="Image models (--fem-image, --images or --csv): refine each estimate by a maximum-likelihood fit of "
+    "the FEM image (elastimap.identify.refine, response surface: runs the solver, 30 forward solves per "
+    "lesion); intervals from the local Cramér–Rao bound.  From frames, every pixel is weighted by "
+    "its own noise, measured from the frames' scatter.",
+)
+@click.option(
+    "--image-noise",
+    default=0.01,
+    show_default=True,
+    type=float,
+    help="--refine: with --fem-image the pixel noise relative to the image's peak; from frames (which "
+    "measure their own noise) the forward model's error floor relative to the peak, added in "
+    "quadrature to the frames' noise.",
+)
 @mesh_option(help="--refine: mesh of the forward model (the one the model's training sweep used).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also write .csv or .json here.")
-def infer(model_dir, calibration, feats, images, background, csv_path, fem_image, identifiability, threshold,
-          refine, image_noise, mesh, as_json, out):
+def infer(
+    model_dir,
+    calibration,
+    feats,
+    images,
+    background,
+    csv_path,
+    fem_image,
+    identifiability,
+    threshold,
+    refine,
+    image_noise,
+    mesh,
+    as_json,
+    out,
+):
     """Estimate (d, h, E) with intervals; out-of-range inputs and non-identifiable outputs are flagged.
 
     An output the identifiability map calls non-identifiable at the estimate (Cramér–Rao relative
@@ -266,8 +398,10 @@ def infer(model_dir, calibration, feats, images, background, csv_path, fem_image
 
     given = sum(x for x in (feats is not None, bool(images), csv_path is not None, fem_image is not None))
     if given != 1:
-        raise UserError("input", "give exactly one of --features O1 O2 O3, --images ... --background ..., "
-                                 "--csv FILE, --fem-image FILE.npy")
+        raise UserError(
+            "input",
+            "give exactly one of --features O1 O2 O3, --images ... --background ..., --csv FILE, --fem-image FILE.npy",
+        )
     if not 0 < threshold < 10:
         raise UserError("--threshold", f"must be in (0, 10) (got {threshold:g})")
     if refine and feats is not None:
@@ -283,7 +417,9 @@ def infer(model_dir, calibration, feats, images, background, csv_path, fem_image
     idm = load_identifiability(None if identifiability == "none" else identifiability)
     model = load_model(model_dir)
     if refine and not _is_image_model(model):
-        raise UserError("--refine", "needs an image model (python -m elastimap.workflows.studies.imagenet --save-model DIR)")
+        raise UserError(
+            "--refine", "needs an image model (python -m elastimap.workflows.studies.imagenet --save-model DIR)"
+        )
     if fem_image is not None:
         try:
             arr = np.load(fem_image, allow_pickle=False)
@@ -309,8 +445,15 @@ def infer(model_dir, calibration, feats, images, background, csv_path, fem_image
         from .infer import refine_estimates
 
         with tqdm(total=len(ests), desc="refine (FEM fit)", unit="lesion", disable=len(ests) < 2) as bar:
-            ests = refine_estimates(ests, None, image_noise=image_noise, mesh=mesh, threshold=threshold,
-                                    progress=lambda i, n: bar.update(1), model_error=image_noise)
+            ests = refine_estimates(
+                ests,
+                None,
+                image_noise=image_noise,
+                mesh=mesh,
+                threshold=threshold,
+                progress=lambda i, n: bar.update(1),
+                model_error=image_noise,
+            )
     rows = [e.to_dict() for e in ests]
     if out:
         from elastimap.outputs import write_or_fallback
@@ -321,14 +464,20 @@ def infer(model_dir, calibration, feats, images, background, csv_path, fem_image
                     json.dump(rows, fh, indent=2)
             else:
                 import pandas as pd
+
                 pd.DataFrame(rows).to_csv(path, index=False)
+
         write_or_fallback(_write, out, "--out")
     if as_json:
         click.echo(json.dumps(rows, indent=2))
     else:
         for r in rows:
-            click.echo(f"{r['id']}: " + "   ".join(_quantity(r, q, u) for q, u in (("d", "mm"), ("h", "mm"), ("E", "kPa")))
-                       + "   " + ("ok" if r["ok"] else f"FLAGGED: {r['flags']}"))
+            click.echo(
+                f"{r['id']}: "
+                + "   ".join(_quantity(r, q, u) for q, u in (("d", "mm"), ("h", "mm"), ("E", "kPa")))
+                + "   "
+                + ("ok" if r["ok"] else f"FLAGGED: {r['flags']}")
+            )
     if cal is not None and cal.synthetic:
         click.echo("note: the calibration was made with the SYNTHETIC camera", err=True)
 
@@ -382,14 +531,20 @@ def detect(mesh, repeats, clutter_mm, press_jitter, out, noise_scales, sensor_js
         plot_roc(r, os.path.join(out, f"synthetic_roc_{tag}.png"))
         with open(os.path.join(out, f"synthetic_detection_{tag}.json"), "w") as fh:
             json.dump(r, fh, indent=2)
-    click.echo(f"SYNTHETIC detection, {table[0]['n_pos']} inclusion + {table[0]['n_neg']} clean scans, "
-               f"clutter {s.clutter_mm:g} mm, press jitter {s.press_jitter:g}, mesh {mesh}")
+    click.echo(
+        f"SYNTHETIC detection, {table[0]['n_pos']} inclusion + {table[0]['n_neg']} clean scans, "
+        f"clutter {s.clutter_mm:g} mm, press jitter {s.press_jitter:g}, mesh {mesh}"
+    )
     click.echo(f"{'noise x':>8} {'sens':>7} {'spec':>7} {'AUC':>6}  95% CI")
     for r in table:
-        click.echo(f"{r['noise_scale']:8g} {100 * r['sensitivity']:6.1f}% {100 * r['specificity']:6.1f}% "
-                   f"{r['auc']:6.3f}  [{r['auc_ci95'][0]:.3f}, {r['auc_ci95'][1]:.3f}]")
-    click.echo(f"{'paper':>8} {100 * PAPER['sensitivity']:6.1f}% {100 * PAPER['specificity']:6.1f}% "
-               f"{PAPER['auc']:6.3f}  (8 + 8 scans, MammaCare phantom)")
+        click.echo(
+            f"{r['noise_scale']:8g} {100 * r['sensitivity']:6.1f}% {100 * r['specificity']:6.1f}% "
+            f"{r['auc']:6.3f}  [{r['auc_ci95'][0]:.3f}, {r['auc_ci95'][1]:.3f}]"
+        )
+    click.echo(
+        f"{'paper':>8} {100 * PAPER['sensitivity']:6.1f}% {100 * PAPER['specificity']:6.1f}% "
+        f"{PAPER['auc']:6.3f}  (8 + 8 scans, MammaCare phantom)"
+    )
     click.echo(f"wrote {out}/")
 
 

@@ -52,23 +52,23 @@ from scipy import ndimage
 
 from elastimap.errors import UserError
 
-MIN_FRAMES = 2          # the scatter needs two frames per stack
-VAR_SMOOTH_PX = 2.0     # Gaussian sigma (camera pixels) over which the frame variance is averaged
-S_MAX = 1.0 - 1e-6      # inverse response: s at or above this is saturated scattering
+MIN_FRAMES = 2  # the scatter needs two frames per stack
+VAR_SMOOTH_PX = 2.0  # Gaussian sigma (camera pixels) over which the frame variance is averaged
+S_MAX = 1.0 - 1e-6  # inverse response: s at or above this is saturated scattering
 
 
 @dataclass
 class DeflectionImage:
     """A lesion's FEM-equivalent difference image (mm) and its per-pixel standard error (mm)."""
 
-    image: np.ndarray          # (ny, nx) mm, on the FEM image grid
-    sigma: np.ndarray          # (ny, nx) mm, standard error of each pixel (from the frames' scatter)
-    pixel: float               # mm, the FEM grid's pixel side
-    camera: np.ndarray         # (n, n) mm, the difference deflection on the camera pixels of the window
+    image: np.ndarray  # (ny, nx) mm, on the FEM image grid
+    sigma: np.ndarray  # (ny, nx) mm, standard error of each pixel (from the frames' scatter)
+    pixel: float  # mm, the FEM grid's pixel side
+    camera: np.ndarray  # (n, n) mm, the difference deflection on the camera pixels of the window
     n_frames: int
     n_background: int
-    scale: float = 1.0         # the calibration factor applied
-    saturated: int = 0         # camera pixels whose inverse response was clipped
+    scale: float = 1.0  # the calibration factor applied
+    saturated: int = 0  # camera pixels whose inverse response was clipped
 
     @property
     def peak(self) -> float:
@@ -96,8 +96,10 @@ def backprojector(n_cam: int, pixel_cam: float, n_img: int, pixel_img: float) ->
     """``P = (RᵀR)⁻¹ Rᵀ`` (n_img, n_cam): least-squares FEM pixel values from camera pixel values."""
     R = sampling_matrix(n_cam, pixel_cam, n_img, pixel_img)
     if np.linalg.matrix_rank(R) < n_img:
-        raise UserError("pixel", f"the camera's {n_cam} pixels of {pixel_cam:g} mm cannot resolve a "
-                                 f"{n_img}-pixel image of {pixel_img:g} mm")
+        raise UserError(
+            "pixel",
+            f"the camera's {n_cam} pixels of {pixel_cam:g} mm cannot resolve a {n_img}-pixel image of {pixel_img:g} mm",
+        )
     return np.linalg.pinv(R)
 
 
@@ -108,8 +110,9 @@ def _stack(a, what: str) -> np.ndarray:
     if a.ndim != 3 or 0 in a.shape:
         raise UserError(what, f"must be a stack of 2-D frames (got shape {a.shape})")
     if a.shape[0] < MIN_FRAMES:
-        raise UserError(what, f"need at least {MIN_FRAMES} frames to measure the noise from their scatter "
-                              f"(got {a.shape[0]})")
+        raise UserError(
+            what, f"need at least {MIN_FRAMES} frames to measure the noise from their scatter (got {a.shape[0]})"
+        )
     if not np.all(np.isfinite(a)):
         raise UserError(what, "contains NaN or inf")
     return a
@@ -124,9 +127,16 @@ def _mean_and_var(stack: np.ndarray, smooth_px: float) -> tuple[np.ndarray, np.n
     return m, v
 
 
-def difference_image(frames, background, sensor, reference: np.ndarray, pixel: float,
-                     shape: tuple[int, int] | None = None, scale: float = 1.0,
-                     var_smooth_px: float = VAR_SMOOTH_PX) -> DeflectionImage:
+def difference_image(
+    frames,
+    background,
+    sensor,
+    reference: np.ndarray,
+    pixel: float,
+    shape: tuple[int, int] | None = None,
+    scale: float = 1.0,
+    var_smooth_px: float = VAR_SMOOTH_PX,
+) -> DeflectionImage:
     """Lesion and background frame stacks (DN, full frames of ``sensor``'s size) -> :class:`DeflectionImage`.
 
     ``reference``: the FEM reference press (no inclusion) on its grid of ``pixel`` mm (mm of probe
@@ -136,8 +146,11 @@ def difference_image(frames, background, sensor, reference: np.ndarray, pixel: f
     F = _stack(frames, "frames")
     B = _stack(background, "background")
     if F.shape[1:] != s.shape or B.shape[1:] != s.shape:
-        raise UserError("frames", f"frames of {F.shape[2]}x{F.shape[1]} and background of {B.shape[2]}x{B.shape[1]} "
-                                  f"pixels; the calibration's camera has {s.shape[1]}x{s.shape[0]}")
+        raise UserError(
+            "frames",
+            f"frames of {F.shape[2]}x{F.shape[1]} and background of {B.shape[2]}x{B.shape[1]} "
+            f"pixels; the calibration's camera has {s.shape[1]}x{s.shape[0]}",
+        )
     ref = np.asarray(reference, dtype=float)
     if ref.ndim != 2 or not np.all(np.isfinite(ref)):
         raise UserError("reference", f"the reference deflection must be a finite 2-D image (got {ref.shape})")
@@ -148,34 +161,39 @@ def difference_image(frames, background, sensor, reference: np.ndarray, pixel: f
         raise UserError("shape", f"the FEM image grid must be square (got {ny} x {nx})")
     r0, c0, n = s.window
     win = (slice(r0, r0 + n), slice(c0, c0 + n))
-    fs, dark = float(s.full_scale), s.binning ** 2 * s.dark_e / s.e_per_dn
+    fs, dark = float(s.full_scale), s.binning**2 * s.dark_e / s.e_per_dn
     mF, vF = _mean_and_var(F, var_smooth_px)
     mB, vB = _mean_and_var(B, var_smooth_px)
     uF, uB = (mF[win] - dark) / fs, (mB[win] - dark) / fs
-    vF, vB = vF[win] / fs ** 2, vB[win] / fs ** 2
+    vF, vB = vF[win] / fs**2, vB[win] / fs**2
     if np.any(uB <= 0):
-        raise UserError("background", f"{int(np.count_nonzero(uB <= 0))} footprint pixels of the background frames "
-                                      f"are at or below the dark level: no light reaches them")
+        raise UserError(
+            "background",
+            f"{int(np.count_nonzero(uB <= 0))} footprint pixels of the background frames "
+            f"are at or below the dark level: no light reaches them",
+        )
     wb = s.deformation_on_frame(ref, pixel)[win]
     sb = s.scatter(wb)
     c = s.stray / s.level
-    G = uB / (s.level * (c + sb))                               # per-pixel light gain (flat field)
+    G = uB / (s.level * (c + sb))  # per-pixel light gain (flat field)
     sF = (uF / G) / s.level - c
     sat = int(np.count_nonzero(sF >= S_MAX))
     if sat:
-        warnings.warn(f"{sat} camera pixels beyond the response's saturation; their deflection is clipped",
-                      stacklevel=2)
+        warnings.warn(
+            f"{sat} camera pixels beyond the response's saturation; their deflection is clipped", stacklevel=2
+        )
     sF = np.clip(sF, -np.inf, S_MAX)
     dw = -s.w_sat * np.log((1.0 - sF) / (1.0 - sb))
     gF = s.w_sat * (c + sb) / ((1.0 - sF) * uB)
     gB = -s.w_sat * (c + sF) / ((1.0 - sF) * uB)
-    var_dw = gF ** 2 * vF + gB ** 2 * vB
+    var_dw = gF**2 * vF + gB**2 * vB
     P = backprojector(n, s.pixel_mm, ny, pixel)
     img = P @ dw @ P.T
     P2 = P * P
     var_img = P2 @ var_dw @ P2.T
-    return DeflectionImage(scale * img, scale * np.sqrt(var_img), float(pixel), dw, F.shape[0], B.shape[0],
-                           float(scale), sat)
+    return DeflectionImage(
+        scale * img, scale * np.sqrt(var_img), float(pixel), dw, F.shape[0], B.shape[0], float(scale), sat
+    )
 
 
 def fit_scale(recovered: list[np.ndarray], fem: list[np.ndarray]) -> tuple[float, list[float]]:
@@ -188,6 +206,8 @@ def fit_scale(recovered: list[np.ndarray], fem: list[np.ndarray]) -> tuple[float
     if not den > 0:
         raise UserError("calibration", "the recovered phantom difference images are all zero")
     k = num / den
-    rel = [float(np.linalg.norm(np.asarray(f) - k * np.asarray(r)) / max(np.linalg.norm(f), 1e-300))
-           for r, f in zip(recovered, fem)]
+    rel = [
+        float(np.linalg.norm(np.asarray(f) - k * np.asarray(r)) / max(np.linalg.norm(f), 1e-300))
+        for r, f in zip(recovered, fem)
+    ]
     return k, rel

@@ -69,7 +69,7 @@ class DetectionSettings:
     border_mm: float = 3.0
     n_threshold: int = 40
     threshold_quantile: float = 0.95
-    repeats: int = 1               # scans per inclusion (and clean scans per inclusion)
+    repeats: int = 1  # scans per inclusion (and clean scans per inclusion)
     n_boot: int = 2000
     seed: int = 0
 
@@ -92,20 +92,21 @@ def _scan(model: SensorModel, raw: np.ndarray, pixel: float, s: DetectionSetting
     return m.render(w, pixel, 1, rng)[0].astype(float)
 
 
-def detection_score(scan: np.ndarray, reference: np.ndarray, model: SensorModel,
-                    s: DetectionSettings | None = None) -> float:
+def detection_score(
+    scan: np.ndarray, reference: np.ndarray, model: SensorModel, s: DetectionSettings | None = None
+) -> float:
     """Score of one frame against the clean reference frame (both in DN)."""
     s = s or DetectionSettings()
     r0, c0, n = model.window
-    a = scan[r0:r0 + n, c0:c0 + n] / model.full_scale
-    b = reference[r0:r0 + n, c0:c0 + n] / model.full_scale
+    a = scan[r0 : r0 + n, c0 : c0 + n] / model.full_scale
+    b = reference[r0 : r0 + n, c0 : c0 + n] / model.full_scale
     A = np.column_stack([b.ravel(), np.ones(b.size)])
     coef, *_ = np.linalg.lstsq(A, a.ravel(), rcond=None)
     res = a - (coef[0] * b + coef[1])
     if s.score_sigma_px > 0:
         res = ndimage.gaussian_filter(res, s.score_sigma_px, mode="reflect")
     k = int(round(s.border_mm / model.pixel_mm))
-    inner = res[k:n - k, k:n - k] if n - 2 * k > 0 else res
+    inner = res[k : n - k, k : n - k] if n - 2 * k > 0 else res
     return float(inner.max())
 
 
@@ -137,8 +138,12 @@ def bootstrap_auc(pos, neg, n_boot: int = 2000, seed: int = 0, level: float = 0.
     return float(np.quantile(vals, q)), float(np.quantile(vals, 1 - q))
 
 
-def run_detection(fem_results: list, model: SensorModel | None = None,
-                  settings: DetectionSettings | None = None, inclusions=DETECTION_INCLUSIONS) -> dict:
+def run_detection(
+    fem_results: list,
+    model: SensorModel | None = None,
+    settings: DetectionSettings | None = None,
+    inclusions=DETECTION_INCLUSIONS,
+) -> dict:
     """The detection study from one FEM result per inclusion (``image``, ``image_raw``, ``pixel``)."""
     model = (model or SensorModel()).validate()
     s = settings or DetectionSettings()
@@ -150,8 +155,10 @@ def run_detection(fem_results: list, model: SensorModel | None = None,
     bgs = [np.asarray(r.image_raw, float) - np.asarray(r.image, float) for r in fem_results]
     bg_mean = np.mean(bgs, axis=0)
     reference = model.render(bg_mean, pixel, s.ref_frames, rng).astype(float).mean(axis=0)
-    thr_scores = [detection_score(_scan(model, bgs[i % len(bgs)], pixel, s, rng), reference, model, s)
-                  for i in range(s.n_threshold)]
+    thr_scores = [
+        detection_score(_scan(model, bgs[i % len(bgs)], pixel, s, rng), reference, model, s)
+        for i in range(s.n_threshold)
+    ]
     threshold = float(np.quantile(thr_scores, s.threshold_quantile))
     pos, neg, pos_id = [], [], []
     for _ in range(s.repeats):
@@ -168,37 +175,66 @@ def run_detection(fem_results: list, model: SensorModel | None = None,
     fpr, tpr, _ = roc_curve(pos, neg)
     return {
         "synthetic": True,
-        "n_pos": int(pos.size), "n_neg": int(neg.size),
-        "tp": tp, "fn": int(pos.size - tp), "tn": tn, "fp": int(neg.size - tn),
-        "sensitivity": tp / pos.size, "specificity": tn / neg.size,
-        "threshold": threshold, "threshold_rule": f"{s.threshold_quantile:g} quantile of {s.n_threshold} "
-                                                  f"independent clean scans",
-        "auc": a, "auc_ci95": [lo, hi],
-        "scores_pos": pos.tolist(), "scores_neg": neg.tolist(),
+        "n_pos": int(pos.size),
+        "n_neg": int(neg.size),
+        "tp": tp,
+        "fn": int(pos.size - tp),
+        "tn": tn,
+        "fp": int(neg.size - tn),
+        "sensitivity": tp / pos.size,
+        "specificity": tn / neg.size,
+        "threshold": threshold,
+        "threshold_rule": f"{s.threshold_quantile:g} quantile of {s.n_threshold} independent clean scans",
+        "auc": a,
+        "auc_ci95": [lo, hi],
+        "scores_pos": pos.tolist(),
+        "scores_neg": neg.tolist(),
         "pos_inclusion": [list(inclusions[i]) for i in pos_id],
-        "roc_fpr": fpr.tolist(), "roc_tpr": tpr.tolist(),
-        "noise_scale": model.noise_scale, "settings": s.to_dict(), "sensor": model.to_dict(),
+        "roc_fpr": fpr.tolist(),
+        "roc_tpr": tpr.tolist(),
+        "noise_scale": model.noise_scale,
+        "settings": s.to_dict(),
+        "sensor": model.to_dict(),
         "paper": PAPER,
     }
 
 
 def plot_roc(result: dict, path) -> None:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5, 5))
-    ax.plot(result["roc_fpr"], result["roc_tpr"], "C0-o", ms=3, drawstyle="steps-post",
-            label=f"synthetic: AUC {result['auc']:.3f} [{result['auc_ci95'][0]:.3f}, {result['auc_ci95'][1]:.3f}]")
-    ax.plot([1 - result["specificity"]], [result["sensitivity"]], "C0s", ms=8,
-            label=f"threshold: sens {100 * result['sensitivity']:.1f} %, spec {100 * result['specificity']:.1f} %")
-    ax.plot([1 - PAPER["specificity"]], [PAPER["sensitivity"]], "C3*", ms=12,
-            label="paper: sens 75 %, spec 87.5 %, AUC 0.835")
+    ax.plot(
+        result["roc_fpr"],
+        result["roc_tpr"],
+        "C0-o",
+        ms=3,
+        drawstyle="steps-post",
+        label=f"synthetic: AUC {result['auc']:.3f} [{result['auc_ci95'][0]:.3f}, {result['auc_ci95'][1]:.3f}]",
+    )
+    ax.plot(
+        [1 - result["specificity"]],
+        [result["sensitivity"]],
+        "C0s",
+        ms=8,
+        label=f"threshold: sens {100 * result['sensitivity']:.1f} %, spec {100 * result['specificity']:.1f} %",
+    )
+    ax.plot(
+        [1 - PAPER["specificity"]],
+        [PAPER["sensitivity"]],
+        "C3*",
+        ms=12,
+        label="paper: sens 75 %, spec 87.5 %, AUC 0.835",
+    )
     ax.plot([0, 1], [0, 1], "k:", lw=0.8)
     ax.set_xlabel("1 - specificity (false-positive rate)")
     ax.set_ylabel("sensitivity (true-positive rate)")
-    ax.set_title(f"SYNTHETIC detection ROC ({result['n_pos']}+{result['n_neg']} scans, "
-                 f"noise x{result['noise_scale']:g})", fontsize=10)
+    ax.set_title(
+        f"SYNTHETIC detection ROC ({result['n_pos']}+{result['n_neg']} scans, noise x{result['noise_scale']:g})",
+        fontsize=10,
+    )
     ax.legend(fontsize=7, loc="lower right")
     ax.set_xlim(-0.02, 1.02)
     ax.set_ylim(-0.02, 1.02)

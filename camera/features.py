@@ -42,8 +42,8 @@ COMBINE = ("mean-image", "mean-features")
 class FeatureSettings:
     """How camera features are computed (stored in the calibration file)."""
 
-    threshold: float = 0.0012      # FS: O3 counts pixels whose difference exceeds this (~ the FEM 1e-3 mm, see docs)
-    smooth_px: float = 1.5         # Gaussian sigma in camera pixels (0 = none)
+    threshold: float = 0.0012  # FS: O3 counts pixels whose difference exceeds this (~ the FEM 1e-3 mm, see docs)
+    smooth_px: float = 1.5  # Gaussian sigma in camera pixels (0 = none)
     supersample: int = 8
     combine: str = "mean-image"
 
@@ -70,19 +70,26 @@ class CameraFeatures:
     O1: float
     O2: float
     O3: float
-    frame_sd: tuple[float, float, float]   # scatter of single-frame features (sd); 0 for one frame
+    frame_sd: tuple[float, float, float]  # scatter of single-frame features (sd); 0 for one frame
     n_frames: int
     n_background: int
-    difference: np.ndarray                 # the denoised difference image over the window (FS)
+    difference: np.ndarray  # the denoised difference image over the window (FS)
 
     @property
     def values(self) -> np.ndarray:
         return np.array([self.O1, self.O2, self.O3])
 
     def to_dict(self) -> dict:
-        return {"O1": self.O1, "O2": self.O2, "O3": self.O3,
-                "O1_frame_sd": self.frame_sd[0], "O2_frame_sd": self.frame_sd[1], "O3_frame_sd": self.frame_sd[2],
-                "n_frames": self.n_frames, "n_background": self.n_background}
+        return {
+            "O1": self.O1,
+            "O2": self.O2,
+            "O3": self.O3,
+            "O1_frame_sd": self.frame_sd[0],
+            "O2_frame_sd": self.frame_sd[1],
+            "O3_frame_sd": self.frame_sd[2],
+            "n_frames": self.n_frames,
+            "n_background": self.n_background,
+        }
 
 
 UNITS = {"O1": "FS", "O2": "FS mm^2", "O3": "mm^2"}
@@ -103,12 +110,17 @@ def _difference_features(D: np.ndarray, pixel_mm: float, s: FeatureSettings) -> 
     if s.smooth_px > 0:
         D = ndimage.gaussian_filter(D, s.smooth_px, mode="reflect")
     o1, o2, o3 = image_features(D, pixel_mm, s.threshold, s.supersample)
-    return np.array([o1, o2 * pixel_mm ** 2, o3]), D
+    return np.array([o1, o2 * pixel_mm**2, o3]), D
 
 
-def camera_features(frames: np.ndarray, background: np.ndarray, full_scale: float,
-                    window: tuple[int, int, int], pixel_mm: float,
-                    settings: FeatureSettings | None = None) -> CameraFeatures:
+def camera_features(
+    frames: np.ndarray,
+    background: np.ndarray,
+    full_scale: float,
+    window: tuple[int, int, int],
+    pixel_mm: float,
+    settings: FeatureSettings | None = None,
+) -> CameraFeatures:
     """Features of a lesion from its frames and background frames (arrays in DN).
 
     ``window`` is (row0, col0, n): the footprint's pixels; ``pixel_mm`` their side on the probe.
@@ -117,8 +129,10 @@ def camera_features(frames: np.ndarray, background: np.ndarray, full_scale: floa
     F = _as_stack(frames, "frames")
     B = _as_stack(background, "background")
     if F.shape[1:] != B.shape[1:]:
-        raise UserError("background", f"frame size {F.shape[2]}x{F.shape[1]} differs from the background's "
-                                      f"{B.shape[2]}x{B.shape[1]}")
+        raise UserError(
+            "background",
+            f"frame size {F.shape[2]}x{F.shape[1]} differs from the background's {B.shape[2]}x{B.shape[1]}",
+        )
     r0, c0, n = window
     if r0 < 0 or c0 < 0 or r0 + n > F.shape[1] or c0 + n > F.shape[2]:
         raise UserError("window", f"footprint window {window} does not fit a {F.shape[2]}x{F.shape[1]} frame")
@@ -134,13 +148,16 @@ def camera_features(frames: np.ndarray, background: np.ndarray, full_scale: floa
         Dm = _difference_features(F.mean(axis=0) - Bm, pixel_mm, s)[1]
     sd = tuple(float(x) for x in per.std(axis=0, ddof=1)) if per is not None else (0.0, 0.0, 0.0)
     if vals[0] <= s.threshold:
-        warnings.warn(f"no deformation above the O3 threshold ({s.threshold:g} FS): "
-                      f"no inclusion visible against the background", stacklevel=2)
+        warnings.warn(
+            f"no deformation above the O3 threshold ({s.threshold:g} FS): no inclusion visible against the background",
+            stacklevel=2,
+        )
     return CameraFeatures(float(vals[0]), float(vals[1]), float(vals[2]), sd, F.shape[0], B.shape[0], Dm)
 
 
-def features_from_files(images: list[str], background: list[str], model=None,
-                        settings: FeatureSettings | None = None) -> CameraFeatures:
+def features_from_files(
+    images: list[str], background: list[str], model=None, settings: FeatureSettings | None = None
+) -> CameraFeatures:
     """Camera features of a lesion from image files.
 
     ``model`` (a :class:`elastimap.camera.optics.SensorModel`) gives the footprint window

@@ -21,15 +21,21 @@ import numpy as np
 from elastimap.errors import UserError
 
 FORMATS = ("png", "tiff")
-SATURATION_WARN_FRACTION = 1e-3   # warn when more than 0.1 % of the window pixels are clipped
+SATURATION_WARN_FRACTION = 1e-3  # warn when more than 0.1 % of the window pixels are clipped
 
 
 class CameraWarning(UserWarning):
     """A frame is usable but suspicious (saturated, blank, colour)."""
 
 
-def write_frames(frames: np.ndarray, directory: str | os.PathLike, prefix: str, fmt: str = "png",
-                 metadata: dict | None = None, synthetic: bool = True) -> list[str]:
+def write_frames(
+    frames: np.ndarray,
+    directory: str | os.PathLike,
+    prefix: str,
+    fmt: str = "png",
+    metadata: dict | None = None,
+    synthetic: bool = True,
+) -> list[str]:
     """Write ``frames`` (n, rows, cols; uint8 or uint16) as ``<prefix>_fNNN.<ext>``; return the paths.
 
     ``synthetic=True`` prefixes the file names with ``synthetic_`` (unless the
@@ -84,8 +90,9 @@ def read_metadata(path: str | os.PathLike) -> dict:
         return {}
 
 
-def read_frame(path: str | os.PathLike, shape: tuple[int, int] | None = None,
-               window: tuple[int, int, int] | None = None) -> tuple[np.ndarray, int]:
+def read_frame(
+    path: str | os.PathLike, shape: tuple[int, int] | None = None, window: tuple[int, int, int] | None = None
+) -> tuple[np.ndarray, int]:
     """Read one frame; return (float array in DN, full-scale DN).
 
     ``shape`` (rows, cols), when given, must match.  ``window`` (row0, col0, n)
@@ -126,22 +133,28 @@ def read_frame(path: str | os.PathLike, shape: tuple[int, int] | None = None,
     else:
         raise UserError("image", f"{p}: unsupported pixel type {arr.dtype} (mode {mode})")
     if shape is not None and tuple(arr.shape) != tuple(shape):
-        raise UserError("image", f"{p}: wrong size {arr.shape[1]}x{arr.shape[0]} (cols x rows); "
-                                 f"expected {shape[1]}x{shape[0]}")
+        raise UserError(
+            "image", f"{p}: wrong size {arr.shape[1]}x{arr.shape[0]} (cols x rows); expected {shape[1]}x{shape[0]}"
+        )
     a = arr.astype(float)
-    sub = a if window is None else a[window[0]:window[0] + window[2], window[1]:window[1] + window[2]]
+    sub = a if window is None else a[window[0] : window[0] + window[2], window[1] : window[1] + window[2]]
     if sub.size:
         sat = float(np.count_nonzero(sub >= full)) / sub.size
         if sat > SATURATION_WARN_FRACTION:
-            warnings.warn(f"{p}: {100 * sat:.2g} % of the footprint pixels are saturated "
-                          f"(at {full}); features will be biased low", CameraWarning, stacklevel=2)
+            warnings.warn(
+                f"{p}: {100 * sat:.2g} % of the footprint pixels are saturated "
+                f"(at {full}); features will be biased low",
+                CameraWarning,
+                stacklevel=2,
+            )
         if sub.max() == sub.min():
             warnings.warn(f"{p}: blank frame (all pixels {sub.max():g})", CameraWarning, stacklevel=2)
     return a, full
 
 
-def read_stack(paths: list[str], shape: tuple[int, int] | None = None,
-               window: tuple[int, int, int] | None = None) -> tuple[np.ndarray, int]:
+def read_stack(
+    paths: list[str], shape: tuple[int, int] | None = None, window: tuple[int, int, int] | None = None
+) -> tuple[np.ndarray, int]:
     """Read several frames of one size and bit depth; return (n, rows, cols) float DN and full scale."""
     if not paths:
         raise UserError("images", "no image files given")

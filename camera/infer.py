@@ -61,28 +61,28 @@ from elastimap.errors import UserError
 
 from .calibration import Calibration
 
-DETECT_SIGMA = 5.0          # from frames: the inclusion is visible when some pixel is this many standard errors up
-MODEL_ERROR = 0.01          # --refine from frames: forward-model error floor, x the image's peak (see refine_estimates)
+DETECT_SIGMA = 5.0  # from frames: the inclusion is visible when some pixel is this many standard errors up
+MODEL_ERROR = 0.01  # --refine from frames: forward-model error floor, x the image's peak (see refine_estimates)
 TARGET_UNITS = {k: UNITS[k] for k in TARGETS}
 
 
 @dataclass
 class Estimate:
     id: str
-    cam: np.ndarray          # camera features (3,)
-    fem: np.ndarray          # calibrated FEM features (3,)
-    mean: np.ndarray         # (d, h, E) ensemble mean
-    sd: np.ndarray           # ensemble standard deviation
+    cam: np.ndarray  # camera features (3,)
+    fem: np.ndarray  # calibrated FEM features (3,)
+    mean: np.ndarray  # (d, h, E) ensemble mean
+    sd: np.ndarray  # ensemble standard deviation
     p10: np.ndarray
     p90: np.ndarray
     n_members: int
     flags: list[str] = field(default_factory=list)
-    lo: np.ndarray | None = None          # interval (see the module docstring)
+    lo: np.ndarray | None = None  # interval (see the module docstring)
     hi: np.ndarray | None = None
-    crb: np.ndarray | None = None         # Cramér–Rao relative std of d, h, E at the estimate
-    input: str = "features"               # features | image | frames | ... +fem_refined
-    image: np.ndarray | None = None       # the difference image estimated from (mm, FEM grid; image models)
-    sigma: np.ndarray | None = None       # its per-pixel standard error (mm; from frames), else None
+    crb: np.ndarray | None = None  # Cramér–Rao relative std of d, h, E at the estimate
+    input: str = "features"  # features | image | frames | ... +fem_refined
+    image: np.ndarray | None = None  # the difference image estimated from (mm, FEM grid; image models)
+    sigma: np.ndarray | None = None  # its per-pixel standard error (mm; from frames), else None
 
     d = property(lambda s: float(s.mean[0]))
     h = property(lambda s: float(s.mean[1]))
@@ -172,13 +172,17 @@ def _plausibility(ests: list[Estimate]) -> list[Estimate]:
             try:
                 lo, hi = depth_range(d)
                 bad["h"] = bad["h"] or not lo <= h <= hi
-            except Exception:          # no admissible depth at all for this d
+            except Exception:  # no admissible depth at all for this d
                 bad["d"] = bad["h"] = True
         for j, q in enumerate(TARGETS):
             if bad[q]:
                 e.flags.append(f"impossible:{q}")
-            elif e.lo is not None and np.isfinite(e.lo[j]) and np.isfinite(e.hi[j]) \
-                    and not e.lo[j] <= e.mean[j] <= e.hi[j]:
+            elif (
+                e.lo is not None
+                and np.isfinite(e.lo[j])
+                and np.isfinite(e.hi[j])
+                and not e.lo[j] <= e.mean[j] <= e.hi[j]
+            ):
                 e.flags.append(f"outside_interval:{q}")
     return ests
 
@@ -187,8 +191,14 @@ def _assess(ests: list[Estimate], ensemble, idmap, mset: str, threshold: float) 
     if idmap is None:
         return _plausibility(ests)
     mean = np.array([e.mean for e in ests])
-    a = idmap.assess(mean, mset, threshold, p10=np.array([e.p10 for e in ests]),
-                     p90=np.array([e.p90 for e in ests]), target_range=getattr(ensemble, "target_range", None))
+    a = idmap.assess(
+        mean,
+        mset,
+        threshold,
+        p10=np.array([e.p10 for e in ests]),
+        p90=np.array([e.p90 for e in ests]),
+        target_range=getattr(ensemble, "target_range", None),
+    )
     for i, e in enumerate(ests):
         e.lo, e.hi, e.crb = a.lo[i], a.hi[i], a.r[i]
         e.flags.extend(a.flags[i])
@@ -206,8 +216,14 @@ def _members(Y: np.ndarray, n: int):
     return Y, mean, sd, np.percentile(Y, 10, axis=0), np.percentile(Y, 90, axis=0)
 
 
-def estimate(cam_features, calibration: Calibration, ensemble, ids: list[str] | None = None,
-             identifiability="default", threshold: float = 0.10) -> list[Estimate]:
+def estimate(
+    cam_features,
+    calibration: Calibration,
+    ensemble,
+    ids: list[str] | None = None,
+    identifiability="default",
+    threshold: float = 0.10,
+) -> list[Estimate]:
     """(n, 3) camera features -> list of :class:`Estimate` (feature MLP ensemble).
 
     ``identifiability``: see :func:`load_identifiability`; its ``features`` set is used."""
@@ -254,8 +270,16 @@ def load_model(directory: str | os.PathLike):
     return load_ensemble(d)
 
 
-def estimate_fem_images(images, model, ids: list[str] | None = None, identifiability="default",
-                        threshold: float = 0.10, cam_features=None, flags=None, sigma=None) -> list[Estimate]:
+def estimate_fem_images(
+    images,
+    model,
+    ids: list[str] | None = None,
+    identifiability="default",
+    threshold: float = 0.10,
+    cam_features=None,
+    flags=None,
+    sigma=None,
+) -> list[Estimate]:
     """(n, ny, nx) (or (n, ny*nx)) FEM difference images (mm) -> list of :class:`Estimate` (image model).
 
     ``cam``/``fem`` of each estimate hold the camera features (NaN for simulated input) and the
@@ -264,11 +288,17 @@ def estimate_fem_images(images, model, ids: list[str] | None = None, identifiabi
     from elastimap.solver.image import features as image_features
 
     if not _is_image_model(model):
-        raise UserError("model", "a feature model takes features or camera frames, not a FEM image; "
-                                 "use an image model (python -m elastimap.workflows.studies.imagenet --save-model DIR)")
+        raise UserError(
+            "model",
+            "a feature model takes features or camera frames, not a FEM image; "
+            "use an image model (python -m elastimap.workflows.studies.imagenet --save-model DIR)",
+        )
     if model.force:
-        raise UserError("model", "this image model also needs the plate force; inference from images alone "
-                                 "needs a model trained without --force")
+        raise UserError(
+            "model",
+            "this image model also needs the plate force; inference from images alone "
+            "needs a model trained without --force",
+        )
     imgs = np.asarray(images, dtype=float)
     if model.shape is not None and imgs.ndim == 2 and imgs.shape == tuple(model.shape):
         imgs = imgs[None]
@@ -283,25 +313,49 @@ def estimate_fem_images(images, model, ids: list[str] | None = None, identifiabi
     ests = []
     for i in range(n):
         if model.shape is not None and model.pixel:
-            fem = np.array(image_features(imgs[i].reshape(model.shape), model.pixel))   # as the sweep's O1..O3
+            fem = np.array(image_features(imgs[i].reshape(model.shape), model.pixel))  # as the sweep's O1..O3
         else:
             fem = np.full(3, math.nan)
         f = list(flags[i]) if flags is not None else []
         if not inr[i]:
             f.append("outside_training:image")
-        if not np.abs(imgs[i]).max() > 0 or (sigma is not None and
-                                              not np.max(imgs[i] / np.asarray(sigma[i], float).ravel()) >= DETECT_SIGMA):
+        if not np.abs(imgs[i]).max() > 0 or (
+            sigma is not None and not np.max(imgs[i] / np.asarray(sigma[i], float).ravel()) >= DETECT_SIGMA
+        ):
             f.insert(0, "no_signal")
         cam = np.asarray(cam_features[i], float) if cam_features is not None else np.full(3, math.nan)
         sg = None if sigma is None else np.asarray(sigma[i], float).reshape(-1)
-        ests.append(Estimate(ids[i], cam, fem, mean[i], sd[i], p10[i], p90[i], Y.shape[0], f, input="image",
-                             image=imgs[i].copy(), sigma=sg))
+        ests.append(
+            Estimate(
+                ids[i],
+                cam,
+                fem,
+                mean[i],
+                sd[i],
+                p10[i],
+                p90[i],
+                Y.shape[0],
+                f,
+                input="image",
+                image=imgs[i].copy(),
+                sigma=sg,
+            )
+        )
     return _assess(ests, model.ensemble, idmap, "image", threshold)
 
 
-def refine_estimates(ests: list[Estimate], images=None, image_noise: float = 0.01, mesh: str = "default",
-                     threshold: float = 0.10, chi2_limit: float = 3.0, method: str = "rsm",
-                     cache: str | None = None, progress=None, model_error: float = MODEL_ERROR) -> list[Estimate]:
+def refine_estimates(
+    ests: list[Estimate],
+    images=None,
+    image_noise: float = 0.01,
+    mesh: str = "default",
+    threshold: float = 0.10,
+    chi2_limit: float = 3.0,
+    method: str = "rsm",
+    cache: str | None = None,
+    progress=None,
+    model_error: float = MODEL_ERROR,
+) -> list[Estimate]:
     """Refine image-model estimates by a maximum-likelihood fit of the FEM image (:mod:`elastimap.identify.refine`).
 
     ``images`` as given to :func:`estimate_fem_images` (FEM difference images, mm, on the model's
@@ -339,7 +393,7 @@ def refine_estimates(ests: list[Estimate], images=None, image_noise: float = 0.0
         r = fit(img, sig, e.mean, model, method)
         e.mean = r.theta
         e.crb = r.relstd
-        e.sd = r.relstd * r.theta          # (for E: std of ln E x E, first order)
+        e.sd = r.relstd * r.theta  # (for E: std of ln E x E, first order)
         e.lo, e.hi = r.lo, r.hi
         e.flags = [f for f in e.flags if not f.startswith("non_identifiable:") and f != "outside_identifiability_map"]
         e.flags += [f"non_identifiable:{q}" for j, q in enumerate(TARGETS) if not r.relstd[j] <= threshold]
@@ -386,21 +440,34 @@ def difference_of_frames(images: list[str], background: list[str], calibration: 
         if model.shape is None or not model.pixel:
             raise UserError("model", "this image model does not record its image grid; re-save it with this version")
         if tuple(model.shape) != ref.shape or abs(float(model.pixel) - pixel) > 1e-9:
-            raise UserError("model", f"the image model's grid ({model.shape[0]}x{model.shape[1]} of {model.pixel:g} mm) "
-                                     f"differs from the calibration's FEM grid ({ref.shape[0]}x{ref.shape[1]} of "
-                                     f"{pixel:g} mm)")
+            raise UserError(
+                "model",
+                f"the image model's grid ({model.shape[0]}x{model.shape[1]} of {model.pixel:g} mm) "
+                f"differs from the calibration's FEM grid ({ref.shape[0]}x{ref.shape[1]} of "
+                f"{pixel:g} mm)",
+            )
     F, fs1 = read_stack(images, sensor.shape, sensor.window)
     B, fs2 = read_stack(background, sensor.shape, sensor.window)
     if fs1 != fs2:
         raise UserError("background", f"{background[0]}: bit depth differs from the lesion frames ({images[0]})")
     if fs1 != sensor.full_scale:
-        raise UserError("images", f"{images[0]}: frames of full scale {fs1}, the calibration's camera has "
-                                  f"{sensor.bits} bits (full scale {sensor.full_scale})")
+        raise UserError(
+            "images",
+            f"{images[0]}: frames of full scale {fs1}, the calibration's camera has "
+            f"{sensor.bits} bits (full scale {sensor.full_scale})",
+        )
     return difference_image(F, B, sensor, ref, pixel, scale=float(calibration.deflection["scale"]))
 
 
-def estimate_images(images: list[str], background: list[str], calibration: Calibration, model,
-                    id: str = "1", identifiability="default", threshold: float = 0.10) -> Estimate:
+def estimate_images(
+    images: list[str],
+    background: list[str],
+    calibration: Calibration,
+    model,
+    id: str = "1",
+    identifiability="default",
+    threshold: float = 0.10,
+) -> Estimate:
     """One lesion's camera frames -> :class:`Estimate`, with a feature ensemble or an image model.
 
     Feature ensemble: camera features -> the calibration's lines -> the network.  Image model:
@@ -414,14 +481,28 @@ def estimate_images(images: list[str], background: list[str], calibration: Calib
     di = difference_of_frames(images, background, calibration, model)
     if di.saturated:
         flags.append("saturated")
-    e = estimate_fem_images(di.image[None], model, [id], identifiability, threshold, cam_features=cf.values[None],
-                            flags=[flags], sigma=di.sigma[None])[0]
+    e = estimate_fem_images(
+        di.image[None],
+        model,
+        [id],
+        identifiability,
+        threshold,
+        cam_features=cf.values[None],
+        flags=[flags],
+        sigma=di.sigma[None],
+    )[0]
     e.input = "frames"
     return e
 
 
-def estimate_lesions_csv(path: str | os.PathLike, calibration: Calibration | None, model,
-                         identifiability="default", threshold: float = 0.10, progress=None) -> list[Estimate]:
+def estimate_lesions_csv(
+    path: str | os.PathLike,
+    calibration: Calibration | None,
+    model,
+    identifiability="default",
+    threshold: float = 0.10,
+    progress=None,
+) -> list[Estimate]:
     """Batch of lesions from a CSV, for every model kind (format in :func:`read_lesions_table`).
 
     Feature ensemble: ``O1,O2,O3`` or ``images,background``; image model: ``images,background``
@@ -431,8 +512,11 @@ def estimate_lesions_csv(path: str | os.PathLike, calibration: Calibration | Non
     image_model = _is_image_model(model)
     if kind == "features":
         if image_model:
-            raise UserError("csv", f"{path}: an image model needs columns images,background (camera frames) or "
-                                   "fem_image, not camera features O1,O2,O3")
+            raise UserError(
+                "csv",
+                f"{path}: an image model needs columns images,background (camera frames) or "
+                "fem_image, not camera features O1,O2,O3",
+            )
         return estimate(rows, _need_cal(calibration), model, ids, identifiability, threshold)
     if kind == "fem_image":
         if not image_model:

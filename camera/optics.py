@@ -74,26 +74,26 @@ class SensorModel:
     sensor_rows: int = SENSOR_ROWS
     sensor_cols: int = SENSOR_COLS
     pixel_um: float = PIXEL_UM
-    binning: int = 10               # software binning (downsampled default); 1 = full resolution
-    window_native: int = 1000       # native pixels spanned by the probe footprint (centred)
+    binning: int = 10  # software binning (downsampled default); 1 = full resolution
+    window_native: int = 1000  # native pixels spanned by the probe footprint (centred)
     footprint_mm: float = 25.0
     # optics of the waveguide
-    w_sat: float = 0.5              # mm of probe compression at which scattering reaches 63 % of its maximum
-    level: float = 0.7              # full-scattering signal as a fraction of full well (unit illumination)
-    stray: float = 0.02             # light reaching the camera with no deformation (fraction of full well)
+    w_sat: float = 0.5  # mm of probe compression at which scattering reaches 63 % of its maximum
+    level: float = 0.7  # full-scattering signal as a fraction of full well (unit illumination)
+    stray: float = 0.02  # light reaching the camera with no deformation (fraction of full well)
     led_power: tuple[float, float, float, float] = (1.0, 0.85, 1.1, 0.95)  # left, right, bottom, top
-    led_gap: float = 3.0            # mm from the footprint edge to each LED
-    led_r0: float = 15.0            # mm, LED fall-off radius
-    vignetting: float = 0.15        # relative fall-off at the window corner
+    led_gap: float = 3.0  # mm from the footprint edge to each LED
+    led_r0: float = 15.0  # mm, LED fall-off radius
+    vignetting: float = 0.15  # relative fall-off at the window corner
     # effect switches (the nominal camera has neither): optical point-spread and response gamma
-    blur_mm: float = 0.0            # sigma (mm on the probe) of a Gaussian point-spread of the light image
-    gamma: float = 1.0              # response exponent: DN = FS * (electrons / (b^2 FW))^gamma
+    blur_mm: float = 0.0  # sigma (mm on the probe) of a Gaussian point-spread of the light image
+    gamma: float = 1.0  # response exponent: DN = FS * (electrons / (b^2 FW))^gamma
     # sensor noise
-    full_well_e: float = 9000.0     # electrons per native pixel at full scale
-    read_noise_e: float = 10.0      # electrons rms per native pixel
-    dark_e: float = 100.0           # offset electrons per native pixel
-    bits: int = 16                  # 8 or 16
-    noise_scale: float = 1.0        # multiplies shot + read noise; 0 = noise-free
+    full_well_e: float = 9000.0  # electrons per native pixel at full scale
+    read_noise_e: float = 10.0  # electrons rms per native pixel
+    dark_e: float = 100.0  # offset electrons per native pixel
+    bits: int = 16  # 8 or 16
+    noise_scale: float = 1.0  # multiplies shot + read noise; 0 = noise-free
     seed: int = 0
 
     # ---------------------------------------------------------------- checks
@@ -103,8 +103,10 @@ class SensorModel:
         if not (1 <= self.binning <= 64):
             raise UserError("binning", f"must be in [1, 64] (got {self.binning})")
         if not (8 <= self.window_native <= min(self.sensor_rows, self.sensor_cols)):
-            raise UserError("window_native", f"must be in [8, {min(self.sensor_rows, self.sensor_cols)}] "
-                                             f"native pixels (got {self.window_native})")
+            raise UserError(
+                "window_native",
+                f"must be in [8, {min(self.sensor_rows, self.sensor_cols)}] native pixels (got {self.window_native})",
+            )
         if self.window_native // self.binning < 4:
             raise UserError("binning", "leaves fewer than 4 pixels across the footprint")
         check_range("footprint_mm", self.footprint_mm, 0, lo_open=True, unit="mm")
@@ -130,7 +132,7 @@ class SensorModel:
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["led_power"] = list(self.led_power)
-        for k, v in SWITCH_DEFAULTS.items():   # effect switches omitted at their defaults (stable files)
+        for k, v in SWITCH_DEFAULTS.items():  # effect switches omitted at their defaults (stable files)
             if d[k] == v:
                 del d[k]
         return d
@@ -166,11 +168,11 @@ class SensorModel:
 
     @property
     def full_scale(self) -> int:
-        return 2 ** self.bits - 1
+        return 2**self.bits - 1
 
     @property
     def e_per_dn(self) -> float:
-        return self.binning ** 2 * self.full_well_e / self.full_scale
+        return self.binning**2 * self.full_well_e / self.full_scale
 
     def window_centres(self) -> np.ndarray:
         """Coordinates (mm) of the window pixel centres along one axis."""
@@ -190,10 +192,10 @@ class SensorModel:
         leds = ((-a, 0.0), (a, 0.0), (0.0, -a), (0.0, a))
         L = np.zeros_like(X)
         for (lx, ly), pk in zip(leds, self.led_power):
-            L += pk / (1.0 + ((X - lx) ** 2 + (Y - ly) ** 2) / self.led_r0 ** 2)
+            L += pk / (1.0 + ((X - lx) ** 2 + (Y - ly) ** 2) / self.led_r0**2)
         R = math.hypot(self.footprint_mm / 2, self.footprint_mm / 2)
-        L *= np.clip(1.0 - self.vignetting * (X ** 2 + Y ** 2) / R ** 2, 0.0, None)
-        L /= L[r0:r0 + n, c0:c0 + n].mean()
+        L *= np.clip(1.0 - self.vignetting * (X**2 + Y**2) / R**2, 0.0, None)
+        L /= L[r0 : r0 + n, c0 : c0 + n].mean()
         return L
 
     def scatter(self, w: np.ndarray) -> np.ndarray:
@@ -207,13 +209,13 @@ class SensorModel:
         if w_img.ndim != 2 or w_img.size == 0 or not np.all(np.isfinite(w_img)):
             raise UserError("deflection", f"must be a finite non-empty 2-D image (got shape {w_img.shape})")
         c = self.window_centres()
-        fy = (c + self.footprint_mm / 2) / pixel - 0.5   # fractional index into the FEM image
+        fy = (c + self.footprint_mm / 2) / pixel - 0.5  # fractional index into the FEM image
         fx = fy
         FY, FX = np.meshgrid(fy, fx, indexing="ij")
         win = ndimage.map_coordinates(w_img, [FY, FX], order=1, mode="nearest")
         out = np.zeros(self.shape)
         r0, c0, n = self.window
-        out[r0:r0 + n, c0:c0 + n] = win
+        out[r0 : r0 + n, c0 : c0 + n] = win
         return out
 
     def expected_electrons(self, w_img: np.ndarray, pixel: float) -> np.ndarray:
@@ -221,33 +223,34 @@ class SensorModel:
         w = self.deformation_on_frame(w_img, pixel)
         inside = np.zeros(self.shape, dtype=bool)
         r0, c0, n = self.window
-        inside[r0:r0 + n, c0:c0 + n] = True
+        inside[r0 : r0 + n, c0 : c0 + n] = True
         L = self.illumination()
         rel = self.stray * L + self.level * L * self.scatter(w) * inside
-        if self.blur_mm > 0:   # point-spread of the light image: Gaussian, sigma blur_mm on the probe
+        if self.blur_mm > 0:  # point-spread of the light image: Gaussian, sigma blur_mm on the probe
             rel = ndimage.gaussian_filter(rel, self.blur_mm / self.pixel_mm, mode="nearest")
-        return self.binning ** 2 * self.full_well_e * rel
+        return self.binning**2 * self.full_well_e * rel
 
     def response(self, electrons: np.ndarray) -> np.ndarray:
         """DN (float, unquantised) of a total charge per binned pixel (signal + dark, electrons):
         FS * clip(x, 0, 1)^gamma with x = electrons / (b^2 FW); gamma = 1 is the linear ADC."""
-        x = np.clip(electrons / (self.binning ** 2 * self.full_well_e), 0.0, 1.0)
-        return self.full_scale * (x if self.gamma == 1.0 else x ** self.gamma)
+        x = np.clip(electrons / (self.binning**2 * self.full_well_e), 0.0, 1.0)
+        return self.full_scale * (x if self.gamma == 1.0 else x**self.gamma)
 
     def expected(self, w_img: np.ndarray, pixel: float) -> np.ndarray:
         """Noise-free, unquantised frame in DN (float): the reference for noise tests."""
-        e = self.expected_electrons(w_img, pixel) + self.binning ** 2 * self.dark_e
+        e = self.expected_electrons(w_img, pixel) + self.binning**2 * self.dark_e
         return self.response(e)
 
-    def render(self, w_img: np.ndarray, pixel: float, frames: int = 1,
-               rng: np.random.Generator | None = None) -> np.ndarray:
+    def render(
+        self, w_img: np.ndarray, pixel: float, frames: int = 1, rng: np.random.Generator | None = None
+    ) -> np.ndarray:
         """``frames`` independent noisy, quantised frames: array (frames, rows, cols) of uint8/uint16."""
         self.validate()
         if frames < 1:
             raise UserError("frames", f"must be >= 1 (got {frames})")
         rng = np.random.default_rng(self.seed) if rng is None else rng
         e = self.expected_electrons(w_img, pixel)
-        dark = self.binning ** 2 * self.dark_e
+        dark = self.binning**2 * self.dark_e
         read_sd = self.binning * self.read_noise_e * self.noise_scale
         dtype = np.uint8 if self.bits == 8 else np.uint16
         out = np.empty((frames,) + self.shape, dtype=dtype)
@@ -264,10 +267,12 @@ class SensorModel:
     def describe(self) -> str:
         rows, cols = self.shape
         r0, c0, n = self.window
-        return (f"SYNTHETIC TIR camera: {cols}x{rows} px (sensor {self.sensor_cols}x{self.sensor_rows} "
-                f"at {self.pixel_um} um, binning {self.binning}), footprint window {n}x{n} px at "
-                f"({r0},{c0}), {self.pixel_mm:.4g} mm/px, {self.bits}-bit, noise_scale {self.noise_scale:g}, "
-                f"seed {self.seed}")
+        return (
+            f"SYNTHETIC TIR camera: {cols}x{rows} px (sensor {self.sensor_cols}x{self.sensor_rows} "
+            f"at {self.pixel_um} um, binning {self.binning}), footprint window {n}x{n} px at "
+            f"({r0},{c0}), {self.pixel_mm:.4g} mm/px, {self.bits}-bit, noise_scale {self.noise_scale:g}, "
+            f"seed {self.seed}"
+        )
 
 
 # effect switches of the camera left out of ``SensorModel.to_dict`` while at these defaults
@@ -279,8 +284,14 @@ def background_deflection(image_raw: np.ndarray, image_diff: np.ndarray) -> np.n
     return np.asarray(image_raw, dtype=float) - np.asarray(image_diff, dtype=float)
 
 
-def render_pair(model: SensorModel, image_raw: np.ndarray, image_diff: np.ndarray, pixel: float,
-                frames: int = 30, rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+def render_pair(
+    model: SensorModel,
+    image_raw: np.ndarray,
+    image_diff: np.ndarray,
+    pixel: float,
+    frames: int = 30,
+    rng: np.random.Generator | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Frames of the lesion press and of the background press (no inclusion), independent noise."""
     rng = np.random.default_rng(model.seed) if rng is None else rng
     lesion = model.render(image_raw, pixel, frames, rng)
@@ -303,13 +314,13 @@ def deflection_noise_map(background: np.ndarray, pixel: float, frames: int = 30,
     bg = np.asarray(background, dtype=float)
     w = s.deformation_on_frame(bg, pixel)
     r0, c0, n = s.window
-    w = w[r0:r0 + n, c0:c0 + n]
-    L = s.illumination()[r0:r0 + n, c0:c0 + n]
-    b2fw = s.binning ** 2 * s.full_well_e
+    w = w[r0 : r0 + n, c0 : c0 + n]
+    L = s.illumination()[r0 : r0 + n, c0 : c0 + n]
+    b2fw = s.binning**2 * s.full_well_e
     e = b2fw * L * (s.stray + s.level * s.scatter(w))
-    var_e = s.noise_scale ** 2 * (e + s.binning ** 2 * s.read_noise_e ** 2)
+    var_e = s.noise_scale**2 * (e + s.binning**2 * s.read_noise_e**2)
     dedw = b2fw * L * s.level * np.exp(-np.clip(w, 0, None) / s.w_sat) / s.w_sat
-    var_w = var_e / dedw ** 2 * 2.0 / frames
+    var_w = var_e / dedw**2 * 2.0 / frames
     ny, nx = bg.shape
     fy, fx = n // ny, n // nx
     if fy * ny != n or fx * nx != n:

@@ -1,9 +1,9 @@
 """``elastimap dataset`` (alias ``dataset``): look at, plot, export and compact sample datasets.
 
-    elastimap dataset inspect sweeps/default-tied-lhs512-s0
-    elastimap dataset plot sweeps/default-tied-lhs512-s0 --out figs/
-    elastimap dataset export sweeps/default-tied-lhs512-s0 --csv table.csv
-    elastimap dataset compact sweeps/default-tied-lhs512-s0
+elastimap dataset inspect sweeps/default-tied-lhs512-s0
+elastimap dataset plot sweeps/default-tied-lhs512-s0 --out figs/
+elastimap dataset export sweeps/default-tied-lhs512-s0 --csv table.csv
+elastimap dataset compact sweeps/default-tied-lhs512-s0
 """
 
 from __future__ import annotations
@@ -51,11 +51,19 @@ def plot_cmd(path, out, images):
 
 @cli.command("export")
 @click.argument("path")
-@click.option("--csv", "csv_path", default=None,
-              help="CSV file to write (default: <PATH>.csv next to the dataset); '-' for stdout")
+@click.option(
+    "--csv",
+    "csv_path",
+    default=None,
+    help="CSV file to write (default: <PATH>.csv next to the dataset); '-' for stdout",
+)
 @click.option("--status", type=click.Choice(["ok", "failed", "all"]), default="all", show_default=True)
-@click.option("--images/--no-images", default=False, show_default=True,
-              help="include the image as one column of space-separated values")
+@click.option(
+    "--images/--no-images",
+    default=False,
+    show_default=True,
+    help="include the image as one column of space-separated values",
+)
 def export_cmd(path, csv_path, status, images):
     """One CSV table for spreadsheets (one row per sample, parameters, features, status, statistics)."""
     from elastimap.outputs import check_out_file
@@ -97,8 +105,10 @@ def compact_cmd(path, batch_rows):
         r = io.compact(path, batch_rows)
     finally:
         lock.unlink(missing_ok=True)
-    click.echo(f"{path}: {r['files_before']} files -> {r['files_after']}, {r['rows']} rows, "
-               f"{r['dropped']} superseded rows dropped")
+    click.echo(
+        f"{path}: {r['files_before']} files -> {r['files_after']}, {r['rows']} rows, "
+        f"{r['dropped']} superseded rows dropped"
+    )
     return 0
 
 

@@ -51,6 +51,7 @@ _KEY_COLS = ("sample_id", "status", "landed_at")
 
 # ----------------------------------------------------------------------------- files
 
+
 class _Vanished(Exception):
     """A file disappeared between listing and reading (a compaction replaced it)."""
 
@@ -71,8 +72,8 @@ def _retrying(fn):
                 last = exc
                 time.sleep(0.05 * (attempt + 1))
         raise UserError("path", f"files keep disappearing while reading (last: {last}); is something deleting them?")
-    return wrapper
 
+    return wrapper
 
 
 def _first_line(exc: BaseException) -> str:
@@ -150,9 +151,15 @@ def dataset_info(path) -> dict:
     units = {}
     for _, info, _ in infos:
         units.update(info.get("units", {}))
-    return {"files": len(files), "versions": versions, "units": units,
-            "image_shape": shape, "pixel": pixel,
-            "columns": list(infos[0][0].names), "bytes": sum(f.stat().st_size for f in files)}
+    return {
+        "files": len(files),
+        "versions": versions,
+        "units": units,
+        "image_shape": shape,
+        "pixel": pixel,
+        "columns": list(infos[0][0].names),
+        "bytes": sum(f.stat().st_size for f in files),
+    }
 
 
 def _image_meta(infos, files) -> tuple[tuple[int, int] | None, float | None]:
@@ -166,7 +173,7 @@ def _image_meta(infos, files) -> tuple[tuple[int, int] | None, float | None]:
         raise UserError("path", f"files disagree on the elasticity-image geometry ({desc})")
     if not seen:
         return None, None
-    (shape, pixel), = seen
+    ((shape, pixel),) = seen
     return shape, pixel
 
 
@@ -181,6 +188,7 @@ def read_image_meta(path) -> tuple[tuple[int, int], float]:
 
 
 # ----------------------------------------------------------------------------- reading
+
 
 def _dedupe_index(df: pd.DataFrame) -> np.ndarray:
     """Positions of the rows to keep, one per sample id (ok before failed, then newest), in id order."""
@@ -275,6 +283,7 @@ def landed_status(path) -> dict[str, str]:
 
 # ----------------------------------------------------------------------------- writing
 
+
 def to_table(rows: list[dict], image_shape=None, pixel=None) -> pa.Table:
     schema = arrow_schema(tuple(image_shape) if image_shape is not None else None, pixel)
     cols = {}
@@ -366,8 +375,12 @@ def compact(path, batch_rows: int = BATCH_ROWS, only_rows: bool = False) -> dict
         except FileNotFoundError:
             pass
     total = sum(t.num_rows for t in tables)
-    return {"files_before": len(files), "files_after": n_written, "rows": table.num_rows,
-            "dropped": total - table.num_rows}
+    return {
+        "files_before": len(files),
+        "files_after": n_written,
+        "rows": table.num_rows,
+        "dropped": total - table.num_rows,
+    }
 
 
 def read_manifest(path) -> dict | None:
@@ -422,8 +435,11 @@ def acquire_lock(out, param: str = "--out") -> Path:
             elif other.get("host"):
                 alive = True  # another machine: cannot check, assume it is running
             if alive:
-                raise UserError(param, f"{out} is being written by another sweep or compaction (pid {other.get('pid')} "
-                                       f"on {other.get('host')}); if that is wrong, remove {lock}") from None
+                raise UserError(
+                    param,
+                    f"{out} is being written by another sweep or compaction (pid {other.get('pid')} "
+                    f"on {other.get('host')}); if that is wrong, remove {lock}",
+                ) from None
             try:
                 lock.unlink()
             except FileNotFoundError:

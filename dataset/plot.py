@@ -37,7 +37,7 @@ def _log_axis(ax, x) -> None:
 
     ax.set_xscale("log")
     lo, hi = np.nanmin(x), np.nanmax(x)
-    ticks = [m * 10.0 ** k for k in range(-3, 6) for m in (1, 2, 5) if lo <= m * 10.0 ** k <= hi]
+    ticks = [m * 10.0**k for k in range(-3, 6) for m in (1, 2, 5) if lo <= m * 10.0**k <= hi]
     if len(ticks) >= 2:
         ax.set_xticks(ticks)
     ax.xaxis.set_major_formatter(ScalarFormatter())
@@ -68,8 +68,9 @@ def plot_all(path, out_dir, n_images: int = 12) -> list[Path]:
     for i, feat in enumerate(FEATURES):
         ax = fig.add_subplot(1, 3, i + 1, projection="3d")
         v = _rescale255(df[feat].to_numpy(dtype=float))
-        sc = ax.scatter(d, h, E, s=5 + v * 0.6, c=v, cmap="jet", vmin=0, vmax=255, alpha=0.75,
-                        edgecolors="k", linewidths=0.2)
+        sc = ax.scatter(
+            d, h, E, s=5 + v * 0.6, c=v, cmap="jet", vmin=0, vmax=255, alpha=0.75, edgecolors="k", linewidths=0.2
+        )
         if phantom.any():
             ax.scatter(d[phantom], h[phantom], E[phantom], s=60, marker="x", c="k", label="phantoms")
             ax.legend(loc="upper left", fontsize=7)

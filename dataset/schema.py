@@ -31,8 +31,16 @@ SCHEMA_VERSION = 1
 
 # name: (arrow type, unit, description)
 COLUMNS: dict[str, tuple[pa.DataType, str, str]] = {
-    "sample_id": (pa.string(), "", "stable id derived from the design, its seed and the sample index (or a hash of the row)"),
-    "tag": (pa.string(), "", "'design' for sampled points, 'phantom:<name>' for calibration-phantom inclusions, 'user' for --samples rows"),
+    "sample_id": (
+        pa.string(),
+        "",
+        "stable id derived from the design, its seed and the sample index (or a hash of the row)",
+    ),
+    "tag": (
+        pa.string(),
+        "",
+        "'design' for sampled points, 'phantom:<name>' for calibration-phantom inclusions, 'user' for --samples rows",
+    ),
     "d": (pa.float64(), "mm", "inclusion diameter"),
     "h": (pa.float64(), "mm", "depth of the inclusion centre below the tissue surface"),
     "E": (pa.float64(), "kPa", "inclusion Young's modulus"),
@@ -40,7 +48,11 @@ COLUMNS: dict[str, tuple[pa.DataType, str, str]] = {
     "O2": (pa.float64(), "mm", "sum over pixels of the difference elasticity image"),
     "O3": (pa.float64(), "mm^2", "area where the difference image exceeds the threshold"),
     "force": (pa.float64(), "mN", "plate reaction force with the inclusion (full probe)"),
-    "force_ref": (pa.float64(), "mN", "plate reaction force of the reference solve (inclusion modulus = tissue modulus)"),
+    "force_ref": (
+        pa.float64(),
+        "mN",
+        "plate reaction force of the reference solve (inclusion modulus = tissue modulus)",
+    ),
     "image": (pa.list_(pa.float32()), "mm", "difference elasticity image, row-major, shape in metadata"),
     "params_json": (pa.string(), "", "all solver inputs as JSON (tissue, probe, loading, discretisation, image spec)"),
     "status": (pa.string(), "", "'ok' or 'failed'"),
@@ -52,12 +64,28 @@ COLUMNS: dict[str, tuple[pa.DataType, str, str]] = {
     "code_version": (pa.string(), "", "elastimap version and git commit"),
     "host": (pa.string(), "", "machine that ran the sample"),
     # added by the sweep (additive; readers that ignore it are unaffected)
-    "landed_at": (pa.float64(), "s", "unix time the row was written; the newest row of a sample id wins (an 'ok' row always beats a 'failed' one)"),
+    "landed_at": (
+        pa.float64(),
+        "s",
+        "unix time the row was written; the newest row of a sample id wins (an 'ok' row always beats a 'failed' one)",
+    ),
     # added by the solve store (additive; see elastimap.dataset.store)
-    "key": (pa.string(), "", "solve key: sha256 of the canonical JSON of the solver inputs (elastimap.dataset.store.params_key)"),
-    "solver": (pa.string(), "", "what produced the row: 'fem' (the forward model; also when absent) or 'synthetic' (the test stand-in)"),
+    "key": (
+        pa.string(),
+        "",
+        "solve key: sha256 of the canonical JSON of the solver inputs (elastimap.dataset.store.params_key)",
+    ),
+    "solver": (
+        pa.string(),
+        "",
+        "what produced the row: 'fem' (the forward model; also when absent) or 'synthetic' (the test stand-in)",
+    ),
     "delta": (pa.float64(), "mm", "indentation actually applied"),
-    "image_raw": (pa.list_(pa.float32()), "mm", "raw probe compression image (with the inclusion), row-major; solve-store rows only"),
+    "image_raw": (
+        pa.list_(pa.float32()),
+        "mm",
+        "raw probe compression image (with the inclusion), row-major; solve-store rows only",
+    ),
 }
 
 # Columns every conforming file must have (the original version-1 set); the later ones are optional
@@ -80,13 +108,16 @@ def arrow_schema(image_shape: tuple[int, int] | None = None, pixel: float | None
 
     fields = [pa.field(name, typ) for name, (typ, _, _) in COLUMNS.items()]
     meta = {
-        "elastimap.schema": json.dumps({
-            "version": SCHEMA_VERSION,
-            "units": {k: u for k, (_, u, _) in COLUMNS.items() if u},
-            "descriptions": {k: d for k, (_, _, d) in COLUMNS.items()},
-        }),
+        "elastimap.schema": json.dumps(
+            {
+                "version": SCHEMA_VERSION,
+                "units": {k: u for k, (_, u, _) in COLUMNS.items() if u},
+                "descriptions": {k: d for k, (_, _, d) in COLUMNS.items()},
+            }
+        ),
     }
     if image_shape is not None:
-        meta["elastimap.image"] = json.dumps({"shape": list(image_shape), "pixel_mm": pixel,
-                                              "order": "row-major, row 0 at y = -size/2"})
+        meta["elastimap.image"] = json.dumps(
+            {"shape": list(image_shape), "pixel_mm": pixel, "order": "row-major, row 0 at y = -size/2"}
+        )
     return pa.schema(fields, metadata=meta)

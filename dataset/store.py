@@ -51,13 +51,26 @@ from . import io
 FEM = "fem"
 #: the ``tag`` of rows put into a store (sweep rows keep their sample tags)
 TAG = "solve"
-_LEGACY = "solves-"        # the gap cache's part files before the store; not read
-_RESULT_COLS = ("O1", "O2", "O3", "force", "force_ref", "delta", "image", "image_raw", "ndofs",
-                "newton_iterations", "seconds", "peak_memory_mb")
+_LEGACY = "solves-"  # the gap cache's part files before the store; not read
+_RESULT_COLS = (
+    "O1",
+    "O2",
+    "O3",
+    "force",
+    "force_ref",
+    "delta",
+    "image",
+    "image_raw",
+    "ndofs",
+    "newton_iterations",
+    "seconds",
+    "peak_memory_mb",
+)
 _VANISH_RETRIES = 10
 
 
 # ----------------------------------------------------------------------------- key
+
 
 def _canon(v):
     if v is None or isinstance(v, (bool, str)):
@@ -89,6 +102,7 @@ def solver_label(solve: Callable | None) -> str:
 
 # ----------------------------------------------------------------------------- rows
 
+
 def result_row(params: SolveParams, res: SolveResult, *, solver: str = FEM, raw: bool = True) -> dict:
     """The sample-table row of one solve (``sample_id = key``, tag ``solve``); status ``failed``
     when a feature, a force or the image is not finite.  ``raw``: keep ``image_raw`` too."""
@@ -99,13 +113,32 @@ def result_row(params: SolveParams, res: SolveResult, *, solver: str = FEM, raw:
     if raw and getattr(res, "image_raw", None) is not None:
         img_raw = np.asarray(res.image_raw, dtype=np.float32).ravel()
     peak = getattr(res, "peak_memory_mb", None)
-    row = {"sample_id": key, "tag": TAG, "d": float(inc.d), "h": float(inc.h), "E": float(inc.E),
-           "O1": float(res.O1), "O2": float(res.O2), "O3": float(res.O3), "force": float(res.force),
-           "force_ref": float(res.force_ref), "delta": float(res.delta), "image": img.ravel(), "image_raw": img_raw,
-           "params_json": json.dumps(params.to_dict(), sort_keys=True), "key": key, "solver": solver,
-           "status": "ok", "error": "", "ndofs": int(res.ndofs), "newton_iterations": int(res.newton_iterations),
-           "seconds": float(res.seconds), "peak_memory_mb": float(peak) if peak is not None else None,
-           "code_version": code_version(), "host": host()}
+    row = {
+        "sample_id": key,
+        "tag": TAG,
+        "d": float(inc.d),
+        "h": float(inc.h),
+        "E": float(inc.E),
+        "O1": float(res.O1),
+        "O2": float(res.O2),
+        "O3": float(res.O3),
+        "force": float(res.force),
+        "force_ref": float(res.force_ref),
+        "delta": float(res.delta),
+        "image": img.ravel(),
+        "image_raw": img_raw,
+        "params_json": json.dumps(params.to_dict(), sort_keys=True),
+        "key": key,
+        "solver": solver,
+        "status": "ok",
+        "error": "",
+        "ndofs": int(res.ndofs),
+        "newton_iterations": int(res.newton_iterations),
+        "seconds": float(res.seconds),
+        "peak_memory_mb": float(peak) if peak is not None else None,
+        "code_version": code_version(),
+        "host": host(),
+    }
     bad = [k for k in ("O1", "O2", "O3", "force", "force_ref") if not math.isfinite(row[k])]
     if bad or not np.all(np.isfinite(img)):
         row.update(status="failed", error=f"non-finite result ({', '.join(bad) or 'image'})")
@@ -132,15 +165,28 @@ def result_from_row(params: SolveParams, row: dict, shape=None, pixel=None) -> S
     delta = _num(row.get("delta"))
     if not math.isfinite(delta):
         delta = params.loading.delta
-    return SolveResult(params=params, O1=_num(row["O1"]), O2=_num(row["O2"]), O3=_num(row["O3"]),
-                       force=_num(row["force"]), force_ref=_num(row["force_ref"]), delta=delta, image=img,
-                       image_raw=raw, pixel=float(pixel) if pixel else params.image.pixel,
-                       ndofs=int(_num(row.get("ndofs"), 0)), ncells=0,
-                       newton_iterations=int(_num(row.get("newton_iterations"), 0)),
-                       seconds=_num(row.get("seconds")), timings={}, peak_memory_mb=_num(row.get("peak_memory_mb")))
+    return SolveResult(
+        params=params,
+        O1=_num(row["O1"]),
+        O2=_num(row["O2"]),
+        O3=_num(row["O3"]),
+        force=_num(row["force"]),
+        force_ref=_num(row["force_ref"]),
+        delta=delta,
+        image=img,
+        image_raw=raw,
+        pixel=float(pixel) if pixel else params.image.pixel,
+        ndofs=int(_num(row.get("ndofs"), 0)),
+        ncells=0,
+        newton_iterations=int(_num(row.get("newton_iterations"), 0)),
+        seconds=_num(row.get("seconds")),
+        timings={},
+        peak_memory_mb=_num(row.get("peak_memory_mb")),
+    )
 
 
 # ----------------------------------------------------------------------------- the store
+
 
 class SolveStore:
     """Forward solves in a folder, keyed by :func:`params_key` (see the module docstring).
@@ -154,7 +200,7 @@ class SolveStore:
         if self.path.exists() and not self.path.is_dir():
             raise UserError("path", f"{self.path} is not a folder (a solve store is a folder of Parquet files)")
         self.solver = solver
-        self._geometry: dict[str, tuple] = {}                            # file name -> (shape, pixel)
+        self._geometry: dict[str, tuple] = {}  # file name -> (shape, pixel)
         self._index: dict[str, list[tuple[float, bool, str, int]]] = {}  # key -> [(landed_at, has_raw, file, row)]
         self._tmp_cleaned = False
 
@@ -174,8 +220,9 @@ class SolveStore:
                 for n in gone:
                     del self._geometry[n]
                 gone_set = set(gone)
-                self._index = {k: kept for k, v in self._index.items()
-                               if (kept := [e for e in v if e[2] not in gone_set])}
+                self._index = {
+                    k: kept for k, v in self._index.items() if (kept := [e for e in v if e[2] not in gone_set])
+                }
             try:
                 for f in files:
                     if f.name not in self._geometry:
@@ -287,8 +334,9 @@ class SolveStore:
                 pass  # already compacted away: the next refresh finds its rows
         return keys
 
-    def solve(self, params: SolveParams, solve: Callable[[SolveParams], SolveResult] | None = None, *,
-              need_raw: bool = True) -> SolveResult:
+    def solve(
+        self, params: SolveParams, solve: Callable[[SolveParams], SolveResult] | None = None, *, need_raw: bool = True
+    ) -> SolveResult:
         """The stored result of ``params``, or ``solve(params)`` (the forward model when None) put
         into the store first and returned as stored (images float32)."""
         hit = self.get(params, need_raw=need_raw)

@@ -48,14 +48,35 @@ STAGES = {
 #: The identifiability studies behind the shipped map and the docs' tables:
 #: ``elastimap identify <study>`` -> ("module:attr", help line).  One row per study, named as its module.
 STUDIES = {
-    "crbmap": ("elastimap.workflows.studies.crbmap:main", "Cramér–Rao identifiability maps and the map inference uses."),
-    "fdgrid": ("elastimap.workflows.studies.fdgrid:main", "Real finite-difference Jacobians on a grid of design points."),
-    "fd_check": ("elastimap.workflows.studies.fd_check:main", "Cramér–Rao bounds from real FD Jacobians at two points."),
-    "mapcheck": ("elastimap.workflows.studies.mapcheck:main", "Compare the identifiability map with the real-FD bounds."),
-    "global_cv": ("elastimap.workflows.studies.global_cv:main", "Cross-validated error of d, h, E per measurement set."),
+    "crbmap": (
+        "elastimap.workflows.studies.crbmap:main",
+        "Cramér–Rao identifiability maps and the map inference uses.",
+    ),
+    "fdgrid": (
+        "elastimap.workflows.studies.fdgrid:main",
+        "Real finite-difference Jacobians on a grid of design points.",
+    ),
+    "fd_check": (
+        "elastimap.workflows.studies.fd_check:main",
+        "Cramér–Rao bounds from real FD Jacobians at two points.",
+    ),
+    "mapcheck": (
+        "elastimap.workflows.studies.mapcheck:main",
+        "Compare the identifiability map with the real-FD bounds.",
+    ),
+    "global_cv": (
+        "elastimap.workflows.studies.global_cv:main",
+        "Cross-validated error of d, h, E per measurement set.",
+    ),
     "imagenet": ("elastimap.workflows.studies.imagenet:main", "Validate the image-based inverse (image PCA -> MLP)."),
-    "region_score": ("elastimap.workflows.studies.region_score:main", "Score the identifiable region on held-out predictions."),
-    "refine": ("elastimap.workflows.studies.refine:main", "Refine image-network estimates by a FEM maximum-likelihood fit."),
+    "region_score": (
+        "elastimap.workflows.studies.region_score:main",
+        "Score the identifiable region on held-out predictions.",
+    ),
+    "refine": (
+        "elastimap.workflows.studies.refine:main",
+        "Refine image-network estimates by a FEM maximum-likelihood fit.",
+    ),
 }
 
 
@@ -70,8 +91,12 @@ def cli():
     """
 
 
-@cli.group(cls=LazyGroup, lazy=STUDIES, context_settings=CONTEXT_SETTINGS,
-           short_help="Identifiability studies (crbmap, fdgrid, imagenet, refine, ...).")
+@cli.group(
+    cls=LazyGroup,
+    lazy=STUDIES,
+    context_settings=CONTEXT_SETTINGS,
+    short_help="Identifiability studies (crbmap, fdgrid, imagenet, refine, ...).",
+)
 def identify():
     """Identifiability studies: the maps, bounds and tables behind docs/identifiability.md."""
 
@@ -102,17 +127,37 @@ def demo(out, n, mesh, jobs):
     check_out_dir(out, "out", allow_existing=True)  # the demo resumes in its folder
     os.makedirs(out, exist_ok=True)
     data = os.path.join(out, "data")
-    _step("one forward solve (default mesh)", ["solve", "--d", "8", "--h", "7", "--E", "50",
-                                                "--image", os.path.join(out, "solve-d8-h7-E50.png")])
-    _step(f"sweep of {n} samples + 9 calibration phantoms ({mesh} mesh)",
-          ["sweep", "run", "--n", str(n), "--jobs", str(jobs), "--mesh", mesh, "--phantoms", "--out", data])
+    _step(
+        "one forward solve (default mesh)",
+        ["solve", "--d", "8", "--h", "7", "--E", "50", "--image", os.path.join(out, "solve-d8-h7-E50.png")],
+    )
+    _step(
+        f"sweep of {n} samples + 9 calibration phantoms ({mesh} mesh)",
+        ["sweep", "run", "--n", str(n), "--jobs", str(jobs), "--mesh", mesh, "--phantoms", "--out", data],
+    )
     _step("inspect the dataset", ["dataset", "inspect", data])
     _step("plot the dataset", ["dataset", "plot", data, "--out", os.path.join(out, "figures")])
     # the paper's 25-10 net has 393 weights and needs >= 131 samples; the demo's small sweep
     # trains a 6-neuron net instead (workflows/paper_table.py runs the real thing)
-    _step("train an MLP (SCG, hold-out on the phantoms; 6 hidden neurons for this small demo)",
-          ["train", "--algo", "scg", "--validate", "hov", "--repeats", "3", "--hidden", "6", "--data", data,
-           "--out", os.path.join(out, "train"), "--overwrite"])  # a rerun of the demo replaces its run
+    _step(
+        "train an MLP (SCG, hold-out on the phantoms; 6 hidden neurons for this small demo)",
+        [
+            "train",
+            "--algo",
+            "scg",
+            "--validate",
+            "hov",
+            "--repeats",
+            "3",
+            "--hidden",
+            "6",
+            "--data",
+            data,
+            "--out",
+            os.path.join(out, "train"),
+            "--overwrite",
+        ],
+    )  # a rerun of the demo replaces its run
     click.secho(f"\ndemo done: results in {out}/", bold=True)
 
 

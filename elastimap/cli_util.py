@@ -61,24 +61,30 @@ class MeshLevel(Choice):
         pass
 
 
-def mesh_option(default: str | None = "default", help: str = "Mesh level of the forward model (tiny is for tests only).",
-                **kw):
+def mesh_option(
+    default: str | None = "default", help: str = "Mesh level of the forward model (tiny is for tests only).", **kw
+):
     """``--mesh``: a checked choice of the solver's mesh levels, the same on every command."""
-    return click.option("--mesh", type=MeshLevel(), default=default, show_default=default is not None,
-                        help=help, **kw)
+    return click.option("--mesh", type=MeshLevel(), default=default, show_default=default is not None, help=help, **kw)
 
 
 def out_option(help: str = "Output directory.", default: str | None = None, required: bool = False, **kw):
     """``--out``: where results go (each command checks it before any work starts)."""
-    return click.option("--out", "out", default=default, required=required, show_default=default is not None,
-                        help=help, **kw)
+    return click.option(
+        "--out", "out", default=default, required=required, show_default=default is not None, help=help, **kw
+    )
 
 
-def data_option(help: str = "Sample dataset: a Parquet file or a sweep directory.", default: str | None = None,
-                required: bool = False, **kw):
+def data_option(
+    help: str = "Sample dataset: a Parquet file or a sweep directory.",
+    default: str | None = None,
+    required: bool = False,
+    **kw,
+):
     """``--data``: the sample table a command reads (a sweep's output)."""
-    return click.option("--data", "data", default=default, required=required, show_default=default is not None,
-                        help=help, **kw)
+    return click.option(
+        "--data", "data", default=default, required=required, show_default=default is not None, help=help, **kw
+    )
 
 
 def jobs_option(default: int = 1, help: str = "Worker processes.", **kw):
@@ -88,10 +94,12 @@ def jobs_option(default: int = 1, help: str = "Worker processes.", **kw):
 
 def options(*decorators):
     """Apply several option decorators in the order they are listed (first = first in --help)."""
+
     def deco(f):
         for d in reversed(decorators):
             f = d(f)
         return f
+
     return deco
 
 
@@ -99,9 +107,11 @@ def param_flags(mapping: dict[str, str]):
     """Attach extra Python-name -> flag rules to a command (``fnmatch`` patterns allowed),
     for library names that do not follow from the command's own parameters
     (``{"probe.layer*": "--layers"}``)."""
+
     def deco(cmd: click.Command) -> click.Command:
         cmd.param_flags = dict(mapping)
         return cmd
+
     return deco
 
 
@@ -136,7 +146,9 @@ class LazyGroup(click.Group):
             else:
                 cmd = self.commands[name]
                 if not cmd.hidden:
-                    rows.append((name, cmd.get_short_help_str(formatter.width - 6 - max(map(len, self.lazy), default=0))))
+                    rows.append(
+                        (name, cmd.get_short_help_str(formatter.width - 6 - max(map(len, self.lazy), default=0)))
+                    )
         if rows:
             with formatter.section("Commands"):
                 formatter.write_dl(rows)
@@ -190,8 +202,9 @@ def flag_for(command: click.Command | None, name: str) -> str:
 def _leaf_command(command: click.Command, args: list[str], prog_name: str | None) -> click.Command:
     """The (sub)command that ``args`` selects, found by parsing them again without running anything."""
     try:
-        ctx = command.make_context(prog_name, list(args), resilient_parsing=True,
-                                   help_option_names=CONTEXT_SETTINGS["help_option_names"])
+        ctx = command.make_context(
+            prog_name, list(args), resilient_parsing=True, help_option_names=CONTEXT_SETTINGS["help_option_names"]
+        )
         while isinstance(ctx.command, click.Group):
             rest = [*getattr(ctx, "_protected_args", []), *ctx.args]
             if not rest:
@@ -217,8 +230,12 @@ def run(command: click.Command, args: list[str] | None = None, prog_name: str | 
     """Run a click command the project's way (see the module docstring); exits the process."""
     argv = sys.argv[1:] if args is None else list(args)
     try:
-        rv = command.main(args=argv, prog_name=prog_name, standalone_mode=False,
-                          help_option_names=CONTEXT_SETTINGS["help_option_names"])
+        rv = command.main(
+            args=argv,
+            prog_name=prog_name,
+            standalone_mode=False,
+            help_option_names=CONTEXT_SETTINGS["help_option_names"],
+        )
     except UserError as exc:
         flag = flag_for(_leaf_command(command, argv, prog_name), exc.param)
         click.echo(f"error: {flag}: {exc.message}", err=True)

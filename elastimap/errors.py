@@ -19,8 +19,16 @@ class UserError(ValueError):
         super().__init__(f"{param}: {message}")
 
 
-def check_range(param: str, value: float, lo: float | None = None, hi: float | None = None,
-                *, lo_open: bool = False, hi_open: bool = False, unit: str = "") -> float:
+def check_range(
+    param: str,
+    value: float,
+    lo: float | None = None,
+    hi: float | None = None,
+    *,
+    lo_open: bool = False,
+    hi_open: bool = False,
+    unit: str = "",
+) -> float:
     """Return ``value`` as a float if it lies in the interval, else raise :class:`UserError`.
 
     ``lo_open``/``hi_open`` make the bound strict.  NaN and ±inf are always rejected.  Meant for bounds

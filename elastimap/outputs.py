@@ -73,8 +73,14 @@ def check_out_file(path: str | os.PathLike, param: str, *, create_parents: bool 
     return p
 
 
-def check_out_dir(path: str | os.PathLike, param: str, *, overwrite: bool = False,
-                  allow_existing: bool = False, hint: str = "--overwrite") -> Path:
+def check_out_dir(
+    path: str | os.PathLike,
+    param: str,
+    *,
+    overwrite: bool = False,
+    allow_existing: bool = False,
+    hint: str = "--overwrite",
+) -> Path:
     """A folder about to be filled.
 
     Refused: a file at ``path``; a folder we cannot write in (or create); a folder that
@@ -110,8 +116,9 @@ def publish_dir(tmp: Path, final: Path, param: str = "out") -> Path:
                 old = None
             except OSError:
                 pass
-        raise UserError(param, f"could not move the finished result to {final} ({exc.strerror or exc}); "
-                               f"it is kept in {tmp}") from None
+        raise UserError(
+            param, f"could not move the finished result to {final} ({exc.strerror or exc}); it is kept in {tmp}"
+        ) from None
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
     return final
@@ -151,4 +158,6 @@ def write_or_fallback(write: Callable[[str], object], path: str | os.PathLike, p
             write(fb)
         except OSError:
             raise UserError(param, f"cannot write {p} ({exc.strerror or exc}), nor a fallback copy") from None
-        raise UserError(param, f"cannot write {p} ({exc.strerror or exc}); the result was saved to {fb} instead") from None
+        raise UserError(
+            param, f"cannot write {p} ({exc.strerror or exc}); the result was saved to {fb} instead"
+        ) from None

@@ -38,13 +38,19 @@ def _sim(cache, mesh, backend, jobs, quiet):
     def prog(i, n):
         if not quiet:
             click.echo(f"\rsolves {i}/{n}", nl=(i == n), err=True)
+
     return Simulator(None if cache == "none" else os.path.join(cache, f"{backend}-{mesh}"), mesh, backend, jobs, prog)
 
 
 common = options(
     click.option("--cache", default=None, help="solve cache folder ('none' = no cache)"),
-    click.option("--backend", type=click.Choice(["fem", "toy"]), default="fem", show_default=True,
-                 help="fem = DOLFINx forward model; toy = analytic TOY stand-in (tests only)"),
+    click.option(
+        "--backend",
+        type=click.Choice(["fem", "toy"]),
+        default="fem",
+        show_default=True,
+        help="fem = DOLFINx forward model; toy = analytic TOY stand-in (tests only)",
+    ),
     jobs_option(default=1, help="worker processes for missing solves"),
     click.option("--quiet", is_flag=True),
 )
@@ -59,31 +65,63 @@ def main_group():
 def effects_cmd():
     """List the effects library."""
     for e in fx.EFFECTS.values():
-        click.echo(f"{e.name:14s} {e.stage:9s} nominal {e.nominal:g} {e.unit}; grid {list(e.grid)}; "
-                   f"blind {list(e.blind)}  {e.description}")
+        click.echo(
+            f"{e.name:14s} {e.stage:9s} nominal {e.nominal:g} {e.unit}; grid {list(e.grid)}; "
+            f"blind {list(e.blind)}  {e.description}"
+        )
     for f in fx.FAMILIES.values():
         click.echo(f"{f.name:14s} family    k = {f.n_params}: {', '.join(f.members)}  {f.description}")
 
 
 @main_group.command("synth", context_settings=CONTEXT_SETTINGS)
-@click.option("--out", required=True, type=click.Path(file_okay=False),
-              help="new folder for the SYNTHETIC measured dataset (an existing one only with --overwrite)")
-@click.option("--overwrite", is_flag=True,
-              help="replace an earlier SYNTHETIC dataset in --out (real measured data is never replaced)")
+@click.option(
+    "--out",
+    required=True,
+    type=click.Path(file_okay=False),
+    help="new folder for the SYNTHETIC measured dataset (an existing one only with --overwrite)",
+)
+@click.option(
+    "--overwrite",
+    is_flag=True,
+    help="replace an earlier SYNTHETIC dataset in --out (real measured data is never replaced)",
+)
 @click.option("--effect", "effect", default="", help="NAME=MAGNITUDE[,NAME=MAGNITUDE] (empty: baseline only)")
-@click.option("--phantoms", type=click.Path(), default=None, help="CSV with id (or name), d, h, E; default an LHS design")
+@click.option(
+    "--phantoms", type=click.Path(), default=None, help="CSV with id (or name), d, h, E; default an LHS design"
+)
 @click.option("--n", "n", type=int, default=12, show_default=True)
 @mesh_option(default="coarse")
 @click.option("--frames", type=int, default=10, show_default=True)
 @click.option("--noise-scale", type=float, default=1.0, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--format", "fmt", type=click.Choice(["csv", "parquet"]), default="csv", show_default=True)
-@click.option("--interface", type=click.Choice(["tied", "contact", "bonded"]), default="tied", show_default=True,
-              help="probe-tissue interface of the data's forward model")
+@click.option(
+    "--interface",
+    type=click.Choice(["tied", "contact", "bonded"]),
+    default="tied",
+    show_default=True,
+    help="probe-tissue interface of the data's forward model",
+)
 @click.option("--force-noise", type=float, default=None, help="also 'measure' the plate force with this relative error")
 @common
-def synth_cmd(out, overwrite, effect, phantoms, n, mesh, frames, noise_scale, seed, fmt, interface, force_noise, cache,
-              backend, jobs, quiet):
+def synth_cmd(
+    out,
+    overwrite,
+    effect,
+    phantoms,
+    n,
+    mesh,
+    frames,
+    noise_scale,
+    seed,
+    fmt,
+    interface,
+    force_noise,
+    cache,
+    backend,
+    jobs,
+    quiet,
+):
     """Generate a SYNTHETIC measured dataset (truth sealed in SEALED_truth.json)."""
     from elastimap.outputs import staged_dir
 
@@ -103,8 +141,17 @@ def synth_cmd(out, overwrite, effect, phantoms, n, mesh, frames, noise_scale, se
     sim = _sim(cache or default_cache(), mesh, backend, jobs, quiet)
     if force_noise is not None and not force_noise > 0:
         raise UserError("force-noise", "must be > 0")
-    meas, truth = synth.synthesize(dhe, effs, sim, frames=frames, seed=seed, ids=ids, noise_scale=noise_scale,
-                                   disc={"interface": interface} if interface != "tied" else None, force_noise=force_noise)
+    meas, truth = synth.synthesize(
+        dhe,
+        effs,
+        sim,
+        frames=frames,
+        seed=seed,
+        ids=ids,
+        noise_scale=noise_scale,
+        disc={"interface": interface} if interface != "tied" else None,
+        force_noise=force_noise,
+    )
     with staged_dir(out, "out", overwrite=overwrite) as tmp:
         tp = measured.write(meas, tmp, fmt)
         synth.seal(truth, tmp)
@@ -120,15 +167,39 @@ def synth_cmd(out, overwrite, effect, phantoms, n, mesh, frames, noise_scale, se
 @mesh_option(default=None, help="override the sidecar's mesh level")
 @click.option("--no-inverse", is_flag=True, help="skip the (d, h, E) retraining step")
 @click.option("--n-train", type=int, default=40, show_default=True, help="simulations per inverse training set")
-@click.option("--error-mesh", default=None,
-              help="finer mesh level for the measured model error (default: the next finer level; 'none': assumed floor)")
-@click.option("--model-floor", type=float, default=0.005, show_default=True, help="relative model error used only with --error-mesh none")
+@click.option(
+    "--error-mesh",
+    default=None,
+    help="finer mesh level for the measured model error (default: the next finer level; 'none': assumed floor)",
+)
+@click.option(
+    "--model-floor",
+    type=float,
+    default=0.005,
+    show_default=True,
+    help="relative model error used only with --error-mesh none",
+)
 @click.option("--alpha", type=float, default=0.01, show_default=True, help="level of the calibrated chi-square tests")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="print the summary as JSON")
 @common
-def diagnose_cmd(mpath, out, effects, mesh, no_inverse, n_train, error_mesh, model_floor, alpha, seed,
-                 as_json, cache, backend, jobs, quiet):
+def diagnose_cmd(
+    mpath,
+    out,
+    effects,
+    mesh,
+    no_inverse,
+    n_train,
+    error_mesh,
+    model_floor,
+    alpha,
+    seed,
+    as_json,
+    cache,
+    backend,
+    jobs,
+    quiet,
+):
     """Diagnose the sim-to-real gap of a measured dataset: report.md, PNG figures, diagnosis.json."""
     import math
     import tempfile
@@ -156,8 +227,9 @@ def diagnose_cmd(mpath, out, effects, mesh, no_inverse, n_train, error_mesh, mod
     except OSError as exc:  # the diagnosis is done: keep it
         fb = tempfile.mkdtemp(prefix="elastimap-gap-diagnosis-")
         report.write(res, fb)
-        raise UserError("out", f"cannot write the report to {out} ({exc.strerror or exc}); "
-                               f"it was written to {fb} instead") from None
+        raise UserError(
+            "out", f"cannot write the report to {out} ({exc.strerror or exc}); it was written to {fb} instead"
+        ) from None
     s = doc["summary"]
     if as_json:
         click.echo(json.dumps(report._jsonable(s), indent=2))
@@ -175,7 +247,9 @@ def error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet):
     if level is None:
         return None
     if level not in FINER or level == sim.mesh:
-        raise UserError("error-mesh", f"must be a mesh level other than {sim.mesh} (tiny, coarse, default, fine) or none")
+        raise UserError(
+            "error-mesh", f"must be a mesh level other than {sim.mesh} (tiny, coarse, default, fine) or none"
+        )
     return _sim(cache or default_cache(), level, backend, jobs, quiet)
 
 
@@ -185,18 +259,43 @@ def error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet):
 @mesh_option(default="tiny", help="the diagnosis's mesh level")
 @click.option("--error-mesh", default=None, help="model-error mesh level (default: next finer; 'none': assumed floor)")
 @click.option("--data-mesh", default=None, help="mesh level of the measured data (default: the next finer level)")
-@click.option("--data-interface", type=click.Choice(["tied", "contact", "bonded"]), default="contact", show_default=True,
-              help="probe-tissue interface of the measured data (the diagnosis uses tied)")
+@click.option(
+    "--data-interface",
+    type=click.Choice(["tied", "contact", "bonded"]),
+    default="contact",
+    show_default=True,
+    help="probe-tissue interface of the measured data (the diagnosis uses tied)",
+)
 @click.option("--effects", default=None, help="candidates (default: all defaults but the outside ones)")
-@click.option("--outside", default="aspect,skin,led_imbalance,stray_light", show_default=True,
-              help="effects drawn for out-of-library trials (never candidates)")
+@click.option(
+    "--outside",
+    default="aspect,skin,led_imbalance,stray_light",
+    show_default=True,
+    help="effects drawn for out-of-library trials (never candidates)",
+)
 @click.option("--n-phantoms", type=int, default=12, show_default=True)
 @click.option("--frames", type=int, default=10, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--inverse", is_flag=True, help="also retrain the inverse in every trial (slow)")
 @common
-def selftest_cmd(trials, out, mesh, error_mesh, data_mesh, data_interface, effects, outside, n_phantoms, frames, seed,
-                 inverse, cache, backend, jobs, quiet):
+def selftest_cmd(
+    trials,
+    out,
+    mesh,
+    error_mesh,
+    data_mesh,
+    data_interface,
+    effects,
+    outside,
+    n_phantoms,
+    frames,
+    seed,
+    inverse,
+    cache,
+    backend,
+    jobs,
+    quiet,
+):
     """Blind benchmark with model-form error: no-effect, in-library and out-of-library trials (SYNTHETIC)."""
     from . import selftest
     from .diagnose import FINER, Settings
@@ -223,14 +322,26 @@ def selftest_cmd(trials, out, mesh, error_mesh, data_mesh, data_interface, effec
     if dm not in FINER:
         raise UserError("data-mesh", "must be tiny, coarse, default or fine")
     sim_data = sim if dm == mesh else _sim(cache or default_cache(), dm, backend, jobs, quiet)
-    res = selftest.run(trials, sim, sim_data, cands, outs, fine, n_phantoms, frames, seed, Settings(inverse=inverse),
-                       data_disc={"interface": data_interface} if data_interface != "tied" else None,
-                       log=None if quiet else lambda s: click.echo(s, err=True))
+    res = selftest.run(
+        trials,
+        sim,
+        sim_data,
+        cands,
+        outs,
+        fine,
+        n_phantoms,
+        frames,
+        seed,
+        Settings(inverse=inverse),
+        data_disc={"interface": data_interface} if data_interface != "tied" else None,
+        log=None if quiet else lambda s: click.echo(s, err=True),
+    )
     md = selftest.markdown(res)
     if out:
         Path(out).mkdir(parents=True, exist_ok=True)
         (Path(out) / "selftest.md").write_text(md)
         from .report import _jsonable
+
         (Path(out) / "selftest.json").write_text(json.dumps(_jsonable(res), indent=2) + "\n")
     click.echo(md)
     return 0

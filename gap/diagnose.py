@@ -68,18 +68,18 @@ FINER = {"tiny": "coarse", "coarse": "default", "default": "fine", "fine": None}
 
 @dataclass
 class Settings:
-    alpha: float = 0.01               # level of the calibrated χ² tests
-    ambiguity_margin: float = 4.6     # Δscore below which candidates cannot be told apart (2 ln 10)
-    model_floor: float = 0.005        # relative model error, used only without a second mesh level
-    order_image: float = 3.0          # convergence order p of features and profile (measured)
-    order_force: float = 1.0          # convergence order p of the plate force (measured)
-    richardson: bool = True           # correct the model by its Richardson estimate; σ = its spread over the orders below
-    order_range_image: tuple = (2.0, 4.0)   # orders p bracketing the measured image order (3.4-3.8)
+    alpha: float = 0.01  # level of the calibrated χ² tests
+    ambiguity_margin: float = 4.6  # Δscore below which candidates cannot be told apart (2 ln 10)
+    model_floor: float = 0.005  # relative model error, used only without a second mesh level
+    order_image: float = 3.0  # convergence order p of features and profile (measured)
+    order_force: float = 1.0  # convergence order p of the plate force (measured)
+    richardson: bool = True  # correct the model by its Richardson estimate; σ = its spread over the orders below
+    order_range_image: tuple = (2.0, 4.0)  # orders p bracketing the measured image order (3.4-3.8)
     order_range_force: tuple = (0.75, 1.5)  # orders p bracketing the measured force order (about 1)
-    force_noise: float = 0.01         # relative standard error assumed for a plate-force gauge (proposals)
-    second_delta: float = 4.5         # mm, the second indentation depth a proposal considers
-    propose_phantoms: int = 4         # phantoms solved at the second depth
-    propose_solves: bool = True       # run the solves that check a proposal
+    force_noise: float = 0.01  # relative standard error assumed for a plate-force gauge (proposals)
+    second_delta: float = 4.5  # mm, the second indentation depth a proposal considers
+    propose_phantoms: int = 4  # phantoms solved at the second depth
+    propose_solves: bool = True  # run the solves that check a proposal
     families: tuple = fx.DEFAULT_FAMILIES
     bootstrap: int = 200
     seed: int = 0
@@ -97,7 +97,9 @@ def sim_views(recs, sensor, settings) -> tuple[dict, np.ndarray]:
         v, d = camera_features_of(r, sensor, settings)
         F.append(v)
         D.append(d)
-        P.append(vw.radial_profile(d, sensor.pixel_mm) if np.all(np.isfinite(d)) else np.full(len(vw.EDGES) - 1, np.nan))
+        P.append(
+            vw.radial_profile(d, sensor.pixel_mm) if np.all(np.isfinite(d)) else np.full(len(vw.EDGES) - 1, np.nan)
+        )
         Fo.append([r.force])
     return {"features": np.asarray(F), "profile": np.asarray(P), "force": np.asarray(Fo, float)}, np.asarray(D)
 
@@ -109,7 +111,7 @@ def measured_views(meas: Measured, sensor, settings) -> dict:
         P, Pse = [], []
         for D, Dse in zip(meas.difference, meas.difference_se):
             P.append(vw.radial_profile(D, sensor.pixel_mm))
-            if Dse is None:   # no per-pixel noise given: the window's outer ring's scatter, uniform
+            if Dse is None:  # no per-pixel noise given: the window's outer ring's scatter, uniform
                 ring = np.zeros(D.shape, bool)
                 w = max(2, D.shape[0] // 10)
                 ring[:w, :] = ring[-w:, :] = ring[:, :w] = ring[:, -w:] = True
@@ -138,6 +140,7 @@ def cat(d: dict, names) -> np.ndarray:
 @dataclass
 class Candidate:
     """The sweep of one effect over the phantoms: views (K, n, q) and images (K, n, ny, nx)."""
+
     effect: fx.Effect
     grid: np.ndarray
     V: dict
@@ -151,8 +154,17 @@ def phantom_params(meas: Measured, mesh: str):
 
 def _scaled(rec: Record, s: float) -> Record:
     """The record of the same linear problem at s times the plate travel (exact for linear models)."""
-    return Record(f"{rec.key}*{s:.12g}", rec.O1 * s, rec.O2 * s, rec.O3, rec.force * s, rec.pixel,
-                  rec.image * s, rec.image_raw * s, 0.0)
+    return Record(
+        f"{rec.key}*{s:.12g}",
+        rec.O1 * s,
+        rec.O2 * s,
+        rec.O3,
+        rec.force * s,
+        rec.pixel,
+        rec.image * s,
+        rec.image_raw * s,
+        0.0,
+    )
 
 
 def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, sensor, settings):
@@ -189,13 +201,13 @@ def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, 
                 dropped.append(float(m))
                 continue
             if how == "solve":
-                V, D = sim_views(recs[pos: pos + meas.n], sensor, settings)
+                V, D = sim_views(recs[pos : pos + meas.n], sensor, settings)
                 pos += meas.n
             elif e.is_nominal(m):
                 V, D = V0, D0
             elif e.stage == "optics":
                 V, D = sim_views(base, e.apply_sensor(sensor, m), settings)
-            else:   # plate travel of a linear model: scale the baseline solve
+            else:  # plate travel of a linear model: scale the baseline solve
                 s = (p0[0].loading.delta + float(m)) / p0[0].loading.delta
                 V, D = sim_views([_scaled(r, s) for r in base], sensor, settings)
             if not np.all(np.isfinite(V["features"])):
@@ -205,19 +217,31 @@ def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, 
             Vs.append(V)
             Ds.append(D)
         order = np.argsort(ms)
-        out.append(Candidate(e, np.asarray(ms)[order], {k: np.asarray([Vs[i][k] for i in order]) for k in V0},
-                             np.asarray(Ds)[order] if Ds else None, dropped))
+        out.append(
+            Candidate(
+                e,
+                np.asarray(ms)[order],
+                {k: np.asarray([Vs[i][k] for i in order]) for k in V0},
+                np.asarray(Ds)[order] if Ds else None,
+                dropped,
+            )
+        )
     return V0, D0, out
 
 
 # ------------------------------------------------------------------ model error
-def model_error(meas: Measured, sim: Simulator, sim_fine: Simulator | None, sensor, settings, V0: dict, D0,
-                st: Settings) -> dict:
+def model_error(
+    meas: Measured, sim: Simulator, sim_fine: Simulator | None, sensor, settings, V0: dict, D0, st: Settings
+) -> dict:
     """Per-phantom, per-quantity model error of the baseline (module docstring)."""
     if sim_fine is None or sim_fine.mesh == sim.mesh:
         sig = {k: st.model_floor * np.abs(v) for k, v in V0.items()}
-        return {"kind": "assumed", "sigma": sig, "image_sigma": st.model_floor * np.abs(D0),
-                "note": f"assumed floor {100 * st.model_floor:g} % of each quantity (no second mesh level)"}
+        return {
+            "kind": "assumed",
+            "sigma": sig,
+            "image_sigma": st.model_floor * np.abs(D0),
+            "note": f"assumed floor {100 * st.model_floor:g} % of each quantity (no second mesh level)",
+        }
     from elastimap.solver.geometry import LEVELS
 
     recs1 = sim_fine.run(phantom_params(meas, sim_fine.mesh))
@@ -236,11 +260,21 @@ def model_error(meas: Measured, sim: Simulator, sim_fine: Simulator | None, sens
         delta[k] = d
     kap_img = 1.0 / (1.0 - r ** (-st.order_image))
     kap = {k: 1.0 / (1.0 - r ** (-(st.order_force if k == "force" else st.order_image))) for k in V0}
-    return {"kind": "measured", "sigma": sig, "image_sigma": kap_img * np.abs(D0 - D1), "delta": delta,
-            "kappa": kap, "image_delta": D0 - D1, "kappa_image": kap_img,
-            "fine_mesh": sim_fine.mesh, "ratio": r, "relative_median": rel, "fine_views": V1,
-            "note": f"Richardson estimate from meshes {sim.mesh} and {sim_fine.mesh} (h ratio {r:.3g}; "
-                    f"order {st.order_image:g} for image quantities, {st.order_force:g} for the force)"}
+    return {
+        "kind": "measured",
+        "sigma": sig,
+        "image_sigma": kap_img * np.abs(D0 - D1),
+        "delta": delta,
+        "kappa": kap,
+        "image_delta": D0 - D1,
+        "kappa_image": kap_img,
+        "fine_mesh": sim_fine.mesh,
+        "ratio": r,
+        "relative_median": rel,
+        "fine_views": V1,
+        "note": f"Richardson estimate from meshes {sim.mesh} and {sim_fine.mesh} (h ratio {r:.3g}; "
+        f"order {st.order_image:g} for image quantities, {st.order_force:g} for the force)",
+    }
 
 
 def richardson_correct(V0: dict, D0, C: list[Candidate], me: dict, st: Settings) -> tuple[dict, np.ndarray]:
@@ -279,7 +313,7 @@ def _interp_error(g: np.ndarray, Y: np.ndarray) -> np.ndarray:
         return np.zeros(Y.shape[1:])
     err = np.zeros(Y.shape[1:])
     for k in range(1, len(g) - 1):
-        keep = np.r_[0:k, k + 1:len(g)]
+        keep = np.r_[0:k, k + 1 : len(g)]
         err = np.maximum(err, np.abs(Y[k] - PchipInterpolator(g[keep], Y[keep], axis=0)(g[k])))
     return 0.25 * err
 
@@ -313,7 +347,7 @@ class Single:
         self.c, self.name, self.k, self.names = c, c.effect.name, 1, list(names)
         self.effect, self.stage, self.unit = c.effect, c.effect.stage, c.effect.unit
         self.grid = c.grid
-        self.Y = cat(c.V, self.names)                      # (K, n, Q)
+        self.Y = cat(c.V, self.names)  # (K, n, Q)
         if len(self.grid) > 1:
             self.dense = np.linspace(self.grid.min(), self.grid.max(), NDENSE)
             self._pchip = PchipInterpolator(self.grid, self.Y, axis=0)
@@ -366,8 +400,12 @@ class Single:
         if len(self.dense) < 3:
             return np.array([self.dense[k]])
         lo, hi = self.dense[max(k - 1, 0)], self.dense[min(k + 1, len(self.dense) - 1)]
-        r = minimize_scalar(lambda m: self._chi(m, y, S, idx), bounds=(lo, hi), method="bounded",
-                            options={"xatol": 1e-7 * (self.grid.max() - self.grid.min())})
+        r = minimize_scalar(
+            lambda m: self._chi(m, y, S, idx),
+            bounds=(lo, hi),
+            method="bounded",
+            options={"xatol": 1e-7 * (self.grid.max() - self.grid.min())},
+        )
         m = float(r.x) if r.fun < tot[k] else float(self.dense[k])
         return np.array([m])
 
@@ -380,7 +418,7 @@ class Single:
         c = max(1.0, f0 / max(N - 1, 1))
         thr = 3.84 * c
         tot = chi2(y, self.dense_Y, S).sum(axis=1) - f0 - thr
-        g = lambda m: self._chi(m, y, S, idx) - f0 - thr   # noqa: E731
+        g = lambda m: self._chi(m, y, S, idx) - f0 - thr  # noqa: E731
         out = []
         left = np.flatnonzero((self.dense < m0) & (tot > 0))
         if len(left):
@@ -420,7 +458,7 @@ class Composed:
         self.fam, self.name, self.members, self.k = fam, fam.name, members, len(members)
         self.names, self.stage, self.y0, self.V0 = members[0].names, fam.stage, y0, V0
         self.unit = "/".join(m.unit for m in members)
-        self.interp = np.sqrt(sum(m.interp ** 2 for m in members))
+        self.interp = np.sqrt(sum(m.interp**2 for m in members))
         self.grid = members[0].grid
         self.effect = None
 
@@ -452,7 +490,7 @@ class Composed:
                 tot = chi2(y[idx], f[:, idx], S[idx]).sum(axis=1)
                 th[l] = m.dense[int(np.argmin(tot + m.tie() * (1 + tot.min())))]
                 parts[l] = m.predict(th[l]) - self.y0
-        for _ in range(2):   # refine each parameter between its neighbouring dense points
+        for _ in range(2):  # refine each parameter between its neighbouring dense points
             for l, m in enumerate(self.members):
                 step = (m.grid.max() - m.grid.min()) / (NDENSE - 1)
                 if step <= 0:
@@ -480,7 +518,9 @@ class Composed:
         for a in range(k):
             for b in range(a, k):
                 ea, eb = np.eye(k)[a] * h[a], np.eye(k)[b] * h[b]
-                H[a, b] = H[b, a] = (F(th + ea + eb) - F(th + ea - eb) - F(th - ea + eb) + F(th - ea - eb)) / (4 * h[a] * h[b])
+                H[a, b] = H[b, a] = (F(th + ea + eb) - F(th + ea - eb) - F(th - ea + eb) + F(th - ea - eb)) / (
+                    4 * h[a] * h[b]
+                )
         c = max(1.0, f0 / max(y.size - k, 1))
         try:
             cov = 2.0 * np.linalg.inv(H) * c
@@ -488,9 +528,11 @@ class Composed:
             if not np.all(np.isfinite(sd)) or np.any(np.diag(cov) <= 0):
                 raise np.linalg.LinAlgError
         except np.linalg.LinAlgError:
-            sd = spans   # not identifiable from these phantoms: the whole grid
-        return [(float(max(m.grid.min(), t - 1.96 * s)), float(min(m.grid.max(), t + 1.96 * s)))
-                for m, t, s in zip(self.members, th, sd)]
+            sd = spans  # not identifiable from these phantoms: the whole grid
+        return [
+            (float(max(m.grid.min(), t - 1.96 * s)), float(min(m.grid.max(), t + 1.96 * s)))
+            for m, t, s in zip(self.members, th, sd)
+        ]
 
     def at_edge(self, th) -> bool:
         return any(m.at_edge([t]) for m, t in zip(self.members, th))
@@ -516,8 +558,9 @@ def build_models(C: list[Candidate], names, V0: dict, st: Settings) -> list:
     singles = [Single(c, names) for c in C]
     byname = {m.name: m for m in singles}
     y0 = cat(V0, names)
-    fams = [Composed(f, [byname[n] for n in f.members], y0, V0)
-            for f in fx.families_for([c.effect for c in C], st.families)]
+    fams = [
+        Composed(f, [byname[n] for n in f.members], y0, V0) for f in fx.families_for([c.effect for c in C], st.families)
+    ]
     return singles + fams
 
 
@@ -554,7 +597,7 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None) -> dic
     F = folds(n, st.seed)
     rows = []
     for mdl in models:
-        S = np.sqrt(S0 ** 2 + mdl.interp ** 2)
+        S = np.sqrt(S0**2 + mdl.interp**2)
         pred = np.zeros_like(y)
         for te in F:
             tr = np.setdiff1d(np.arange(n), te)
@@ -564,17 +607,32 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None) -> dic
         th = mdl.fit(y, S, np.arange(n))
         ci = with_systematic(mdl, y, S, th, mdl.interval(y, S, th), sys)
         f = mdl.predict(th)
-        rows.append({
-            "effect": mdl.name, "members": mdl.labels, "stage": mdl.stage, "unit": mdl.unit, "n_params": mdl.k,
-            "magnitude": [float(t) for t in th], "magnitude_ci": [list(c) for c in ci], "nominal": mdl.nominal(),
-            "units": mdl.units(), "ssr_cv": ssr_cv, "chi2_fit": float(chi2(y, f, S).sum()),
-            "explained_fraction": 1.0 - ssr_cv / chi0 if chi0 > 0 else 0.0,
-            "reduced_chi2_cv": ssr_cv / N, "passes": bool(ssr_cv <= thr),
-            "p_value_cv": float(stats.chi2.sf(ssr_cv, N)),
-            "chi2_cv_by_view": {k: float(held[:, s].sum()) for k, s in sl.items()},
-            "score": ssr_cv + mdl.k * math.log(N), "at_grid_edge": mdl.at_edge(th),
-            "dropped_magnitudes": getattr(getattr(mdl, "c", None), "dropped", []),
-            "_model": mdl, "_theta": th, "_S": S})
+        rows.append(
+            {
+                "effect": mdl.name,
+                "members": mdl.labels,
+                "stage": mdl.stage,
+                "unit": mdl.unit,
+                "n_params": mdl.k,
+                "magnitude": [float(t) for t in th],
+                "magnitude_ci": [list(c) for c in ci],
+                "nominal": mdl.nominal(),
+                "units": mdl.units(),
+                "ssr_cv": ssr_cv,
+                "chi2_fit": float(chi2(y, f, S).sum()),
+                "explained_fraction": 1.0 - ssr_cv / chi0 if chi0 > 0 else 0.0,
+                "reduced_chi2_cv": ssr_cv / N,
+                "passes": bool(ssr_cv <= thr),
+                "p_value_cv": float(stats.chi2.sf(ssr_cv, N)),
+                "chi2_cv_by_view": {k: float(held[:, s].sum()) for k, s in sl.items()},
+                "score": ssr_cv + mdl.k * math.log(N),
+                "at_grid_edge": mdl.at_edge(th),
+                "dropped_magnitudes": getattr(getattr(mdl, "c", None), "dropped", []),
+                "_model": mdl,
+                "_theta": th,
+                "_S": S,
+            }
+        )
     rows.sort(key=lambda r: r["score"])
     significant = chi0 > thr
     best = rows[0] if rows else None
@@ -588,28 +646,43 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None) -> dic
         outcome = "unexplained"
     for r in rows:
         r["delta_score"] = r["score"] - best["score"]
-    return {"chi2_baseline": chi0, "n_terms": N, "chi2_threshold": thr, "alpha": st.alpha,
-            "reduced_chi2_baseline": chi0 / N, "p_value_baseline": float(stats.chi2.sf(chi0, N)),
-            "significant": significant, "ranking": rows, "outcome": outcome,
-            "winner": best["effect"] if outcome == "explained" else None,
-            "ambiguous_set": ambiguity if outcome in ("explained", "ambiguous") else [],
-            "best": best["effect"] if best else None,
-            "runner_up": rows[1]["effect"] if len(rows) > 1 else None}
+    return {
+        "chi2_baseline": chi0,
+        "n_terms": N,
+        "chi2_threshold": thr,
+        "alpha": st.alpha,
+        "reduced_chi2_baseline": chi0 / N,
+        "p_value_baseline": float(stats.chi2.sf(chi0, N)),
+        "significant": significant,
+        "ranking": rows,
+        "outcome": outcome,
+        "winner": best["effect"] if outcome == "explained" else None,
+        "ambiguous_set": ambiguity if outcome in ("explained", "ambiguous") else [],
+        "best": best["effect"] if best else None,
+        "runner_up": rows[1]["effect"] if len(rows) > 1 else None,
+    }
 
 
 def view_baselines(mv: dict, V0: dict, me: dict, st: Settings) -> dict:
     """Per view: χ² of the baseline with noise only and with noise + model error (a view table)."""
     out = {}
     for k, (v, se) in mv.items():
-        S = np.sqrt(se ** 2 + me["sigma"][k] ** 2)
+        S = np.sqrt(se**2 + me["sigma"][k] ** 2)
         S = np.maximum(S, 1e-12 * np.maximum(np.abs(V0[k]), 1e-300))
         Sn = np.maximum(se, 1e-12 * np.maximum(np.abs(V0[k]), 1e-300))
         N = v.size
         c = float(chi2(v, V0[k], S).sum())
-        out[k] = {"n_terms": N, "chi2_noise_only": float(chi2(v, V0[k], Sn).sum()), "chi2": c,
-                  "threshold": float(stats.chi2.ppf(1 - st.alpha, N)), "significant": bool(c > stats.chi2.ppf(1 - st.alpha, N)),
-                  "model_error_relative_median": np.median(me["sigma"][k] / np.maximum(np.abs(V0[k]), 1e-300), axis=0).tolist(),
-                  "noise_relative_median": np.median(se / np.maximum(np.abs(v), 1e-300), axis=0).tolist()}
+        out[k] = {
+            "n_terms": N,
+            "chi2_noise_only": float(chi2(v, V0[k], Sn).sum()),
+            "chi2": c,
+            "threshold": float(stats.chi2.ppf(1 - st.alpha, N)),
+            "significant": bool(c > stats.chi2.ppf(1 - st.alpha, N)),
+            "model_error_relative_median": np.median(
+                me["sigma"][k] / np.maximum(np.abs(V0[k]), 1e-300), axis=0
+            ).tolist(),
+            "noise_relative_median": np.median(se / np.maximum(np.abs(v), 1e-300), axis=0).tolist(),
+        }
     return out
 
 
@@ -617,19 +690,23 @@ def where(meas: Measured, mv: dict, V0: dict, D0, me: dict, st: Settings) -> dic
     """Where the gap lies: by feature, by (d, h, E) region, by stage, by image region."""
     y, n = meas.y, meas.n
     y0 = V0["features"]
-    S = np.sqrt(meas.se ** 2 + me["sigma"]["features"] ** 2)
+    S = np.sqrt(meas.se**2 + me["sigma"]["features"] ** 2)
     S = np.maximum(S, 1e-12)
     rng = np.random.default_rng(st.seed + 1)
     rel = (y - y0) / np.where(np.abs(y0) > 0, np.abs(y0), 1.0)
     r = (y - y0) / S
     by_feature = {}
     for j, k in enumerate(FEATURES):
-        by_feature[k] = {"relative_gap_mean": float(rel[:, j].mean()),
-                         "relative_gap_ci": bootstrap_ci(rel[:, j], np.mean, st.bootstrap, rng),
-                         "noise_units_rms": float(np.sqrt(np.mean(r[:, j] ** 2))),
-                         "noise_floor_relative": float(np.median(meas.se[:, j] / np.maximum(np.abs(y[:, j]), 1e-300))),
-                         "model_error_relative": float(np.median(me["sigma"]["features"][:, j] / np.maximum(np.abs(y0[:, j]), 1e-300)))}
-    rms_i = np.sqrt(np.mean(r ** 2, axis=1))
+        by_feature[k] = {
+            "relative_gap_mean": float(rel[:, j].mean()),
+            "relative_gap_ci": bootstrap_ci(rel[:, j], np.mean, st.bootstrap, rng),
+            "noise_units_rms": float(np.sqrt(np.mean(r[:, j] ** 2))),
+            "noise_floor_relative": float(np.median(meas.se[:, j] / np.maximum(np.abs(y[:, j]), 1e-300))),
+            "model_error_relative": float(
+                np.median(me["sigma"]["features"][:, j] / np.maximum(np.abs(y0[:, j]), 1e-300))
+            ),
+        }
+    rms_i = np.sqrt(np.mean(r**2, axis=1))
     by_region = {}
     for q, name in enumerate(("d", "h", "E")):
         v = meas.dhe[:, q]
@@ -639,12 +716,17 @@ def where(meas: Measured, mv: dict, V0: dict, D0, me: dict, st: Settings) -> dic
             sel = (v >= edges[b]) & ((v <= edges[b + 1]) if b == 2 else (v < edges[b + 1]))
             if sel.sum() == 0:
                 continue
-            bins.append({"range": [float(edges[b]), float(edges[b + 1])], "n": int(sel.sum()),
-                         "rms_noise_units": float(np.sqrt(np.mean(rms_i[sel] ** 2))),
-                         "rms_ci": bootstrap_ci(rms_i[sel], lambda a: float(np.sqrt(np.mean(a ** 2))), st.bootstrap, rng),
-                         "relative_gap_mean": {k: float(rel[sel, j].mean()) for j, k in enumerate(FEATURES)}})
+            bins.append(
+                {
+                    "range": [float(edges[b]), float(edges[b + 1])],
+                    "n": int(sel.sum()),
+                    "rms_noise_units": float(np.sqrt(np.mean(rms_i[sel] ** 2))),
+                    "rms_ci": bootstrap_ci(rms_i[sel], lambda a: float(np.sqrt(np.mean(a**2))), st.bootstrap, rng),
+                    "relative_gap_mean": {k: float(rel[sel, j].mean()) for j, k in enumerate(FEATURES)},
+                }
+            )
         by_region[name] = bins
-    ssr0 = float(np.sum(r ** 2))
+    ssr0 = float(np.sum(r**2))
     held = 0.0
     for te in folds(n, st.seed):
         tr = np.setdiff1d(np.arange(n), te)
@@ -655,9 +737,14 @@ def where(meas: Measured, mv: dict, V0: dict, D0, me: dict, st: Settings) -> dic
             pred[:, j] = coef[0] * y0[te, j] + coef[1]
         held += float(np.sum(((y[te] - pred) / S[te]) ** 2))
     affine_share = float(np.clip(1 - held / ssr0, 0, 1)) if ssr0 > 0 else 0.0
-    out = {"by_feature": by_feature, "by_region": by_region, "per_phantom_rms_noise_units": rms_i.tolist(),
-           "stage": {"optics_like_affine_share": affine_share, "mechanics_like_share": 1 - affine_share},
-           "relative_gap": rel, "normalised_residual": r}
+    out = {
+        "by_feature": by_feature,
+        "by_region": by_region,
+        "per_phantom_rms_noise_units": rms_i.tolist(),
+        "stage": {"optics_like_affine_share": affine_share, "mechanics_like_share": 1 - affine_share},
+        "relative_gap": rel,
+        "normalised_residual": r,
+    }
     if meas.has_images and D0 is not None and meas.difference[0].shape == D0[0].shape:
         out["image"] = image_residual(meas, D0, me, None)
     return out
@@ -668,7 +755,7 @@ def image_residual(meas: Measured, Dsim, me: dict, sensor) -> dict:
     n = meas.n
     R = np.array([meas.difference[i] - Dsim[i] for i in range(n)])
     if all(s is not None for s in meas.difference_se):
-        se = np.sqrt(np.sum([s ** 2 for s in meas.difference_se], axis=0)) / n
+        se = np.sqrt(np.sum([s**2 for s in meas.difference_se], axis=0)) / n
         noise_kind = "per-pixel, from the frame scatter"
     else:
         ring = np.zeros(R.shape[1:], bool)
@@ -677,7 +764,7 @@ def image_residual(meas: Measured, Dsim, me: dict, sensor) -> dict:
         se = np.full(R.shape[1:], float(np.std(R[:, ring])) / math.sqrt(n))
         noise_kind = "uniform, from the window's outer ring"
     mer = np.mean(me["image_sigma"], axis=0)
-    band = np.sqrt(se ** 2 + mer ** 2)
+    band = np.sqrt(se**2 + mer**2)
     mean = R.mean(axis=0)
     pix = meas.sensor_model().pixel_mm
     rings = []
@@ -686,13 +773,26 @@ def image_residual(meas: Measured, Dsim, me: dict, sensor) -> dict:
             continue
         n_eff = max(1.0, msk.sum() / (4 * math.pi * max(meas.settings().smooth_px, 0.5) ** 2))
         bnd = float(np.sqrt((se[msk].mean() / math.sqrt(n_eff)) ** 2 + mer[msk].mean() ** 2))
-        rings.append({"r_mm": [a, b], "mean_residual": float(mean[msk].mean()), "band": bnd,
-                      "noise_units": float(mean[msk].mean() / bnd) if bnd > 0 else 0.0})
-    return {"n": n, "mean_residual": mean, "band": band, "z": mean / np.maximum(band, 1e-300),
-            "noise_kind": noise_kind, "mean_measured": np.mean(meas.difference, axis=0),
-            "mean_simulated": Dsim.mean(axis=0), "rings": rings,
-            "max_abs_z": float(np.max(np.abs(mean) / np.maximum(band, 1e-300))),
-            "noise_px": float(np.median(se) * math.sqrt(n))}
+        rings.append(
+            {
+                "r_mm": [a, b],
+                "mean_residual": float(mean[msk].mean()),
+                "band": bnd,
+                "noise_units": float(mean[msk].mean() / bnd) if bnd > 0 else 0.0,
+            }
+        )
+    return {
+        "n": n,
+        "mean_residual": mean,
+        "band": band,
+        "z": mean / np.maximum(band, 1e-300),
+        "noise_kind": noise_kind,
+        "mean_measured": np.mean(meas.difference, axis=0),
+        "mean_simulated": Dsim.mean(axis=0),
+        "rings": rings,
+        "max_abs_z": float(np.max(np.abs(mean) / np.maximum(band, 1e-300))),
+        "noise_px": float(np.median(se) * math.sqrt(n)),
+    }
 
 
 # ------------------------------------------------------------------ ambiguity: what separates
@@ -700,8 +800,9 @@ def _sep(fa, fb, S) -> float:
     return float(np.sqrt(np.sum(((fa - fb) / S) ** 2)))
 
 
-def propose(meas: Measured, rows_set: list[dict], V0: dict, me: dict, names, sim: Simulator, sensor, settings,
-            st: Settings) -> dict:
+def propose(
+    meas: Measured, rows_set: list[dict], V0: dict, me: dict, names, sim: Simulator, sensor, settings, st: Settings
+) -> dict:
     """Predicted separation (noise units) of every pair of the ambiguity set by (i) the plate force,
     (ii) a second indentation depth, (iii) new phantoms in the design box."""
     mods = [(r["effect"], r["_model"], r["_theta"], r["_S"]) for r in rows_set]
@@ -718,13 +819,16 @@ def propose(meas: Measured, rows_set: list[dict], V0: dict, me: dict, names, sim
     for a, b in pairs:
         if "force" not in names:
             out["force"][f"{mods[a][0]} vs {mods[b][0]}"] = _sep(Fp[a], Fp[b], sF)
-    out["force_note"] = (f"plate force at the {meas.n} phantoms, gauge error {100 * st.force_noise:g} % "
-                         "(assumed) plus the force's model error")
+    out["force_note"] = (
+        f"plate force at the {meas.n} phantoms, gauge error {100 * st.force_noise:g} % "
+        "(assumed) plus the force's model error"
+    )
     # (ii) a second indentation depth (solved) at the phantoms with the largest signal
     if st.propose_solves and st.propose_phantoms > 0:
         idx = np.argsort(-V0["features"][:, 0])[: st.propose_phantoms]
         p0 = [phantom_params(meas, sim.mesh)[i] for i in idx]
         import dataclasses
+
         pd_ = [p.replace(loading=dataclasses.replace(p.loading, delta=st.second_delta)) for p in p0]
         plist, ok = [], True
         try:
@@ -739,13 +843,15 @@ def propose(meas: Measured, rows_set: list[dict], V0: dict, me: dict, names, sim
             cols = np.concatenate([np.arange(S_all.shape[1])[sl[k]] for k in img])
             Pv = []
             for j, (_, m, t, _) in enumerate(mods):
-                V, _ = sim_views(recs[j * len(idx):(j + 1) * len(idx)], m.sensor_at(sensor, t), settings)
+                V, _ = sim_views(recs[j * len(idx) : (j + 1) * len(idx)], m.sensor_at(sensor, t), settings)
                 Pv.append(cat(V, img))
             Sd = S_all[idx][:, cols]
             for a, b in pairs:
                 out["second_depth"][f"{mods[a][0]} vs {mods[b][0]}"] = _sep(Pv[a], Pv[b], Sd)
-            out["second_depth_note"] = (f"indentation {st.second_delta:g} mm at phantoms "
-                                        f"{[meas.ids[i] for i in idx]} (solved), noise as measured at 3 mm")
+            out["second_depth_note"] = (
+                f"indentation {st.second_delta:g} mm at phantoms "
+                f"{[meas.ids[i] for i in idx]} (solved), noise as measured at 3 mm"
+            )
     # (iii) new phantoms: linear emulator of z = (f - y0)/S over (ln d, h, ln E)
     y0 = cat(V0, names)
     S = mods[0][3]
@@ -753,18 +859,27 @@ def propose(meas: Measured, rows_set: list[dict], V0: dict, me: dict, names, sim
     Z = [(m.predict(t) - y0) / S for _, m, t, _ in mods]
     coefs = [np.linalg.lstsq(X, z, rcond=None)[0] for z in Z]
     from .synth import phantom_design
+
     pool = phantom_design(200, st.seed + 7)
     Xp = np.column_stack([np.ones(len(pool)), np.log(pool[:, 0]), pool[:, 1], np.log(pool[:, 2])])
     seps = np.full(len(pool), np.inf)
     for a, b in pairs:
         dz = Xp @ (coefs[a] - coefs[b])
-        seps = np.minimum(seps, np.sqrt(np.sum(dz ** 2, axis=1)))
+        seps = np.minimum(seps, np.sqrt(np.sum(dz**2, axis=1)))
     top = np.argsort(-seps)[:3]
     for i in top:
-        out["phantoms"].append({"d": float(pool[i, 0]), "h": float(pool[i, 1]), "E": float(pool[i, 2]),
-                                "predicted_min_pair_separation": float(seps[i])})
-    out["phantoms_note"] = ("new phantom (d, h, E) within the design box (d 5-12 mm, E 30-150 kPa, valid depths); "
-                            "separation emulated by a linear fit of each candidate's effect over the measured phantoms")
+        out["phantoms"].append(
+            {
+                "d": float(pool[i, 0]),
+                "h": float(pool[i, 1]),
+                "E": float(pool[i, 2]),
+                "predicted_min_pair_separation": float(seps[i]),
+            }
+        )
+    out["phantoms_note"] = (
+        "new phantom (d, h, E) within the design box (d 5-12 mm, E 30-150 kPa, valid depths); "
+        "separation emulated by a linear fit of each candidate's effect over the measured phantoms"
+    )
     if st.propose_solves and out["phantoms"]:
         best = out["phantoms"][0]
         p = base_params(sim.mesh, best["d"], best["h"], best["E"])
@@ -774,7 +889,7 @@ def propose(meas: Measured, rows_set: list[dict], V0: dict, me: dict, names, sim
             Vb, _ = sim_views(recs[:1], sensor, settings)
             f = []
             for j, (_, m, t, _) in enumerate(mods):
-                V, _ = sim_views(recs[j + 1:j + 2], m.sensor_at(sensor, t), settings)
+                V, _ = sim_views(recs[j + 1 : j + 2], m.sensor_at(sensor, t), settings)
                 f.append(cat(V, names)[0])
             Sm = np.median(S, axis=0)
             best["solved_pair_separation"] = {f"{mods[a][0]} vs {mods[b][0]}": _sep(f[a], f[b], Sm) for a, b in pairs}
@@ -786,8 +901,12 @@ def propose(meas: Measured, rows_set: list[dict], V0: dict, me: dict, names, sim
     if out["phantoms"]:
         ph = out["phantoms"][0]
         sv = ph.get("solved_pair_separation")
-        opts.append((f"one more phantom d {ph['d']:.3g} mm, h {ph['h']:.3g} mm, E {ph['E']:.3g} kPa",
-                     min(sv.values()) if sv else ph["predicted_min_pair_separation"]))
+        opts.append(
+            (
+                f"one more phantom d {ph['d']:.3g} mm, h {ph['h']:.3g} mm, E {ph['E']:.3g} kPa",
+                min(sv.values()) if sv else ph["predicted_min_pair_separation"],
+            )
+        )
     opts.sort(key=lambda t: -t[1])
     out["recommendation"] = {"measurement": opts[0][0], "min_pair_separation_noise_units": opts[0][1]}
     out["options"] = [{"measurement": a, "min_pair_separation_noise_units": b} for a, b in opts]
@@ -813,12 +932,17 @@ def shrink_features(meas: Measured, y, y0, S, mdl, names) -> dict:
     y0f = mdl.predict(np.asarray(mdl.nominal(), float), ["features"])
     relb = np.mean(np.abs(yf[te] - y0f[te]) / np.abs(yf[te]), axis=0)
     rela = np.mean(np.abs(yf[te] - ff[te]) / np.abs(yf[te]), axis=0)
-    return {"fit_phantoms": [meas.ids[i] for i in tr], "withheld": [meas.ids[i] for i in te],
-            "magnitude": [float(t) for t in th], "views": list(names),
-            "rms_noise_units_before": before, "rms_noise_units_after": after,
-            "shrink": 1 - after / before if before > 0 else 0.0,
-            "relative_gap_before": {k: float(relb[j]) for j, k in enumerate(FEATURES)},
-            "relative_gap_after": {k: float(rela[j]) for j, k in enumerate(FEATURES)}}
+    return {
+        "fit_phantoms": [meas.ids[i] for i in tr],
+        "withheld": [meas.ids[i] for i in te],
+        "magnitude": [float(t) for t in th],
+        "views": list(names),
+        "rms_noise_units_before": before,
+        "rms_noise_units_after": after,
+        "shrink": 1 - after / before if before > 0 else 0.0,
+        "relative_gap_before": {k: float(relb[j]) for j, k in enumerate(FEATURES)},
+        "relative_gap_after": {k: float(rela[j]) for j, k in enumerate(FEATURES)},
+    }
 
 
 def training_design(meas: Measured, n: int, seed: int, aspect_hi: float = 1.0) -> np.ndarray:
@@ -851,7 +975,9 @@ def shrink_inverse(meas: Measured, mdl, th, sim: Simulator, sensor, settings, st
     """(d, h, E) error on the withheld phantoms: inverse trained on baseline sims vs on sims with
     the effect at ``th`` (camera features -> (d, h, E), ``fit_ensemble`` SCG)."""
     tr, te = withheld_split(meas.n)
-    aspect_hi = max(1.0, max(float(t) for t, n in zip(th, mdl.labels) if n == "aspect") if "aspect" in mdl.labels else 1.0)
+    aspect_hi = max(
+        1.0, max(float(t) for t, n in zip(th, mdl.labels) if n == "aspect") if "aspect" in mdl.labels else 1.0
+    )
     T = training_design(meas, st.n_train, st.seed, aspect_hi)
     p_base = [base_params(sim.mesh, *t) for t in T]
     p_eff = [mdl.params_at(p, th) for p in p_base]
@@ -873,14 +999,24 @@ def shrink_inverse(meas: Measured, mdl, th, sim: Simulator, sensor, settings, st
     ens_b = _train_inverse(Xb, Tk, st)
     ens_e = _train_inverse(Xe, Tk, st)
     truth = meas.dhe[te]
-    out = {"n_train": int(fin.sum()), "n_failed_solves": int(k - fin.sum()),
-           "withheld": [meas.ids[i] for i in te], "magnitude": [float(t) for t in th]}
+    out = {
+        "n_train": int(fin.sum()),
+        "n_failed_solves": int(k - fin.sum()),
+        "withheld": [meas.ids[i] for i in te],
+        "magnitude": [float(t) for t in th],
+    }
     own, _ = sim_views(sim.run(phantom_params(meas.subset(te), sim.mesh)), sensor, settings)
-    for name, ens, X in (("inverse_own", ens_b, own["features"]), ("before", ens_b, meas.y[te]), ("after", ens_e, meas.y[te])):
+    for name, ens, X in (
+        ("inverse_own", ens_b, own["features"]),
+        ("before", ens_b, meas.y[te]),
+        ("after", ens_e, meas.y[te]),
+    ):
         est = ens.predict(X).mean(axis=0)
         err = np.abs(est - truth) / truth
-        out[name] = {"mean_relative_error": {q: float(err[:, j].mean()) for j, q in enumerate(("d", "h", "E"))},
-                     "estimates": est.tolist()}
+        out[name] = {
+            "mean_relative_error": {q: float(err[:, j].mean()) for j, q in enumerate(("d", "h", "E"))},
+            "estimates": est.tolist(),
+        }
     b = np.mean(list(out["before"]["mean_relative_error"].values()))
     a = np.mean(list(out["after"]["mean_relative_error"].values()))
     out["mean_error_before"], out["mean_error_after"] = float(b), float(a)
@@ -889,8 +1025,13 @@ def shrink_inverse(meas: Measured, mdl, th, sim: Simulator, sensor, settings, st
 
 
 # ------------------------------------------------------------------ driver
-def diagnose(meas: Measured, cands: list[fx.Effect], sim: Simulator, st: Settings | None = None,
-             sim_fine: Simulator | None = None) -> dict:
+def diagnose(
+    meas: Measured,
+    cands: list[fx.Effect],
+    sim: Simulator,
+    st: Settings | None = None,
+    sim_fine: Simulator | None = None,
+) -> dict:
     """The whole diagnosis.  ``sim_fine``: the simulator of the next finer mesh level for the
     measured model error (None: the assumed floor ``model_floor``)."""
     import time
@@ -905,15 +1046,17 @@ def diagnose(meas: Measured, cands: list[fx.Effect], sim: Simulator, st: Setting
     me = model_error(meas, sim, sim_fine, sensor, settings, V0, D0, st)
     if st.richardson and me["kind"] == "measured":
         V0, D0 = richardson_correct(V0, D0, C, me, st)
-        me["note"] += ("; predictions extrapolated by it, σ = the spread of that extrapolation over orders "
-                       f"p in {list(st.order_range_image)} (image), {list(st.order_range_force)} (force)")
+        me["note"] += (
+            "; predictions extrapolated by it, σ = the spread of that extrapolation over orders "
+            f"p in {list(st.order_range_image)} (image), {list(st.order_range_force)} (force)"
+        )
     mv = measured_views(meas, sensor, settings)
     names = decision_views(mv)
     sl = slices(V0, names)
     y = cat({k: v for k, (v, _) in mv.items()}, names)
     se = cat({k: s for k, (_, s) in mv.items()}, names)
     y0 = cat(V0, names)
-    S0 = np.sqrt(se ** 2 + cat(me["sigma"], names) ** 2)
+    S0 = np.sqrt(se**2 + cat(me["sigma"], names) ** 2)
     S0 = np.maximum(S0, 1e-12 * np.maximum(np.abs(y0), 1e-300))
     models = build_models(C, names, V0, st)
     ev = evaluate(y, S0, y0, models, meas.n, st, sl, cat(me["sigma"], names))
@@ -942,17 +1085,36 @@ def diagnose(meas: Measured, cands: list[fx.Effect], sim: Simulator, st: Setting
         if Dw is not None:
             wh["image_after"] = image_residual(meas, Dw, me, sensor)
             wh["image_after"]["effect"] = best["effect"]
-    return {"measured": {"source": meas.source, "n": meas.n, "synthetic": meas.synthetic,
-                         "description": meas.description, "mesh": sim.mesh, "ids": meas.ids,
-                         "dhe": meas.dhe.tolist(), "views_available": list(mv)},
-            "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in st.__dict__.items()},
-            "candidates": [c.effect.to_dict() for c in C],
-            "model_error": {k: v for k, v in me.items() if k in ("kind", "note", "fine_mesh", "ratio", "relative_median")},
-            "_model_error": me, "_views": mv, "_V0": V0,
-            "baseline": V0["features"], "evaluation": ev, "where": wh, "shrink_features": shrink,
-            "shrink_inverse": inv, "proposal": prop,
-            "simulator": dict(sim.stats, backend=sim.backend, mesh=sim.mesh,
-                              solved_this_diagnosis=sim.stats["solved"] - solved0,
-                              fine_solved=(sim_fine.stats["solved"] if sim_fine is not None else 0),
-                              fine_mesh=(sim_fine.mesh if sim_fine is not None else None)),
-            "seconds": time.perf_counter() - t0}
+    return {
+        "measured": {
+            "source": meas.source,
+            "n": meas.n,
+            "synthetic": meas.synthetic,
+            "description": meas.description,
+            "mesh": sim.mesh,
+            "ids": meas.ids,
+            "dhe": meas.dhe.tolist(),
+            "views_available": list(mv),
+        },
+        "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in st.__dict__.items()},
+        "candidates": [c.effect.to_dict() for c in C],
+        "model_error": {k: v for k, v in me.items() if k in ("kind", "note", "fine_mesh", "ratio", "relative_median")},
+        "_model_error": me,
+        "_views": mv,
+        "_V0": V0,
+        "baseline": V0["features"],
+        "evaluation": ev,
+        "where": wh,
+        "shrink_features": shrink,
+        "shrink_inverse": inv,
+        "proposal": prop,
+        "simulator": dict(
+            sim.stats,
+            backend=sim.backend,
+            mesh=sim.mesh,
+            solved_this_diagnosis=sim.stats["solved"] - solved0,
+            fine_solved=(sim_fine.stats["solved"] if sim_fine is not None else 0),
+            fine_mesh=(sim_fine.mesh if sim_fine is not None else None),
+        ),
+        "seconds": time.perf_counter() - t0,
+    }

@@ -54,14 +54,14 @@ SKIN_THICKNESS = 1.0  # mm, thickness of the skin layer switched on by the ``ski
 @dataclass(frozen=True)
 class Effect:
     name: str
-    stage: str                       # "mechanics" or "optics"
+    stage: str  # "mechanics" or "optics"
     unit: str
     nominal: float
-    grid: tuple[float, ...]          # magnitudes of the fitting sweep (includes the nominal)
-    blind: tuple[float, float]       # range of true magnitudes in the self-test
+    grid: tuple[float, ...]  # magnitudes of the fitting sweep (includes the nominal)
+    blind: tuple[float, float]  # range of true magnitudes in the self-test
     description: str
     n_params: int = 1
-    cost: float = 1.0                # relative solve cost
+    cost: float = 1.0  # relative solve cost
     scales_with_delta: bool = False  # the effect only changes the plate travel (linear models: scale)
 
     @property
@@ -133,52 +133,212 @@ class Effect:
         return d
 
 
-EFFECTS: dict[str, Effect] = {e.name: e for e in (
-    Effect("nonlinearity", "mechanics", "-", 0.0, (0.0, 0.125, 0.25, 0.375, 0.5, 0.75, 1.0), (0.3, 1.0),
-           "tissue nonlinearity: compressible neo-Hookean finite strain (blend fraction β)", cost=5.0),
-    Effect("friction", "mechanics", "kPa/mm", 0.0, (0.0, 0.025, 0.05, 0.1, 0.15, 0.275, 0.4, 0.7, 1.0), (0.1, 1.0),
-           "probe-tissue friction: tangential interface stiffness k_t (0 = frictionless, inf = bonded)"),
-    Effect("skin", "mechanics", "kPa", 5.0, (5.0, 7.5, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0, 80.0), (15.0, 80.0),
-           f"stiffer skin layer ({SKIN_THICKNESS:g} mm) on the tissue surface: its modulus"),
-    Effect("aspect", "mechanics", "-", 1.0, (0.6, 0.7, 0.8, 0.9, 1.0, 1.125, 1.25), (0.6, 0.8),
-           "non-spherical inclusion: ellipsoid, vertical semi-axis = aspect * d/2"),
-    Effect("offaxis", "mechanics", "mm", 0.0, (0.0, 1.5, 3.0), (1.5, 3.0),
-           "inclusion off the probe axis by offset_x (full model)", cost=10.0),
-    Effect("probe_moduli", "mechanics", "-", 1.0, (0.6, 0.7, 0.8, 0.9, 1.0, 1.125, 1.25, 1.375, 1.5), (0.6, 0.75),
-           "probe PDMS moduli x factor (cure / temperature)"),
-    Effect("background_E", "mechanics", "kPa", 5.0, (3.5, 3.875, 4.25, 4.625, 5.0, 5.5, 6.0, 6.5, 7.0), (6.0, 7.0),
-           "background tissue modulus different from nominal"),
-    Effect("probe_E1", "mechanics", "kPa", 300.0, (180.0, 225.0, 270.0, 300.0, 345.0, 400.0, 450.0), (180.0, 230.0),
-           "probe layer 1 (tissue side) modulus"),
-    Effect("probe_E2", "mechanics", "kPa", 150.0, (90.0, 112.5, 135.0, 150.0, 172.5, 200.0, 225.0), (90.0, 115.0),
-           "probe layer 2 (middle) modulus"),
-    Effect("probe_E3", "mechanics", "kPa", 50.0, (30.0, 37.5, 45.0, 50.0, 57.5, 66.0, 75.0), (30.0, 38.0),
-           "probe layer 3 (glass side) modulus"),
-    Effect("probe_t1", "mechanics", "mm", 2.0, (1.2, 1.6, 2.0, 2.5, 3.0), (1.2, 1.5),
-           "probe layer 1 (tissue side) thickness"),
-    Effect("probe_t2", "mechanics", "mm", 3.0, (2.0, 2.5, 3.0, 3.5, 4.0), (3.6, 4.0),
-           "probe layer 2 (middle) thickness"),
-    Effect("probe_t3", "mechanics", "mm", 5.0, (3.5, 4.25, 5.0, 5.75, 6.5), (3.5, 4.0),
-           "probe layer 3 (glass side) thickness"),
-    Effect("slab_thickness", "mechanics", "mm", 20.0, (20.0, 21.0, 22.5, 24.0, 26.0), (23.0, 26.0),
-           "tissue slab thickness (thinner slabs would not hold the deepest design phantoms)"),
-    Effect("tissue_nu", "mechanics", "-", 0.49, (0.45, 0.465, 0.48, 0.49, 0.495), (0.45, 0.47),
-           "tissue Poisson ratio (compressibility)"),
-    Effect("indentation", "mechanics", "mm", 0.0, (-0.6, -0.4, -0.2, 0.0, 0.2, 0.4, 0.6), (0.3, 0.6),
-           "plate-travel offset: indentation 3 mm + offset (zero point of the stage)", scales_with_delta=True),
-    Effect("saturation", "optics", "mm", 0.5, (0.15, 0.2, 0.25, 0.3, 0.35, 0.425, 0.5, 0.6, 0.7), (0.15, 0.3),
-           "optical response: scattering saturates at a different deflection w_sat (gamma/saturation)"),
-    Effect("vignetting", "optics", "-", 0.15, (0.0, 0.075, 0.15, 0.225, 0.3, 0.375, 0.45, 0.525, 0.6), (0.35, 0.6),
-           "non-uniform illumination: lens/LED fall-off towards the window corners"),
-    Effect("blur", "optics", "mm", 0.0, (0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.3), (0.5, 1.2),
-           "optical point-spread: Gaussian blur of the light image, sigma (mm on the probe)"),
-    Effect("gamma", "optics", "-", 1.0, (0.7, 0.8, 0.9, 1.0, 1.1, 1.25, 1.4), (0.7, 0.85),
-           "camera response gamma: DN = FS (charge / full well)^gamma"),
-    Effect("led_imbalance", "optics", "-", 1.0, (0.5, 0.7, 0.85, 1.0, 1.2, 1.5), (0.4, 0.6),
-           "left LED power x factor (illumination imbalance)"),
-    Effect("stray_light", "optics", "-", 0.02, (0.0, 0.02, 0.05, 0.1, 0.15), (0.08, 0.15),
-           "stray light reaching the camera without deformation (fraction of full well)"),
-)}
+EFFECTS: dict[str, Effect] = {
+    e.name: e
+    for e in (
+        Effect(
+            "nonlinearity",
+            "mechanics",
+            "-",
+            0.0,
+            (0.0, 0.125, 0.25, 0.375, 0.5, 0.75, 1.0),
+            (0.3, 1.0),
+            "tissue nonlinearity: compressible neo-Hookean finite strain (blend fraction β)",
+            cost=5.0,
+        ),
+        Effect(
+            "friction",
+            "mechanics",
+            "kPa/mm",
+            0.0,
+            (0.0, 0.025, 0.05, 0.1, 0.15, 0.275, 0.4, 0.7, 1.0),
+            (0.1, 1.0),
+            "probe-tissue friction: tangential interface stiffness k_t (0 = frictionless, inf = bonded)",
+        ),
+        Effect(
+            "skin",
+            "mechanics",
+            "kPa",
+            5.0,
+            (5.0, 7.5, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0, 80.0),
+            (15.0, 80.0),
+            f"stiffer skin layer ({SKIN_THICKNESS:g} mm) on the tissue surface: its modulus",
+        ),
+        Effect(
+            "aspect",
+            "mechanics",
+            "-",
+            1.0,
+            (0.6, 0.7, 0.8, 0.9, 1.0, 1.125, 1.25),
+            (0.6, 0.8),
+            "non-spherical inclusion: ellipsoid, vertical semi-axis = aspect * d/2",
+        ),
+        Effect(
+            "offaxis",
+            "mechanics",
+            "mm",
+            0.0,
+            (0.0, 1.5, 3.0),
+            (1.5, 3.0),
+            "inclusion off the probe axis by offset_x (full model)",
+            cost=10.0,
+        ),
+        Effect(
+            "probe_moduli",
+            "mechanics",
+            "-",
+            1.0,
+            (0.6, 0.7, 0.8, 0.9, 1.0, 1.125, 1.25, 1.375, 1.5),
+            (0.6, 0.75),
+            "probe PDMS moduli x factor (cure / temperature)",
+        ),
+        Effect(
+            "background_E",
+            "mechanics",
+            "kPa",
+            5.0,
+            (3.5, 3.875, 4.25, 4.625, 5.0, 5.5, 6.0, 6.5, 7.0),
+            (6.0, 7.0),
+            "background tissue modulus different from nominal",
+        ),
+        Effect(
+            "probe_E1",
+            "mechanics",
+            "kPa",
+            300.0,
+            (180.0, 225.0, 270.0, 300.0, 345.0, 400.0, 450.0),
+            (180.0, 230.0),
+            "probe layer 1 (tissue side) modulus",
+        ),
+        Effect(
+            "probe_E2",
+            "mechanics",
+            "kPa",
+            150.0,
+            (90.0, 112.5, 135.0, 150.0, 172.5, 200.0, 225.0),
+            (90.0, 115.0),
+            "probe layer 2 (middle) modulus",
+        ),
+        Effect(
+            "probe_E3",
+            "mechanics",
+            "kPa",
+            50.0,
+            (30.0, 37.5, 45.0, 50.0, 57.5, 66.0, 75.0),
+            (30.0, 38.0),
+            "probe layer 3 (glass side) modulus",
+        ),
+        Effect(
+            "probe_t1",
+            "mechanics",
+            "mm",
+            2.0,
+            (1.2, 1.6, 2.0, 2.5, 3.0),
+            (1.2, 1.5),
+            "probe layer 1 (tissue side) thickness",
+        ),
+        Effect(
+            "probe_t2",
+            "mechanics",
+            "mm",
+            3.0,
+            (2.0, 2.5, 3.0, 3.5, 4.0),
+            (3.6, 4.0),
+            "probe layer 2 (middle) thickness",
+        ),
+        Effect(
+            "probe_t3",
+            "mechanics",
+            "mm",
+            5.0,
+            (3.5, 4.25, 5.0, 5.75, 6.5),
+            (3.5, 4.0),
+            "probe layer 3 (glass side) thickness",
+        ),
+        Effect(
+            "slab_thickness",
+            "mechanics",
+            "mm",
+            20.0,
+            (20.0, 21.0, 22.5, 24.0, 26.0),
+            (23.0, 26.0),
+            "tissue slab thickness (thinner slabs would not hold the deepest design phantoms)",
+        ),
+        Effect(
+            "tissue_nu",
+            "mechanics",
+            "-",
+            0.49,
+            (0.45, 0.465, 0.48, 0.49, 0.495),
+            (0.45, 0.47),
+            "tissue Poisson ratio (compressibility)",
+        ),
+        Effect(
+            "indentation",
+            "mechanics",
+            "mm",
+            0.0,
+            (-0.6, -0.4, -0.2, 0.0, 0.2, 0.4, 0.6),
+            (0.3, 0.6),
+            "plate-travel offset: indentation 3 mm + offset (zero point of the stage)",
+            scales_with_delta=True,
+        ),
+        Effect(
+            "saturation",
+            "optics",
+            "mm",
+            0.5,
+            (0.15, 0.2, 0.25, 0.3, 0.35, 0.425, 0.5, 0.6, 0.7),
+            (0.15, 0.3),
+            "optical response: scattering saturates at a different deflection w_sat (gamma/saturation)",
+        ),
+        Effect(
+            "vignetting",
+            "optics",
+            "-",
+            0.15,
+            (0.0, 0.075, 0.15, 0.225, 0.3, 0.375, 0.45, 0.525, 0.6),
+            (0.35, 0.6),
+            "non-uniform illumination: lens/LED fall-off towards the window corners",
+        ),
+        Effect(
+            "blur",
+            "optics",
+            "mm",
+            0.0,
+            (0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.3),
+            (0.5, 1.2),
+            "optical point-spread: Gaussian blur of the light image, sigma (mm on the probe)",
+        ),
+        Effect(
+            "gamma",
+            "optics",
+            "-",
+            1.0,
+            (0.7, 0.8, 0.9, 1.0, 1.1, 1.25, 1.4),
+            (0.7, 0.85),
+            "camera response gamma: DN = FS (charge / full well)^gamma",
+        ),
+        Effect(
+            "led_imbalance",
+            "optics",
+            "-",
+            1.0,
+            (0.5, 0.7, 0.85, 1.0, 1.2, 1.5),
+            (0.4, 0.6),
+            "left LED power x factor (illumination imbalance)",
+        ),
+        Effect(
+            "stray_light",
+            "optics",
+            "-",
+            0.02,
+            (0.0, 0.02, 0.05, 0.1, 0.15),
+            (0.08, 0.15),
+            "stray light reaching the camera without deformation (fraction of full well)",
+        ),
+    )
+}
 
 
 @dataclass(frozen=True)
@@ -198,10 +358,13 @@ class Family:
         return EFFECTS[self.members[0]].stage
 
 
-FAMILIES: dict[str, Family] = {f.name: f for f in (
-    Family("probe_layers_E", ("probe_E1", "probe_E2", "probe_E3"), "the three probe layer moduli together"),
-    Family("probe_layers_t", ("probe_t1", "probe_t2", "probe_t3"), "the three probe layer thicknesses together"),
-)}
+FAMILIES: dict[str, Family] = {
+    f.name: f
+    for f in (
+        Family("probe_layers_E", ("probe_E1", "probe_E2", "probe_E3"), "the three probe layer moduli together"),
+        Family("probe_layers_t", ("probe_t1", "probe_t2", "probe_t3"), "the three probe layer thicknesses together"),
+    )
+}
 
 DEFAULT_CANDIDATES = tuple(n for n in EFFECTS if n != "offaxis")
 DEFAULT_FAMILIES = tuple(FAMILIES)

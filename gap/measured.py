@@ -50,20 +50,20 @@ SEALED = "SEALED_truth.json"
 @dataclass
 class Measured:
     ids: list[str]
-    dhe: np.ndarray                  # (n, 3) d mm, h mm, E kPa
-    y: np.ndarray                    # (n, 3) camera features
-    se: np.ndarray                   # (n, 3) standard error (0 where unknown)
-    tissue_E: np.ndarray             # (n,) NaN = nominal
-    difference: list                 # per phantom: 2-D array (FS) or None
+    dhe: np.ndarray  # (n, 3) d mm, h mm, E kPa
+    y: np.ndarray  # (n, 3) camera features
+    se: np.ndarray  # (n, 3) standard error (0 where unknown)
+    tissue_E: np.ndarray  # (n,) NaN = nominal
+    difference: list  # per phantom: 2-D array (FS) or None
     sensor: dict | None = None
     feature_settings: dict = field(default_factory=dict)
     mesh: str = "coarse"
     synthetic: bool = False
     description: str = ""
     source: str = ""
-    difference_se: list | None = None    # per phantom: 2-D per-pixel standard error (FS) or None
-    force: np.ndarray | None = None      # (n,) measured plate force (mN), NaN = not measured
-    force_se: np.ndarray | None = None   # (n,) its standard error (mN)
+    difference_se: list | None = None  # per phantom: 2-D per-pixel standard error (FS) or None
+    force: np.ndarray | None = None  # (n,) measured plate force (mN), NaN = not measured
+    force_se: np.ndarray | None = None  # (n,) its standard error (mN)
 
     def __post_init__(self):
         n = len(self.ids)
@@ -88,18 +88,33 @@ class Measured:
 
     def sensor_model(self):
         from elastimap.camera.optics import SensorModel
+
         return SensorModel.from_dict(self.sensor) if self.sensor else SensorModel()
 
     def settings(self):
         from elastimap.camera.features import FeatureSettings
+
         return FeatureSettings.from_dict(self.feature_settings or {})
 
     def subset(self, idx) -> Measured:
         idx = np.asarray(idx)
-        return Measured([self.ids[i] for i in idx], self.dhe[idx], self.y[idx], self.se[idx], self.tissue_E[idx],
-                        [self.difference[i] for i in idx], self.sensor, self.feature_settings, self.mesh,
-                        self.synthetic, self.description, self.source, [self.difference_se[i] for i in idx],
-                        self.force[idx], self.force_se[idx])
+        return Measured(
+            [self.ids[i] for i in idx],
+            self.dhe[idx],
+            self.y[idx],
+            self.se[idx],
+            self.tissue_E[idx],
+            [self.difference[i] for i in idx],
+            self.sensor,
+            self.feature_settings,
+            self.mesh,
+            self.synthetic,
+            self.description,
+            self.source,
+            [self.difference_se[i] for i in idx],
+            self.force[idx],
+            self.force_se[idx],
+        )
 
 
 def _table_path(path: Path) -> Path:
@@ -159,6 +174,7 @@ def load(path: str | os.PathLike) -> Measured:
     settings = side.get("feature_settings", {})
     if sensor is not None:
         from elastimap.camera.optics import SensorModel
+
         SensorModel.from_dict(sensor)
     n = len(df)
     has_feat = all(k in df.columns for k in FEATURES)
@@ -230,7 +246,9 @@ def load(path: str | os.PathLike) -> Measured:
         if b is None and i in from_frames:
             b = from_frames[i]["difference_se"]
         if b is not None and a is not None and b.shape != a.shape:
-            raise UserError("measured", f"{tp}: difference_se of {df['id'].iloc[i]} has shape {b.shape}, its image {a.shape}")
+            raise UserError(
+                "measured", f"{tp}: difference_se of {df['id'].iloc[i]} has shape {b.shape}, its image {a.shape}"
+            )
         if b is not None and np.any(b < 0):
             raise UserError("measured", f"{tp}: difference_se of {df['id'].iloc[i]} must be >= 0")
         diffs.append(a)
@@ -248,13 +266,31 @@ def load(path: str | os.PathLike) -> Measured:
             if np.any(v[np.isfinite(v)] < 0):
                 raise UserError("measured", f"{tp}: force_se must be >= 0")
             force_se = np.where(np.isfinite(v), v, 0.0)
-    tE = pd.to_numeric(df["tissue_E"], errors="coerce").to_numpy(float) if "tissue_E" in df.columns else np.full(n, np.nan)
+    tE = (
+        pd.to_numeric(df["tissue_E"], errors="coerce").to_numpy(float)
+        if "tissue_E" in df.columns
+        else np.full(n, np.nan)
+    )
     mesh = str(side.get("mesh", "coarse"))
     if mesh not in ("tiny", "coarse", "default", "fine"):
         raise UserError("measured", f"{sp}: mesh must be tiny, coarse, default or fine (got {mesh!r})")
-    return Measured(df["id"].tolist(), df[["d", "h", "E"]].to_numpy(float), y, se, tE, diffs, sensor, settings,
-                    mesh, bool(side.get("synthetic", False)), str(side.get("description", "")), str(tp), dses,
-                    force, force_se)
+    return Measured(
+        df["id"].tolist(),
+        df[["d", "h", "E"]].to_numpy(float),
+        y,
+        se,
+        tE,
+        diffs,
+        sensor,
+        settings,
+        mesh,
+        bool(side.get("synthetic", False)),
+        str(side.get("description", "")),
+        str(tp),
+        dses,
+        force,
+        force_se,
+    )
 
 
 def write(m: Measured, folder: str | os.PathLike, fmt: str = "csv") -> Path:
@@ -290,7 +326,14 @@ def write(m: Measured, folder: str | os.PathLike, fmt: str = "csv") -> Path:
         df.to_parquet(tp, index=False)
     else:
         df.to_csv(tp, index=False, float_format="%.10g")
-    side = {"kind": KIND, "version": VERSION, "synthetic": m.synthetic, "description": m.description,
-            "sensor": m.sensor, "feature_settings": m.feature_settings, "mesh": m.mesh}
+    side = {
+        "kind": KIND,
+        "version": VERSION,
+        "synthetic": m.synthetic,
+        "description": m.description,
+        "sensor": m.sensor,
+        "feature_settings": m.feature_settings,
+        "mesh": m.mesh,
+    }
     (out / SIDECAR).write_text(json.dumps(side, indent=2) + "\n")
     return tp

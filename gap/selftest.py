@@ -34,8 +34,12 @@ from .synth import phantom_design, synthesize
 
 OUTSIDE = ("aspect", "skin", "led_imbalance", "stray_light")
 KINDS = ("none", "in", "out", "in")
-GOALS = {"no_effect_no_gap_rate": (">=", 0.9), "in_library_set_holds_truth_rate": (">=", 0.9),
-         "in_library_interval_coverage": ("in", (0.9, 0.98)), "out_of_library_confident_wrong_rate": ("<=", 0.1)}
+GOALS = {
+    "no_effect_no_gap_rate": (">=", 0.9),
+    "in_library_set_holds_truth_rate": (">=", 0.9),
+    "in_library_interval_coverage": ("in", (0.9, 0.98)),
+    "out_of_library_confident_wrong_rate": ("<=", 0.1),
+}
 
 
 class Sealed:
@@ -61,9 +65,20 @@ def default_candidates(outside=OUTSIDE) -> list[fx.Effect]:
     return [fx.EFFECTS[n] for n in fx.DEFAULT_CANDIDATES if n not in outside]
 
 
-def run(trials: int, sim: Simulator, sim_data: Simulator, candidates: list[fx.Effect], outside: list[fx.Effect],
-        sim_fine: Simulator | None = None, n_phantoms: int = 12, frames: int = 10, seed: int = 0,
-        st: Settings | None = None, data_disc: dict | None = None, log=print) -> dict:
+def run(
+    trials: int,
+    sim: Simulator,
+    sim_data: Simulator,
+    candidates: list[fx.Effect],
+    outside: list[fx.Effect],
+    sim_fine: Simulator | None = None,
+    n_phantoms: int = 12,
+    frames: int = 10,
+    seed: int = 0,
+    st: Settings | None = None,
+    data_disc: dict | None = None,
+    log=print,
+) -> dict:
     """``sim``: the diagnosis's simulator; ``sim_fine``: its model-error level; ``sim_data`` (with
     ``data_disc``, e.g. ``{"interface": "contact"}``): what generates the measured data."""
     st = st or Settings(inverse=False)
@@ -95,10 +110,18 @@ def run(trials: int, sim: Simulator, sim_data: Simulator, candidates: list[fx.Ef
         ev = res["evaluation"]
         answer = ev["winner"] if ev["outcome"] == "explained" else ev["outcome"]
         rows = {r["effect"]: r for r in ev["ranking"]}
-        rec = {"trial": t, "commitment": sealed.commitment, "answer": answer, "outcome": ev["outcome"],
-               "set": list(ev["ambiguous_set"]), "best": ev["best"], "reduced_chi2_baseline": ev["reduced_chi2_baseline"],
-               "best_reduced_chi2_cv": ev["ranking"][0]["reduced_chi2_cv"], "seconds": time.perf_counter() - ts,
-               "proposal": (res["proposal"] or {}).get("recommendation")}
+        rec = {
+            "trial": t,
+            "commitment": sealed.commitment,
+            "answer": answer,
+            "outcome": ev["outcome"],
+            "set": list(ev["ambiguous_set"]),
+            "best": ev["best"],
+            "reduced_chi2_baseline": ev["reduced_chi2_baseline"],
+            "best_reduced_chi2_cv": ev["ranking"][0]["reduced_chi2_cv"],
+            "seconds": time.perf_counter() - ts,
+            "proposal": (res["proposal"] or {}).get("recommendation"),
+        }
         truth = sealed.open(prediction_recorded=True)
         rec.update(kind=truth["kind"], true_effect=truth["effect"], true_magnitude=truth["magnitude"])
         if truth["kind"] == "none":
@@ -110,23 +133,39 @@ def run(trials: int, sim: Simulator, sim_data: Simulator, candidates: list[fx.Ef
                 rec["fitted_magnitude"], rec["fitted_ci"] = r["magnitude"][0], r["magnitude_ci"][0]
                 rec["ci_covers_truth"] = bool(r["magnitude_ci"][0][0] <= truth["magnitude"] <= r["magnitude_ci"][0][1])
                 eff = fx.get(truth["effect"])
-                rec["magnitude_error_rel_effect"] = abs(r["magnitude"][0] - truth["magnitude"]) / abs(truth["magnitude"] - eff.nominal)
+                rec["magnitude_error_rel_effect"] = abs(r["magnitude"][0] - truth["magnitude"]) / abs(
+                    truth["magnitude"] - eff.nominal
+                )
         else:
             rec["confident_wrong"] = ev["outcome"] in ("explained", "ambiguous")
             rec["right"] = not rec["confident_wrong"]
         out_trials.append(rec)
         if log:
-            log(f"trial {t + 1}/{trials} [{truth['kind']}] true {truth['effect']}"
+            log(
+                f"trial {t + 1}/{trials} [{truth['kind']}] true {truth['effect']}"
                 + (f"={truth['magnitude']:g}" if truth["magnitude"] is not None else "")
-                + f" -> {answer}" + (f" {rec['set']}" if ev["outcome"] == "ambiguous" else "")
+                + f" -> {answer}"
+                + (f" {rec['set']}" if ev["outcome"] == "ambiguous" else "")
                 + f" (baseline red.chi2 {ev['reduced_chi2_baseline']:.3g}, best {ev['best']} "
-                  f"red.chi2 {rec['best_reduced_chi2_cv']:.3g})  [{time.perf_counter() - t0:.0f} s]")
+                f"red.chi2 {rec['best_reduced_chi2_cv']:.3g})  [{time.perf_counter() - t0:.0f} s]"
+            )
     return score(out_trials, [e.name for e in candidates]) | {
-        "trials": out_trials, "n_phantoms": n_phantoms, "frames": frames, "seed": seed, "mesh": sim.mesh,
-        "error_mesh": sim_fine.mesh if sim_fine is not None else None, "data_mesh": sim_data.mesh,
-        "data_disc": data_disc or {}, "backend": sim.backend, "candidates": [e.name for e in candidates],
-        "outside": [e.name for e in outside], "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in st.__dict__.items()},
-        "simulator": dict(sim.stats), "data_simulator": dict(sim_data.stats), "seconds": time.perf_counter() - t0}
+        "trials": out_trials,
+        "n_phantoms": n_phantoms,
+        "frames": frames,
+        "seed": seed,
+        "mesh": sim.mesh,
+        "error_mesh": sim_fine.mesh if sim_fine is not None else None,
+        "data_mesh": sim_data.mesh,
+        "data_disc": data_disc or {},
+        "backend": sim.backend,
+        "candidates": [e.name for e in candidates],
+        "outside": [e.name for e in outside],
+        "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in st.__dict__.items()},
+        "simulator": dict(sim.stats),
+        "data_simulator": dict(sim_data.stats),
+        "seconds": time.perf_counter() - t0,
+    }
 
 
 def _rate(xs) -> float:
@@ -139,14 +178,19 @@ def score(trials: list[dict], names: list[str]) -> dict:
     out = [r for r in trials if r["kind"] == "out"]
     cov = [r["ci_covers_truth"] for r in inl if "ci_covers_truth" in r]
     me = [r["magnitude_error_rel_effect"] for r in inl if r["right"] and "magnitude_error_rel_effect" in r]
-    res = {"n_trials": len(trials), "n_none": len(none), "n_in": len(inl), "n_out": len(out),
-           "no_effect_no_gap_rate": _rate([r["right"] for r in none]),
-           "in_library_set_holds_truth_rate": _rate([r["right"] for r in inl]),
-           "in_library_single_winner_right_rate": _rate([r["answer"] == r["true_effect"] for r in inl]),
-           "in_library_interval_coverage": _rate(cov),
-           "magnitude_error_rel_effect_median": float(np.median(me)) if me else float("nan"),
-           "out_of_library_confident_wrong_rate": _rate([r["confident_wrong"] for r in out]),
-           "median_seconds_per_diagnosis": float(np.median([r["seconds"] for r in trials])) if trials else float("nan")}
+    res = {
+        "n_trials": len(trials),
+        "n_none": len(none),
+        "n_in": len(inl),
+        "n_out": len(out),
+        "no_effect_no_gap_rate": _rate([r["right"] for r in none]),
+        "in_library_set_holds_truth_rate": _rate([r["right"] for r in inl]),
+        "in_library_single_winner_right_rate": _rate([r["answer"] == r["true_effect"] for r in inl]),
+        "in_library_interval_coverage": _rate(cov),
+        "magnitude_error_rel_effect_median": float(np.median(me)) if me else float("nan"),
+        "out_of_library_confident_wrong_rate": _rate([r["confident_wrong"] for r in out]),
+        "median_seconds_per_diagnosis": float(np.median([r["seconds"] for r in trials])) if trials else float("nan"),
+    }
     cols = []
     conf: dict[str, dict[str, int]] = {}
     for r in trials:
@@ -160,7 +204,9 @@ def score(trials: list[dict], names: list[str]) -> dict:
     goals = {}
     for k, (op, g) in GOALS.items():
         v = res[k]
-        goals[k] = (None if not np.isfinite(v) else bool(v >= g if op == ">=" else v <= g if op == "<=" else g[0] <= v <= g[1]))
+        goals[k] = (
+            None if not np.isfinite(v) else bool(v >= g if op == ">=" else v <= g if op == "<=" else g[0] <= v <= g[1])
+        )
     goals["trials>=30"] = len(trials) >= 30
     res["goals"] = goals
     return res
@@ -172,32 +218,50 @@ def _p(x) -> str:
 
 def markdown(res: dict) -> str:
     form = ", ".join(f"{k} {v}" for k, v in res["data_disc"].items())
-    L = ["# SYNTHETIC blind benchmark of the gap diagnosis (model-form error)", "",
-         f"{res['n_trials']} trials ({res['n_none']} no-effect, {res['n_in']} in-library, {res['n_out']} out-of-library), "
-         f"backend `{res['backend']}`; diagnosis mesh `{res['mesh']}`, model error against `{res['error_mesh']}`; "
-         f"**data from mesh `{res['data_mesh']}`{', ' + form if form else ''}**; {res['n_phantoms']} phantoms, "
-         f"{res['frames']} frames, seed {res['seed']}; {res['seconds']:.0f} s "
-         f"(median {res['median_seconds_per_diagnosis']:.0f} s per diagnosis).", "",
-         f"Candidates: {', '.join(res['candidates'])}.  Outside the candidates: {', '.join(res['outside'])}.", "",
-         "| metric | value | goal |", "|---|---|---|",
-         f"| no-effect sets called \"no significant gap\" | {_p(res['no_effect_no_gap_rate'])} | ≥ 90 % |",
-         f"| in-library: reported set (winner or ambiguity set) holds the truth | {_p(res['in_library_set_holds_truth_rate'])} | ≥ 90 % |",
-         f"| in-library: single winner is the truth | {_p(res['in_library_single_winner_right_rate'])} | |",
-         f"| in-library: 95 % interval covers the true magnitude | {_p(res['in_library_interval_coverage'])} | 90–98 % |",
-         f"| in-library: magnitude error (median, relative to the effect size) | {_p(res['magnitude_error_rel_effect_median'])} | |",
-         f"| out-of-library: confident wrong attribution | {_p(res['out_of_library_confident_wrong_rate'])} | ≤ 10 % |",
-         "", "## Confusion matrix (rows: truth; columns: answer)", ""]
+    L = [
+        "# SYNTHETIC blind benchmark of the gap diagnosis (model-form error)",
+        "",
+        f"{res['n_trials']} trials ({res['n_none']} no-effect, {res['n_in']} in-library, {res['n_out']} out-of-library), "
+        f"backend `{res['backend']}`; diagnosis mesh `{res['mesh']}`, model error against `{res['error_mesh']}`; "
+        f"**data from mesh `{res['data_mesh']}`{', ' + form if form else ''}**; {res['n_phantoms']} phantoms, "
+        f"{res['frames']} frames, seed {res['seed']}; {res['seconds']:.0f} s "
+        f"(median {res['median_seconds_per_diagnosis']:.0f} s per diagnosis).",
+        "",
+        f"Candidates: {', '.join(res['candidates'])}.  Outside the candidates: {', '.join(res['outside'])}.",
+        "",
+        "| metric | value | goal |",
+        "|---|---|---|",
+        f'| no-effect sets called "no significant gap" | {_p(res["no_effect_no_gap_rate"])} | ≥ 90 % |',
+        f"| in-library: reported set (winner or ambiguity set) holds the truth | {_p(res['in_library_set_holds_truth_rate'])} | ≥ 90 % |",
+        f"| in-library: single winner is the truth | {_p(res['in_library_single_winner_right_rate'])} | |",
+        f"| in-library: 95 % interval covers the true magnitude | {_p(res['in_library_interval_coverage'])} | 90–98 % |",
+        f"| in-library: magnitude error (median, relative to the effect size) | {_p(res['magnitude_error_rel_effect_median'])} | |",
+        f"| out-of-library: confident wrong attribution | {_p(res['out_of_library_confident_wrong_rate'])} | ≤ 10 % |",
+        "",
+        "## Confusion matrix (rows: truth; columns: answer)",
+        "",
+    ]
     conf = res["confusion"]
     cols = list(next(iter(conf.values())).keys()) if conf else []
     L += ["| truth \\ answer | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
     for r, row in conf.items():
         L.append(f"| {r} | " + " | ".join(str(row[c]) for c in cols) + " |")
-    L += ["", "## Trials", "", "| # | kind | truth | magnitude | answer | set | fitted [95 %] | baseline red. χ² | right |",
-          "|---|---|---|---|---|---|---|---|---|"]
+    L += [
+        "",
+        "## Trials",
+        "",
+        "| # | kind | truth | magnitude | answer | set | fitted [95 %] | baseline red. χ² | right |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in res["trials"]:
-        fm = (f"{r['fitted_magnitude']:.4g} [{r['fitted_ci'][0]:.4g}, {r['fitted_ci'][1]:.4g}]"
-              if "fitted_magnitude" in r else "")
+        fm = (
+            f"{r['fitted_magnitude']:.4g} [{r['fitted_ci'][0]:.4g}, {r['fitted_ci'][1]:.4g}]"
+            if "fitted_magnitude" in r
+            else ""
+        )
         mag = "" if r["true_magnitude"] is None else f"{r['true_magnitude']:g}"
-        L.append(f"| {r['trial']} | {r['kind']} | {r['true_effect']} | {mag} | {r['answer']} | {', '.join(r['set'])} | "
-                 f"{fm} | {r['reduced_chi2_baseline']:.3g} | {'yes' if r['right'] else 'no'} |")
+        L.append(
+            f"| {r['trial']} | {r['kind']} | {r['true_effect']} | {mag} | {r['answer']} | {', '.join(r['set'])} | "
+            f"{fm} | {r['reduced_chi2_baseline']:.3g} | {'yes' if r['right'] else 'no'} |"
+        )
     return "\n".join(L) + "\n"

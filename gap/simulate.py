@@ -45,8 +45,8 @@ class Record:
     O3: float
     force: float
     pixel: float
-    image: np.ndarray       # difference image (mm)
-    image_raw: np.ndarray   # raw probe compression (mm)
+    image: np.ndarray  # difference image (mm)
+    image_raw: np.ndarray  # raw probe compression (mm)
     seconds: float
 
     @property
@@ -82,8 +82,17 @@ def _solve_one(args) -> tuple[str, SolveResult | None, str, float]:
 
 
 def _record(key: str, res: SolveResult, seconds: float) -> Record:
-    return Record(key, float(res.O1), float(res.O2), float(res.O3), float(res.force), float(res.pixel),
-                  np.asarray(res.image, np.float32), np.asarray(res.image_raw, np.float32), float(seconds))
+    return Record(
+        key,
+        float(res.O1),
+        float(res.O2),
+        float(res.O3),
+        float(res.force),
+        float(res.pixel),
+        np.asarray(res.image, np.float32),
+        np.asarray(res.image_raw, np.float32),
+        float(seconds),
+    )
 
 
 # ------------------------------------------------------------------ the cache
@@ -91,8 +100,15 @@ class Simulator:
     """Stored forward solves.  ``stats`` counts solves run and store hits.  ``solver``: a solve
     function ``SolveParams -> SolveResult`` used instead of the backend's."""
 
-    def __init__(self, cache_dir: str | os.PathLike | None, mesh: str = "coarse", backend: str = "fem",
-                 jobs: int = 1, progress=None, solver: Callable[[SolveParams], SolveResult] | None = None):
+    def __init__(
+        self,
+        cache_dir: str | os.PathLike | None,
+        mesh: str = "coarse",
+        backend: str = "fem",
+        jobs: int = 1,
+        progress=None,
+        solver: Callable[[SolveParams], SolveResult] | None = None,
+    ):
         if backend not in BACKENDS:
             raise UserError("backend", f"must be one of {', '.join(BACKENDS)} (got {backend!r})")
         if mesh not in ("tiny", "coarse", "default", "fine"):
@@ -132,8 +148,17 @@ class Simulator:
             def land(key, res, error, sec):
                 if res is None:
                     nan = np.full((2, 2), np.nan, np.float32)
-                    rec = Record(f"{self.label}:{key}", np.nan, np.nan, np.nan, np.nan, todo[key].image.pixel,
-                                 nan, nan, float(sec))
+                    rec = Record(
+                        f"{self.label}:{key}",
+                        np.nan,
+                        np.nan,
+                        np.nan,
+                        np.nan,
+                        todo[key].image.pixel,
+                        nan,
+                        nan,
+                        float(sec),
+                    )
                     self.stats.setdefault("failed", []).append(error[:200])
                 else:
                     rec = _record(f"{self.label}:{key}", res, sec)
@@ -175,8 +200,11 @@ def camera_features_of(rec: Record, sensor, settings=None) -> tuple[np.ndarray, 
     camera model: a selftest reuses the same sweep records in every trial)."""
     if not np.isfinite(rec.O1):
         return np.full(3, np.nan), np.full((sensor.window[2],) * 2, np.nan)
-    key = (rec.key, json.dumps(sensor.to_dict(), sort_keys=True),
-           json.dumps(settings.to_dict() if settings is not None else None, sort_keys=True))
+    key = (
+        rec.key,
+        json.dumps(sensor.to_dict(), sort_keys=True),
+        json.dumps(settings.to_dict() if settings is not None else None, sort_keys=True),
+    )
     hit = _CAM_MEMO.get(key)
     if hit is None:
         hit = _camera_features(rec, sensor, settings)

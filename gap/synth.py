@@ -46,11 +46,17 @@ def check_out(out: str | os.PathLike, overwrite: bool = False) -> Path:
             except (OSError, ValueError):
                 info = None
         if not isinstance(info, dict):
-            raise UserError("out", f"{p} holds files that are not a SYNTHETIC measured dataset; "
-                                   "a generator never writes there (choose another folder)")
+            raise UserError(
+                "out",
+                f"{p} holds files that are not a SYNTHETIC measured dataset; "
+                "a generator never writes there (choose another folder)",
+            )
         if info.get("synthetic") is not True:
-            raise UserError("out", f"{p} holds real (non-synthetic) measured data; a generator never overwrites "
-                                   "it, not even with --overwrite (choose another folder)")
+            raise UserError(
+                "out",
+                f"{p} holds real (non-synthetic) measured data; a generator never overwrites "
+                "it, not even with --overwrite (choose another folder)",
+            )
         if not overwrite:
             raise UserError("out", f"{p} already holds a SYNTHETIC measured dataset; give --overwrite to replace it")
     return check_out_dir(p, "out", overwrite=overwrite)
@@ -97,10 +103,19 @@ def phantom_design(n: int = DEFAULT_N, seed: int = 0) -> np.ndarray:
     return np.round(np.column_stack([d, h, E]), 3)
 
 
-def synthesize(dhe: np.ndarray, effects: list[tuple[fx.Effect, float]], sim: Simulator, sensor=None,
-               settings=None, frames: int = 10, seed: int = 0, ids: list[str] | None = None,
-               noise_scale: float = 1.0, disc: dict | None = None,
-               force_noise: float | None = None) -> tuple[Measured, dict]:
+def synthesize(
+    dhe: np.ndarray,
+    effects: list[tuple[fx.Effect, float]],
+    sim: Simulator,
+    sensor=None,
+    settings=None,
+    frames: int = 10,
+    seed: int = 0,
+    ids: list[str] | None = None,
+    noise_scale: float = 1.0,
+    disc: dict | None = None,
+    force_noise: float | None = None,
+) -> tuple[Measured, dict]:
     """``disc`` overrides fields of the solver's ``Discretisation`` (e.g. ``{"interface": "contact"}``)
     so that the data come from another formulation than the diagnosis; ``force_noise`` (relative
     standard error) adds a measured plate force."""
@@ -119,6 +134,7 @@ def synthesize(dhe: np.ndarray, effects: list[tuple[fx.Effect, float]], sim: Sim
         p = base_params(sim.mesh, *row)
         if disc:
             import dataclasses
+
             p = p.replace(disc=dataclasses.replace(p.disc, **disc))
         for e, m in effects:
             if e.stage == "mechanics":
@@ -153,12 +169,25 @@ def synthesize(dhe: np.ndarray, effects: list[tuple[fx.Effect, float]], sim: Sim
     ids = ids or [f"P{i + 1:02d}" for i in range(n)]
     label = ", ".join(f"{e.name}={m:g}" for e, m in effects) or "none"
     form = f"mesh {sim.mesh}" + "".join(f", {k} {v}" for k, v in (disc or {}).items())
-    meas = Measured(ids, np.asarray(dhe, float), np.asarray(y), np.asarray(se), np.full(n, np.nan), D,
-                    sensor.to_dict(), settings.to_dict(), sim.mesh, True,
-                    f"SYNTHETIC measured data: forward model ({form}) + sealed unmodelled effect(s), {frames} frames, "
-                    f"noise_scale {noise_scale:g}, seed {seed}, backend {sim.backend}", "synthetic", Dse, force, force_se)
-    truth = {"effects": [{"name": e.name, "magnitude": float(m), "unit": e.unit} for e, m in effects],
-             "label": label}
+    meas = Measured(
+        ids,
+        np.asarray(dhe, float),
+        np.asarray(y),
+        np.asarray(se),
+        np.full(n, np.nan),
+        D,
+        sensor.to_dict(),
+        settings.to_dict(),
+        sim.mesh,
+        True,
+        f"SYNTHETIC measured data: forward model ({form}) + sealed unmodelled effect(s), {frames} frames, "
+        f"noise_scale {noise_scale:g}, seed {seed}, backend {sim.backend}",
+        "synthetic",
+        Dse,
+        force,
+        force_se,
+    )
+    truth = {"effects": [{"name": e.name, "magnitude": float(m), "unit": e.unit} for e, m in effects], "label": label}
     return meas, truth
 
 

@@ -27,7 +27,7 @@ import warnings
 import numpy as np
 from scipy import ndimage
 
-EDGES = (0.0, 1.0, 2.0, 3.0, 4.5, 6.0, 8.0, 10.0, 12.5)   # mm from the probe axis
+EDGES = (0.0, 1.0, 2.0, 3.0, 4.5, 6.0, 8.0, 10.0, 12.5)  # mm from the probe axis
 VIEWS = ("features", "profile", "force")
 
 
@@ -61,12 +61,14 @@ def profile_se(se_map: np.ndarray, pixel_mm: float, smooth_px: float, edges=EDGE
     return np.array(out)
 
 
-def difference_se(frames: np.ndarray, background: np.ndarray, full_scale: float, window, smooth_px: float) -> np.ndarray:
+def difference_se(
+    frames: np.ndarray, background: np.ndarray, full_scale: float, window, smooth_px: float
+) -> np.ndarray:
     """Per-pixel standard error (FS) of the denoised difference image over the footprint window,
     from the frame scatter (module docstring)."""
     r0, c0, n = window
-    F = np.asarray(frames, float)[:, r0:r0 + n, c0:c0 + n] / full_scale
-    B = np.asarray(background, float)[:, r0:r0 + n, c0:c0 + n] / full_scale
+    F = np.asarray(frames, float)[:, r0 : r0 + n, c0 : c0 + n] / full_scale
+    B = np.asarray(background, float)[:, r0 : r0 + n, c0 : c0 + n] / full_scale
 
     def g(a):
         return ndimage.gaussian_filter(a, smooth_px, mode="reflect") if smooth_px > 0 else a
@@ -99,7 +101,13 @@ def from_frames(frames: np.ndarray, background: np.ndarray, sensor, settings, fu
         Fm = np.asarray(frames, float).mean(axis=0)[None]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            per = np.array([camera_features(Fm, b[None], fs, sensor.window, sensor.pixel_mm, settings).values for b in B])
+            per = np.array(
+                [camera_features(Fm, b[None], fs, sensor.window, sensor.pixel_mm, settings).values for b in B]
+            )
         var = var + per.var(axis=0, ddof=1) / B.shape[0]
-    return {"values": cf.values, "se": np.sqrt(var), "difference": cf.difference,
-            "difference_se": difference_se(frames, background, fs, sensor.window, settings.smooth_px)}
+    return {
+        "values": cf.values,
+        "se": np.sqrt(var),
+        "difference": cf.difference,
+        "difference_se": difference_se(frames, background, fs, sensor.window, settings.smooth_px),
+    }

@@ -69,9 +69,18 @@ def input_names(k: int, force: bool) -> tuple[str, ...]:
 
 
 def samples_of(data: Data):
-    df = pd.DataFrame({"sample_id": data.ids, "tag": data.tags, "O1": data.features[:, 0],
-                       "O2": data.features[:, 1], "O3": data.features[:, 2], "d": data.theta[:, 0],
-                       "h": data.theta[:, 1], "E": data.theta[:, 2]})
+    df = pd.DataFrame(
+        {
+            "sample_id": data.ids,
+            "tag": data.tags,
+            "O1": data.features[:, 0],
+            "O2": data.features[:, 1],
+            "O3": data.features[:, 2],
+            "d": data.theta[:, 0],
+            "h": data.theta[:, 1],
+            "E": data.theta[:, 2],
+        }
+    )
     return prepare(df, source=data.source or "<data>")
 
 
@@ -95,9 +104,20 @@ def _physical(Y: np.ndarray, log_e: bool) -> np.ndarray:
     return Y
 
 
-def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg: TrainConfig, *, seed: int = 0,
-                         test_split: float | None = None, k: int = 10, image_noise: float = 0.0,
-                         force: bool = False, log_e: bool = False) -> ValidationResult:
+def run_image_validation(
+    data: Data,
+    algo: str,
+    validate: str,
+    repeats: int,
+    cfg: TrainConfig,
+    *,
+    seed: int = 0,
+    test_split: float | None = None,
+    k: int = 10,
+    image_noise: float = 0.0,
+    force: bool = False,
+    log_e: bool = False,
+) -> ValidationResult:
     """HOV / LOOCV x repeats of the image MLP; ``extra['pred']`` holds the test predictions
     ``(R, n, 3)`` (NaN where a row was not a test row of that repeat) and ``extra['test']``.
 
@@ -123,8 +143,7 @@ def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg
         pca_rows = np.ones(n, bool)
     pca = ShapePCA.fit(data.images[pca_rows], k)
     X0 = _inputs(data, pca, force)
-    icfg = ImageTrainConfig(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(TrainConfig)},
-                            n_in=X0.shape[1])
+    icfg = ImageTrainConfig(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(TrainConfig)}, n_in=X0.shape[1])
     icfg.feature_noise = 0.0
     fit = ~test
     t0 = time.perf_counter()
@@ -135,7 +154,7 @@ def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg
         for r in range(repeats):
             nrng = np.random.default_rng([int(seed), 7, r])
             Xr.append(_inputs(data, pca, force, add_image_noise(data.images, image_noise, nrng)))
-        Xb = np.repeat(np.stack(Xr), folds, axis=0)                         # (B, n, c)
+        Xb = np.repeat(np.stack(Xr), folds, axis=0)  # (B, n, c)
         Xs = torch.as_tensor(mapminmax_apply(Xb, batch.x_lo, batch.x_hi), dtype=obj.X.dtype, device=obj.X.device)
         obj = NetObjective(icfg.arch, Xs, obj.T, obj.w, obj.w_val, obj.w_test)
     res = train_batch(algo, obj, batch.theta0, icfg, desc=f"{algo}-image {validate}")
@@ -143,7 +162,7 @@ def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg
     Ys = predict_scaled(res.theta, obj.X, icfg.arch)
     Ts = obj.T.cpu().numpy()
     Yp = _physical(mapminmax_reverse(Ys, batch.t_lo, batch.t_hi), log_e)
-    if log_e:   # scores on the linear scaling of (d, h, E) over each training fold
+    if log_e:  # scores on the linear scaling of (d, h, E) over each training fold
         lo, hi = mapminmax_fit(np.broadcast_to(T, Yp.shape), batch.train)
         Ys, Ts = mapminmax_apply(Yp, lo, hi), mapminmax_apply(np.broadcast_to(T, Yp.shape), lo, hi)
     R = repeats
@@ -156,28 +175,45 @@ def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg
         "mre": 100.0 * ((np.abs(Yp - Tp) / np.abs(Tp)).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
         "rmse": np.sqrt((((Yp - Tp) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt),
     }
-    pred = np.where(tm, Yp.reshape(*shp, 3), 0.0).sum(axis=1)              # (R, n, 3)
+    pred = np.where(tm, Yp.reshape(*shp, 3), 0.0).sum(axis=1)  # (R, n, 3)
     pred[~test.reshape(shp).any(axis=1)] = np.nan
     # the deployed situation: ONE noisy image of each held-out lesion through every repeat's network
     # (above, each repeat saw its own noise draw, so a mean over repeats would also average noise)
     pred_shared = None
     if image_noise > 0:
         Xf = _inputs(data, pca, force, add_image_noise(data.images, image_noise, np.random.default_rng([int(seed), 9])))
-        Xf = torch.as_tensor(mapminmax_apply(np.broadcast_to(Xf, (test.shape[0],) + Xf.shape), batch.x_lo,
-                                             batch.x_hi), dtype=obj.X.dtype, device=obj.X.device)
+        Xf = torch.as_tensor(
+            mapminmax_apply(np.broadcast_to(Xf, (test.shape[0],) + Xf.shape), batch.x_lo, batch.x_hi),
+            dtype=obj.X.dtype,
+            device=obj.X.device,
+        )
         Yf = _physical(mapminmax_reverse(predict_scaled(res.theta, Xf, icfg.arch), batch.t_lo, batch.t_hi), log_e)
         pred_shared = np.where(tm, Yf.reshape(*shp, 3), 0.0).sum(axis=1)
         pred_shared[~test.reshape(shp).any(axis=1)] = np.nan
     trm = batch.train.reshape(shp)[..., None]
     train_mse = 100.0 * ((((Ts - Ys) ** 2).reshape(*shp, 3) * trm).sum(axis=2) / trm.sum(axis=2)).mean(axis=1)
     B = test.shape[0]
-    row = {"algo": f"{algo}-image" + ("-lnE" if log_e else ""), "validate": validate, "repeats": R, "n_samples": n,
-           "n_train": int(batch.train[0].sum()), "n_test_per_repeat": int(cnt[0, 0]), "trainings": B,
-           "hidden": ",".join(f"{s}" if a == "tansig" else f"{s}:{a}" for s, a in icfg.hidden),
-           "epochs": icfg.epochs, "feature_noise": 0.0, "image_noise": image_noise, "pca_k": k, "force": force,
-           "log_e": log_e,
-           "val_fraction": icfg.val_fraction, "test_set": note, "wall_s": round(wall, 3),
-           "trainings_per_s": round(B / wall, 3), "mean_epochs_run": float(res.epochs.double().mean())}
+    row = {
+        "algo": f"{algo}-image" + ("-lnE" if log_e else ""),
+        "validate": validate,
+        "repeats": R,
+        "n_samples": n,
+        "n_train": int(batch.train[0].sum()),
+        "n_test_per_repeat": int(cnt[0, 0]),
+        "trainings": B,
+        "hidden": ",".join(f"{s}" if a == "tansig" else f"{s}:{a}" for s, a in icfg.hidden),
+        "epochs": icfg.epochs,
+        "feature_noise": 0.0,
+        "image_noise": image_noise,
+        "pca_k": k,
+        "force": force,
+        "log_e": log_e,
+        "val_fraction": icfg.val_fraction,
+        "test_set": note,
+        "wall_s": round(wall, 3),
+        "trainings_per_s": round(B / wall, 3),
+        "mean_epochs_run": float(res.epochs.double().mean()),
+    }
     for m in METRICS:
         for j, t in enumerate(TARGETS):
             for kk, v in summarize(per[m][:, j]).items():
@@ -189,9 +225,21 @@ def run_image_validation(data: Data, algo: str, validate: str, repeats: int, cfg
         stops[s] = stops.get(s, 0) + 1
     row["stops"] = ";".join(f"{a}:{b}" for a, b in sorted(stops.items()))
     curves = {kk: v.numpy() for kk, v in res.history.items() if kk in ("train", "test", "val")}
-    return ValidationResult(f"{algo}-image" + ("-lnE" if log_e else ""), validate, R, row, per, curves, stops, wall,
-                            extra={"pred": pred, "pred_shared_noise": pred_shared,
-                                   "test": test1 if validate == "hov" else np.ones(n, bool)})
+    return ValidationResult(
+        f"{algo}-image" + ("-lnE" if log_e else ""),
+        validate,
+        R,
+        row,
+        per,
+        curves,
+        stops,
+        wall,
+        extra={
+            "pred": pred,
+            "pred_shared_noise": pred_shared,
+            "test": test1 if validate == "hov" else np.ones(n, bool),
+        },
+    )
 
 
 # ----------------------------------------------------------------------------- the saved model
@@ -202,9 +250,9 @@ class ImageModel:
     ensemble: Ensemble
     pca: ShapePCA
     force: bool = False
-    shape: tuple[int, int] | None = None   # (ny, nx) of the FEM difference images it was trained on
-    pixel: float | None = None             # their pixel side, mm
-    log_e: bool = False                    # the networks output ln E (predict returns E)
+    shape: tuple[int, int] | None = None  # (ny, nx) of the FEM difference images it was trained on
+    pixel: float | None = None  # their pixel side, mm
+    log_e: bool = False  # the networks output ln E (predict returns E)
 
     def inputs(self, images, dforce=None, force_ref=None) -> np.ndarray:
         images = np.atleast_2d(np.asarray(images, dtype=np.float64))
@@ -230,11 +278,19 @@ class ImageModel:
     def save(self, directory: str) -> str:
         self.ensemble.save(directory)
         with open(os.path.join(directory, PCA_FILE), "w") as f:
-            json.dump({"format": "elastimap.identify.image_pca", "version": 1, "force": self.force,
-                       "inputs": "ln(peak), PCA scores of image/peak" + (", 100 dF/F_ref" if self.force else ""),
-                       "image_shape": list(self.shape) if self.shape else None, "pixel_mm": self.pixel,
-                       "log_e": self.log_e,
-                       **self.pca.to_json()}, f)
+            json.dump(
+                {
+                    "format": "elastimap.identify.image_pca",
+                    "version": 1,
+                    "force": self.force,
+                    "inputs": "ln(peak), PCA scores of image/peak" + (", 100 dF/F_ref" if self.force else ""),
+                    "image_shape": list(self.shape) if self.shape else None,
+                    "pixel_mm": self.pixel,
+                    "log_e": self.log_e,
+                    **self.pca.to_json(),
+                },
+                f,
+            )
         return directory
 
     @classmethod
@@ -246,13 +302,28 @@ class ImageModel:
             meta = json.load(f)
         shape = tuple(int(x) for x in meta["image_shape"]) if meta.get("image_shape") else None
         pixel = float(meta["pixel_mm"]) if meta.get("pixel_mm") else None
-        return cls(Ensemble.load(directory), ShapePCA.from_json(meta), bool(meta.get("force", False)), shape, pixel,
-                   bool(meta.get("log_e", False)))
+        return cls(
+            Ensemble.load(directory),
+            ShapePCA.from_json(meta),
+            bool(meta.get("force", False)),
+            shape,
+            pixel,
+            bool(meta.get("log_e", False)),
+        )
 
 
-def fit_image_model(data: Data, algo: str = "scg", repeats: int = 10, cfg: TrainConfig | None = None, *,
-                    seed: int = 0, k: int = 10, force: bool = False, image_noise: float = 0.0,
-                    log_e: bool = False) -> ImageModel:
+def fit_image_model(
+    data: Data,
+    algo: str = "scg",
+    repeats: int = 10,
+    cfg: TrainConfig | None = None,
+    *,
+    seed: int = 0,
+    k: int = 10,
+    force: bool = False,
+    image_noise: float = 0.0,
+    log_e: bool = False,
+) -> ImageModel:
     """Train the saved ensemble on every row of ``data`` (``repeats`` initialisations)."""
     from elastimap.provenance import code_version
     from elastimap.training.data import data_hash
@@ -267,20 +338,54 @@ def fit_image_model(data: Data, algo: str = "scg", repeats: int = 10, cfg: Train
     batch = make_batch(X0, _train_targets(T, log_e), np.ones((repeats, data.n), bool), None, icfg, rng, gen)
     obj = batch.obj
     if image_noise > 0:
-        Xb = np.stack([_inputs(data, pca, force, add_image_noise(data.images, image_noise,
-                                                               np.random.default_rng([seed, 8, r])))
-                       for r in range(repeats)])
-        obj = NetObjective(icfg.arch, torch.as_tensor(mapminmax_apply(Xb, batch.x_lo, batch.x_hi), dtype=obj.X.dtype,
-                                                      device=obj.X.device), obj.T, obj.w, obj.w_val, obj.w_test)
+        Xb = np.stack(
+            [
+                _inputs(
+                    data, pca, force, add_image_noise(data.images, image_noise, np.random.default_rng([seed, 8, r]))
+                )
+                for r in range(repeats)
+            ]
+        )
+        obj = NetObjective(
+            icfg.arch,
+            torch.as_tensor(mapminmax_apply(Xb, batch.x_lo, batch.x_hi), dtype=obj.X.dtype, device=obj.X.device),
+            obj.T,
+            obj.w,
+            obj.w_val,
+            obj.w_test,
+        )
     res = train_batch(algo, obj, batch.theta0, icfg, desc=f"{algo}-image final")
     names = input_names(k, force)
     units = dict(UNITS, **{nm: "" for nm in names})
-    meta = {"algo": f"{algo}-image" + ("-lnE" if log_e else ""), "log_e": log_e, "epochs": icfg.epochs, "repeats": repeats, "seed": seed, "pca_k": k,
-            "force": force, "image_noise": image_noise, "n_train": data.n, "data_source": data.source,
-            "data_sha256": data_hash(samples_of(data).df), "stop_reasons": res.stop,
-            "epochs_run": res.epochs.tolist(), "code_version": code_version(), "device": str(icfg.resolved_device())}
-    ens = Ensemble(arch=icfg.arch, theta=res.theta.detach().cpu().numpy().astype(np.float64), x_min=batch.x_lo[0],
-                   x_max=batch.x_hi[0], y_min=batch.t_lo[0], y_max=batch.t_hi[0], feature_names=names,
-                   target_names=TARGETS, units=units, feature_range=np.stack([X0.min(0), X0.max(0)]),
-                   target_range=np.stack([T.min(0), T.max(0)]), meta=meta)
+    meta = {
+        "algo": f"{algo}-image" + ("-lnE" if log_e else ""),
+        "log_e": log_e,
+        "epochs": icfg.epochs,
+        "repeats": repeats,
+        "seed": seed,
+        "pca_k": k,
+        "force": force,
+        "image_noise": image_noise,
+        "n_train": data.n,
+        "data_source": data.source,
+        "data_sha256": data_hash(samples_of(data).df),
+        "stop_reasons": res.stop,
+        "epochs_run": res.epochs.tolist(),
+        "code_version": code_version(),
+        "device": str(icfg.resolved_device()),
+    }
+    ens = Ensemble(
+        arch=icfg.arch,
+        theta=res.theta.detach().cpu().numpy().astype(np.float64),
+        x_min=batch.x_lo[0],
+        x_max=batch.x_hi[0],
+        y_min=batch.t_lo[0],
+        y_max=batch.t_hi[0],
+        feature_names=names,
+        target_names=TARGETS,
+        units=units,
+        feature_range=np.stack([X0.min(0), X0.max(0)]),
+        target_range=np.stack([T.min(0), T.max(0)]),
+        meta=meta,
+    )
     return ImageModel(ens, pca, force, tuple(data.shape), float(data.pixel), log_e)

@@ -24,7 +24,7 @@ from elastimap.dataset.schema import DESIGN_BOX, THICKNESS
 
 from .measure import Data, ShapePCA, feature_inputs
 
-STEP = np.array([0.05, 0.05, 0.01])        # surrogate FD steps in d (mm), h (mm), ln E
+STEP = np.array([0.05, 0.05, 0.01])  # surrogate FD steps in d (mm), h (mm), ln E
 
 
 def to_param(theta: np.ndarray) -> np.ndarray:
@@ -61,10 +61,12 @@ class Surrogate:
         it = range(Y.shape[1])
         if progress:
             from tqdm import tqdm
+
             it = tqdm(it, desc="surrogate GPs", leave=False)
         for j in it:
-            kern = ConstantKernel(1.0, (1e-3, 1e3)) * Matern([1.0, 1.0, 1.0], (1e-2, 1e2), nu=2.5) \
-                + WhiteKernel(1e-5, (1e-10, 1e-1))
+            kern = ConstantKernel(1.0, (1e-3, 1e3)) * Matern([1.0, 1.0, 1.0], (1e-2, 1e2), nu=2.5) + WhiteKernel(
+                1e-5, (1e-10, 1e-1)
+            )
             gp = GaussianProcessRegressor(kern, normalize_y=True, n_restarts_optimizer=0, random_state=j)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
@@ -84,7 +86,7 @@ class Surrogate:
         """-> ln features (n, 3), images (n, p), dF (n,)."""
         lnF = out[:, :3]
         k = self.pca.k
-        lnpk, sc = out[:, 3], out[:, 4:3 + k]
+        lnpk, sc = out[:, 3], out[:, 4 : 3 + k]
         img = np.exp(lnpk)[:, None] * (self.pca.mean + sc @ self.pca.components)
         return lnF, img, out[:, 3 + k]
 
@@ -117,11 +119,11 @@ class Surrogate:
 
 @dataclass
 class NoiseSpec:
-    feature: float = 0.01          # relative noise of O1, O2, O3
-    image: float = 0.01            # relative (x peak) per-pixel noise, used when sigma_map is None
-    sigma_map: np.ndarray | None = None   # camera noise map (mm) instead of the relative level
-    force: float = 0.001           # relative noise of each plate-force reading
-    force_ref: float = 1375.0      # mN, the reference plate force (for the force noise)
+    feature: float = 0.01  # relative noise of O1, O2, O3
+    image: float = 0.01  # relative (x peak) per-pixel noise, used when sigma_map is None
+    sigma_map: np.ndarray | None = None  # camera noise map (mm) instead of the relative level
+    force: float = 0.001  # relative noise of each plate-force reading
+    force_ref: float = 1375.0  # mN, the reference plate force (for the force noise)
 
 
 def fisher(J: dict, noise: NoiseSpec) -> dict:
@@ -134,9 +136,9 @@ def fisher(J: dict, noise: NoiseSpec) -> dict:
         sig = noise.image * np.abs(J["image0"]).max(axis=1)
         Fi = np.einsum("npi,npj->nij", Ji, Ji) / sig[:, None, None] ** 2
     sF = noise.force * noise.force_ref * np.sqrt(2.0)
-    Ff = np.einsum("ni,nj->nij", J["dF"], J["dF"]) / sF ** 2
+    Ff = np.einsum("ni,nj->nij", J["dF"], J["dF"]) / sF**2
     return {
-        "features": np.einsum("nki,nkj->nij", J["lnF"], J["lnF"]) / noise.feature ** 2,
+        "features": np.einsum("nki,nkj->nij", J["lnF"], J["lnF"]) / noise.feature**2,
         "image": Fi,
         "image+force": Fi + Ff,
         # linear forward model: the image at delta2 is (delta2/delta1) x the image at delta1; with
@@ -154,7 +156,7 @@ def crb_relstd(F: np.ndarray, theta: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- real FD
-FD_STEP = np.array([0.5, 0.5, 0.1])   # d mm, h mm, ln E: large enough to beat remeshing noise
+FD_STEP = np.array([0.5, 0.5, 0.1])  # d mm, h mm, ln E: large enough to beat remeshing noise
 
 
 def fd_jacobian_solves(theta, mesh: str = "default", cache: str | None = None) -> dict:
@@ -179,7 +181,7 @@ def fd_jacobian_solves(theta, mesh: str = "default", cache: str | None = None) -
     J["image0"] = base["image"].ravel()
     J["lnF0"] = np.log(base["O"])
     J["dF0"] = float(base["force"] - base["force_ref"])
-    J["background"] = (base["image_raw"] - base["image"])
+    J["background"] = base["image_raw"] - base["image"]
     return J
 
 
@@ -205,8 +207,7 @@ def stack(Js: list[dict]) -> dict:
     return out
 
 
-def grid(nd: int = 14, nu: int = 5, nE: int = 15, d=DESIGN_BOX["d"], E=DESIGN_BOX["E"],
-         thickness: float = THICKNESS):
+def grid(nd: int = 14, nu: int = 5, nE: int = 15, d=DESIGN_BOX["d"], E=DESIGN_BOX["E"], thickness: float = THICKNESS):
     """(d, h, E) grid over the design space; h = lo + u (hi - lo) of the allowed range for d.
 
     Returns ``theta`` (nd*nu*nE, 3) and the axes (d, u, E) with ``theta`` in C order over them."""

@@ -33,22 +33,26 @@ import numpy as np
 from elastimap.errors import UserError
 
 SETS = ("features", "image", "image+force")
-SET_LABEL = {"features": "(a) O1, O2, O3", "image": "(b) whole image", "image+force": "(c) image + plate force",
-             "two-depths": "(d) images at δ = 1.5 and 3 mm"}
-PEAK_FLOOR = 1e-7   # mm; peaks below this are clipped before the log (no visible inclusion)
+SET_LABEL = {
+    "features": "(a) O1, O2, O3",
+    "image": "(b) whole image",
+    "image+force": "(c) image + plate force",
+    "two-depths": "(d) images at δ = 1.5 and 3 mm",
+}
+PEAK_FLOOR = 1e-7  # mm; peaks below this are clipped before the log (no visible inclusion)
 
 
 @dataclass
 class Data:
     """Design rows of a sweep, as arrays."""
 
-    theta: np.ndarray      # (n, 3) d mm, h mm, E kPa
-    features: np.ndarray   # (n, 3) O1, O2, O3
-    images: np.ndarray     # (n, ny*nx) float64, mm
-    dforce: np.ndarray     # (n,) force - force_ref, mN
+    theta: np.ndarray  # (n, 3) d mm, h mm, E kPa
+    features: np.ndarray  # (n, 3) O1, O2, O3
+    images: np.ndarray  # (n, ny*nx) float64, mm
+    dforce: np.ndarray  # (n,) force - force_ref, mN
     force_ref: np.ndarray  # (n,)
-    tags: np.ndarray       # (n,) str
-    ids: np.ndarray        # (n,) str
+    tags: np.ndarray  # (n,) str
+    ids: np.ndarray  # (n,) str
     shape: tuple[int, int]
     pixel: float
     source: str = ""
@@ -59,8 +63,18 @@ class Data:
 
     def subset(self, mask) -> Data:
         m = np.asarray(mask)
-        return Data(self.theta[m], self.features[m], self.images[m], self.dforce[m], self.force_ref[m],
-                    self.tags[m], self.ids[m], self.shape, self.pixel, self.source)
+        return Data(
+            self.theta[m],
+            self.features[m],
+            self.images[m],
+            self.dforce[m],
+            self.force_ref[m],
+            self.tags[m],
+            self.ids[m],
+            self.shape,
+            self.pixel,
+            self.source,
+        )
 
 
 def load(path: str, design_only: bool = False) -> Data:
@@ -83,15 +97,24 @@ def load(path: str, design_only: bool = False) -> Data:
     images = np.stack(df["image"].to_numpy()).astype(np.float64)
     if images.shape[1] != shape[0] * shape[1]:
         raise UserError("--data", f"{path}: images have {images.shape[1]} pixels, metadata says {shape}")
-    return Data(theta=df[["d", "h", "E"]].to_numpy(float), features=df[["O1", "O2", "O3"]].to_numpy(float),
-                images=images, dforce=(df["force"] - df["force_ref"]).to_numpy(float),
-                force_ref=df["force_ref"].to_numpy(float), tags=df["tag"].astype(str).to_numpy(),
-                ids=df["sample_id"].astype(str).to_numpy(), shape=tuple(shape), pixel=float(pixel), source=path)
+    return Data(
+        theta=df[["d", "h", "E"]].to_numpy(float),
+        features=df[["O1", "O2", "O3"]].to_numpy(float),
+        images=images,
+        dforce=(df["force"] - df["force_ref"]).to_numpy(float),
+        force_ref=df["force_ref"].to_numpy(float),
+        tags=df["tag"].astype(str).to_numpy(),
+        ids=df["sample_id"].astype(str).to_numpy(),
+        shape=tuple(shape),
+        pixel=float(pixel),
+        source=path,
+    )
 
 
 # ----------------------------------------------------------------------------- noise
-def add_image_noise(images: np.ndarray, level: float, rng: np.random.Generator,
-                    sigma_map: np.ndarray | None = None) -> np.ndarray:
+def add_image_noise(
+    images: np.ndarray, level: float, rng: np.random.Generator, sigma_map: np.ndarray | None = None
+) -> np.ndarray:
     """Noisy copies: ``relative`` (``level`` x each image's peak) or a fixed ``sigma_map`` (mm)."""
     images = np.asarray(images, dtype=np.float64)
     if sigma_map is not None:
@@ -107,9 +130,9 @@ def add_image_noise(images: np.ndarray, level: float, rng: np.random.Generator,
 class ShapePCA:
     """``log(peak)`` and PCA scores of ``image / peak`` (orthonormal components, not whitened)."""
 
-    mean: np.ndarray          # (p,)
-    components: np.ndarray    # (K-1, p)
-    explained: np.ndarray     # (K-1,) explained variance ratio of the shapes
+    mean: np.ndarray  # (p,)
+    components: np.ndarray  # (K-1, p)
+    explained: np.ndarray  # (K-1,) explained variance ratio of the shapes
 
     @classmethod
     def fit(cls, images: np.ndarray, k: int = 10) -> ShapePCA:
@@ -118,8 +141,8 @@ class ShapePCA:
         S = _shapes(images)
         mean = S.mean(axis=0)
         U, sv, Vt = np.linalg.svd(S - mean, full_matrices=False)
-        var = sv ** 2
-        return cls(mean, Vt[:k - 1].copy(), (var / var.sum())[:k - 1])
+        var = sv**2
+        return cls(mean, Vt[: k - 1].copy(), (var / var.sum())[: k - 1])
 
     @property
     def k(self) -> int:
@@ -132,7 +155,11 @@ class ShapePCA:
         return np.column_stack([np.log(pk), (S - self.mean) @ self.components.T])
 
     def to_json(self) -> dict:
-        return {"mean": self.mean.tolist(), "components": self.components.tolist(), "explained": self.explained.tolist()}
+        return {
+            "mean": self.mean.tolist(),
+            "components": self.components.tolist(),
+            "explained": self.explained.tolist(),
+        }
 
     @classmethod
     def from_json(cls, d: dict) -> ShapePCA:
@@ -151,8 +178,9 @@ def feature_inputs(features: np.ndarray) -> np.ndarray:
     return np.log(np.clip(F, 1e-12, None))
 
 
-def image_inputs(images: np.ndarray, pca: ShapePCA, dforce: np.ndarray | None = None,
-                 force_ref: np.ndarray | None = None) -> np.ndarray:
+def image_inputs(
+    images: np.ndarray, pca: ShapePCA, dforce: np.ndarray | None = None, force_ref: np.ndarray | None = None
+) -> np.ndarray:
     """Regressor / MLP inputs of an image set: log peak, shape scores (and dF / force_ref x 100)."""
     Z = pca.transform(images)
     if dforce is not None:

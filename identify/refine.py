@@ -50,7 +50,7 @@ import numpy as np
 from elastimap.dataset.schema import DESIGN_BOX, THICKNESS
 from elastimap.errors import UserError
 
-FD = (0.25, 0.25, 0.05)                 # finite-difference steps: d mm, h mm (at fixed d), ln E
+FD = (0.25, 0.25, 0.05)  # finite-difference steps: d mm, h mm (at fixed d), ln E
 # The reported interval is the local CRB's 95 % interval widened by this factor: on the held-out
 # study with the default response-surface fit (python -m elastimap.workflows.studies.refine, 35 identifiable LOOCV
 # rows, 1 % noise, seed 0, 2026-11-23) the errors were 1.4x the CRB at the median and the 95th
@@ -92,22 +92,29 @@ def interval(theta, relstd, scale: float = INTERVAL_SCALE):
     ``z = 1.96 scale``."""
     t, r = np.asarray(theta, float), np.asarray(relstd, float)
     z = 1.96 * scale
-    lo = np.stack([np.clip(t[..., 0] * (1 - z * r[..., 0]), 0, None), np.clip(t[..., 1] * (1 - z * r[..., 1]), 0, None),
-                   t[..., 2] * np.exp(-z * r[..., 2])], axis=-1)
-    hi = np.stack([t[..., 0] * (1 + z * r[..., 0]), t[..., 1] * (1 + z * r[..., 1]), t[..., 2] * np.exp(z * r[..., 2])],
-                  axis=-1)
+    lo = np.stack(
+        [
+            np.clip(t[..., 0] * (1 - z * r[..., 0]), 0, None),
+            np.clip(t[..., 1] * (1 - z * r[..., 1]), 0, None),
+            t[..., 2] * np.exp(-z * r[..., 2]),
+        ],
+        axis=-1,
+    )
+    hi = np.stack(
+        [t[..., 0] * (1 + z * r[..., 0]), t[..., 1] * (1 + z * r[..., 1]), t[..., 2] * np.exp(z * r[..., 2])], axis=-1
+    )
     return lo, hi
 
 
 @dataclass
 class RefineResult:
-    theta: np.ndarray              # refined (d mm, h mm, E kPa)
-    theta0: np.ndarray             # starting estimate
-    relstd: np.ndarray             # local CRB at theta: rel. std of d, h and std of ln E
-    chi2_red: float                # Σ r² / (p − 3) at theta (≈ 1 when model and noise level are right)
-    chi2_red0: float               # the same at theta0
-    n_solves: int                  # forward-model evaluations (FD included)
-    status: int                    # scipy least_squares status (trf; 0 for rsm)
+    theta: np.ndarray  # refined (d mm, h mm, E kPa)
+    theta0: np.ndarray  # starting estimate
+    relstd: np.ndarray  # local CRB at theta: rel. std of d, h and std of ln E
+    chi2_red: float  # Σ r² / (p − 3) at theta (≈ 1 when model and noise level are right)
+    chi2_red0: float  # the same at theta0
+    n_solves: int  # forward-model evaluations (FD included)
+    status: int  # scipy least_squares status (trf; 0 for rsm)
     message: str
 
     @property
@@ -134,8 +141,11 @@ def _setup(image, sigma, theta0, d_range, E_range, thickness):
     lb = np.array([d_range[0], 0.0, math.log(E_range[0])])
     ub = np.array([d_range[1], 1.0, math.log(E_range[1])])
     pad = 1e-3 * (ub - lb)
-    x0 = np.clip(to_x(np.clip(theta0, [d_range[0], -np.inf, E_range[0]], [d_range[1], np.inf, E_range[1]]),
-                      thickness), lb + pad, ub - pad)
+    x0 = np.clip(
+        to_x(np.clip(theta0, [d_range[0], -np.inf, E_range[0]], [d_range[1], np.inf, E_range[1]]), thickness),
+        lb + pad,
+        ub - pad,
+    )
     return I, s, theta0, lb, ub, pad, x0
 
 
@@ -149,9 +159,20 @@ def _bound(Jx: np.ndarray, x: np.ndarray, thickness: float):
     return th, np.array([sd[0] / th[0], sd[1] / th[1], sd[2]])
 
 
-def refine(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], *, d_range=DESIGN_BOX["d"],
-           E_range=DESIGN_BOX["E"], thickness: float = THICKNESS, max_iter: int = 12, xtol: float = 5e-4,
-           fd=FD, central: bool = True) -> RefineResult:
+def refine(
+    image,
+    sigma,
+    theta0,
+    model: Callable[[np.ndarray], np.ndarray],
+    *,
+    d_range=DESIGN_BOX["d"],
+    E_range=DESIGN_BOX["E"],
+    thickness: float = THICKNESS,
+    max_iter: int = 12,
+    xtol: float = 5e-4,
+    fd=FD,
+    central: bool = True,
+) -> RefineResult:
     """Fit ``model(theta) -> image`` to ``image`` (weights ``1/sigma``) starting from ``theta0``.
 
     ``image`` ``(p,)`` or ``(ny, nx)`` in mm; ``sigma`` a scalar or an array like ``image``
@@ -190,19 +211,41 @@ def refine(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], *, d
         return J
 
     r_start = resid(x0)
-    res = least_squares(resid, x0, jac=jac, bounds=(lb, ub), method="trf", x_scale=np.array(FD) * [1, 0.05, 1],
-                        max_nfev=max_iter, xtol=xtol, ftol=1e-4, gtol=1e-10)
+    res = least_squares(
+        resid,
+        x0,
+        jac=jac,
+        bounds=(lb, ub),
+        method="trf",
+        x_scale=np.array(FD) * [1, 0.05, 1],
+        max_nfev=max_iter,
+        xtol=xtol,
+        ftol=1e-4,
+        gtol=1e-10,
+    )
     x = res.x
-    th, relstd = _bound(res.jac, x, thickness)       # the Jacobian least_squares last evaluated at x
+    th, relstd = _bound(res.jac, x, thickness)  # the Jacobian least_squares last evaluated at x
     dof = max(I.size - 3, 1)
     r = resid(x)
-    return RefineResult(th, theta0.copy(), relstd, float(r @ r) / dof, float(r_start @ r_start) / dof, len(cache),
-                        int(res.status), str(res.message))
+    return RefineResult(
+        th,
+        theta0.copy(),
+        relstd,
+        float(r @ r) / dof,
+        float(r_start @ r_start) / dof,
+        len(cache),
+        int(res.status),
+        str(res.message),
+    )
 
 
-_CCD = np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)]
-                + [[s * (i == j) for j in range(3)] for i in range(3) for s in (-1, 1)] + [[0, 0, 0]], float)
-RSM_HALF = (0.7, 0.5, 0.2)              # first stencil's half-widths: d mm, h mm (at fixed d), ln E
+_CCD = np.array(
+    [[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)]
+    + [[s * (i == j) for j in range(3)] for i in range(3) for s in (-1, 1)]
+    + [[0, 0, 0]],
+    float,
+)
+RSM_HALF = (0.7, 0.5, 0.2)  # first stencil's half-widths: d mm, h mm (at fixed d), ln E
 
 
 def _quad_features(z: np.ndarray) -> np.ndarray:
@@ -214,13 +257,36 @@ def _quad_features(z: np.ndarray) -> np.ndarray:
 def _quad_grad(z: np.ndarray) -> np.ndarray:
     """d features / d z at one point: (10, 3)."""
     a, b, c = z
-    return np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [2 * a, 0, 0], [0, 2 * b, 0], [0, 0, 2 * c],
-                     [b, a, 0], [c, 0, a], [0, c, b]], float)
+    return np.array(
+        [
+            [0, 0, 0],
+            [1, 0, 0],
+            [0, 1, 0],
+            [0, 0, 1],
+            [2 * a, 0, 0],
+            [0, 2 * b, 0],
+            [0, 0, 2 * c],
+            [b, a, 0],
+            [c, 0, a],
+            [0, c, b],
+        ],
+        float,
+    )
 
 
-def refine_rsm(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], *, d_range=DESIGN_BOX["d"],
-               E_range=DESIGN_BOX["E"], thickness: float = THICKNESS, half=RSM_HALF, rounds: int = 2,
-               shrink: float = 0.5) -> RefineResult:
+def refine_rsm(
+    image,
+    sigma,
+    theta0,
+    model: Callable[[np.ndarray], np.ndarray],
+    *,
+    d_range=DESIGN_BOX["d"],
+    E_range=DESIGN_BOX["E"],
+    thickness: float = THICKNESS,
+    half=RSM_HALF,
+    rounds: int = 2,
+    shrink: float = 0.5,
+) -> RefineResult:
     """Response-surface variant of :func:`refine` that averages the remeshing jitter.
 
     Each round evaluates the model on a face-centred central-composite stencil (15 points) of
@@ -237,30 +303,43 @@ def refine_rsm(image, sigma, theta0, model: Callable[[np.ndarray], np.ndarray], 
     r0 = None
     for k in range(rounds):
         lo, hi = h_range(xc[0], thickness)
-        w = np.array([half[0], half[1] / (hi - lo), half[2]]) * shrink ** k
+        w = np.array([half[0], half[1] / (hi - lo), half[2]]) * shrink**k
         X = np.clip(xc + _CCD * w, lb, ub)
         Z = (X - xc) / w
         M = np.array([(np.asarray(model(to_theta(x, thickness)), float).ravel() - I) / s for x in X])
         n_eval += len(X)
         if r0 is None:
-            r0 = M[-1]                                   # the centre of the first stencil = the start
-        C, *_ = np.linalg.lstsq(_quad_features(Z), M, rcond=None)     # (10, p) residual model
+            r0 = M[-1]  # the centre of the first stencil = the start
+        C, *_ = np.linalg.lstsq(_quad_features(Z), M, rcond=None)  # (10, p) residual model
         zlo = np.maximum(-1.5, (lb - xc) / w)
         zhi = np.minimum(1.5, (ub - xc) / w)
         best = None
         for z0 in (np.zeros(3), Z[int(np.argmin((M * M).sum(1)))]):
             z0 = np.clip(z0, zlo + 1e-9, zhi - 1e-9)
-            sol = least_squares(lambda z, C=C: _quad_features(z)[0] @ C, z0,
-                                jac=lambda z, C=C: (_quad_grad(z).T @ C).T, bounds=(zlo, zhi), method="trf")
+            sol = least_squares(
+                lambda z, C=C: _quad_features(z)[0] @ C,
+                z0,
+                jac=lambda z, C=C: (_quad_grad(z).T @ C).T,
+                bounds=(zlo, zhi),
+                method="trf",
+            )
             if best is None or sol.cost < best.cost:
                 best = sol
         zs = best.x
         xc = np.clip(xc + zs * w, lb + pad, ub - pad)
-    th, relstd = _bound((_quad_grad(zs).T @ C).T / w, xc, thickness)   # model Jacobian in x units
+    th, relstd = _bound((_quad_grad(zs).T @ C).T / w, xc, thickness)  # model Jacobian in x units
     dof = max(I.size - 3, 1)
     rm = _quad_features(zs)[0] @ C
-    return RefineResult(th, theta0.copy(), relstd, float(rm @ rm) / dof, float(r0 @ r0) / dof, n_eval, 0,
-                        f"response surface, {rounds} rounds")
+    return RefineResult(
+        th,
+        theta0.copy(),
+        relstd,
+        float(rm @ rm) / dof,
+        float(r0 @ r0) / dof,
+        n_eval,
+        0,
+        f"response surface, {rounds} rounds",
+    )
 
 
 def fem_model(mesh: str = "default", cache: str | None = None) -> Callable[[np.ndarray], np.ndarray]:

@@ -46,16 +46,16 @@ class Assessment:
     lo: np.ndarray
     hi: np.ndarray
     flags: list[list[str]] = field(default_factory=list)
-    identifiable: np.ndarray | None = None   # (n, 3) bool
+    identifiable: np.ndarray | None = None  # (n, 3) bool
 
 
 @dataclass
 class IdentifiabilityMap:
-    d: np.ndarray                     # (nd,) mm
-    u: np.ndarray                     # (nu,) depth fraction of the allowed centre-depth range
-    E: np.ndarray                     # (nE,) kPa
-    relstd: dict                      # set -> (nd, nu, nE, 3) Cramér–Rao relative std of d, h, E
-    thickness: float = THICKNESS      # mm, tissue slab of the sweep the map was made on
+    d: np.ndarray  # (nd,) mm
+    u: np.ndarray  # (nu,) depth fraction of the allowed centre-depth range
+    E: np.ndarray  # (nE,) kPa
+    relstd: dict  # set -> (nd, nu, nE, 3) Cramér–Rao relative std of d, h, E
+    thickness: float = THICKNESS  # mm, tissue slab of the sweep the map was made on
     source: str = ""
 
     # ------------------------------------------------------------------ io
@@ -63,7 +63,9 @@ class IdentifiabilityMap:
     def load(cls, path: str | os.PathLike | None = None) -> IdentifiabilityMap:
         p = str(path) if path else DEFAULT_MAP
         if not os.path.isfile(p):
-            raise UserError("identifiability", f"{p}: no such map file (make one with python -m elastimap.workflows.studies.crbmap)")
+            raise UserError(
+                "identifiability", f"{p}: no such map file (make one with python -m elastimap.workflows.studies.crbmap)"
+            )
         try:
             z = np.load(p, allow_pickle=False)
             d, u, E = (np.asarray(z[k], float) for k in ("d", "u", "E"))
@@ -78,8 +80,15 @@ class IdentifiabilityMap:
         return cls(d, u, E, rel, thickness, source)
 
     def save(self, path: str | os.PathLike) -> None:
-        np.savez(path, d=self.d, u=self.u, E=self.E, thickness=self.thickness, source=self.source,
-                 **{s: v.reshape(-1, 3) for s, v in self.relstd.items()})
+        np.savez(
+            path,
+            d=self.d,
+            u=self.u,
+            E=self.E,
+            thickness=self.thickness,
+            source=self.source,
+            **{s: v.reshape(-1, 3) for s, v in self.relstd.items()},
+        )
 
     # ------------------------------------------------------------------ evaluation
     def coords(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -108,8 +117,15 @@ class IdentifiabilityMap:
         r = np.column_stack([np.exp(RegularGridInterpolator(axes, R[..., j])(x)) for j in range(3)])
         return r, inside
 
-    def assess(self, mean: np.ndarray, mset: str, threshold: float = 0.10, p10: np.ndarray | None = None,
-               p90: np.ndarray | None = None, target_range: np.ndarray | None = None) -> Assessment:
+    def assess(
+        self,
+        mean: np.ndarray,
+        mset: str,
+        threshold: float = 0.10,
+        p10: np.ndarray | None = None,
+        p90: np.ndarray | None = None,
+        target_range: np.ndarray | None = None,
+    ) -> Assessment:
         """Flags and intervals for estimates ``mean`` (n, 3) (see the module docstring)."""
         if not 0 < threshold < 10:
             raise UserError("threshold", f"must be in (0, 10) (got {threshold:g})")

@@ -24,9 +24,11 @@ def _params(d: float, h: float, E: float, mesh: str, delta: float, nonlinearity:
     from elastimap.solver.params import SolveParams
 
     p = SolveParams().with_inclusion(d=float(d), h=float(h), E=float(E))
-    return p.replace(disc=dataclasses.replace(p.disc, mesh=mesh),
-                     loading=dataclasses.replace(p.loading, delta=float(delta)),
-                     tissue=dataclasses.replace(p.tissue, nonlinearity=float(nonlinearity)))
+    return p.replace(
+        disc=dataclasses.replace(p.disc, mesh=mesh),
+        loading=dataclasses.replace(p.loading, delta=float(delta)),
+        tissue=dataclasses.replace(p.tissue, nonlinearity=float(nonlinearity)),
+    )
 
 
 def _legacy_npz(cache: str, p) -> str:
@@ -44,9 +46,17 @@ def _store(cache: str, solver: str):
     return _STORES[k]
 
 
-def cached_solve(d: float, h: float, E: float, *, mesh: str = "default", delta: float = 3.0,
-                 nonlinearity: float = 0.0, cache: str = DEFAULT_CACHE,
-                 solver: Callable | None = None) -> dict:
+def cached_solve(
+    d: float,
+    h: float,
+    E: float,
+    *,
+    mesh: str = "default",
+    delta: float = 3.0,
+    nonlinearity: float = 0.0,
+    cache: str = DEFAULT_CACHE,
+    solver: Callable | None = None,
+) -> dict:
     """One forward solve (tied interface, quarter model) -> dict of image, image_raw, features, force.
 
     ``solver``: the solve function (default the forward model; tests pass the SYNTHETIC stand-in,
@@ -62,7 +72,13 @@ def cached_solve(d: float, h: float, E: float, *, mesh: str = "default", delta: 
         return {k: z[k] for k in z.files}
     if res is None:
         res = store.solve(p, solver, need_raw=True)
-    return {"image": np.asarray(res.image, np.float64), "image_raw": np.asarray(res.image_raw, np.float64),
-            "O": np.array([res.O1, res.O2, res.O3]), "force": np.array(res.force),
-            "force_ref": np.array(res.force_ref), "theta": np.array([d, h, E]), "delta": np.array(res.delta),
-            "seconds": np.array(res.seconds)}
+    return {
+        "image": np.asarray(res.image, np.float64),
+        "image_raw": np.asarray(res.image_raw, np.float64),
+        "O": np.array([res.O1, res.O2, res.O3]),
+        "force": np.array(res.force),
+        "force_ref": np.array(res.force_ref),
+        "theta": np.array([d, h, E]),
+        "delta": np.array(res.delta),
+        "seconds": np.array(res.seconds),
+    }

@@ -38,8 +38,11 @@ def _solve_at(model, E_inc: float, p: SolveParams):
     limit = delta_limit(p)
 
     def too_far(d: float) -> UserError:
-        return UserError("force", f"{ld.force:g} mN needs a plate travel of about {d:.3g} mm; at most "
-                                  f"{limit:g} mm is allowed (the same limit as --delta)")
+        return UserError(
+            "force",
+            f"{ld.force:g} mN needs a plate travel of about {d:.3g} mm; at most "
+            f"{limit:g} mm is allowed (the same limit as --delta)",
+        )
 
     if not (np.isfinite(force) and force > 0):
         raise SolverError(f"force control: the plate force at delta = {delta:g} mm is {force:g} mN")
@@ -124,20 +127,35 @@ def _solve(params: SolveParams, vtx_path: str | None = None) -> SolveResult:
         w, w_ref = mirror_quarter(w), mirror_quarter(w_ref)
     if p.disc.interface == "tied" and diag["tension_patch_fraction"] > 0:
         import warnings
-        warnings.warn(f"tied interface carries tension on {100 * diag['tension_patch_fraction']:.2g} % of the "
-                      f"footprint patches for {tag}: the probe would lift off there; use interface='contact'",
-                      RuntimeWarning, stacklevel=2)
+
+        warnings.warn(
+            f"tied interface carries tension on {100 * diag['tension_patch_fraction']:.2g} % of the "
+            f"footprint patches for {tag}: the probe would lift off there; use interface='contact'",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     diff = w - w_ref
     O1, O2, O3 = features(diff, p.image.pixel, p.image.threshold, p.image.supersample)
     timings = dict(model.timings)
     timings["mesh"] = raw.seconds
     seconds = time.perf_counter() - t0
     return SolveResult(
-        params=p, O1=O1, O2=O2, O3=O3, force=force, force_ref=force_ref, delta=delta,
-        image=diff.astype(np.float32), image_raw=w.astype(np.float32), pixel=p.image.pixel,
-        ndofs=model.ndofs, ncells=model.ncells,
-        newton_iterations=sol.iterations + sol_ref.iterations, seconds=seconds,
-        timings={k: round(v, 4) for k, v in timings.items()}, peak_memory_mb=_peak_mb(),
+        params=p,
+        O1=O1,
+        O2=O2,
+        O3=O3,
+        force=force,
+        force_ref=force_ref,
+        delta=delta,
+        image=diff.astype(np.float32),
+        image_raw=w.astype(np.float32),
+        pixel=p.image.pixel,
+        ndofs=model.ndofs,
+        ncells=model.ncells,
+        newton_iterations=sol.iterations + sol_ref.iterations,
+        seconds=seconds,
+        timings={k: round(v, 4) for k, v in timings.items()},
+        peak_memory_mb=_peak_mb(),
         interface={**diag, "reference_tension_patch_fraction": diag_ref["tension_patch_fraction"]},
     )
 

@@ -16,6 +16,7 @@ def _layers(text: str | None):
     if text is None:
         return Probe().layers
     from elastimap.errors import UserError
+
     try:
         out = tuple(tuple(float(v) for v in part.split(":")) for part in text.split(","))
     except ValueError:
@@ -44,34 +45,82 @@ def _check_outputs(image_png: str | None, image_npy: str | None, vtx: str | None
 @param_flags({"probe.layer*": "--layers"})
 @click.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--d", "d", type=float, default=8.0, show_default=True, help="Inclusion diameter (mm).")
-@click.option("--h", "h", type=float, default=7.0, show_default=True,
-              help="Depth of the inclusion centre below the tissue surface (mm); the sphere must stay >= 1 mm "
-                   "below the surface and >= 2 mm above the chest wall.")
+@click.option(
+    "--h",
+    "h",
+    type=float,
+    default=7.0,
+    show_default=True,
+    help="Depth of the inclusion centre below the tissue surface (mm); the sphere must stay >= 1 mm "
+    "below the surface and >= 2 mm above the chest wall.",
+)
 @click.option("--E", "E", type=float, default=50.0, show_default=True, help="Inclusion Young's modulus (kPa).")
 @mesh_option()
-@click.option("--interface", type=Choice(INTERFACES), default="tied", show_default=True,
-              help="Probe-tissue interface: tied = frictionless closed (normal tied, tangentially free); "
-                   "contact = frictionless unilateral contact (active set); bonded = glued (comparison only).")
+@click.option(
+    "--interface",
+    type=Choice(INTERFACES),
+    default="tied",
+    show_default=True,
+    help="Probe-tissue interface: tied = frictionless closed (normal tied, tangentially free); "
+    "contact = frictionless unilateral contact (active set); bonded = glued (comparison only).",
+)
 @click.option("--full", is_flag=True, help="Full model instead of the quarter-symmetry model.")
 @click.option("--delta", type=float, default=3.0, show_default=True, help="Plate indentation (mm).")
 @click.option("--force", type=float, default=None, help="Prescribe the total plate force (mN) instead of --delta.")
 @click.option("--tissue-E", "tissue_E", type=float, default=5.0, show_default=True, help="Tissue modulus (kPa).")
 @click.option("--thickness", type=float, default=THICKNESS, show_default=True, help="Tissue thickness (mm).")
 @click.option("--nu", type=float, default=0.49, show_default=True, help="Poisson ratio of tissue, inclusion and probe.")
-@click.option("--layers", default=None, help="Probe layers THICK:E,... (mm:kPa) from the tissue side "
-                                             "[default: 2:300,3:150,5:50].")
+@click.option(
+    "--layers", default=None, help="Probe layers THICK:E,... (mm:kPa) from the tissue side [default: 2:300,3:150,5:50]."
+)
 @click.option("--pixel", type=float, default=0.5, show_default=True, help="Image pixel size (mm).")
-@click.option("--threshold", type=float, default=1e-3, show_default=True, help="O3 threshold on the difference image (mm).")
-@click.option("--degree", type=click.IntRange(1, 2), default=2, show_default=True, help="Lagrange degree (P1 locks at nu=0.49).")
+@click.option(
+    "--threshold", type=float, default=1e-3, show_default=True, help="O3 threshold on the difference image (mm)."
+)
+@click.option(
+    "--degree", type=click.IntRange(1, 2), default=2, show_default=True, help="Lagrange degree (P1 locks at nu=0.49)."
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (features, force, ndofs, seconds, ...).")
-@click.option("--image", "image_png", type=click.Path(dir_okay=False, writable=True), default=None,
-              help="Write a PNG of the difference elasticity image (and the raw deflection) with colour bars.")
-@click.option("--image-npy", type=click.Path(dir_okay=False, writable=True), default=None,
-              help="Write the difference image as a .npy array (mm).")
-@click.option("--vtx", type=click.Path(file_okay=True, dir_okay=True), default=None,
-              help="Write the displacement field of the inclusion solve for ParaView (ADIOS2 .bp folder).")
-def command(d, h, E, mesh, interface, full, delta, force, tissue_E, thickness, nu, layers, pixel, threshold, degree,
-            as_json, image_png, image_npy, vtx):
+@click.option(
+    "--image",
+    "image_png",
+    type=click.Path(dir_okay=False, writable=True),
+    default=None,
+    help="Write a PNG of the difference elasticity image (and the raw deflection) with colour bars.",
+)
+@click.option(
+    "--image-npy",
+    type=click.Path(dir_okay=False, writable=True),
+    default=None,
+    help="Write the difference image as a .npy array (mm).",
+)
+@click.option(
+    "--vtx",
+    type=click.Path(file_okay=True, dir_okay=True),
+    default=None,
+    help="Write the displacement field of the inclusion solve for ParaView (ADIOS2 .bp folder).",
+)
+def command(
+    d,
+    h,
+    E,
+    mesh,
+    interface,
+    full,
+    delta,
+    force,
+    tissue_E,
+    thickness,
+    nu,
+    layers,
+    pixel,
+    threshold,
+    degree,
+    as_json,
+    image_png,
+    image_npy,
+    vtx,
+):
     """Simulate the sensor pressing tissue that holds a stiff spherical inclusion.
 
     Runs the inclusion solve and a reference solve (inclusion modulus set to the
@@ -94,6 +143,7 @@ def command(d, h, E, mesh, interface, full, delta, force, tissue_E, thickness, n
 
     if vtx:
         from .api import solve_with_fields
+
         res = solve_with_fields(p, vtx)
     else:
         res = solve(p)
@@ -101,25 +151,36 @@ def command(d, h, E, mesh, interface, full, delta, force, tissue_E, thickness, n
 
     if image_npy:  # the array first: if the PNG then fails, the numbers are already safe
         import numpy as np
+
         write_or_fallback(lambda f: np.save(f, res.image), image_npy, "--image-npy")
     if image_png:
         from .plot import save_image_png
-        title = (f"difference image d={d:g} mm h={h:g} mm E={E:g} kPa\n"
-                 f"O1={res.O1:.4g} mm O2={res.O2:.4g} mm O3={res.O3:.4g} mm²")
-        write_or_fallback(lambda f: save_image_png(f, res.image, res.pixel, title, raw=res.image_raw),
-                          image_png, "--image")
+
+        title = (
+            f"difference image d={d:g} mm h={h:g} mm E={E:g} kPa\n"
+            f"O1={res.O1:.4g} mm O2={res.O2:.4g} mm O3={res.O3:.4g} mm²"
+        )
+        write_or_fallback(
+            lambda f: save_image_png(f, res.image, res.pixel, title, raw=res.image_raw), image_png, "--image"
+        )
     if as_json:
         click.echo(json.dumps(res.summary()))
     else:
         s = res.summary()
-        click.echo(f"d = {d:g} mm, h = {h:g} mm, E = {E:g} kPa  ({mesh} mesh, {interface} interface, "
-                   f"{'full' if full else 'quarter'} model, {res.ndofs} dofs)")
+        click.echo(
+            f"d = {d:g} mm, h = {h:g} mm, E = {E:g} kPa  ({mesh} mesh, {interface} interface, "
+            f"{'full' if full else 'quarter'} model, {res.ndofs} dofs)"
+        )
         click.echo(f"O1 = {res.O1:.6g} mm   O2 = {res.O2:.6g} mm   O3 = {res.O3:.6g} mm^2")
         click.echo(f"plate force = {res.force:.6g} mN (reference {res.force_ref:.6g} mN) at delta = {res.delta:.6g} mm")
-        click.echo(f"interface: min patch tension fraction {s['interface_check']['tension_patch_fraction']:.3g}, "
-                   f"open pairs {s['interface_check']['open_pair_fraction']:.3g}")
-        click.echo(f"{res.seconds:.2f} s, peak memory {res.peak_memory_mb:.0f} MiB; " +
-                   ", ".join(f"{k} {v:.2f}s" for k, v in res.timings.items()))
+        click.echo(
+            f"interface: min patch tension fraction {s['interface_check']['tension_patch_fraction']:.3g}, "
+            f"open pairs {s['interface_check']['open_pair_fraction']:.3g}"
+        )
+        click.echo(
+            f"{res.seconds:.2f} s, peak memory {res.peak_memory_mb:.0f} MiB; "
+            + ", ".join(f"{k} {v:.2f}s" for k, v in res.timings.items())
+        )
     return 0
 
 

@@ -129,8 +129,9 @@ class Model:
         self._tick("post", t)
         return Solution(u=u, reaction=r, iterations=1)
 
-    def solve_nonlinear(self, E_inclusion: float, delta: float, active: np.ndarray | None = None,
-                        rtol: float = 1e-9, max_iter: int = 30) -> Solution:
+    def solve_nonlinear(
+        self, E_inclusion: float, delta: float, active: np.ndarray | None = None, rtol: float = 1e-9, max_iter: int = 30
+    ) -> Solution:
         """Finite-strain tissue: Newton (:mod:`elastimap.solver.newton`) from the linear solution."""
         active = self._all_closed() if active is None else active
         lin = self.solve_linear(E_inclusion, delta, active)
@@ -152,8 +153,12 @@ class Model:
         if self.p.disc.interface == "contact":
             sol, active, its = active_set(
                 lambda act: self._solve_once(E_inclusion, delta, act),
-                lambda s: itf.patch_force(s.reaction), lambda s: itf.gap(s.u),
-                self._all_closed(), gap_tol=1e-9 * delta, max_iter=max_iter)
+                lambda s: itf.patch_force(s.reaction),
+                lambda s: itf.gap(s.u),
+                self._all_closed(),
+                gap_tol=1e-9 * delta,
+                max_iter=max_iter,
+            )
         else:
             active = self._all_closed()
             sol = self._solve_once(E_inclusion, delta, active)

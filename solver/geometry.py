@@ -140,7 +140,10 @@ def build_mesh(p: SolveParams) -> RawMesh:
                     if quarter:
                         # the centre of mass of a quarter sphere is off-centre but inside it
                         pass
-                    if float(np.sum(rel ** 2)) < 1.0 and occ.getMass(dim, tag) < 1.01 * (4 / 3) * math.pi * r ** 3 * inc.aspect:
+                    if (
+                        float(np.sum(rel**2)) < 1.0
+                        and occ.getMass(dim, tag) < 1.01 * (4 / 3) * math.pi * r**3 * inc.aspect
+                    ):
                         vol_marker[tag] = INCLUSION
                     elif p.tissue.skin_thickness > 0 and c[2] > T - p.tissue.skin_thickness:
                         vol_marker[tag] = SKIN

@@ -85,17 +85,19 @@ def _block_mesh(L: float, H: float, a: float, h_fine: float, h_max: float, gradi
     finally:
         gmsh.finalize()
     import basix.ufl
+
     coord_el = ufl.Mesh(basix.ufl.element("Lagrange", "tetrahedron", 1, shape=(3,)))
     return dmesh.create_mesh(MPI.COMM_SELF, cells, coord_el, x)
 
 
-def hertz(R: float = 20.0, delta: float = 0.2, E: float = 10.0, nu: float = 0.3, *,
-          level: str = "verify") -> HertzResult:
+def hertz(
+    R: float = 20.0, delta: float = 0.2, E: float = 10.0, nu: float = 0.3, *, level: str = "verify"
+) -> HertzResult:
     """Press a rigid sphere into a block and compare force and contact radius with Hertz."""
     t0 = time.perf_counter()
     a_h = math.sqrt(R * delta)
-    Estar = E / (1 - nu ** 2)
-    F_h = 4.0 / 3.0 * Estar * math.sqrt(R) * delta ** 1.5
+    Estar = E / (1 - nu**2)
+    F_h = 4.0 / 3.0 * Estar * math.sqrt(R) * delta**1.5
     L = H = 40 * a_h
     h_fine = {"test": 0.12, "verify": 0.055}[level] * a_h
     msh = _block_mesh(L, H, a_h, h_fine, h_max=6.0 * a_h, grading=0.4)
@@ -110,9 +112,9 @@ def hertz(R: float = 20.0, delta: float = 0.2, E: float = 10.0, nu: float = 0.3,
     x, y, z = X[:, 0], X[:, 1], X[:, 2]
     top = np.flatnonzero(np.abs(z - H) < tol)
     r_top = np.hypot(x[top], y[top])
-    cand = r_top < 2.0 * a_h            # nodes that may touch
+    cand = r_top < 2.0 * a_h  # nodes that may touch
     top, r_top = top[cand], r_top[cand]
-    g0 = r_top ** 2 / (2 * R)  # paraboloid, as in Hertz theory
+    g0 = r_top**2 / (2 * R)  # paraboloid, as in Hertz theory
     fixed_base = np.zeros(n, dtype=bool)
     fixed_base[3 * np.flatnonzero(np.abs(z) < tol)[:, None] + np.arange(3)] = True
     fixed_base[3 * np.flatnonzero(np.abs(x) < tol)] = True
@@ -121,7 +123,9 @@ def hertz(R: float = 20.0, delta: float = 0.2, E: float = 10.0, nu: float = 0.3,
     # patch incidence on the top face (nodes sharing a facet) from a surface mass matrix
     fdim = 2
     msh.topology.create_connectivity(fdim, 3)
-    facets = dmesh.locate_entities_boundary(msh, fdim, lambda xx: (np.abs(xx[2] - H) < tol) & (np.hypot(xx[0], xx[1]) < 2.2 * a_h))
+    facets = dmesh.locate_entities_boundary(
+        msh, fdim, lambda xx: (np.abs(xx[2] - H) < tol) & (np.hypot(xx[0], xx[1]) < 2.2 * a_h)
+    )
     ft = dmesh.meshtags(msh, fdim, np.sort(facets), np.ones(len(facets), dtype=np.int32))
     ds = ufl.Measure("ds", domain=msh, subdomain_data=ft)
     M = fpetsc.assemble_matrix(fem.form(u[2] * v[2] * ds(1)))
@@ -143,8 +147,11 @@ def hertz(R: float = 20.0, delta: float = 0.2, E: float = 10.0, nu: float = 0.3,
         uD[idx] = g0[active] - delta
         free = np.flatnonzero(~fixed)
         P = sp.csr_matrix((np.ones(len(free)), (free, np.arange(len(free)))), shape=(n, len(free)))
-        Pm = PETSc.Mat().createAIJ(size=P.shape, csr=(P.indptr.astype(PETSc.IntType), P.indices.astype(PETSc.IntType), P.data),
-                                   comm=MPI.COMM_SELF)
+        Pm = PETSc.Mat().createAIJ(
+            size=P.shape,
+            csr=(P.indptr.astype(PETSc.IntType), P.indices.astype(PETSc.IntType), P.data),
+            comm=MPI.COMM_SELF,
+        )
         Pm.assemble()
         K = A.ptap(Pm)
         rhs = -(P.T @ (_mult(A, uD)))
@@ -169,8 +176,15 @@ def hertz(R: float = 20.0, delta: float = 0.2, E: float = 10.0, nu: float = 0.3,
     r_in = r_top[active].max()
     r_out = r_top[~active & (r_top > r_in)].min()
     ksp.destroy(), A.destroy()
-    return HertzResult(force=F, force_hertz=F_h, radius=0.5 * (r_in + r_out), radius_hertz=a_h,
-                       ndofs=n, iterations=its, seconds=time.perf_counter() - t0)
+    return HertzResult(
+        force=F,
+        force_hertz=F_h,
+        radius=0.5 * (r_in + r_out),
+        radius_hertz=a_h,
+        ndofs=n,
+        iterations=its,
+        seconds=time.perf_counter() - t0,
+    )
 
 
 def _mult(A, x: np.ndarray) -> np.ndarray:

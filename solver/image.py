@@ -28,9 +28,11 @@ def upsample_bilinear(img: np.ndarray, factor: int) -> np.ndarray:
     if factor == 1:
         return img
     ny, nx = img.shape
+
     def coords(n):
-        c = (np.arange(n * factor) + 0.5) / factor - 0.5   # sub-cell centre in pixel-index units
+        c = (np.arange(n * factor) + 0.5) / factor - 0.5  # sub-cell centre in pixel-index units
         return np.clip(c, 0, n - 1)
+
     cy, cx = coords(ny), coords(nx)
     y0 = np.minimum(np.floor(cy).astype(int), ny - 2) if ny > 1 else np.zeros_like(cy, dtype=int)
     x0 = np.minimum(np.floor(cx).astype(int), nx - 2) if nx > 1 else np.zeros_like(cx, dtype=int)
@@ -45,7 +47,9 @@ def upsample_bilinear(img: np.ndarray, factor: int) -> np.ndarray:
     return (1 - ty) * ((1 - tx) * a + tx * b) + ty * ((1 - tx) * c + tx * d)
 
 
-def features(img: np.ndarray, pixel: float, threshold: float = 1e-3, supersample: int = 8) -> tuple[float, float, float]:
+def features(
+    img: np.ndarray, pixel: float, threshold: float = 1e-3, supersample: int = 8
+) -> tuple[float, float, float]:
     """Return (O1 mm, O2 mm, O3 mm^2) of an elasticity image with square pixels of ``pixel`` mm."""
     img = np.asarray(img, dtype=float)
     if img.ndim != 2 or img.size == 0:

@@ -163,9 +163,13 @@ class Friction:
         Mact = (D @ itf.M_gamma @ D).tocsr()
         S = sp.csr_matrix((n, n))
         for comp in (0, 1):
-            B = sp.csr_matrix((np.r_[np.ones(m), -np.ones(m)],
-                               (np.r_[np.arange(m), np.arange(m)],
-                                np.r_[3 * itf.pair_probe + comp, 3 * itf.pair_tissue + comp])), shape=(m, n))
+            B = sp.csr_matrix(
+                (
+                    np.r_[np.ones(m), -np.ones(m)],
+                    (np.r_[np.arange(m), np.arange(m)], np.r_[3 * itf.pair_probe + comp, 3 * itf.pair_tissue + comp]),
+                ),
+                shape=(m, n),
+            )
             S = S + B.T @ Mact @ B
         return (self.kt * S).tocsr()
 
@@ -178,9 +182,11 @@ class Friction:
             Sr.sort_indices()
             if self._cached is not None:
                 self._cached[1].destroy()
-            Sm = PETSc.Mat().createAIJ(size=Sr.shape, csr=(Sr.indptr.astype(PETSc.IntType),
-                                                            Sr.indices.astype(PETSc.IntType), Sr.data),
-                                       comm=MPI.COMM_SELF)
+            Sm = PETSc.Mat().createAIJ(
+                size=Sr.shape,
+                csr=(Sr.indptr.astype(PETSc.IntType), Sr.indices.astype(PETSc.IntType), Sr.data),
+                comm=MPI.COMM_SELF,
+            )
             Sm.assemble()
             self._cached = (S, Sm)
             self._key = key
@@ -192,8 +198,9 @@ class Friction:
             self._cached = None
 
 
-def active_set(solve_with, patch_force, gap, active0: np.ndarray, *, gap_tol: float,
-               force_tol: float = 1e-6, max_iter: int = 30):
+def active_set(
+    solve_with, patch_force, gap, active0: np.ndarray, *, gap_tol: float, force_tol: float = 1e-6, max_iter: int = 30
+):
     r"""Primal–dual active-set iteration for frictionless unilateral contact at node pairs.
 
     ``solve_with(active)`` solves with the ``active`` nodes closed (normal

@@ -76,7 +76,7 @@ def psi_neo_hookean(u, E, nu):
     F = ufl.Identity(len(u)) + ufl.grad(u)
     Ic = ufl.tr(F.T * F)
     lnJ = ufl.ln(ufl.det(F))
-    return 0.5 * mu * (Ic - 3) - mu * lnJ + 0.5 * lmbda * lnJ ** 2
+    return 0.5 * mu * (Ic - 3) - mu * lnJ + 0.5 * lmbda * lnJ**2
 
 
 def psi_blended(u, E, nu, beta):

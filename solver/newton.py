@@ -76,9 +76,16 @@ class Newton:
             self._KJ.axpy(1.0, Sm, structure=PETSc.Mat.Structure.DIFFERENT_NONZERO_PATTERN)
         return self._KJ, new_pattern
 
-    def solve(self, predictor: Solution, Pm: PETSc.Mat, Psp: sp.csr_matrix, key: bytes,
-              friction: tuple[sp.csr_matrix, PETSc.Mat] | None = None,
-              rtol: float = 1e-9, max_iter: int = 30) -> Solution:
+    def solve(
+        self,
+        predictor: Solution,
+        Pm: PETSc.Mat,
+        Psp: sp.csr_matrix,
+        key: bytes,
+        friction: tuple[sp.csr_matrix, PETSc.Mat] | None = None,
+        rtol: float = 1e-9,
+        max_iter: int = 30,
+    ) -> Solution:
         """Converge from the linear ``predictor`` (same P, same active set ``key``).
 
         Converged when ‖Pᵀ(R + S u)‖ falls below ``rtol`` times the norm of the
@@ -122,8 +129,9 @@ class Newton:
             if _DEBUG:
                 print(f"newton {its}: step {step:g} |g|/scale {gnorm / scale:.3e}")
         else:
-            raise SolverError(f"Newton did not converge in {max_iter} iterations "
-                              f"(residual {gnorm:.3g}, scale {scale:.3g})")
+            raise SolverError(
+                f"Newton did not converge in {max_iter} iterations (residual {gnorm:.3g}, scale {scale:.3g})"
+            )
         if not np.all(np.isfinite(u)):
             raise SolverError("the Newton solve produced non-finite displacements")
         return Solution(u=u, reaction=r, iterations=its)

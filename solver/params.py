@@ -62,12 +62,12 @@ PARAMETER_CONSTRAINTS = {
 class Tissue:
     """Tissue slab on a rigid chest wall (bottom face fixed)."""
 
-    size: float = 120.0        # mm, square side length
+    size: float = 120.0  # mm, square side length
     thickness: float = THICKNESS  # mm
-    E: float = 5.0             # kPa
+    E: float = 5.0  # kPa
     nu: float = 0.49
     skin_thickness: float = 0.0  # mm; > 0 adds a bonded skin layer of modulus skin_E (effect switch)
-    skin_E: float = 5.0          # kPa
+    skin_E: float = 5.0  # kPa
     # effect switch: 0 = linear elastic (default); 1 = compressible neo-Hookean finite strain for
     # the tissue, skin and inclusion; in between the stored energy is blended (solver/materials.py)
     nonlinearity: float = 0.0
@@ -83,9 +83,9 @@ class Inclusion:
     probe axis (breaks quarter symmetry: needs ``symmetry='full'``).
     """
 
-    d: float = 8.0     # mm
-    h: float = 7.0     # mm, centre depth below the surface
-    E: float = 50.0    # kPa
+    d: float = 8.0  # mm
+    h: float = 7.0  # mm, centre depth below the surface
+    E: float = 50.0  # kPa
     nu: float = 0.49
     aspect: float = 1.0
     offset_x: float = 0.0  # mm
@@ -143,8 +143,8 @@ class ImageSpec:
     (bilinear, ``supersample``x) resolution so that it varies smoothly.
     """
 
-    pixel: float = 0.5         # mm
-    threshold: float = 1e-3    # mm
+    pixel: float = 0.5  # mm
+    threshold: float = 1e-3  # mm
     supersample: int = 8
 
 
@@ -194,12 +194,27 @@ class SolveParams:
     def _named_values(self) -> dict:
         """Every parameter under the name errors report it by (the keys of ``PARAMETER_CONSTRAINTS``)."""
         t, inc, p, ld, ds, im = self.tissue, self.inclusion, self.probe, self.loading, self.disc, self.image
-        return {"tissue.size": t.size, "tissue.thickness": t.thickness, "tissue.E": t.E, "tissue.nu": t.nu,
-                "tissue.skin_E": t.skin_E, "tissue.nonlinearity": t.nonlinearity,
-                "d": inc.d, "E": inc.E, "inclusion.nu": inc.nu, "inclusion.aspect": inc.aspect,
-                "probe.nu": p.nu, "force": ld.force,
-                "mesh": ds.mesh, "degree": ds.degree, "interface": ds.interface, "friction_kt": ds.friction_kt,
-                "symmetry": ds.symmetry, "threshold": im.threshold, "supersample": im.supersample}
+        return {
+            "tissue.size": t.size,
+            "tissue.thickness": t.thickness,
+            "tissue.E": t.E,
+            "tissue.nu": t.nu,
+            "tissue.skin_E": t.skin_E,
+            "tissue.nonlinearity": t.nonlinearity,
+            "d": inc.d,
+            "E": inc.E,
+            "inclusion.nu": inc.nu,
+            "inclusion.aspect": inc.aspect,
+            "probe.nu": p.nu,
+            "force": ld.force,
+            "mesh": ds.mesh,
+            "degree": ds.degree,
+            "interface": ds.interface,
+            "friction_kt": ds.friction_kt,
+            "symmetry": ds.symmetry,
+            "threshold": im.threshold,
+            "supersample": im.supersample,
+        }
 
     def validate(self) -> SolveParams:
         """Raise :class:`UserError` naming the first bad parameter; return self.
@@ -216,21 +231,32 @@ class SolveParams:
         lo, hi = depth_range(inc.d, t.thickness, inc.aspect)
         if not (lo <= inc.h <= hi):
             if lo > hi:
-                raise UserError("d", f"an inclusion of diameter {inc.d:g} mm (vertical semi-axis {half_height:g} mm) "
-                                     f"does not fit in a {t.thickness:g} mm slab with 1 mm cover and 2 mm above the chest wall")
-            raise UserError("h", f"centre depth must be in [{lo:g}, {hi:g}] mm for d = {inc.d:g} mm "
-                                 f"(>= 1 mm below the surface, >= 2 mm above the chest wall; got {inc.h:g})")
+                raise UserError(
+                    "d",
+                    f"an inclusion of diameter {inc.d:g} mm (vertical semi-axis {half_height:g} mm) "
+                    f"does not fit in a {t.thickness:g} mm slab with 1 mm cover and 2 mm above the chest wall",
+                )
+            raise UserError(
+                "h",
+                f"centre depth must be in [{lo:g}, {hi:g}] mm for d = {inc.d:g} mm "
+                f"(>= 1 mm below the surface, >= 2 mm above the chest wall; got {inc.h:g})",
+            )
         if inc.h - half_height < t.skin_thickness:
             raise UserError("h", "the inclusion must lie below the skin layer")
         reach = max(abs(inc.offset_x), abs(inc.offset_y)) + inc.d / 2
         if reach > t.size / 2 - 5:
-            raise UserError("inclusion.offset", f"the inclusion must stay >= 5 mm inside the slab (|offset| + d/2 <= {t.size / 2 - 5:g} mm)")
+            raise UserError(
+                "inclusion.offset",
+                f"the inclusion must stay >= 5 mm inside the slab (|offset| + d/2 <= {t.size / 2 - 5:g} mm)",
+            )
         check_range("probe.size", p.size, 0, t.size, lo_open=True, unit="mm")
         if len(p.layers) < 1:
             raise UserError("probe.layers", "at least one (thickness, E) layer is required")
         for i, (th, E) in enumerate(p.layers, 1):
-            validate_params({f"probe.layer{i}.thickness": th, f"probe.layer{i}.E": E},
-                            {f"probe.layer{i}.thickness": [_POSITIVE_MM], f"probe.layer{i}.E": [_POSITIVE_KPA]})
+            validate_params(
+                {f"probe.layer{i}.thickness": th, f"probe.layer{i}.E": E},
+                {f"probe.layer{i}.thickness": [_POSITIVE_MM], f"probe.layer{i}.E": [_POSITIVE_KPA]},
+            )
         if ld.force is None:
             check_range("delta", ld.delta, 0, delta_limit(self), lo_open=True, unit="mm")
         if ds.symmetry == "quarter" and (inc.offset_x != 0 or inc.offset_y != 0):
@@ -238,19 +264,29 @@ class SolveParams:
         check_range("pixel", im.pixel, 0, p.size / 4, lo_open=True, unit="mm")
         n = p.size / im.pixel
         if abs(n - round(n)) > 1e-9:
-            raise UserError("pixel", f"must divide the probe size {p.size:g} mm into a whole number of pixels (got {im.pixel:g})")
+            raise UserError(
+                "pixel", f"must divide the probe size {p.size:g} mm into a whole number of pixels (got {im.pixel:g})"
+            )
         if ds.symmetry == "quarter" and round(n) % 2:
             raise UserError("pixel", "the quarter model needs an even number of pixels across the probe")
         # geometry the mesh and the image can resolve in reasonable time and memory
         if t.thickness > t.size:
-            raise UserError("tissue.thickness", f"must be <= the slab size {t.size:g} mm (got {t.thickness:g} mm); "
-                                                "a thicker slab would need an unreasonable mesh")
+            raise UserError(
+                "tissue.thickness",
+                f"must be <= the slab size {t.size:g} mm (got {t.thickness:g} mm); "
+                "a thicker slab would need an unreasonable mesh",
+            )
         if p.height > t.size / 2:
-            raise UserError("probe.layers", f"the probe layers add up to {p.height:g} mm; at most {t.size / 2:g} mm "
-                                            "(half the slab size) can be meshed in reasonable time")
+            raise UserError(
+                "probe.layers",
+                f"the probe layers add up to {p.height:g} mm; at most {t.size / 2:g} mm "
+                "(half the slab size) can be meshed in reasonable time",
+            )
         if round(n) > MAX_PIXELS:
-            raise UserError("pixel", f"gives {round(n)} pixels across the probe; at most {MAX_PIXELS} "
-                                     f"(pixel >= {p.size / MAX_PIXELS:g} mm)")
+            raise UserError(
+                "pixel",
+                f"gives {round(n)} pixels across the probe; at most {MAX_PIXELS} (pixel >= {p.size / MAX_PIXELS:g} mm)",
+            )
         return self
 
 
@@ -268,8 +304,9 @@ def delta_limit(params: SolveParams) -> float:
 EFFECT_DEFAULTS = {("tissue", "nonlinearity"): 0.0, ("disc", "friction_kt"): 0.0}
 
 
-def depth_range(d: float, thickness: float = THICKNESS, aspect: float = 1.0,
-                cover: float = 1.0, floor: float = 2.0) -> tuple[float, float]:
+def depth_range(
+    d: float, thickness: float = THICKNESS, aspect: float = 1.0, cover: float = 1.0, floor: float = 2.0
+) -> tuple[float, float]:
     """Allowed centre depths (mm) keeping ``cover`` mm above and ``floor`` mm below the inclusion."""
     half = aspect * d / 2
     return cover + half, thickness - floor - half
@@ -287,18 +324,18 @@ class SolveResult:
     """
 
     params: SolveParams
-    O1: float                  # mm, maximum of the difference image
-    O2: float                  # mm, sum over pixels of the difference image
-    O3: float                  # mm^2, area where the difference image exceeds the threshold
-    force: float               # mN, total plate reaction with the inclusion (full probe)
-    force_ref: float           # mN, same for the reference solve
-    delta: float               # mm, indentation actually applied
+    O1: float  # mm, maximum of the difference image
+    O2: float  # mm, sum over pixels of the difference image
+    O3: float  # mm^2, area where the difference image exceeds the threshold
+    force: float  # mN, total plate reaction with the inclusion (full probe)
+    force_ref: float  # mN, same for the reference solve
+    delta: float  # mm, indentation actually applied
     image: np.ndarray
     image_raw: np.ndarray
     pixel: float
     ndofs: int
     ncells: int
-    newton_iterations: int     # active-set / Newton iterations summed over both solves (1 per linear solve)
+    newton_iterations: int  # active-set / Newton iterations summed over both solves (1 per linear solve)
     seconds: float
     timings: dict[str, float]
     peak_memory_mb: float
@@ -310,14 +347,29 @@ class SolveResult:
     def summary(self) -> dict:
         """JSON-ready summary (no arrays)."""
         inc = self.params.inclusion
-        out = {"d": inc.d, "h": inc.h, "E": inc.E, "O1": self.O1, "O2": self.O2, "O3": self.O3,
-               "force": self.force, "force_ref": self.force_ref, "delta": self.delta,
-               "ndofs": self.ndofs, "ncells": self.ncells, "newton_iterations": self.newton_iterations,
-               "seconds": self.seconds, "peak_memory_mb": self.peak_memory_mb,
-               "mesh": self.params.disc.mesh, "interface": self.params.disc.interface,
-               "symmetry": self.params.disc.symmetry, "pixel": self.pixel,
-               "image_shape": list(self.image.shape), "timings": self.timings,
-               "interface_check": self.interface}
+        out = {
+            "d": inc.d,
+            "h": inc.h,
+            "E": inc.E,
+            "O1": self.O1,
+            "O2": self.O2,
+            "O3": self.O3,
+            "force": self.force,
+            "force_ref": self.force_ref,
+            "delta": self.delta,
+            "ndofs": self.ndofs,
+            "ncells": self.ncells,
+            "newton_iterations": self.newton_iterations,
+            "seconds": self.seconds,
+            "peak_memory_mb": self.peak_memory_mb,
+            "mesh": self.params.disc.mesh,
+            "interface": self.params.disc.interface,
+            "symmetry": self.params.disc.symmetry,
+            "pixel": self.pixel,
+            "image_shape": list(self.image.shape),
+            "timings": self.timings,
+            "interface_check": self.interface,
+        }
         return {k: (float(v) if isinstance(v, (np.floating,)) else v) for k, v in out.items()}
 
 

@@ -5,8 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 
-def save_image_png(path: str, img: np.ndarray, pixel: float, title: str, label: str = "deflection difference (mm)",
-                   raw: np.ndarray | None = None) -> None:
+def save_image_png(
+    path: str,
+    img: np.ndarray,
+    pixel: float,
+    title: str,
+    label: str = "deflection difference (mm)",
+    raw: np.ndarray | None = None,
+) -> None:
     import matplotlib
 
     matplotlib.use("Agg")

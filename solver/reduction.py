@@ -40,9 +40,9 @@ from .space import Space
 
 @dataclass
 class Solution:
-    u: np.ndarray          # all nodal values (mm), flat (3 per node)
-    reaction: np.ndarray   # internal nodal force r (mN), flat: A u (linear) or R(u) (finite strain)
-    iterations: int        # linear solves (or active-set iterations) that produced it
+    u: np.ndarray  # all nodal values (mm), flat (3 per node)
+    reaction: np.ndarray  # internal nodal force r (mN), flat: A u (linear) or R(u) (finite strain)
+    iterations: int  # linear solves (or active-set iterations) that produced it
 
 
 class Reduction:
@@ -96,16 +96,25 @@ class Reduction:
         Pcsr = sp.csr_matrix((np.ones(len(rows)), (rows, col[rows])), shape=(n, nfree))
         if self._P is not None:
             self._P.destroy()
-        self._P = PETSc.Mat().createAIJ(size=(n, nfree), csr=(Pcsr.indptr.astype(PETSc.IntType),
-                                                              Pcsr.indices.astype(PETSc.IntType), Pcsr.data),
-                                        comm=MPI.COMM_SELF)
+        self._P = PETSc.Mat().createAIJ(
+            size=(n, nfree),
+            csr=(Pcsr.indptr.astype(PETSc.IntType), Pcsr.indices.astype(PETSc.IntType), Pcsr.data),
+            comm=MPI.COMM_SELF,
+        )
         self._P.assemble()
         self._Psp = Pcsr
         self._key = key
         return self._P, Pcsr, uD, True
 
-    def reduce(self, A: PETSc.Mat, Pm: PETSc.Mat, Psp: sp.csr_matrix, uD: np.ndarray, new_pattern: bool,
-               friction: tuple[sp.csr_matrix, PETSc.Mat] | None = None) -> tuple[PETSc.Mat, PETSc.Vec, bool]:
+    def reduce(
+        self,
+        A: PETSc.Mat,
+        Pm: PETSc.Mat,
+        Psp: sp.csr_matrix,
+        uD: np.ndarray,
+        new_pattern: bool,
+        friction: tuple[sp.csr_matrix, PETSc.Mat] | None = None,
+    ) -> tuple[PETSc.Mat, PETSc.Vec, bool]:
         r"""The reduced system $K = P^{T} (A + S) P$, $f = -P^{T} (A + S) u_D$ and whether K has a new pattern.
 
         K is kept between calls: with an unchanged active set and no friction only its

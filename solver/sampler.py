@@ -33,7 +33,7 @@ class ImageSampler:
         c = pixel_centres(space.P, p.image.pixel)
         if p.disc.symmetry == "quarter":
             c = c[c > 0]
-        gx, gy = np.meshgrid(c, c)   # rows = y, cols = x
+        gx, gy = np.meshgrid(c, c)  # rows = y, cols = x
         pts = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, space.T)])
         msh = space.mesh
         tree = geometry.bb_tree(msh, 3, entities=space.probe_cells)

@@ -60,31 +60,46 @@ def synthetic_solve(p: SolveParams) -> SolveResult:
     a = size / 2
     kprobe = probe.layers[0][1] / 300.0
     edge = np.exp(-(a - np.abs(X))) + np.exp(-(a - np.abs(Y)))
-    base = 0.08 * (delta / 3.0) * (1.0 + 0.8 * edge) * (1 - 0.2 * (X ** 2 + Y ** 2) / (2 * a * a)) / kprobe ** 0.5
+    base = 0.08 * (delta / 3.0) * (1.0 + 0.8 * edge) * (1 - 0.2 * (X**2 + Y**2) / (2 * a * a)) / kprobe**0.5
     beta, kt = t.nonlinearity, p.disc.friction_kt
     fk = kt / (kt + 0.3)
     skin = np.log(t.skin_E / t.E) if t.skin_thickness > 0 else 0.0
-    amp = (0.03 * (delta / 3.0) * (inc.d / 8.0) ** 2.2 * (8.0 / inc.h) ** 1.6
-           * (max(inc.E - t.E, 0.0) / 45.0) ** 0.6)
+    amp = 0.03 * (delta / 3.0) * (inc.d / 8.0) ** 2.2 * (8.0 / inc.h) ** 1.6 * (max(inc.E - t.E, 0.0) / 45.0) ** 0.6
     amp *= (1 + 0.5 * beta * inc.d / 8.0) * (1 + 0.06 * fk) * np.exp(-0.12 * skin * 8.0 / inc.h)
-    amp *= inc.aspect ** 0.9 * kprobe ** -0.35
+    amp *= inc.aspect**0.9 * kprobe**-0.35
     width = 0.35 * inc.d * (1.0 - 0.2 * np.log(inc.E / 50.0)) + 0.25 * inc.h
-    width *= (1 - 0.04 * beta) * (1 + 0.2 * fk) * (1 + 0.1 * skin) * inc.aspect ** 0.25 * kprobe ** 0.3
+    width *= (1 - 0.04 * beta) * (1 + 0.2 * fk) * (1 + 0.1 * skin) * inc.aspect**0.25 * kprobe**0.3
     prof = (1.0 + 0.12 * inc.h) * (1 + 0.1 * fk)
     R = np.sqrt((X - inc.offset_x) ** 2 + (Y - inc.offset_y) ** 2)
-    diff = amp * np.exp(-(R / width) ** prof)
+    diff = amp * np.exp(-((R / width) ** prof))
     o1, o2, o3 = features(diff, pixel, p.image.threshold, p.image.supersample)
     force = 1400.0 * (t.E / 5.0) ** 0.5 * (1 + 0.2 * beta) * (1 + 0.1 * fk)
-    return SolveResult(params=p, O1=o1, O2=o2, O3=o3, force=force, force_ref=force, delta=delta,
-                       image=diff, image_raw=base + diff, pixel=pixel, ndofs=0, ncells=0, newton_iterations=0,
-                       seconds=time.perf_counter() - t0, timings={}, peak_memory_mb=0.0)
+    return SolveResult(
+        params=p,
+        O1=o1,
+        O2=o2,
+        O3=o3,
+        force=force,
+        force_ref=force,
+        delta=delta,
+        image=diff,
+        image_raw=base + diff,
+        pixel=pixel,
+        ndofs=0,
+        ncells=0,
+        newton_iterations=0,
+        seconds=time.perf_counter() - t0,
+        timings={},
+        peak_memory_mb=0.0,
+    )
 
 
 synthetic_solve.solver_name = SOLVER_NAME
 
 
-def solve_dhe(d: float, h: float, E: float, *, tissue_E: float = 5.0, delta: float = 3.0,
-              supersample: int = 4) -> SolveResult:
+def solve_dhe(
+    d: float, h: float, E: float, *, tissue_E: float = 5.0, delta: float = 3.0, supersample: int = 4
+) -> SolveResult:
     """:func:`synthetic_solve` of the default setup with inclusion (d mm, h mm, E kPa), tissue modulus
     ``tissue_E`` kPa and indentation ``delta`` mm (the camera tests' shorthand)."""
     p = SolveParams(image=ImageSpec(supersample=supersample)).with_inclusion(d=float(d), h=float(h), E=float(E))
@@ -132,11 +147,17 @@ class SyntheticSolver:
         for item in filter(None, (s.strip() for s in rest.split(","))):
             key, eq, value = item.partition("=")
             if not eq or key not in ("seconds", "crash_d", "hang_d", "fail_d", "log"):
-                raise UserError("solver", f"unknown synthetic option {item!r} (known: seconds, crash_d, hang_d, "
-                                          "fail_d, log)")
+                raise UserError(
+                    "solver", f"unknown synthetic option {item!r} (known: seconds, crash_d, hang_d, fail_d, log)"
+                )
             try:
-                kw[key] = (value if key == "log" else float(value) if key == "seconds"
-                           else tuple(float(v) for v in value.split("|") if v))
+                kw[key] = (
+                    value
+                    if key == "log"
+                    else float(value)
+                    if key == "seconds"
+                    else tuple(float(v) for v in value.split("|") if v)
+                )
             except ValueError:
                 raise UserError("solver", f"{key}: not a number ({value!r})") from None
         return cls(**kw)
@@ -158,8 +179,9 @@ class SyntheticSolver:
         if any(abs(d - v) < 1e-9 for v in self.hang_d):
             time.sleep(3600)
         if any(abs(d - v) < 1e-9 for v in self.fail_d):
-            raise SyntheticSolverError(f"synthetic divergence for d={d:g} mm, h={p.inclusion.h:g} mm, "
-                                       f"E={p.inclusion.E:g} kPa")
+            raise SyntheticSolverError(
+                f"synthetic divergence for d={d:g} mm, h={p.inclusion.h:g} mm, E={p.inclusion.E:g} kPa"
+            )
         res = synthetic_solve(p)
         res.seconds = time.perf_counter() - t0
         return res

@@ -46,13 +46,22 @@ def bench(counts: list[int], out: str | None = None, **kw) -> dict:
                 raise KeyboardInterrupt
             n = s["done"]
             per = s["wall_s"] * k / n if n else math.nan
-            rows.append({"jobs": k, "samples": n, "ok": s["ok"], "failed": s["failed"], "wall_s": s["wall_s"],
-                         "samples_per_min": s["samples_per_min"],
-                         "fan_out_samples_per_min": 60.0 * n / s["fan_out_s"] if s.get("fan_out_s") else math.nan,
-                         "mean_solve_s": s.get("mean_solve_s", math.nan),
-                         "driver_cpu_ms_per_sample": s.get("driver_cpu_ms_per_sample", math.nan),
-                         "overhead_s_per_sample": per - s.get("mean_solve_s", math.nan),
-                         "warmup_s": s.get("warmup_s", math.nan), "cluster_start_s": s.get("cluster_start_s", math.nan)})
+            rows.append(
+                {
+                    "jobs": k,
+                    "samples": n,
+                    "ok": s["ok"],
+                    "failed": s["failed"],
+                    "wall_s": s["wall_s"],
+                    "samples_per_min": s["samples_per_min"],
+                    "fan_out_samples_per_min": 60.0 * n / s["fan_out_s"] if s.get("fan_out_s") else math.nan,
+                    "mean_solve_s": s.get("mean_solve_s", math.nan),
+                    "driver_cpu_ms_per_sample": s.get("driver_cpu_ms_per_sample", math.nan),
+                    "overhead_s_per_sample": per - s.get("mean_solve_s", math.nan),
+                    "warmup_s": s.get("warmup_s", math.nan),
+                    "cluster_start_s": s.get("cluster_start_s", math.nan),
+                }
+            )
     finally:
         if tmp is not None:
             tmp.cleanup()
@@ -61,18 +70,24 @@ def bench(counts: list[int], out: str | None = None, **kw) -> dict:
 
 def format_bench(res: dict) -> str:
     rows = res["rows"]
-    head = (f"{'jobs':>4} {'samples':>7} {'failed':>6} {'wall s':>8} {'samples/min':>11} {'fan-out/min':>11} "
-            f"{'solve s':>8} {'overhead s/sample':>17} {'driver CPU ms/sample':>20}")
+    head = (
+        f"{'jobs':>4} {'samples':>7} {'failed':>6} {'wall s':>8} {'samples/min':>11} {'fan-out/min':>11} "
+        f"{'solve s':>8} {'overhead s/sample':>17} {'driver CPU ms/sample':>20}"
+    )
     lines = [f"sweep bench (mesh {res['mesh']})", head]
     for r in rows:
-        lines.append(f"{r['jobs']:>4} {r['samples']:>7} {r['failed']:>6} {r['wall_s']:>8.1f} {r['samples_per_min']:>11.2f} "
-                     f"{r['fan_out_samples_per_min']:>11.2f} {r['mean_solve_s']:>8.2f} {r['overhead_s_per_sample']:>17.3f} "
-                     f"{r['driver_cpu_ms_per_sample']:>20.1f}")
+        lines.append(
+            f"{r['jobs']:>4} {r['samples']:>7} {r['failed']:>6} {r['wall_s']:>8.1f} {r['samples_per_min']:>11.2f} "
+            f"{r['fan_out_samples_per_min']:>11.2f} {r['mean_solve_s']:>8.2f} {r['overhead_s_per_sample']:>17.3f} "
+            f"{r['driver_cpu_ms_per_sample']:>20.1f}"
+        )
     if len(rows) >= 2 and rows[0]["samples_per_min"] > 0:
         r0 = rows[0]
         for r in rows[1:]:
-            lines.append(f"speed-up jobs {r['jobs']} vs {r0['jobs']}: {r['samples_per_min'] / r0['samples_per_min']:.2f}x "
-                         f"(fan-out only {r['fan_out_samples_per_min'] / r0['fan_out_samples_per_min']:.2f}x)")
+            lines.append(
+                f"speed-up jobs {r['jobs']} vs {r0['jobs']}: {r['samples_per_min'] / r0['samples_per_min']:.2f}x "
+                f"(fan-out only {r['fan_out_samples_per_min'] / r0['fan_out_samples_per_min']:.2f}x)"
+            )
     if res.get("out"):
         lines.append(f"datasets kept under {res['out']}")
     return "\n".join(lines)

@@ -27,19 +27,35 @@ def cli():
 
 
 _common = options(
-    click.option("--n", "n", type=int, default=None,
-                 help="design samples (default 512; 0 with --samples unless given)"),
+    click.option(
+        "--n", "n", type=int, default=None, help="design samples (default 512; 0 with --samples unless given)"
+    ),
     click.option("--seed", type=int, default=0, show_default=True, help="seed of the design"),
     mesh_option(),
-    click.option("--interface", type=Choice(INTERFACES), default="tied", show_default=True,
-                 help="probe/tissue interface"),
-    click.option("--design", type=Choice(dsg.DESIGNS), default="lhs", show_default=True,
-                 help="lhs (Latin hypercube) or sobol (scrambled)"),
-    click.option("--ranges", default=None,
-                 help=f"NAME=LO:HI[:log] for d (mm), h (centre depth, mm or 'auto'), E (kPa); default {dsg.DEFAULT_RANGES}"),
-    click.option("--samples", type=str, default=None,
-                 help="CSV/Parquet table of samples (columns d, h, E; optional sample_id, tissue_E, tissue_thickness)"),
-    click.option("--phantoms", is_flag=True, help="add the nine calibration-phantom inclusions of dataset/phantoms.csv"),
+    click.option(
+        "--interface", type=Choice(INTERFACES), default="tied", show_default=True, help="probe/tissue interface"
+    ),
+    click.option(
+        "--design",
+        type=Choice(dsg.DESIGNS),
+        default="lhs",
+        show_default=True,
+        help="lhs (Latin hypercube) or sobol (scrambled)",
+    ),
+    click.option(
+        "--ranges",
+        default=None,
+        help=f"NAME=LO:HI[:log] for d (mm), h (centre depth, mm or 'auto'), E (kPa); default {dsg.DEFAULT_RANGES}",
+    ),
+    click.option(
+        "--samples",
+        type=str,
+        default=None,
+        help="CSV/Parquet table of samples (columns d, h, E; optional sample_id, tissue_E, tissue_thickness)",
+    ),
+    click.option(
+        "--phantoms", is_flag=True, help="add the nine calibration-phantom inclusions of dataset/phantoms.csv"
+    ),
     # for tests and dry runs only (docs/sweep.md): 'synthetic[:KEY=VALUE,...]' runs the
     # SYNTHETIC stand-in of elastimap.solver.synthetic instead of the forward model
     click.option("--solver", "solver_spec", default="fem", hidden=True),
@@ -51,31 +67,90 @@ _common = options(
 @jobs_option(default=2, help="local worker processes (one solve each)")
 @out_option(help="dataset directory (default sweeps/<mesh>-<interface>-<design><n>-s<seed>)")
 @click.option("--retry-failed", is_flag=True, help="run samples that landed as failed again")
-@click.option("--scheduler", type=str, default=None,
-              help="address of a running dask scheduler (tcp://host:8786) instead of a local cluster")
+@click.option(
+    "--scheduler",
+    type=str,
+    default=None,
+    help="address of a running dask scheduler (tcp://host:8786) instead of a local cluster",
+)
 @click.option("--batch-rows", type=int, default=256, show_default=True, help="rows per merged batch file")
-@click.option("--timeout", type=float, default=1800.0, show_default=True,
-              help="seconds one sample may take before it is recorded as failed and its worker restarted (0: no limit)")
+@click.option(
+    "--timeout",
+    type=float,
+    default=1800.0,
+    show_default=True,
+    help="seconds one sample may take before it is recorded as failed and its worker restarted (0: no limit)",
+)
 @click.option("--no-progress", is_flag=True, help="no progress bar")
-@click.option("--append", is_flag=True,
-              help="add this command's samples to an OUT that holds another design (recorded in its manifest)")
-@click.option("--break-lock", is_flag=True,
-              help="remove OUT's lock left by a sweep that is gone (e.g. a cancelled job on another host)")
-@click.option("--connect-timeout", type=float, default=30.0, show_default=True,
-              help="seconds --scheduler has to answer")
-@click.option("--worker-wait", type=float, default=60.0, show_default=True,
-              help="seconds the run waits while the cluster has no worker, then ends with exit code 3")
-def run_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solver_spec, jobs, out, retry_failed,
-            scheduler, batch_rows, timeout, no_progress, append, break_lock, connect_timeout, worker_wait):
+@click.option(
+    "--append",
+    is_flag=True,
+    help="add this command's samples to an OUT that holds another design (recorded in its manifest)",
+)
+@click.option(
+    "--break-lock",
+    is_flag=True,
+    help="remove OUT's lock left by a sweep that is gone (e.g. a cancelled job on another host)",
+)
+@click.option(
+    "--connect-timeout", type=float, default=30.0, show_default=True, help="seconds --scheduler has to answer"
+)
+@click.option(
+    "--worker-wait",
+    type=float,
+    default=60.0,
+    show_default=True,
+    help="seconds the run waits while the cluster has no worker, then ends with exit code 3",
+)
+def run_cmd(
+    n,
+    seed,
+    mesh,
+    interface,
+    design,
+    ranges,
+    samples,
+    phantoms,
+    solver_spec,
+    jobs,
+    out,
+    retry_failed,
+    scheduler,
+    batch_rows,
+    timeout,
+    no_progress,
+    append,
+    break_lock,
+    connect_timeout,
+    worker_wait,
+):
     """Run one solve per sample (resumable) and land the rows in OUT."""
     from .jobs import resolve_solver
     from .run import SweepConfig, format_summary, make_plan, run
 
-    cfg = SweepConfig(n=n, jobs=jobs, seed=seed, out=out, mesh=mesh, interface=interface, design=design,
-                      ranges=dsg.parse_ranges_text(ranges), samples=samples, phantoms=phantoms, retry_failed=retry_failed,
-                      scheduler=scheduler, batch_rows=batch_rows, timeout=timeout, progress=not no_progress,
-                      append=append, break_lock=break_lock, connect_timeout=connect_timeout,
-                      worker_wait=worker_wait, argv=sys.argv[1:], solver=resolve_solver(solver_spec))
+    cfg = SweepConfig(
+        n=n,
+        jobs=jobs,
+        seed=seed,
+        out=out,
+        mesh=mesh,
+        interface=interface,
+        design=design,
+        ranges=dsg.parse_ranges_text(ranges),
+        samples=samples,
+        phantoms=phantoms,
+        retry_failed=retry_failed,
+        scheduler=scheduler,
+        batch_rows=batch_rows,
+        timeout=timeout,
+        progress=not no_progress,
+        append=append,
+        break_lock=break_lock,
+        connect_timeout=connect_timeout,
+        worker_wait=worker_wait,
+        argv=sys.argv[1:],
+        solver=resolve_solver(solver_spec),
+    )
     plan = make_plan(cfg)
     if scheduler and jobs != 2:
         click.echo("note: --jobs is ignored with --scheduler (the cluster decides the workers)", err=True)
@@ -105,10 +180,21 @@ def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solve
         counts = [int(x) for x in jobs_list.split(",") if x.strip()]
     except ValueError:
         from elastimap.errors import UserError
+
         raise UserError("jobs_list", f"expected integers like 1,2 (got {jobs_list!r})") from None
-    res = bench(counts, n=16 if n is None and not samples else n, seed=seed, mesh=mesh, interface=interface,
-                design=design, ranges=dsg.parse_ranges_text(ranges), samples=samples, phantoms=phantoms, out=out,
-                solver=resolve_solver(solver_spec))
+    res = bench(
+        counts,
+        n=16 if n is None and not samples else n,
+        seed=seed,
+        mesh=mesh,
+        interface=interface,
+        design=design,
+        ranges=dsg.parse_ranges_text(ranges),
+        samples=samples,
+        phantoms=phantoms,
+        out=out,
+        solver=resolve_solver(solver_spec),
+    )
     click.echo(format_bench(res))
     return 0
 

@@ -47,7 +47,7 @@ OVERRIDES = ("tissue_E", "tissue_thickness")
 
 @dataclass(frozen=True)
 class Range:
-    lo: float | None   # None: automatic (h only)
+    lo: float | None  # None: automatic (h only)
     hi: float | None
     scale: str = "lin"
 
@@ -116,13 +116,18 @@ def check_ranges(ranges: dict | None, thickness: float = THICKNESS) -> dict[str,
     lo, hi = depth_range(d.hi, thickness)
     if lo > hi:
         dmax = thickness - 3.0
-        raise UserError("ranges", f"d up to {d.hi:g} mm does not fit in the {thickness:g} mm slab "
-                                  f"(1 mm cover, 2 mm floor: d <= {dmax:g} mm)")
+        raise UserError(
+            "ranges",
+            f"d up to {d.hi:g} mm does not fit in the {thickness:g} mm slab (1 mm cover, 2 mm floor: d <= {dmax:g} mm)",
+        )
     if not h.auto:
         # the allowed interval shrinks as d grows: the largest d is the binding case
         if max(h.lo, lo) > min(h.hi, hi):
-            raise UserError("ranges", f"h={h.text()} mm leaves no valid depth for d = {d.hi:g} mm "
-                                      f"(allowed centre depth [{lo:g}, {hi:g}] mm); use h=auto or a wider range")
+            raise UserError(
+                "ranges",
+                f"h={h.text()} mm leaves no valid depth for d = {d.hi:g} mm "
+                f"(allowed centre depth [{lo:g}, {hi:g}] mm); use h=auto or a wider range",
+            )
     return out
 
 
@@ -174,8 +179,7 @@ def check_n(n: int) -> int:
     return int(n)
 
 
-def design_points(n: int, design: str, seed: int, ranges: dict[str, Range],
-                  thickness: float = THICKNESS) -> list[dict]:
+def design_points(n: int, design: str, seed: int, ranges: dict[str, Range], thickness: float = THICKNESS) -> list[dict]:
     """``n`` samples of the space-filling design, with stable ids."""
     check_n(n)
     if design not in DESIGNS:
@@ -205,9 +209,16 @@ def design_points(n: int, design: str, seed: int, ranges: dict[str, Range],
         key["n"] = n
     tag = hashlib.sha1(json.dumps(key, sort_keys=True).encode()).hexdigest()[:6]
     width = max(5, len(str(n - 1)))
-    return [{"sample_id": f"{design}-s{seed}-{tag}-{i:0{width}d}", "tag": "design",
-             "d": round(float(d[i]), 6), "h": round(float(h[i]), 6), "E": round(float(E[i]), 6)}
-            for i in range(n)]
+    return [
+        {
+            "sample_id": f"{design}-s{seed}-{tag}-{i:0{width}d}",
+            "tag": "design",
+            "d": round(float(d[i]), 6),
+            "h": round(float(h[i]), 6),
+            "E": round(float(E[i]), 6),
+        }
+        for i in range(n)
+    ]
 
 
 def load_phantoms(path: str | Path = PHANTOMS_CSV) -> list[dict]:
@@ -216,9 +227,17 @@ def load_phantoms(path: str | Path = PHANTOMS_CSV) -> list[dict]:
     with open(path, newline="") as fh:
         lines = [ln for ln in fh if ln.strip() and not ln.lstrip().startswith("#")]
     for r in csv.DictReader(lines):
-        rows.append({"sample_id": f"phantom-{r['name']}", "tag": f"phantom:{r['name']}",
-                     "d": float(r["d"]), "h": float(r["h"]), "E": float(r["E"]),
-                     "tissue_E": float(r["tissue_E"]), "tissue_thickness": float(r["tissue_thickness"])})
+        rows.append(
+            {
+                "sample_id": f"phantom-{r['name']}",
+                "tag": f"phantom:{r['name']}",
+                "d": float(r["d"]),
+                "h": float(r["h"]),
+                "E": float(r["E"]),
+                "tissue_E": float(r["tissue_E"]),
+                "tissue_thickness": float(r["tissue_thickness"]),
+            }
+        )
     return rows
 
 
@@ -239,7 +258,9 @@ def load_samples(path: str) -> list[dict]:
     except UserError:
         raise
     except Exception as exc:
-        raise UserError("samples", f"{path} cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+        raise UserError(
+            "samples", f"{path} cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+        ) from None
     cols = [str(c).strip() for c in df.columns]
     df.columns = cols
     if "id" in cols and "sample_id" not in cols:
@@ -251,7 +272,9 @@ def load_samples(path: str) -> list[dict]:
     allowed = {*NAMES, "sample_id", *OVERRIDES}
     unknown = [c for c in cols if c not in allowed]
     if unknown:
-        raise UserError("samples", f"{path}: unknown column(s) {', '.join(unknown)} (allowed: {', '.join(sorted(allowed))})")
+        raise UserError(
+            "samples", f"{path}: unknown column(s) {', '.join(unknown)} (allowed: {', '.join(sorted(allowed))})"
+        )
     if len(df) == 0:
         raise UserError("samples", f"{path} has no rows")
     out = []
@@ -278,6 +301,7 @@ def load_samples(path: str) -> list[dict]:
 
     dup = sorted(i for i, c in Counter(s["sample_id"] for s in out).items() if c > 1)
     if dup:
-        raise UserError("samples", f"{path}: duplicate sample id(s) {', '.join(dup[:5])} "
-                                     "(identical rows, or a repeated sample_id)")
+        raise UserError(
+            "samples", f"{path}: duplicate sample id(s) {', '.join(dup[:5])} (identical rows, or a repeated sample_id)"
+        )
     return out

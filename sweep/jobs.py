@@ -84,19 +84,40 @@ def _peak_mb() -> float:
 
 
 def _base_row(sample: dict, p: SolveParams, solver: str = store.FEM) -> dict:
-    return {"sample_id": sample["sample_id"], "tag": sample.get("tag", "design"),
-            "d": float(sample["d"]), "h": float(sample["h"]), "E": float(sample["E"]),
-            "params_json": json.dumps(p.to_dict(), sort_keys=True), "key": store.params_key(p), "solver": solver,
-            "code_version": code_version(), "host": host()}
+    return {
+        "sample_id": sample["sample_id"],
+        "tag": sample.get("tag", "design"),
+        "d": float(sample["d"]),
+        "h": float(sample["h"]),
+        "E": float(sample["E"]),
+        "params_json": json.dumps(p.to_dict(), sort_keys=True),
+        "key": store.params_key(p),
+        "solver": solver,
+        "code_version": code_version(),
+        "host": host(),
+    }
 
 
-def failed_row(sample: dict, p: SolveParams, error: str, seconds: float = float("nan"),
-               solver: str = store.FEM) -> dict:
+def failed_row(
+    sample: dict, p: SolveParams, error: str, seconds: float = float("nan"), solver: str = store.FEM
+) -> dict:
     row = _base_row(sample, p, solver)
     nan = float("nan")
-    row.update(O1=nan, O2=nan, O3=nan, force=nan, force_ref=nan, delta=nan, image=None, status="failed",
-               error=error, ndofs=None, newton_iterations=None, seconds=seconds,
-               peak_memory_mb=_peak_mb())
+    row.update(
+        O1=nan,
+        O2=nan,
+        O3=nan,
+        force=nan,
+        force_ref=nan,
+        delta=nan,
+        image=None,
+        status="failed",
+        error=error,
+        ndofs=None,
+        newton_iterations=None,
+        seconds=seconds,
+        peak_memory_mb=_peak_mb(),
+    )
     return row
 
 
@@ -130,8 +151,9 @@ def attempts(out_dir: str, sample_id: str) -> int:
         return 0
 
 
-def run_sample(sample: dict, base: dict, out_dir: str, timeout: float | None = None,
-               solver: Callable | None = None) -> dict:
+def run_sample(
+    sample: dict, base: dict, out_dir: str, timeout: float | None = None, solver: Callable | None = None
+) -> dict:
     """Solve one sample with ``solver`` (None: the forward model) and land its row in ``out_dir``;
     return ``{sample_id, status, seconds, error}``.
 
@@ -150,12 +172,14 @@ def run_sample(sample: dict, base: dict, out_dir: str, timeout: float | None = N
     record_start(out_dir, sid)
     watchdog = None
     if timeout:
+
         def _fire():
             try:
                 io.land_rows(out_dir, [failed_row(sample, p, timeout_msg, float(timeout), label)])
                 marker.write_text(sid)
             finally:
                 os._exit(75)
+
         watchdog = threading.Timer(timeout, _fire)
         watchdog.daemon = True
         watchdog.start()
@@ -176,8 +200,7 @@ def run_sample(sample: dict, base: dict, out_dir: str, timeout: float | None = N
     finally:
         if watchdog is not None:
             watchdog.cancel()
-    return {"sample_id": row["sample_id"], "status": row["status"], "seconds": row["seconds"],
-            "error": row["error"]}
+    return {"sample_id": row["sample_id"], "status": row["status"], "seconds": row["seconds"], "error": row["error"]}
 
 
 def land_failure(sample: dict, base: dict, out_dir: str, error: str, solver: Callable | None = None) -> None:

@@ -60,7 +60,7 @@ class SweepConfig:
     """One sweep's settings; ``ranges`` is a dict (see :func:`elastimap.sweep.design.check_ranges`),
     ``None`` for the default ranges."""
 
-    n: int | None = None            # None: 512, or 0 when samples is given
+    n: int | None = None  # None: 512, or 0 when samples is given
     jobs: int = 2
     seed: int = 0
     out: str | None = None
@@ -72,10 +72,10 @@ class SweepConfig:
     phantoms: bool = False
     retry_failed: bool = False
     scheduler: str | None = None
-    append: bool = False            # extend an existing folder with another design
-    break_lock: bool = False        # remove another host's lock (a driver that is gone)
-    connect_timeout: float = 30.0   # s for --scheduler to answer
-    worker_wait: float = 60.0       # s the run goes on with no worker in the cluster
+    append: bool = False  # extend an existing folder with another design
+    break_lock: bool = False  # remove another host's lock (a driver that is gone)
+    connect_timeout: float = 30.0  # s for --scheduler to answer
+    worker_wait: float = 60.0  # s the run goes on with no worker in the cluster
     batch_rows: int = io.BATCH_ROWS
     timeout: float | None = 1800.0  # s per sample; None or 0: no limit
     progress: bool = True
@@ -96,8 +96,13 @@ class SweepConfig:
         "ranges": [None, Predicate(lambda r: isinstance(r, dict), "a dict {name: (lo, hi[, scale])}")],
         "batch_rows": [Interval(int, 1, None)],
         "timeout": [None, Interval(float, 0, None, unit="s")],
-        "scheduler": [None, Predicate(lambda a: isinstance(a, str) and bool(a.strip()),
-                                      "a dask scheduler address like tcp://host:8786 (leave it out for a local cluster)")],
+        "scheduler": [
+            None,
+            Predicate(
+                lambda a: isinstance(a, str) and bool(a.strip()),
+                "a dask scheduler address like tcp://host:8786 (leave it out for a local cluster)",
+            ),
+        ],
         "connect_timeout": [Interval(float, 0, None, closed="neither", unit="s")],
         "worker_wait": [Interval(float, 0, None, closed="neither", unit="s")],
     }
@@ -114,8 +119,8 @@ class Plan:
     samples: list[dict]
     out: Path
     ranges: dict
-    design: dict = field(default_factory=dict)   # how the samples were chosen (recorded in the manifest)
-    new_ids: int = 0                              # planned ids the folder's manifest does not list yet
+    design: dict = field(default_factory=dict)  # how the samples were chosen (recorded in the manifest)
+    new_ids: int = 0  # planned ids the folder's manifest does not list yet
 
 
 class ClusterLost(RuntimeError):
@@ -157,14 +162,19 @@ def make_plan(cfg: SweepConfig) -> Plan:
     seen: dict[str, dict] = {}
     for s in samples:
         if s["sample_id"] in seen:
-            raise UserError("samples", f"sample id {s['sample_id']!r} occurs twice (in the design/phantoms and the table?)")
+            raise UserError(
+                "samples", f"sample id {s['sample_id']!r} occurs twice (in the design/phantoms and the table?)"
+            )
         seen[s["sample_id"]] = s
         try:
             jobs.sample_params(s, base).validate()
         except UserError as exc:
             where = "samples" if s["tag"] == "user" else ("phantoms" if s["tag"].startswith("phantom") else "ranges")
-            raise UserError(where, f"sample {s['sample_id']} (d={s['d']:g} mm, h={s['h']:g} mm, E={s['E']:g} kPa) "
-                                   f"is not a valid solve: {exc}") from None
+            raise UserError(
+                where,
+                f"sample {s['sample_id']} (d={s['d']:g} mm, h={s['h']:g} mm, E={s['E']:g} kPa) "
+                f"is not a valid solve: {exc}",
+            ) from None
     out = Path(cfg.out or default_out(cfg, n))
     if out.exists() and not out.is_dir():
         raise UserError("out", f"{out} exists and is not a directory")
@@ -175,18 +185,31 @@ def make_plan(cfg: SweepConfig) -> Plan:
     if out.is_dir():
         man = io.read_manifest(out)
         if man is None and any(out.iterdir()):
-            raise UserError("out", f"{out} is not empty and holds no sweep manifest ({io.MANIFEST}); choose another --out")
+            raise UserError(
+                "out", f"{out} is not empty and holds no sweep manifest ({io.MANIFEST}); choose another --out"
+            )
         label = store.solver_label(cfg.solver)
         if man is not None and man.get("solver", store.FEM) != label:
-            raise UserError("out", f"{out} holds a sweep by the {man.get('solver', store.FEM)!r} solver, not {label!r}; "
-                                     "use another --out")
+            raise UserError(
+                "out",
+                f"{out} holds a sweep by the {man.get('solver', store.FEM)!r} solver, not {label!r}; use another --out",
+            )
         if man is not None and man.get("base_params") != _jsonable(base.to_dict()):
             old = man.get("base_params", {}).get("disc", {})
-            raise UserError("out", f"{out} holds a sweep with other solver settings (mesh={old.get('mesh')}, "
-                                     f"interface={old.get('interface')}); use the same settings to resume, or another --out")
+            raise UserError(
+                "out",
+                f"{out} holds a sweep with other solver settings (mesh={old.get('mesh')}, "
+                f"interface={old.get('interface')}); use the same settings to resume, or another --out",
+            )
         _check_landed_match(out, samples)
-    design = {"design": cfg.design, "n": n, "seed": cfg.seed, "ranges": dsg.ranges_text(ranges) if n else None,
-              "samples": cfg.samples, "phantoms": cfg.phantoms}
+    design = {
+        "design": cfg.design,
+        "n": n,
+        "seed": cfg.seed,
+        "ranges": dsg.ranges_text(ranges) if n else None,
+        "samples": cfg.samples,
+        "phantoms": cfg.phantoms,
+    }
     new_ids = len(samples)
     if man is not None:
         known = set(man.get("planned", []))
@@ -196,8 +219,14 @@ def make_plan(cfg: SweepConfig) -> Plan:
     return Plan(cfg, base, samples, out, ranges, design, new_ids)
 
 
-_DESIGN_FLAGS = (("seed", "--seed"), ("n", "--n"), ("design", "--design"), ("ranges", "--ranges"),
-                 ("samples", "--samples"), ("phantoms", "--phantoms"))
+_DESIGN_FLAGS = (
+    ("seed", "--seed"),
+    ("n", "--n"),
+    ("design", "--design"),
+    ("ranges", "--ranges"),
+    ("samples", "--samples"),
+    ("phantoms", "--phantoms"),
+)
 
 
 def _recorded_designs(man: dict) -> list[dict]:
@@ -206,9 +235,14 @@ def _recorded_designs(man: dict) -> list[dict]:
         return list(man["designs"])
     out = []
     for r in man.get("runs", []):
-        d = {"design": r.get("design"), "n": r.get("n") if r.get("n") is not None else (0 if r.get("samples") else 512),
-             "seed": r.get("seed"), "ranges": r.get("ranges"), "samples": r.get("samples"),
-             "phantoms": bool(r.get("phantoms"))}
+        d = {
+            "design": r.get("design"),
+            "n": r.get("n") if r.get("n") is not None else (0 if r.get("samples") else 512),
+            "seed": r.get("seed"),
+            "ranges": r.get("ranges"),
+            "samples": r.get("samples"),
+            "phantoms": bool(r.get("phantoms")),
+        }
         if d not in out:
             out.append(d)
     return out
@@ -228,12 +262,17 @@ def _design_text(d: dict) -> str:
 def _design_conflict(out: Path, man: dict, design: dict, new_ids: int) -> str:
     rec = _recorded_designs(man)
     last = rec[-1] if rec else {}
-    differ = [f"{flag} {design[k]!s} (folder: {last.get(k)!s})" for k, flag in _DESIGN_FLAGS
-              if last and design.get(k) != last.get(k) and not (k == "ranges" and not design.get("n"))]
+    differ = [
+        f"{flag} {design[k]!s} (folder: {last.get(k)!s})"
+        for k, flag in _DESIGN_FLAGS
+        if last and design.get(k) != last.get(k) and not (k == "ranges" and not design.get("n"))
+    ]
     what = ", ".join(differ) if differ else "other sample rows"
-    return (f"{out} holds a sweep of another design ({_design_text(last) if last else 'unrecorded'}); this command "
-            f"would add {new_ids} sample(s): {what}; rerun with the folder's options to resume, add --append to "
-            f"extend the folder, or choose another --out")
+    return (
+        f"{out} holds a sweep of another design ({_design_text(last) if last else 'unrecorded'}); this command "
+        f"would add {new_ids} sample(s): {what}; rerun with the folder's options to resume, add --append to "
+        f"extend the folder, or choose another --out"
+    )
 
 
 def _check_landed_match(out: Path, samples: list[dict]) -> None:
@@ -247,16 +286,22 @@ def _check_landed_match(out: Path, samples: list[dict]) -> None:
     for s in samples:
         got = landed.get(s["sample_id"])
         if got is not None and any(abs(a - float(s[k])) > 1e-9 * max(1.0, abs(a)) for a, k in zip(got, dsg.NAMES)):
-            bad.append(f"{s['sample_id']} (landed d={got[0]:g}, h={got[1]:g}, E={got[2]:g}; "
-                       f"now d={s['d']:g}, h={s['h']:g}, E={s['E']:g})")
+            bad.append(
+                f"{s['sample_id']} (landed d={got[0]:g}, h={got[1]:g}, E={got[2]:g}; "
+                f"now d={s['d']:g}, h={s['h']:g}, E={s['E']:g})"
+            )
     if bad:
-        raise UserError("out", f"{out} already holds {len(bad)} sample id(s) with other parameters: "
-                                 f"{'; '.join(bad[:3])}; use another --out or other sample ids")
+        raise UserError(
+            "out",
+            f"{out} already holds {len(bad)} sample id(s) with other parameters: "
+            f"{'; '.join(bad[:3])}; use another --out or other sample ids",
+        )
 
 
 # ----------------------------------------------------------------------------- lock
 
 # ----------------------------------------------------------------------------- run
+
 
 def _now() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
@@ -281,8 +326,11 @@ def check_foreign_lock(out: Path, break_lock: bool) -> None:
         lock.unlink(missing_ok=True)
         return
     if other.get("host") and other["host"] != host():
-        raise UserError("out", f"{out} is locked by a sweep on another host ({who}); if that sweep is no longer "
-                                 "running (a cancelled or timed-out job), rerun with --break-lock")
+        raise UserError(
+            "out",
+            f"{out} is locked by a sweep on another host ({who}); if that sweep is no longer "
+            "running (a cancelled or timed-out job), rerun with --break-lock",
+        )
 
 
 def _start_client(cfg: SweepConfig):
@@ -293,26 +341,35 @@ def _start_client(cfg: SweepConfig):
         os.environ.setdefault(var, "1")  # workers inherit: one core per solve
     # a task whose worker dies is retried once, then fails with KilledWorker (set before the
     # scheduler starts; a remote scheduler needs it in its own config, see workflows/)
-    dask.config.set({"distributed.scheduler.allowed-failures": 1,
-                     # one task per one-thread worker at a time: when a worker dies, only the sample it
-                     # was running counts the death (with dask's default 1.1 a second sample queued
-                     # on that worker was blamed too, and could end as KilledWorker without running)
-                     "distributed.scheduler.worker-saturation": 1.0})
+    dask.config.set(
+        {
+            "distributed.scheduler.allowed-failures": 1,
+            # one task per one-thread worker at a time: when a worker dies, only the sample it
+            # was running counts the death (with dask's default 1.1 a second sample queued
+            # on that worker was blamed too, and could end as KilledWorker without running)
+            "distributed.scheduler.worker-saturation": 1.0,
+        }
+    )
     if not cfg.scheduler:
         # The local scheduler and the nannies live in the driver process.  dask's default polling
         # (memory monitor 100 ms, system monitor 500 ms, tick 20 ms) costs the idle driver about
         # 7 % of a core, measured; these intervals bring it to about 2 %, which on a 2-core machine
         # goes back to the solves.  A memory runaway is still caught within a second.
-        dask.config.set({"distributed.worker.memory.monitor-interval": "1s",
-                         "distributed.admin.system-monitor.interval": "2s",
-                         "distributed.admin.tick.interval": "200ms"})
+        dask.config.set(
+            {
+                "distributed.worker.memory.monitor-interval": "1s",
+                "distributed.admin.system-monitor.interval": "2s",
+                "distributed.admin.tick.interval": "200ms",
+            }
+        )
     if cfg.scheduler:
         from .cluster import connect
 
         return connect(cfg.scheduler.strip(), cfg.connect_timeout), None
     # ":0": a free port for the scheduler's HTTP endpoint, so concurrent sweeps do not collide on 8787
-    cluster = LocalCluster(n_workers=cfg.jobs, threads_per_worker=1, processes=True,
-                           dashboard_address=":0", silence_logs=logging.CRITICAL)
+    cluster = LocalCluster(
+        n_workers=cfg.jobs, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.CRITICAL
+    )
     return Client(cluster), cluster
 
 
@@ -337,31 +394,60 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
         if remote is not None:
             remote[0].close()
         raise
-    summary = {"out": str(out), "planned": len(plan.samples), "done": 0, "ok": 0, "failed": 0, "skipped": 0,
-               "todo": 0, "interrupted": False}
+    summary = {
+        "out": str(out),
+        "planned": len(plan.samples),
+        "done": 0,
+        "ok": 0,
+        "failed": 0,
+        "skipped": 0,
+        "todo": 0,
+        "interrupted": False,
+    }
     restore = _handle_sigterm()
     try:
         io.remove_stale_tmp(out)
         _clear_markers(out)
         landed = io.landed_status(out)
-        todo = [s for s in plan.samples
-                if s["sample_id"] not in landed or (cfg.retry_failed and landed[s["sample_id"]] != "ok")]
+        todo = [
+            s
+            for s in plan.samples
+            if s["sample_id"] not in landed or (cfg.retry_failed and landed[s["sample_id"]] != "ok")
+        ]
         summary["skipped"] = len(plan.samples) - len(todo)
         summary["todo"] = len(todo)
-        man = io.read_manifest(out) or {"format": "elastimap-sweep", "schema_version": io.SCHEMA_VERSION,
-                                        "created": _now(), "base_params": _jsonable(plan.base.to_dict()),
-                                        "solver": store.solver_label(cfg.solver),
-                                        "planned": [], "runs": []}
+        man = io.read_manifest(out) or {
+            "format": "elastimap-sweep",
+            "schema_version": io.SCHEMA_VERSION,
+            "created": _now(),
+            "base_params": _jsonable(plan.base.to_dict()),
+            "solver": store.solver_label(cfg.solver),
+            "planned": [],
+            "runs": [],
+        }
         known = set(man["planned"])
         new = [s["sample_id"] for s in plan.samples if s["sample_id"] not in known]
         man["planned"] += new
         designs = man.setdefault("designs", _recorded_designs(man) if man["runs"] else [])
         if new or not designs:
-            designs.append({**plan.design, "added": _now(), "new_samples": len(new), "append": bool(known) and cfg.append})
-        run_log = {"started": _now(), "argv": cfg.argv, "n": cfg.n, "design": cfg.design, "seed": cfg.seed,
-                   "ranges": dsg.ranges_text(plan.ranges), "samples": cfg.samples, "phantoms": cfg.phantoms,
-                   "append": cfg.append, "jobs": cfg.jobs, "scheduler": cfg.scheduler,
-                   "code_version": code_version(), "host": host()}
+            designs.append(
+                {**plan.design, "added": _now(), "new_samples": len(new), "append": bool(known) and cfg.append}
+            )
+        run_log = {
+            "started": _now(),
+            "argv": cfg.argv,
+            "n": cfg.n,
+            "design": cfg.design,
+            "seed": cfg.seed,
+            "ranges": dsg.ranges_text(plan.ranges),
+            "samples": cfg.samples,
+            "phantoms": cfg.phantoms,
+            "append": cfg.append,
+            "jobs": cfg.jobs,
+            "scheduler": cfg.scheduler,
+            "code_version": code_version(),
+            "host": host(),
+        }
         man["runs"].append(run_log)
         io.write_manifest(out, man)
         if todo:
@@ -429,15 +515,17 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
         try:
             jobs.warmup(solver, plan.base)
         except Exception as exc:
-            print(f"warning: solver warm-up failed ({type(exc).__name__}: {exc}); workers will compile "
-                  "the forms themselves", file=sys.stderr)
+            print(
+                f"warning: solver warm-up failed ({type(exc).__name__}: {exc}); workers will compile "
+                "the forms themselves",
+                file=sys.stderr,
+            )
     elif solver is None or hasattr(solver, "warmup"):
         # Remote workers have their own caches (node-local on SLURM): a worker plugin warms each
         # worker once, now for those present and later for every worker that joins.
         from .cluster import WarmUpWorkers
 
-        remote[0].register_plugin(WarmUpWorkers(functools.partial(jobs.warmup, solver), base),
-                                  name="elastimap-warmup")
+        remote[0].register_plugin(WarmUpWorkers(functools.partial(jobs.warmup, solver), base), name="elastimap-warmup")
     summary["warmup_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     client, cluster = remote if remote is not None else _start_client(cfg)
@@ -451,8 +539,16 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
         token = uuid.uuid4().hex[:8]
         # one map call: the whole batch reaches the scheduler at once, as one task group, so dask
         # queues it and hands each one-thread worker one sample at a time (worker-saturation 1.0)
-        futures = client.map(jobs.run_sample, todo, base=base, out_dir=out, timeout=cfg.timeout or None,
-                             solver=solver, key=[f"sweep-sample-{i:07d}-{token}" for i in range(len(todo))], pure=False)
+        futures = client.map(
+            jobs.run_sample,
+            todo,
+            base=base,
+            out_dir=out,
+            timeout=cfg.timeout or None,
+            solver=solver,
+            key=[f"sweep-sample-{i:07d}-{token}" for i in range(len(todo))],
+            pure=False,
+        )
         by_future = dict(zip(futures, todo))
         resubmitted: dict[str, int] = {}
         tty = sys.stderr.isatty()
@@ -462,9 +558,18 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
             size = os.terminal_size((0, 0))
         # a pseudo-terminal of size 0x0 (some CI runners, `script`) would make tqdm print nothing
         sized = size.columns > 0 and size.lines > 0
-        bar = tqdm(total=len(todo), desc="sweep", unit="sample", file=sys.stderr, disable=not cfg.progress,
-                   mininterval=0.5 if tty else 15.0, dynamic_ncols=sized, ncols=None if sized else 100,
-                   nrows=None if sized else 50, smoothing=0.1)
+        bar = tqdm(
+            total=len(todo),
+            desc="sweep",
+            unit="sample",
+            file=sys.stderr,
+            disable=not cfg.progress,
+            mininterval=0.5 if tty else 15.0,
+            dynamic_ncols=sized,
+            ncols=None if sized else 100,
+            nrows=None if sized else 50,
+            smoothing=0.1,
+        )
         since_compact = 0
         pending = as_completed(list(by_future))
         watch = _WorkerWatch(client, cfg, cluster is not None)
@@ -486,15 +591,27 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                         # dask blames every task a dying worker held; this one did not crash twice
                         # itself (it was waiting next to a crashing sample): run it again
                         resubmitted[sid] = resubmitted.get(sid, 0) + 1
-                        again = client.submit(jobs.run_sample, s, base=base, out_dir=out, timeout=cfg.timeout or None,
-                                              solver=solver, key=f"sweep-retry-{uuid.uuid4().hex}", pure=False)
+                        again = client.submit(
+                            jobs.run_sample,
+                            s,
+                            base=base,
+                            out_dir=out,
+                            timeout=cfg.timeout or None,
+                            solver=solver,
+                            key=f"sweep-retry-{uuid.uuid4().hex}",
+                            pure=False,
+                        )
                         by_future[again] = s
                         pending.add(again)
                         fut.release()
                         continue
                     tries = f"all {n_started} attempts" if n_started > 1 else f"{n_started} attempt(s)"
-                    msg = (f"worker crashed on {tries} at this sample (segfault, abort, out of memory, "
-                           f"or a worker job ended): {name}" if name == "KilledWorker" else f"{name}: {exc}")
+                    msg = (
+                        f"worker crashed on {tries} at this sample (segfault, abort, out of memory, "
+                        f"or a worker job ended): {name}"
+                        if name == "KilledWorker"
+                        else f"{name}: {exc}"
+                    )
                     jobs.land_failure(s, base, out, msg[:2000], solver)
                     r = {"sample_id": s["sample_id"], "status": "failed", "seconds": float("nan"), "error": msg}
                 fut.release()
@@ -552,14 +669,18 @@ class _WorkerWatch:
             self.last_seen = now
         elif now - self.last_seen >= self.wait:
             why = "the scheduler does not answer" if n is None else "all workers gone: wall time, scancel, lost nodes?"
-            raise ClusterLost(f"no dask worker {self.where} for {self.wait:g} s ({why}); landed rows are kept: "
-                              "rerun the same command to resume when the cluster has workers (--worker-wait to wait longer)")
+            raise ClusterLost(
+                f"no dask worker {self.where} for {self.wait:g} s ({why}); landed rows are kept: "
+                "rerun the same command to resume when the cluster has workers (--worker-wait to wait longer)"
+            )
 
 
 def format_summary(s: dict) -> str:
-    lines = [f"sweep: {s['out']}: {s['done']} done this run (ok {s['ok']}, failed {s['failed']}), "
-             f"{s['skipped']} skipped (already landed), wall {s['wall_s']:.1f} s, "
-             f"{s['samples_per_min']:.1f} samples/min"]
+    lines = [
+        f"sweep: {s['out']}: {s['done']} done this run (ok {s['ok']}, failed {s['failed']}), "
+        f"{s['skipped']} skipped (already landed), wall {s['wall_s']:.1f} s, "
+        f"{s['samples_per_min']:.1f} samples/min"
+    ]
     if s["done"]:
         extra = [f"warm-up {s.get('warmup_s', 0):.1f} s", f"cluster start {s.get('cluster_start_s', 0):.1f} s"]
         if s.get("mean_solve_s") == s.get("mean_solve_s") and "mean_solve_s" in s:
@@ -569,9 +690,11 @@ def format_summary(s: dict) -> str:
         extra.append(f"driver CPU {s.get('driver_cpu_ms_per_sample', 0):.1f} ms/sample")
         lines.append("       " + ", ".join(extra))
     held = s.get("folder_ok", 0) + s.get("folder_failed", 0)
-    lines.append(f"       dataset: the folder holds {held} samples: {s.get('folder_ok', 0)} ok, "
-                 f"{s.get('folder_failed', 0)} failed; of this command's {s['planned']} planned: "
-                 f"{s['dataset_ok']} ok, {s['dataset_failed']} failed, {s['missing']} missing")
+    lines.append(
+        f"       dataset: the folder holds {held} samples: {s.get('folder_ok', 0)} ok, "
+        f"{s.get('folder_failed', 0)} failed; of this command's {s['planned']} planned: "
+        f"{s['dataset_ok']} ok, {s['dataset_failed']} failed, {s['missing']} missing"
+    )
     for sid, err in s.get("errors", [])[:10]:
         lines.append(f"       failed {sid}: {err[:200]}")
     if len(s.get("errors", [])) > 10:

@@ -53,10 +53,10 @@ CORE_LAZY = {("elastimap.cli_util", "elastimap.solver.params")}
 
 @dataclass(frozen=True)
 class Imp:
-    src: str         # importing module, installed name
-    target: str      # imported module, installed name
-    name: str        # the imported name for ``from X import name`` ('' for ``import X``)
-    lazy: bool       # inside a function
+    src: str  # importing module, installed name
+    target: str  # imported module, installed name
+    name: str  # the imported name for ``from X import name`` ('' for ``import X``)
+    lazy: bool  # inside a function
     file: str
     line: int
 
@@ -113,7 +113,7 @@ def imports(root: Path) -> tuple[list[Imp], list[str]]:
             elif isinstance(node, ast.ImportFrom):
                 if node.level:
                     base = pkg.split(".")
-                    base = base[:len(base) - (node.level - 1)]
+                    base = base[: len(base) - (node.level - 1)]
                     target = ".".join(base + ([node.module] if node.module else []))
                 else:
                     target = node.module or ""
@@ -143,8 +143,9 @@ def violations(root: Path) -> dict[str, list[str]]:
             v["private"].append(f"{i.where()}: {i.src} imports {i.target}{'.' + i.name if i.name else ''}")
         if a == CORE:
             if not (i.lazy and (i.src, i.target) in CORE_LAZY):
-                v["core"].append(f"{i.where()}: core module {i.src} imports {i.target}"
-                                 f"{'' if i.lazy else ' at module level'}")
+                v["core"].append(
+                    f"{i.where()}: core module {i.src} imports {i.target}{'' if i.lazy else ' at module level'}"
+                )
             continue
         if a == UMBRELLA:
             if not i.lazy and b != CORE:
@@ -152,8 +153,10 @@ def violations(root: Path) -> dict[str, list[str]]:
             continue
         edges.setdefault(a, set()).add(b)
         if b == UMBRELLA or rank[b] >= rank[a]:
-            v["layering"].append(f"{i.where()}: {a} imports {b} ({i.target}); {b} is not below {a} in "
-                                 + " < ".join((CORE, *LAYERS, UMBRELLA)))
+            v["layering"].append(
+                f"{i.where()}: {a} imports {b} ({i.target}); {b} is not below {a} in "
+                + " < ".join((CORE, *LAYERS, UMBRELLA))
+            )
     v["cycle"] = find_cycles(edges)
     return v
 
@@ -166,7 +169,7 @@ def find_cycles(edges: dict[str, set[str]]) -> list[str]:
         state[n] = 1
         for m in sorted(edges.get(n, ())):
             if state.get(m) == 1:
-                found.append(" -> ".join(path[path.index(m):] + [m]))
+                found.append(" -> ".join(path[path.index(m) :] + [m]))
             elif m not in state:
                 visit(m, path + [m])
         state[n] = 2
@@ -207,27 +210,32 @@ def test_only_elastimap_is_a_top_level_name(tmp_path):
     assert all(t.startswith("elastimap.") for t in scripts.values())
     code = textwrap.dedent(f"""
         import importlib.util
-        names = {list(LAYERS) + ['studies']!r}
+        names = {list(LAYERS) + ["studies"]!r}
         found = [n for n in names if importlib.util.find_spec(n) is not None]
         assert importlib.util.find_spec("elastimap") is not None, "elastimap is not installed"
         assert importlib.util.find_spec("elastimap.workflows.studies.crbmap") is not None
         print(",".join(found))
     """)
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
-                       timeout=60)
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "", f"installed top-level names besides elastimap: {r.stdout.strip()}"
 
 
 # --------------------------------------------------------------------------- the checker fails when it should
 def _fake_repo(tmp_path: Path, files: dict[str, str]) -> Path:
-    base = {"elastimap/__init__.py": "", "elastimap/errors.py": "class UserError(Exception): ...\n",
-            "solver/__init__.py": "", "solver/params.py": "from elastimap.errors import UserError\n",
-            "training/__init__.py": "", "training/perf.py": "def set_threads(n): ...\n",
-            "training/_perf.py": "def tune(): ...\n", "camera/__init__.py": "",
-            "camera/infer.py": "from elastimap.training.perf import set_threads\n",
-            "elastimap/cli.py": "def main():\n    from elastimap.camera.infer import set_threads\n"}
+    base = {
+        "elastimap/__init__.py": "",
+        "elastimap/errors.py": "class UserError(Exception): ...\n",
+        "solver/__init__.py": "",
+        "solver/params.py": "from elastimap.errors import UserError\n",
+        "training/__init__.py": "",
+        "training/perf.py": "def set_threads(n): ...\n",
+        "training/_perf.py": "def tune(): ...\n",
+        "camera/__init__.py": "",
+        "camera/infer.py": "from elastimap.training.perf import set_threads\n",
+        "elastimap/cli.py": "def main():\n    from elastimap.camera.infer import set_threads\n",
+    }
     for rel, text in {**base, **files}.items():
         p = tmp_path / rel
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -240,25 +248,36 @@ def test_checker_passes_a_clean_fake_repo(tmp_path):
     assert all(x == [] for x in v.values()), v
 
 
-@pytest.mark.parametrize("files,rule,needle", [
-    ({"solver/api.py": "def f():\n    from elastimap.camera import infer\n"}, "layering", "solver imports camera"),
-    ({"solver/api.py": "from elastimap.camera.infer import set_threads\n",
-      "camera/y.py": "from elastimap.solver.params import UserError\n"}, "cycle", "camera -> solver -> camera"),
-    ({"training/net.py": "from ..camera.infer import set_threads\n"}, "layering", "training imports camera"),
-    ({"camera/x.py": "from elastimap.training._perf import tune\n"}, "private", "_perf"),
-    ({"camera/x.py": "from elastimap.training.perf import _helper\n"}, "private", "_helper"),
-    ({"camera/x.py": "from elastimap.training import _perf\n"}, "private", "_perf"),
-    ({"camera/x.py": "import training.perf\n"}, "bare", "import training.perf"),
-    ({"camera/x.py": "from solver.params import X\n"}, "bare", "from solver.params"),
-    ({"elastimap/cli.py": "from elastimap.camera.infer import set_threads\n"}, "umbrella", "module level"),
-    ({"elastimap/cli_util.py": "def f():\n    from elastimap.training import perf\n"}, "core", "training"),
-    ({"camera/x.py": "from elastimap.cli import main\n"}, "layering", "camera imports elastimap.cli"),
-])
+@pytest.mark.parametrize(
+    "files,rule,needle",
+    [
+        ({"solver/api.py": "def f():\n    from elastimap.camera import infer\n"}, "layering", "solver imports camera"),
+        (
+            {
+                "solver/api.py": "from elastimap.camera.infer import set_threads\n",
+                "camera/y.py": "from elastimap.solver.params import UserError\n",
+            },
+            "cycle",
+            "camera -> solver -> camera",
+        ),
+        ({"training/net.py": "from ..camera.infer import set_threads\n"}, "layering", "training imports camera"),
+        ({"camera/x.py": "from elastimap.training._perf import tune\n"}, "private", "_perf"),
+        ({"camera/x.py": "from elastimap.training.perf import _helper\n"}, "private", "_helper"),
+        ({"camera/x.py": "from elastimap.training import _perf\n"}, "private", "_perf"),
+        ({"camera/x.py": "import training.perf\n"}, "bare", "import training.perf"),
+        ({"camera/x.py": "from solver.params import X\n"}, "bare", "from solver.params"),
+        ({"elastimap/cli.py": "from elastimap.camera.infer import set_threads\n"}, "umbrella", "module level"),
+        ({"elastimap/cli_util.py": "def f():\n    from elastimap.training import perf\n"}, "core", "training"),
+        ({"camera/x.py": "from elastimap.cli import main\n"}, "layering", "camera imports elastimap.cli"),
+    ],
+)
 def test_checker_catches_a_violation(tmp_path, files, rule, needle):
     v = violations(_fake_repo(tmp_path, files))
     assert any(needle in line for line in v[rule]), v
 
 
 def test_private_names_inside_one_room_are_fine(tmp_path):
-    v = violations(_fake_repo(tmp_path, {"training/cli.py": "from ._perf import tune\nfrom .perf import set_threads\n"}))
+    v = violations(
+        _fake_repo(tmp_path, {"training/cli.py": "from ._perf import tune\nfrom .perf import set_threads\n"})
+    )
     assert v["private"] == [] and v["layering"] == []

@@ -83,9 +83,26 @@ def _sample_rows(n: int, seed: int = 0, prefix: str = "s"):
     rng = np.random.default_rng(seed)
     d, h, E = rng.uniform(4, 10, n), rng.uniform(6, 12, n), rng.uniform(20, 200, n)
     O1, O2, O3 = synthetic_features(d, h, E)
-    return [{"sample_id": f"{prefix}{i:04d}", "tag": "design", "d": d[i], "h": h[i], "E": E[i], "O1": O1[i],
-             "O2": O2[i], "O3": O3[i], "status": "ok", "error": "", "ndofs": 1, "newton_iterations": 1,
-             "seconds": 0.1, "force": 1.0, "force_ref": 1.0} for i in range(n)]
+    return [
+        {
+            "sample_id": f"{prefix}{i:04d}",
+            "tag": "design",
+            "d": d[i],
+            "h": h[i],
+            "E": E[i],
+            "O1": O1[i],
+            "O2": O2[i],
+            "O3": O3[i],
+            "status": "ok",
+            "error": "",
+            "ndofs": 1,
+            "newton_iterations": 1,
+            "seconds": 0.1,
+            "force": 1.0,
+            "force_ref": 1.0,
+        }
+        for i in range(n)
+    ]
 
 
 def make_dataset(path: Path, n: int = 30, seed: int = 0, prefix: str = "s") -> Path:
@@ -95,7 +112,7 @@ def make_dataset(path: Path, n: int = 30, seed: int = 0, prefix: str = "s") -> P
     path.mkdir(parents=True, exist_ok=True)
     rows = _sample_rows(n, seed, prefix)
     for i in range(0, n, 10):
-        dio.land_rows(path, rows[i:i + 10])
+        dio.land_rows(path, rows[i : i + 10])
     return path
 
 
@@ -143,7 +160,9 @@ def assets(tmp_path_factory):
     from safetensors.numpy import load_file, save_file
 
     t = load_file(str(model / "ensemble.safetensors"))
-    save_file({k.replace("layer0", "layerX"): v for k, v in t.items()}, str(a / "model-renamed" / "ensemble.safetensors"))
+    save_file(
+        {k.replace("layer0", "layerX"): v for k, v in t.items()}, str(a / "model-renamed" / "ensemble.safetensors")
+    )
     t2 = {k: v.copy() for k, v in t.items()}
     t2["layer0.weight"][0, 0, 0] = np.nan
     save_file(t2, str(a / "model-nan" / "ensemble.safetensors"))
@@ -158,14 +177,48 @@ def assets(tmp_path_factory):
     mj3.pop("scaling")
     (a / "model-noscaling" / "model.json").write_text(json.dumps(mj3))
     # a real (not synthetic) measured dataset: a generator must never replace it
-    r = invoke("gap", ["synth", "--out", str(a / "M"), "--backend", "toy", "--cache", "none", "--n", "4",
-                       "--frames", "2", "--mesh", "tiny", "--quiet"])
+    r = invoke(
+        "gap",
+        [
+            "synth",
+            "--out",
+            str(a / "M"),
+            "--backend",
+            "toy",
+            "--cache",
+            "none",
+            "--n",
+            "4",
+            "--frames",
+            "2",
+            "--mesh",
+            "tiny",
+            "--quiet",
+        ],
+    )
     assert r[0] == 0, r
     side = json.loads((a / "M" / "measured.json").read_text())
     side["synthetic"] = False
     (a / "M" / "measured.json").write_text(json.dumps(side))
-    r = invoke("gap", ["synth", "--out", str(a / "S"), "--backend", "toy", "--cache", "none", "--n", "4",
-                       "--frames", "2", "--mesh", "tiny", "--quiet"])
+    r = invoke(
+        "gap",
+        [
+            "synth",
+            "--out",
+            str(a / "S"),
+            "--backend",
+            "toy",
+            "--cache",
+            "none",
+            "--n",
+            "4",
+            "--frames",
+            "2",
+            "--mesh",
+            "tiny",
+            "--quiet",
+        ],
+    )
     assert r[0] == 0, r
     (a / "run").mkdir()
     (a / "run" / "results.csv").write_text("an earlier run\n")
@@ -278,18 +331,27 @@ CASES = [
     ("camera", ["detect", "--noise-scales", "a,b", *TINY, "--out", "det"], ("noise",)),
     ("camera", ["detect", "--sensor", "{A}/notjson.json", *TINY, "--out", "det"], ("sensor", "notjson")),
     ("camera", ["detect", *TINY, "--out", "{A}/a-file"], ("out", "a-file")),
-    ("camera", ["calibrate", "--fem-features", "missing.csv", *TINY, "--frames", "1", "--out", "c.json"],
-     ("fem", "missing.csv")),
+    (
+        "camera",
+        ["calibrate", "--fem-features", "missing.csv", *TINY, "--frames", "1", "--out", "c.json"],
+        ("fem", "missing.csv"),
+    ),
     # ---- calibrate
     ("calibrate", ["--fem-features", "missing.csv", *TINY, "--frames", "1", "--out", "c.json"], ("fem", "missing.csv")),
-    ("calibrate", ["--fem-features", "{A}/foreign.parquet", *TINY, "--frames", "1", "--out", "c.json"],
-     ("foreign.parquet",)),
+    (
+        "calibrate",
+        ["--fem-features", "{A}/foreign.parquet", *TINY, "--frames", "1", "--out", "c.json"],
+        ("foreign.parquet",),
+    ),
     ("calibrate", ["--phantoms", "missing.csv", *TINY, "--frames", "1", "--out", "c.json"], ("phantoms", "missing")),
     ("calibrate", [*TINY, "--frames", "0", "--out", "c.json"], ("frames",)),
     ("calibrate", [*TINY, "--frames", "1", "--out", "{A}/a-file/c.json"], ("out", "a-file")),
     ("calibrate", [*TINY, "--frames", "1", "--out", "{A}/ds"], ("out", "ds")),
-    ("calibrate", [*TINY, "--frames", "1", "--out", "c.json", "--write-frames", "{A}/a-file"],
-     ("write-frames", "write_frames", "a-file")),
+    (
+        "calibrate",
+        [*TINY, "--frames", "1", "--out", "c.json", "--write-frames", "{A}/a-file"],
+        ("write-frames", "write_frames", "a-file"),
+    ),
     # ---- infer
     ("infer", ["--model", "missing", *INFER], ("model", "missing")),
     ("infer", ["--model", "{A}/model", "--features", "1", "2", "3", "--identifiability", "none"], ("calibration",)),
@@ -300,13 +362,30 @@ CASES = [
     ("infer", ["--model", "{A}/model-noscaling", *INFER], ("model.json",)),
     ("infer", ["--model", "{A}/model-nan", *INFER], ("ensemble.safetensors",)),
     ("infer", ["--model", "{A}/model-edited", *INFER], ("ensemble.safetensors",)),
-    ("infer", ["--model", "{A}/model", "--calibration", "{A}/cal.json", "--csv", "{A}/dup.csv",
-               "--identifiability", "none"], ("dup.csv",)),
+    (
+        "infer",
+        ["--model", "{A}/model", "--calibration", "{A}/cal.json", "--csv", "{A}/dup.csv", "--identifiability", "none"],
+        ("dup.csv",),
+    ),
     ("infer", ["--model", "{A}/model", *INFER, "--threshold", "0"], ("threshold",)),
     ("infer", ["--model", "{A}/model", "--fem-image", "missing.npy", "--identifiability", "none"], ("fem-image",)),
     ("infer", ["--model", "{A}/model", "--identifiability", "none"], ("input", "features")),
-    ("infer", ["--model", "{A}/model", "--calibration", "{A}/notjson.json", "--features", "1", "2", "3",
-               "--identifiability", "none"], ("notjson",)),
+    (
+        "infer",
+        [
+            "--model",
+            "{A}/model",
+            "--calibration",
+            "{A}/notjson.json",
+            "--features",
+            "1",
+            "2",
+            "3",
+            "--identifiability",
+            "none",
+        ],
+        ("notjson",),
+    ),
     ("infer", ["--model", "{A}/model", *INFER, "--out", "nodir/r.csv"], ("out", "nodir")),
     # ---- gap
     ("gap", ["synth", "--out", "{A}/M", *SYNTH], ("--out", "M")),
@@ -328,8 +407,11 @@ CASES = [
     ("gap", ["diagnose", *DIAG[:-1], "{A}/a-file/sub"], ("out", "a-file")),
     ("gap", ["selftest", "--trials", "0", "--backend", "toy", "--cache", "none"], ("trials",)),
     ("gap", ["selftest", "--trials", "1", "--n-phantoms", "1", "--backend", "toy", "--cache", "none"], ("phantoms",)),
-    ("gap", ["selftest", "--trials", "1", "--backend", "toy", "--cache", "none", "--out", "{A}/a-file"],
-     ("out", "a-file")),
+    (
+        "gap",
+        ["selftest", "--trials", "1", "--backend", "toy", "--cache", "none", "--out", "{A}/a-file"],
+        ("out", "a-file"),
+    ),
     # ---- elastimap
     ("elastimap", ["demo", "--n", "0"], ("--n", "n:")),
     ("elastimap", ["demo", "--jobs", "0"], ("jobs",)),
@@ -357,8 +439,17 @@ def _ids():
 
 def test_enough_cases():
     assert len(CASES) >= 80
-    assert {c[0] for c in CASES} >= {"solve", "sweep", "dataset", "train", "camera", "calibrate", "infer", "gap",
-                                      "elastimap"}
+    assert {c[0] for c in CASES} >= {
+        "solve",
+        "sweep",
+        "dataset",
+        "train",
+        "camera",
+        "calibrate",
+        "infer",
+        "gap",
+        "elastimap",
+    }
 
 
 @pytest.mark.timeout(300)

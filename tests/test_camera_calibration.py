@@ -102,8 +102,9 @@ def test_calibration_from_user_images_matches_synthetic(tmp_path, phantoms_csv):
     ph = C.load_phantoms(phantoms_csv)
     m = SensorModel(seed=2)
     frames_dir = tmp_path / "frames"
-    fem, cam, _ = C.simulate_phantoms(ph, toy_fem, m, FeatureSettings(), frames=2, seed=2,
-                                      write_dir=frames_dir, fmt="tiff")
+    fem, cam, _ = C.simulate_phantoms(
+        ph, toy_fem, m, FeatureSettings(), frames=2, seed=2, write_dir=frames_dir, fmt="tiff"
+    )
     rows = ["name,images,background"]
     for n in ph["name"]:
         rows.append(f"{n},frames/synthetic_{n}_f*.tif,frames/synthetic_{n}_background_f*.tif")
@@ -128,12 +129,40 @@ def test_fem_features_from_csv(tmp_path, phantoms_csv):
 
 
 def test_cli_errors_are_one_line(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "elastimap.camera.cli", "calibrate", "--phantoms", str(tmp_path / "no.csv"),
-                        "--out", str(tmp_path / "c.json")], capture_output=True, text=True, cwd=REPO)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "elastimap.camera.cli",
+            "calibrate",
+            "--phantoms",
+            str(tmp_path / "no.csv"),
+            "--out",
+            str(tmp_path / "c.json"),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+    )
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().startswith("error: --phantoms:") and len(r.stderr.strip().splitlines()) == 1
-    r = subprocess.run([sys.executable, "-m", "elastimap.camera.cli", "calibrate", "--bits", "8", "--noise-scale", "-1",
-                        "--out", str(tmp_path / "c.json")], capture_output=True, text=True, cwd=REPO)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "elastimap.camera.cli",
+            "calibrate",
+            "--bits",
+            "8",
+            "--noise-scale",
+            "-1",
+            "--out",
+            str(tmp_path / "c.json"),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+    )
     assert r.returncode == 2 and r.stderr.startswith("error: --noise-scale:"), r.stderr  # the library's noise_scale
 
 
@@ -141,8 +170,24 @@ def test_cli_calibrate_with_fem_tiny(tmp_path):
     """The real chain: nine tiny-mesh FEM solves + synthetic frames -> JSON + PNG (about 10 s)."""
     pytest.importorskip("elastimap.solver.api", reason="the DOLFINx solver is not available")
     out = tmp_path / "cal.json"
-    r = subprocess.run([sys.executable, "-m", "elastimap.camera.cli", "calibrate", "--mesh", "tiny", "--frames", "3",
-                        "--out", str(out)], capture_output=True, text=True, cwd=REPO, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "elastimap.camera.cli",
+            "calibrate",
+            "--mesh",
+            "tiny",
+            "--frames",
+            "3",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr
     cal = C.Calibration.load(out)
     assert (tmp_path / "cal.png").exists()
@@ -150,4 +195,4 @@ def test_cli_calibrate_with_fem_tiny(tmp_path):
     assert cal.meta["mesh"] == "tiny"
     # the deflection calibration (camera frames -> FEM difference images) comes with it
     assert cal.deflection["shape"] == [50, 50] and 0.9 < cal.deflection["scale"] < 1.1, cal.deflection["scale"]
-    assert max(cal.deflection["rel_rms"]) < 0.25, cal.deflection["rel_rms"]    # 3 frames: noise-dominated
+    assert max(cal.deflection["rel_rms"]) < 0.25, cal.deflection["rel_rms"]  # 3 frames: noise-dominated

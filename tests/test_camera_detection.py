@@ -28,8 +28,9 @@ def test_detection_study_runs_and_separates(tmp_path):
     easy = run_detection(res, SensorModel(), DetectionSettings(clutter_mm=0.0, n_boot=200, n_threshold=10))
     assert easy["n_pos"] == easy["n_neg"] == 8 and easy["synthetic"]
     assert easy["auc"] > 0.95 and easy["sensitivity"] >= 0.75
-    hard = run_detection(res, SensorModel(noise_scale=30), DetectionSettings(clutter_mm=0.004, n_boot=200,
-                                                                             n_threshold=10))
+    hard = run_detection(
+        res, SensorModel(noise_scale=30), DetectionSettings(clutter_mm=0.004, n_boot=200, n_threshold=10)
+    )
     assert hard["auc"] < easy["auc"]
     assert hard["tp"] + hard["fn"] == 8 and hard["tn"] + hard["fp"] == 8
     lo, hi = hard["auc_ci95"]

@@ -23,9 +23,14 @@ def fem():
 
 def _clean_features(m, res, settings=None):
     c = m.replace(noise_scale=0)
-    return camera_features(c.expected(res.image_raw, res.pixel),
-                           c.expected(background_deflection(res.image_raw, res.image), res.pixel),
-                           m.full_scale, m.window, m.pixel_mm, settings)
+    return camera_features(
+        c.expected(res.image_raw, res.pixel),
+        c.expected(background_deflection(res.image_raw, res.image), res.pixel),
+        m.full_scale,
+        m.window,
+        m.pixel_mm,
+        settings,
+    )
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -37,7 +42,7 @@ def test_30_noisy_frames_within_1_percent_of_noise_free(fem, seed):
     clean = _clean_features(m, fem)
     assert noisy.n_frames == 30 and noisy.n_background == 30
     np.testing.assert_allclose(noisy.values, clean.values, rtol=0.01)
-    assert clean.O1 > 10 * FeatureSettings().threshold       # a clearly visible inclusion
+    assert clean.O1 > 10 * FeatureSettings().threshold  # a clearly visible inclusion
     assert all(s > 0 for s in noisy.frame_sd)
 
 

@@ -23,7 +23,7 @@ from elastimap.camera.optics import SensorModel, render_pair
 from elastimap.solver import solve
 from elastimap.solver.params import Discretisation, SolveParams
 
-TRUTH = (9.0, 7.5, 45.0)   # d mm, h mm, E kPa — not a table row, not a phantom
+TRUTH = (9.0, 7.5, 45.0)  # d mm, h mm, E kPa — not a table row, not a phantom
 
 
 def _fem(d, h, E, tissue_E=5.0, thickness=20.0):
@@ -50,8 +50,9 @@ def estimate_of_truth(tmp_path_factory):
     settings = FeatureSettings()
     ph = load_phantoms()
     fem, cam, _ = simulate_phantoms(ph, _fem, sensor, settings, frames=10, seed=1)
-    cal = fit_calibration(ph, fem, cam, settings.to_dict() if hasattr(settings, "to_dict") else {},
-                          sensor=sensor.to_dict())
+    cal = fit_calibration(
+        ph, fem, cam, settings.to_dict() if hasattr(settings, "to_dict") else {}, sensor=sensor.to_dict()
+    )
 
     res = _fem(*TRUTH)
     F, B = render_pair(sensor, res.image_raw, res.image, res.pixel, 30, np.random.default_rng(11))
@@ -73,10 +74,12 @@ def test_fem_frames_modulus_is_flagged_with_an_interval_holding_the_truth(estima
     out = estimate_of_truth
     assert "non_identifiable:E" in out["flags"] and not out["E_identifiable"], out
     assert out["E_lo"] <= TRUTH[2] <= out["E_hi"], out
-    assert out["E_hi"] / out["E_lo"] > 3, out            # wide, not a confident number
+    assert out["E_hi"] / out["E_lo"] > 3, out  # wide, not a confident number
 
 
-@pytest.mark.xfail(strict=True, reason="E is not identifiable from (O1, O2, O3) over this range (docs/identifiability.md)")
+@pytest.mark.xfail(
+    strict=True, reason="E is not identifiable from (O1, O2, O3) over this range (docs/identifiability.md)"
+)
 def test_fem_frames_to_modulus(estimate_of_truth):
     out = estimate_of_truth
     EE = TRUTH[2]

@@ -31,7 +31,9 @@ def solves(tmp_path_factory):
 
     cache = str(tmp_path_factory.mktemp("solves"))
     lesion = cached_solve(*TRUTH, mesh="tiny", cache=cache)
-    phantoms = [cached_solve(*p, mesh="tiny", cache=cache) for p in ((5.0, 8.0, 80.0), (12.0, 8.0, 80.0), (8.0, 9.0, 80.0))]
+    phantoms = [
+        cached_solve(*p, mesh="tiny", cache=cache) for p in ((5.0, 8.0, 80.0), (12.0, 8.0, 80.0), (8.0, 9.0, 80.0))
+    ]
     ref = np.mean([background_deflection(o["image_raw"], o["image"]) for o in phantoms], axis=0)
     return {"lesion": lesion, "ref": ref, "phantom": phantoms[1], "cache": cache}
 
@@ -47,16 +49,16 @@ def test_sampling_matrix_is_the_cameras_resampling():
     img = np.random.default_rng(0).random((50, 50))
     R = sampling_matrix(s.window[2], s.pixel_mm, 50, 0.5)
     r0, c0, n = s.window
-    np.testing.assert_allclose(R @ img @ R.T, s.deformation_on_frame(img, 0.5)[r0:r0 + n, c0:c0 + n], atol=1e-12)
+    np.testing.assert_allclose(R @ img @ R.T, s.deformation_on_frame(img, 0.5)[r0 : r0 + n, c0 : c0 + n], atol=1e-12)
 
 
 def test_frames_give_the_fem_difference_image_within_their_noise(solves):
     di, fem = _recover(solves, SensorModel(seed=3))
     z = (di.image - fem) / di.sigma
     assert di.image.shape == fem.shape == (50, 50)
-    assert np.sqrt(np.mean(z ** 2)) < 1.5, np.sqrt(np.mean(z ** 2))       # measured 1.16
-    assert np.mean(np.abs(z) > 5) < 0.002                                   # no structured misfit
-    assert di.peak == pytest.approx(fem.max(), rel=0.02)                    # measured +0.9 %
+    assert np.sqrt(np.mean(z**2)) < 1.5, np.sqrt(np.mean(z**2))  # measured 1.16
+    assert np.mean(np.abs(z) > 5) < 0.002  # no structured misfit
+    assert di.peak == pytest.approx(fem.max(), rel=0.02)  # measured +0.9 %
     assert np.linalg.norm(di.image - fem) / np.linalg.norm(fem) < 0.05
 
 
@@ -66,7 +68,7 @@ def test_noise_comes_from_the_frames_scatter(solves):
     ratio = np.median(b.sigma / a.sigma)
     assert ratio == pytest.approx(3.0, rel=0.15), ratio
     z = (b.image - fem) / b.sigma
-    assert np.sqrt(np.mean(z ** 2)) < 1.3                                   # reference jitter now below the noise
+    assert np.sqrt(np.mean(z**2)) < 1.3  # reference jitter now below the noise
 
 
 def test_open_world_sensor_differs_from_the_calibrated_one(solves):
@@ -76,7 +78,7 @@ def test_open_world_sensor_differs_from_the_calibrated_one(solves):
     other = SensorModel(seed=7, led_power=(1.3, 0.7, 1.0, 1.2), vignetting=0.3, noise_scale=1.5)
     di, fem = _recover(solves, other)
     z = (di.image - fem) / di.sigma
-    assert np.sqrt(np.mean(z ** 2)) < 1.5, np.sqrt(np.mean(z ** 2))
+    assert np.sqrt(np.mean(z**2)) < 1.5, np.sqrt(np.mean(z**2))
     assert di.peak == pytest.approx(fem.max(), rel=0.02)
 
 
@@ -113,8 +115,21 @@ def test_refine_from_frames_on_the_tiny_mesh(solves):
     start = np.array(TRUTH) * np.array([1.1, 0.9, 1.1])
 
     def est(img):
-        return Estimate("1", np.full(3, np.nan), np.full(3, np.nan), start.copy(), np.zeros(3), start, start, 1, [],
-                        input="frames", image=img.ravel(), sigma=di.sigma.ravel())
+        return Estimate(
+            "1",
+            np.full(3, np.nan),
+            np.full(3, np.nan),
+            start.copy(),
+            np.zeros(3),
+            start,
+            start,
+            1,
+            [],
+            input="frames",
+            image=img.ravel(),
+            sigma=di.sigma.ravel(),
+        )
+
     [r, r_fem] = refine_estimates([est(di.image), est(fem)], None, mesh="tiny", cache=solves["cache"])
     print("refined from frames", r.mean, "from the FEM image", r_fem.mean)
     assert r.input == "frames+fem_refined"

@@ -17,10 +17,18 @@ from elastimap.errors import UserError
 from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 
 REPO = Path(__file__).resolve().parent.parent
-PHANTOMS = [("size-1", 5, 8, 80), ("size-2", 8, 8, 80), ("size-3", 12, 8, 80), ("depth-1", 8, 6, 80),
-            ("depth-2", 8, 9, 80), ("depth-3", 8, 12, 80), ("hardness-1", 8, 8, 30), ("hardness-2", 8, 8, 60),
-            ("hardness-3", 8, 8, 120)]
-TRUTH = (7.0, 9.5, 70.0)   # the test lesion: not on the training grid, not a phantom
+PHANTOMS = [
+    ("size-1", 5, 8, 80),
+    ("size-2", 8, 8, 80),
+    ("size-3", 12, 8, 80),
+    ("depth-1", 8, 6, 80),
+    ("depth-2", 8, 9, 80),
+    ("depth-3", 8, 12, 80),
+    ("hardness-1", 8, 8, 30),
+    ("hardness-2", 8, 8, 60),
+    ("hardness-3", 8, 8, 120),
+]
+TRUTH = (7.0, 9.5, 70.0)  # the test lesion: not on the training grid, not a phantom
 
 
 def toy_fem(d, h, E, tissue_E=5.0, thickness=20.0):
@@ -59,15 +67,15 @@ class OracleEnsemble:
         def res(x):
             r = toy_solve(*x)
             return np.log(np.clip([r.O1, r.O2, r.O3], 1e-9, None)) - lf
-        return least_squares(res, x0, bounds=([2, 2, 10], [16, 17, 300]), x_scale=[1, 1, 10],
-                             diff_step=1e-3).x
+
+        return least_squares(res, x0, bounds=([2, 2, 10], [16, 17, 300]), x_scale=[1, 1, 10], diff_step=1e-3).x
 
     def predict(self, X):
         X = np.atleast_2d(np.asarray(X, dtype=float))
         lt = np.log(self.table[:, 3:])
         out = np.empty((self.members, len(X), 3))
         for i, f in enumerate(X):
-            near = np.argsort(np.sum((lt - np.log(np.clip(f, 1e-9, None))) ** 2, axis=1))[:self.members]
+            near = np.argsort(np.sum((lt - np.log(np.clip(f, 1e-9, None))) ** 2, axis=1))[: self.members]
             for m, j in enumerate(near):
                 out[m, i] = self._one(f, self.table[j, :3])
         return out
@@ -82,8 +90,9 @@ def chain(tmp_path_factory):
     s = FeatureSettings()
     pairs = []
     fem, cam, res = C.simulate_phantoms(ph, toy_fem, m, s, frames=10, seed=11, frames_out=pairs)
-    cal = C.fit_calibration(ph, fem, cam, s.to_dict(), m.to_dict(), True,
-                            deflection=C.deflection_calibration(res, pairs, m))
+    cal = C.fit_calibration(
+        ph, fem, cam, s.to_dict(), m.to_dict(), True, deflection=C.deflection_calibration(res, pairs, m)
+    )
     d = tmp_path_factory.mktemp("chain")
     cal.save(d / "cal.json")
     return {"cal": cal, "ens": OracleEnsemble(toy_table()), "dir": d, "sensor": m}
@@ -118,7 +127,7 @@ def test_end_to_end_synthetic_frames(chain, tmp_path):
     F, B = render_pair(m, r.image_raw, r.image, r.pixel, 30)
     pf = write_frames(F, tmp_path, "lesion", "png")
     pb = write_frames(B, tmp_path, "lesion_background", "png")
-    est = estimate_images(pf, pb, chain["cal"], chain["ens"], id="lesion", identifiability=None)   # TOY: no FEM map
+    est = estimate_images(pf, pb, chain["cal"], chain["ens"], id="lesion", identifiability=None)  # TOY: no FEM map
     assert est.ok, est.flags
     d, h, E = TRUTH
     assert est.d == pytest.approx(d, rel=0.10), est.to_dict()
@@ -145,9 +154,14 @@ def _fake_training_ensemble(directory, table):
 
     arch = Arch()
     rng = np.random.default_rng(0)
-    ens = model.Ensemble(arch=arch, theta=0.1 * rng.normal(size=(3, arch.n_params)),
-                         x_min=table[:, 3:].min(axis=0), x_max=table[:, 3:].max(axis=0),
-                         y_min=table[:, :3].min(axis=0), y_max=table[:, :3].max(axis=0))
+    ens = model.Ensemble(
+        arch=arch,
+        theta=0.1 * rng.normal(size=(3, arch.n_params)),
+        x_min=table[:, 3:].min(axis=0),
+        x_max=table[:, 3:].max(axis=0),
+        y_min=table[:, :3].min(axis=0),
+        y_max=table[:, :3].max(axis=0),
+    )
     ens.save(str(directory))
     return directory
 
@@ -167,18 +181,22 @@ def test_cli_infer_features_csv_json(chain, tmp_path):
     r = subprocess.run(base + ["--csv", str(lesions), "--out", str(out)], capture_output=True, text=True, cwd=REPO)
     assert r.returncode == 0, r.stderr
     import pandas as pd
+
     df = pd.read_csv(out)
     assert list(df["id"]) == ["A", "B"] and "outside_calibration:O1" in df["flags"][1]
     assert "FLAGGED" in r.stdout
-    r = subprocess.run(base + ["--features", "1", "2", "3", "--csv", str(lesions)], capture_output=True, text=True,
-                       cwd=REPO)
+    r = subprocess.run(
+        base + ["--features", "1", "2", "3", "--csv", str(lesions)], capture_output=True, text=True, cwd=REPO
+    )
     assert r.returncode == 2 and r.stderr.startswith("error: input:")
 
 
 def test_infer_api_does_not_import_solver_fem():
-    code = ("import sys, elastimap.camera.infer, elastimap.camera.optics, elastimap.camera.features, elastimap.camera.calibration; "
-            "bad=[m for m in sys.modules if m.startswith(('dolfinx','elastimap.solver.fem','elastimap.solver.api','gmsh'))]; "
-            "print(bad); sys.exit(1 if bad else 0)")
+    code = (
+        "import sys, elastimap.camera.infer, elastimap.camera.optics, elastimap.camera.features, elastimap.camera.calibration; "
+        "bad=[m for m in sys.modules if m.startswith(('dolfinx','elastimap.solver.fem','elastimap.solver.api','gmsh'))]; "
+        "print(bad); sys.exit(1 if bad else 0)"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO)
     assert r.returncode == 0, r.stdout + r.stderr
 
@@ -191,8 +209,9 @@ def test_end_to_end_with_trained_ensemble_cli_images(chain, tmp_path):
     import pandas as pd
 
     tab = toy_table()
-    ens = api.fit_ensemble(pd.DataFrame(tab, columns=["d", "h", "E", "O1", "O2", "O3"]), algo="lm",
-                           repeats=2, epochs=60, seed=0)
+    ens = api.fit_ensemble(
+        pd.DataFrame(tab, columns=["d", "h", "E", "O1", "O2", "O3"]), algo="lm", repeats=2, epochs=60, seed=0
+    )
     ens.save(str(tmp_path / "model"))
     m = chain["sensor"].replace(seed=7)
     r = toy_solve(*TRUTH)
@@ -200,11 +219,24 @@ def test_end_to_end_with_trained_ensemble_cli_images(chain, tmp_path):
     write_frames(F, tmp_path / "f", "lesion", "tiff")
     write_frames(B, tmp_path / "f", "lesion_background", "tiff")
     out = tmp_path / "est.json"
-    cmd = [sys.executable, "-m", "elastimap.camera.cli", "infer", "--model", str(tmp_path / "model"),
-           "--calibration", str(chain["dir"] / "cal.json"),
-           "--images", str(tmp_path / "f" / "synthetic_lesion_f*.tif"),
-           "--background", str(tmp_path / "f" / "synthetic_lesion_background_f*.tif"), "--out", str(out),
-           "--identifiability", "none"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "elastimap.camera.cli",
+        "infer",
+        "--model",
+        str(tmp_path / "model"),
+        "--calibration",
+        str(chain["dir"] / "cal.json"),
+        "--images",
+        str(tmp_path / "f" / "synthetic_lesion_f*.tif"),
+        "--background",
+        str(tmp_path / "f" / "synthetic_lesion_background_f*.tif"),
+        "--out",
+        str(out),
+        "--identifiability",
+        "none",
+    ]
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=300)
     assert res.returncode == 0, res.stderr
     [row] = json.loads(out.read_text())
@@ -228,12 +260,21 @@ def test_image_model_from_synthetic_camera_frames(chain, tmp_path):
     tab = toy_table()
     res = [toy_solve(*row[:3]) for row in tab]
     n = len(tab)
-    data = Data(theta=tab[:, :3], features=tab[:, 3:], images=np.stack([r.image.ravel() for r in res]),
-                dforce=np.zeros(n), force_ref=np.ones(n), tags=np.array(["design"] * n),
-                ids=np.array([f"t{i:04d}" for i in range(n)]), shape=res[0].image.shape, pixel=res[0].pixel,
-                source="TOY")
-    model = fit_image_model(data, "scg", repeats=2, cfg=TrainConfig(hidden=((8, "tansig"),), epochs=200,
-                                                                    progress=False), k=6, log_e=True)
+    data = Data(
+        theta=tab[:, :3],
+        features=tab[:, 3:],
+        images=np.stack([r.image.ravel() for r in res]),
+        dforce=np.zeros(n),
+        force_ref=np.ones(n),
+        tags=np.array(["design"] * n),
+        ids=np.array([f"t{i:04d}" for i in range(n)]),
+        shape=res[0].image.shape,
+        pixel=res[0].pixel,
+        source="TOY",
+    )
+    model = fit_image_model(
+        data, "scg", repeats=2, cfg=TrainConfig(hidden=((8, "tansig"),), epochs=200, progress=False), k=6, log_e=True
+    )
     m = chain["sensor"].replace(seed=5)
     r = toy_solve(*TRUTH)
     F, B = render_pair(m, r.image_raw, r.image, r.pixel, 30)
@@ -242,7 +283,7 @@ def test_image_model_from_synthetic_camera_frames(chain, tmp_path):
     cal = chain["cal"]
     di = difference_of_frames(pf, pb, cal, model)
     assert di.image.shape == model.shape and (di.sigma > 0).all()
-    assert di.peak == pytest.approx(r.image.max(), rel=0.02)                # the recovered peak vs the truth
+    assert di.peak == pytest.approx(r.image.max(), rel=0.02)  # the recovered peak vs the truth
     est = estimate_images(pf, pb, cal, model, "lesion", identifiability=None)
     assert est.input == "frames" and est.n_members == 2 and np.isfinite(est.cam).all()
     assert est.sigma is not None and est.image.shape == (model.shape[0] * model.shape[1],)
@@ -260,12 +301,21 @@ def toy_image_model(chain):
     tab = toy_table()
     res = [toy_solve(*row[:3]) for row in tab]
     n = len(tab)
-    data = Data(theta=tab[:, :3], features=tab[:, 3:], images=np.stack([r.image.ravel() for r in res]),
-                dforce=np.zeros(n), force_ref=np.ones(n), tags=np.array(["design"] * n),
-                ids=np.array([f"t{i:04d}" for i in range(n)]), shape=res[0].image.shape, pixel=res[0].pixel,
-                source="TOY")
-    model = fit_image_model(data, "scg", repeats=2, cfg=TrainConfig(hidden=((8, "tansig"),), epochs=200,
-                                                                    progress=False), k=6, log_e=True)
+    data = Data(
+        theta=tab[:, :3],
+        features=tab[:, 3:],
+        images=np.stack([r.image.ravel() for r in res]),
+        dforce=np.zeros(n),
+        force_ref=np.ones(n),
+        tags=np.array(["design"] * n),
+        ids=np.array([f"t{i:04d}" for i in range(n)]),
+        shape=res[0].image.shape,
+        pixel=res[0].pixel,
+        source="TOY",
+    )
+    model = fit_image_model(
+        data, "scg", repeats=2, cfg=TrainConfig(hidden=((8, "tansig"),), epochs=200, progress=False), k=6, log_e=True
+    )
     d = chain["dir"] / "toy-image-model"
     d.mkdir(exist_ok=True)
     model.save(str(d))
@@ -284,9 +334,22 @@ def test_cli_csv_batch_of_frames_with_an_image_model(chain, toy_image_model, tmp
         lines.append(f"L{i},L{i}/synthetic_lesion_f*.png,L{i}/synthetic_lesion_background_f*.png")
     (tmp_path / "lesions.csv").write_text("\n".join(lines) + "\n")
     out = tmp_path / "est.json"
-    cmd = [sys.executable, "-m", "elastimap.camera.cli", "infer", "--model", str(toy_image_model), "--calibration",
-           str(chain["dir"] / "cal.json"), "--csv", str(tmp_path / "lesions.csv"), "--identifiability", "none",
-           "--out", str(out)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "elastimap.camera.cli",
+        "infer",
+        "--model",
+        str(toy_image_model),
+        "--calibration",
+        str(chain["dir"] / "cal.json"),
+        "--csv",
+        str(tmp_path / "lesions.csv"),
+        "--identifiability",
+        "none",
+        "--out",
+        str(out),
+    ]
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=300)
     assert res.returncode == 0, res.stderr
     rows = json.loads(out.read_text())
@@ -305,13 +368,17 @@ def test_impossible_or_outside_interval_is_not_printed_as_a_number():
 
     def est(mean, lo, hi):
         m = np.array(mean, float)
-        return Estimate("1", np.zeros(3), np.zeros(3), m, np.zeros(3), m, m, 1, [], lo=np.array(lo, float),
-                        hi=np.array(hi, float))
-    ok, bad = _plausibility([est((8, 7, 50), (7, 6, 40), (9, 8, 60)), est((12.9, 6.66, 6.2), (11, 5, 10), (14, 8, 15.4))])
+        return Estimate(
+            "1", np.zeros(3), np.zeros(3), m, np.zeros(3), m, m, 1, [], lo=np.array(lo, float), hi=np.array(hi, float)
+        )
+
+    ok, bad = _plausibility(
+        [est((8, 7, 50), (7, 6, 40), (9, 8, 60)), est((12.9, 6.66, 6.2), (11, 5, 10), (14, 8, 15.4))]
+    )
     assert ok.ok and all(ok.reportable(q) for q in "dhE")
     assert "outside_interval:E" in bad.flags and not bad.reportable("E") and bad.reportable("d")
     assert "6.2" not in _quantity(bad.to_dict(), "E", "kPa") and "10-15.4" in _quantity(bad.to_dict(), "E", "kPa")
-    [imp] = _plausibility([est((8, 2.0, -3), (7, 1, 1), (9, 3, 5))])    # h < 1 + d/2: crosses the surface
+    [imp] = _plausibility([est((8, 2.0, -3), (7, 1, 1), (9, 3, 5))])  # h < 1 + d/2: crosses the surface
     assert {"impossible:h", "impossible:E"} <= set(imp.flags)
 
 
@@ -321,8 +388,11 @@ def test_no_visible_inclusion_in_frames_is_not_reported(toy_image_model):
 
     model = load_model(str(toy_image_model))
     img = toy_solve(*TRUTH).image
-    loud = estimate_fem_images(img[None], model, identifiability=None, sigma=np.full((1,) + img.shape, img.max() / 50))[0]
-    quiet = estimate_fem_images(img[None], model, identifiability=None,
-                                sigma=np.full((1,) + img.shape, img.max() / (DETECT_SIGMA - 1)))[0]
+    loud = estimate_fem_images(img[None], model, identifiability=None, sigma=np.full((1,) + img.shape, img.max() / 50))[
+        0
+    ]
+    quiet = estimate_fem_images(
+        img[None], model, identifiability=None, sigma=np.full((1,) + img.shape, img.max() / (DETECT_SIGMA - 1))
+    )[0]
     assert "no_signal" not in loud.flags
     assert "no_signal" in quiet.flags and not any(quiet.reportable(q) for q in "dhE")

@@ -34,9 +34,9 @@ def test_response_monotone_saturating_and_illumination_nonuniform():
     assert np.all(np.diff(s) > 0) and s[0] == 0 and s[-1] < 1
     L = m.illumination()
     r0, c0, n = m.window
-    win = L[r0:r0 + n, c0:c0 + n]
+    win = L[r0 : r0 + n, c0 : c0 + n]
     assert win.mean() == pytest.approx(1.0)
-    assert win.max() / win.min() > 1.2           # four side LEDs + vignetting: not flat
+    assert win.max() / win.min() > 1.2  # four side LEDs + vignetting: not flat
 
 
 def test_render_seeded_dtype_and_noise_free(toy):
@@ -46,10 +46,11 @@ def test_render_seeded_dtype_and_noise_free(toy):
     assert a.dtype == np.uint16 and a.shape == (2, 104, 139)
     assert np.array_equal(a, b)
     assert not np.array_equal(a, m.replace(seed=4).render(toy.image_raw, toy.pixel, 2))
-    assert not np.array_equal(a[0], a[1])       # independent noise per frame
+    assert not np.array_equal(a[0], a[1])  # independent noise per frame
     clean = m.replace(noise_scale=0)
-    assert np.array_equal(clean.render(toy.image_raw, toy.pixel)[0],
-                          np.rint(clean.expected(toy.image_raw, toy.pixel)).astype(np.uint16))
+    assert np.array_equal(
+        clean.render(toy.image_raw, toy.pixel)[0], np.rint(clean.expected(toy.image_raw, toy.pixel)).astype(np.uint16)
+    )
     m8 = m.replace(bits=8)
     assert m8.render(toy.image_raw, toy.pixel).dtype == np.uint8
     # the lesion press is brighter than the background press at the centre
@@ -58,8 +59,17 @@ def test_render_seeded_dtype_and_noise_free(toy):
     assert F[0, r0 + n // 2, c0 + n // 2] > B[0, r0 + n // 2, c0 + n // 2]
 
 
-@pytest.mark.parametrize("bad", [dict(bits=12), dict(binning=0), dict(w_sat=0), dict(led_power=(1, 1, 1)),
-                                 dict(noise_scale=-1), dict(window_native=2000)])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        dict(bits=12),
+        dict(binning=0),
+        dict(w_sat=0),
+        dict(led_power=(1, 1, 1)),
+        dict(noise_scale=-1),
+        dict(window_native=2000),
+    ],
+)
 def test_bad_sensor_parameters(bad):
     with pytest.raises(UserError):
         SensorModel(**bad).validate()
@@ -107,8 +117,7 @@ def test_bad_files_name_the_file(tmp_path, toy):
         read_frame(p, m.shape, m.window)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        read_frame(write_frames(m.render(toy.image_raw, toy.pixel, 1), tmp_path, "fine", "png")[0],
-                   m.shape, m.window)
+        read_frame(write_frames(m.render(toy.image_raw, toy.pixel, 1), tmp_path, "fine", "png")[0], m.shape, m.window)
 
 
 def test_deflection_noise_map_matches_rendered_frames():
@@ -127,7 +136,7 @@ def test_deflection_noise_map_matches_rendered_frames():
     rng = np.random.default_rng(0)
     diff = m.render(bg, pixel, frames, rng).mean(0) - m.render(bg, pixel, frames, rng).mean(0)
     eps = 1e-4
-    slope = (m.expected(bg + eps, pixel) - m.expected(bg, pixel)) / eps          # DN per mm
+    slope = (m.expected(bg + eps, pixel) - m.expected(bg, pixel)) / eps  # DN per mm
     r0, c0, n = m.window
     win = (slice(r0, r0 + n), slice(c0, c0 + n))
     dw = diff[win] / slope[win]

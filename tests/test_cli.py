@@ -141,10 +141,18 @@ def test_flag_for_maps_python_names_to_flags():
     def cmd(**kw):
         pass
 
-    for name, flag in [("jobs", "--jobs"), ("batch_rows", "--batch-rows"), ("tissue.E", "--tissue-E"),
-                       ("inclusion.nu", "--nu"), ("probe.layer2.E", "--layers"), ("sensor", "--sensor"),
-                       ("camera-csv", "--camera-csv"), ("path", "PATH"), ("--already", "--already"),
-                       ("unknown_thing", "unknown_thing")]:
+    for name, flag in [
+        ("jobs", "--jobs"),
+        ("batch_rows", "--batch-rows"),
+        ("tissue.E", "--tissue-E"),
+        ("inclusion.nu", "--nu"),
+        ("probe.layer2.E", "--layers"),
+        ("sensor", "--sensor"),
+        ("camera-csv", "--camera-csv"),
+        ("path", "PATH"),
+        ("--already", "--already"),
+        ("unknown_thing", "unknown_thing"),
+    ]:
         assert flag_for(cmd, name) == flag, name
 
 
@@ -155,13 +163,15 @@ def test_library_names_become_flags_in_one_line(capsys):
     with pytest.raises(UserError) as e:
         make_plan(SweepConfig(jobs=0, mesh="tiny"))
     assert e.value.param == "jobs"
-    for argv, flag in [(["sweep", "run", "--jobs", "0"], "--jobs"),
-                       (["sweep", "run", "--batch-rows", "0"], "--batch-rows"),
-                       (["sweep", "run", "--ranges", "d=5:2"], "--ranges"),
-                       (["solve", "--tissue-E", "-1"], "--tissue-E"),
-                       (["solve", "--layers", "2:0"], "--layers"),
-                       (["train", "--synthetic", "60", "--feature-noise", "2"], "--feature-noise"),
-                       (["train", "--synthetic", "60", "--repeats", "0"], "--repeats")]:
+    for argv, flag in [
+        (["sweep", "run", "--jobs", "0"], "--jobs"),
+        (["sweep", "run", "--batch-rows", "0"], "--batch-rows"),
+        (["sweep", "run", "--ranges", "d=5:2"], "--ranges"),
+        (["solve", "--tissue-E", "-1"], "--tissue-E"),
+        (["solve", "--layers", "2:0"], "--layers"),
+        (["train", "--synthetic", "60", "--feature-noise", "2"], "--feature-noise"),
+        (["train", "--synthetic", "60", "--repeats", "0"], "--repeats"),
+    ]:
         with pytest.raises(SystemExit) as ex:
             run(cli, argv, prog_name="elastimap")
         err = capsys.readouterr().err
@@ -170,17 +180,22 @@ def test_library_names_become_flags_in_one_line(capsys):
 
 # ----------------------------------------------------------------------------- declared rules
 def test_constraints_validate_and_describe():
-    table = {"jobs": [Interval(int, 1, 256)], "timeout": [None, Interval(float, 0, None, unit="s")],
-             "design": [Options(("lhs", "sobol"))], "device": [None, InstanceOf(bytes, "bytes"),
-                                                                Predicate(lambda d: d.startswith("cuda"), "cuda[:N]")]}
+    table = {
+        "jobs": [Interval(int, 1, 256)],
+        "timeout": [None, Interval(float, 0, None, unit="s")],
+        "design": [Options(("lhs", "sobol"))],
+        "device": [None, InstanceOf(bytes, "bytes"), Predicate(lambda d: d.startswith("cuda"), "cuda[:N]")],
+    }
     validate_params({"jobs": 2, "timeout": None, "design": "lhs", "device": "cuda:1"}, table)
-    for values, msg in [({"jobs": 0}, "jobs: must be an integer in [1, 256] (got 0)"),
-                        ({"jobs": 2.0}, "jobs: must be an integer in [1, 256] (got 2)"),
-                        ({"jobs": True}, "jobs: must be an integer"),
-                        ({"timeout": -1.0}, "timeout: must be >= 0 s (got -1)"),
-                        ({"timeout": float("nan")}, "timeout: must be >= 0 s"),
-                        ({"design": "grid"}, "design: must be one of lhs, sobol (got 'grid')"),
-                        ({"device": "tpu"}, "device: must be bytes or cuda[:N] (got 'tpu')")]:
+    for values, msg in [
+        ({"jobs": 0}, "jobs: must be an integer in [1, 256] (got 0)"),
+        ({"jobs": 2.0}, "jobs: must be an integer in [1, 256] (got 2)"),
+        ({"jobs": True}, "jobs: must be an integer"),
+        ({"timeout": -1.0}, "timeout: must be >= 0 s (got -1)"),
+        ({"timeout": float("nan")}, "timeout: must be >= 0 s"),
+        ({"design": "grid"}, "design: must be one of lhs, sobol (got 'grid')"),
+        ({"device": "tpu"}, "device: must be bytes or cuda[:N] (got 'tpu')"),
+    ]:
         with pytest.raises(UserError) as e:
             validate_params(values, table)
         assert str(e.value).startswith(msg), (values, str(e.value))
@@ -204,9 +219,13 @@ def test_train_config_declares_its_rules():
     from elastimap.training.experiment import TrainConfig
 
     TrainConfig().validate()
-    for kw, name in [(dict(epochs=-1), "epochs"), (dict(val_fraction=1.0), "val_fraction"),
-                     (dict(workers=-1), "workers"), (dict(device="gpu"), "device"),
-                     (dict(hidden=((0, "tansig"),)), "hidden")]:
+    for kw, name in [
+        (dict(epochs=-1), "epochs"),
+        (dict(val_fraction=1.0), "val_fraction"),
+        (dict(workers=-1), "workers"),
+        (dict(device="gpu"), "device"),
+        (dict(hidden=((0, "tansig"),)), "hidden"),
+    ]:
         with pytest.raises(UserError) as e:
             TrainConfig(**kw).validate()
         assert e.value.param == name
@@ -225,11 +244,21 @@ def _timed(argv):
     return r, wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
-@pytest.mark.parametrize("argv", [["elastimap", "solve", "--bogus"], ["solve", "--bogus"],
-                                  ["elastimap", "sweep", "run", "--bogus"], ["sweep", "run", "--bogus"],
-                                  ["elastimap", "train", "--bogus"], ["train", "--bogus"],
-                                  ["elastimap", "camera", "infer", "--bogus"], ["infer", "--bogus"],
-                                  ["elastimap", "identify", "crbmap", "--bogus"], ["elastimap", "--bogus"]])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["elastimap", "solve", "--bogus"],
+        ["solve", "--bogus"],
+        ["elastimap", "sweep", "run", "--bogus"],
+        ["sweep", "run", "--bogus"],
+        ["elastimap", "train", "--bogus"],
+        ["train", "--bogus"],
+        ["elastimap", "camera", "infer", "--bogus"],
+        ["infer", "--bogus"],
+        ["elastimap", "identify", "crbmap", "--bogus"],
+        ["elastimap", "--bogus"],
+    ],
+)
 def test_mistyped_flag_answers_fast_in_one_line(argv):
     exe = BIN / argv[0]
     if not exe.exists():
@@ -245,34 +274,57 @@ def test_mistyped_flag_answers_fast_in_one_line(argv):
     assert wall < 5.0, f"{' '.join(argv)} took {wall:.2f} s"
 
 
-@pytest.mark.parametrize("argv", [["--help"], ["solve", "--bogus"], ["sweep", "run", "--bogus"],
-                                  ["train", "--bogus"], ["camera", "-h"], ["gap", "-h"], ["identify", "-h"]])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--help"],
+        ["solve", "--bogus"],
+        ["sweep", "run", "--bogus"],
+        ["train", "--bogus"],
+        ["camera", "-h"],
+        ["gap", "-h"],
+        ["identify", "-h"],
+    ],
+)
 def test_lazy_imports_nothing_heavy(argv):
-    code = (f"import sys\nfrom elastimap.cli import main\ntry:\n    main({argv!r})\nexcept SystemExit:\n    pass\n"
-            "heavy = sorted(m for m in ('torch', 'dolfinx', 'dask', 'distributed', 'pandas', 'gmsh') if m in sys.modules)\n"
-            "print('HEAVY', ','.join(heavy))\n")
+    code = (
+        f"import sys\nfrom elastimap.cli import main\ntry:\n    main({argv!r})\nexcept SystemExit:\n    pass\n"
+        "heavy = sorted(m for m in ('torch', 'dolfinx', 'dask', 'distributed', 'pandas', 'gmsh') if m in sys.modules)\n"
+        "print('HEAVY', ','.join(heavy))\n"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=120)
     line = [ln for ln in r.stdout.splitlines() if ln.startswith("HEAVY")]
     assert line == ["HEAVY "], (argv, r.stdout[-500:], r.stderr[-500:])
 
 
 def test_help_of_top_command_does_not_even_import_numpy():
-    code = ("import sys\nfrom elastimap.cli import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
-            "print('NUMPY', 'numpy' in sys.modules)\n")
+    code = (
+        "import sys\nfrom elastimap.cli import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+        "print('NUMPY', 'numpy' in sys.modules)\n"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=120)
     assert "NUMPY False" in r.stdout, r.stdout[-300:]
 
 
 def test_scripts_and_elastimap_give_the_same_answers(tmp_path):
     """Real runs of installed scripts: the alias and `elastimap X` print the same."""
-    for alias, sub in [("gap", ["effects"]), ("camera", ["-h"]), ("infer", ["-h"]), ("calibrate", ["-h"]),
-                       ("sweep", ["run", "-h"]), ("dataset", ["inspect", "-h"]), ("solve", ["-h"]), ("train", ["-h"])]:
+    for alias, sub in [
+        ("gap", ["effects"]),
+        ("camera", ["-h"]),
+        ("infer", ["-h"]),
+        ("calibrate", ["-h"]),
+        ("sweep", ["run", "-h"]),
+        ("dataset", ["inspect", "-h"]),
+        ("solve", ["-h"]),
+        ("train", ["-h"]),
+    ]:
         exe = BIN / alias
         if not exe.exists():
             pytest.skip(f"{exe} not installed")
         a = subprocess.run([str(exe), *sub], capture_output=True, text=True, env=ENV, timeout=120)
-        b = subprocess.run([str(BIN / "elastimap"), *ALIASES[alias], *sub], capture_output=True, text=True, env=ENV,
-                           timeout=120)
+        b = subprocess.run(
+            [str(BIN / "elastimap"), *ALIASES[alias], *sub], capture_output=True, text=True, env=ENV, timeout=120
+        )
         assert a.returncode == b.returncode == 0, (alias, a.stderr, b.stderr)
         if sub == ["-h"] or sub[-1] == "-h":  # same help but for the program name in the usage line
             assert a.stdout.startswith(f"Usage: {alias} {' '.join(sub[:-1])}".rstrip())
@@ -283,8 +335,14 @@ def test_scripts_and_elastimap_give_the_same_answers(tmp_path):
 
 
 def test_python_dash_m_entries_still_work():
-    for mod in ("elastimap.cli", "elastimap.solver.cli", "elastimap.sweep.cli", "elastimap.dataset.cli",
-                "elastimap.gap.cli", "elastimap.camera.cli"):
+    for mod in (
+        "elastimap.cli",
+        "elastimap.solver.cli",
+        "elastimap.sweep.cli",
+        "elastimap.dataset.cli",
+        "elastimap.gap.cli",
+        "elastimap.camera.cli",
+    ):
         r = subprocess.run([sys.executable, "-m", mod, "-h"], capture_output=True, text=True, env=ENV, timeout=120)
         assert r.returncode == 0 and "Usage:" in r.stdout, (mod, r.stderr[-300:])
 
@@ -292,8 +350,26 @@ def test_python_dash_m_entries_still_work():
 def test_train_runs_as_elastimap_train_and_as_train(tmp_path):
     """One real (tiny, SYNTHETIC toy table) training through both spellings gives the same table."""
     pytest.importorskip("torch")
-    args = ["--synthetic", "40", "--algo", "scg", "--validate", "hov", "--repeats", "1", "--epochs", "3",
-            "--hidden", "3", "--no-model", "--quiet", "--threads", "1", "--workers", "1"]
+    args = [
+        "--synthetic",
+        "40",
+        "--algo",
+        "scg",
+        "--validate",
+        "hov",
+        "--repeats",
+        "1",
+        "--epochs",
+        "3",
+        "--hidden",
+        "3",
+        "--no-model",
+        "--quiet",
+        "--threads",
+        "1",
+        "--workers",
+        "1",
+    ]
     train_obj = _resolve(["train"])
     r1 = CliRunner().invoke(cli, ["train", *args, "--out", str(tmp_path / "a")])
     r2 = CliRunner().invoke(train_obj, [*args, "--out", str(tmp_path / "b")])

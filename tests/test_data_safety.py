@@ -69,8 +69,23 @@ def test_training_reads_what_inspect_reads(tmp_path):
     assert _inspect_rows(ds) == 20
     s = load_samples(str(ds))
     assert s.n == 20 and s.n_failed == 0 and not s.df["sample_id"].str.startswith("old").any()
-    code, _, err = invoke("train", ["--data", str(ds), "--repeats", "1", "--epochs", "2", "--hidden", "3",
-                                    "--quiet", "--out", str(tmp_path / "tr"), "--no-model"])
+    code, _, err = invoke(
+        "train",
+        [
+            "--data",
+            str(ds),
+            "--repeats",
+            "1",
+            "--epochs",
+            "2",
+            "--hidden",
+            "3",
+            "--quiet",
+            "--out",
+            str(tmp_path / "tr"),
+            "--no-model",
+        ],
+    )
     assert code == 0, err
     assert "20 usable samples" in err
     assert json.loads((tmp_path / "tr" / "run.json").read_text())["n_samples"] == 20
@@ -83,8 +98,9 @@ def test_foreign_parquet_is_refused_naming_it(tmp_path):
     from elastimap.training.data import load_samples
 
     ds = make_dataset(tmp_path / "ds", n=12)
-    pd.DataFrame({"O1": [1.0], "O2": [2.0], "O3": [3.0], "d": [1.0], "h": [1.0], "E": [1.0],
-                  "status": ["ok"]}).to_parquet(ds / "zz-foreign.parquet")
+    pd.DataFrame(
+        {"O1": [1.0], "O2": [2.0], "O3": [3.0], "d": [1.0], "h": [1.0], "E": [1.0], "status": ["ok"]}
+    ).to_parquet(ds / "zz-foreign.parquet")
     for read in (lambda: load_samples(str(ds)), lambda: fem_features_from_csv(ds, load_phantoms(None))):
         with pytest.raises(UserError, match="zz-foreign.parquet"):
             read()
@@ -125,8 +141,24 @@ def test_train_out_holds_exactly_one_run(tmp_path):
 def test_failed_train_run_leaves_nothing(tmp_path):
     out = tmp_path / "run"
     # fails inside the validation (no rows left for training), after the run has started
-    code, _, err = invoke("train", ["--synthetic", "12", "--repeats", "1", "--epochs", "2", "--hidden", "3",
-                                    "--quiet", "--val-fraction", "0.95", "--out", str(out)])
+    code, _, err = invoke(
+        "train",
+        [
+            "--synthetic",
+            "12",
+            "--repeats",
+            "1",
+            "--epochs",
+            "2",
+            "--hidden",
+            "3",
+            "--quiet",
+            "--val-fraction",
+            "0.95",
+            "--out",
+            str(out),
+        ],
+    )
     assert code == 2, err
     assert list(tmp_path.iterdir()) == []
 
@@ -162,8 +194,24 @@ def test_gap_diagnose_keeps_the_report_when_out_fails_late(tmp_path, monkeypatch
         return real(res, out)
 
     monkeypatch.setattr(report, "write", flaky)
-    code, _, err = invoke("gap", ["diagnose", "--measured", str(m), "--backend", "toy", "--cache", "none",
-                                  "--no-inverse", "--quiet", "--effects", "friction", "--out", str(tmp_path / "dg")])
+    code, _, err = invoke(
+        "gap",
+        [
+            "diagnose",
+            "--measured",
+            str(m),
+            "--backend",
+            "toy",
+            "--cache",
+            "none",
+            "--no-inverse",
+            "--quiet",
+            "--effects",
+            "friction",
+            "--out",
+            str(tmp_path / "dg"),
+        ],
+    )
     assert code == 2 and len(err.strip().splitlines()) == 1
     fb = Path(calls[1])
     assert str(fb) in err and (fb / "report.md").exists()
@@ -281,11 +329,16 @@ def test_damaged_model_files_load_or_refuse(model_dir, tmp_path_factory, which, 
 
 
 # ----------------------------------------------------------------------------- parameter validation
-finite_or_not = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10**6, 10**6))
+finite_or_not = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-(10**6), 10**6))
 
 
-@given(v=finite_or_not, lo=st.one_of(st.none(), st.floats(-1e6, 1e6)), hi=st.one_of(st.none(), st.floats(-1e6, 1e6)),
-       lo_open=st.booleans(), hi_open=st.booleans())
+@given(
+    v=finite_or_not,
+    lo=st.one_of(st.none(), st.floats(-1e6, 1e6)),
+    hi=st.one_of(st.none(), st.floats(-1e6, 1e6)),
+    lo_open=st.booleans(),
+    hi_open=st.booleans(),
+)
 def test_check_range_accepts_exactly_the_interval(v, lo, hi, lo_open, hi_open):
     inside = math.isfinite(v)
     if lo is not None:
@@ -300,8 +353,16 @@ def test_check_range_accepts_exactly_the_interval(v, lo, hi, lo_open, hi_open):
 
 
 @settings(max_examples=300, deadline=None)
-@given(d=finite_or_not, h=finite_or_not, E=finite_or_not, tissue_E=finite_or_not, thickness=finite_or_not,
-       delta=finite_or_not, force=st.one_of(st.none(), finite_or_not), pixel=finite_or_not)
+@given(
+    d=finite_or_not,
+    h=finite_or_not,
+    E=finite_or_not,
+    tissue_E=finite_or_not,
+    thickness=finite_or_not,
+    delta=finite_or_not,
+    force=st.one_of(st.none(), finite_or_not),
+    pixel=finite_or_not,
+)
 def test_solve_params_validate_or_refuse(d, h, E, tissue_E, thickness, delta, force, pixel):
     """Any numbers: either a UserError naming a parameter, or parameters a mesh can be built for."""
     from elastimap.solver.params import (
@@ -315,9 +376,13 @@ def test_solve_params_validate_or_refuse(d, h, E, tissue_E, thickness, delta, fo
         delta_limit,
     )
 
-    p = SolveParams(inclusion=Inclusion(d=d, h=h, E=E), tissue=Tissue(E=tissue_E, thickness=thickness),
-                    loading=Loading(delta=delta, force=force), disc=Discretisation(mesh="tiny"),
-                    image=ImageSpec(pixel=pixel))
+    p = SolveParams(
+        inclusion=Inclusion(d=d, h=h, E=E),
+        tissue=Tissue(E=tissue_E, thickness=thickness),
+        loading=Loading(delta=delta, force=force),
+        disc=Discretisation(mesh="tiny"),
+        image=ImageSpec(pixel=pixel),
+    )
     try:
         p.validate()
     except UserError as exc:
@@ -353,8 +418,11 @@ def test_measured_reader_loads_or_refuses(measured_dir, tmp_path_factory, data):
     for _ in range(data.draw(st.integers(1, 4))):
         r = data.draw(st.integers(0, len(df) - 1))
         c = data.draw(st.sampled_from(list(df.columns)))
-        df.loc[r, c] = data.draw(st.one_of(st.sampled_from(["", "nan", "-1", "0", "inf", "x", df.loc[0, c]]),
-                                           st.floats(allow_nan=True).map(str)))
+        df.loc[r, c] = data.draw(
+            st.one_of(
+                st.sampled_from(["", "nan", "-1", "0", "inf", "x", df.loc[0, c]]), st.floats(allow_nan=True).map(str)
+            )
+        )
     if data.draw(st.booleans()):
         df = df.drop(columns=[data.draw(st.sampled_from(list(df.columns)))])
     df.to_csv(d / "measured.csv", index=False)

@@ -22,13 +22,28 @@ SHAPE = (4, 4)
 def _row(sid, status="ok", tag="design", d=8.0, h=7.0, E=50.0, o1=0.01):
     ok = status == "ok"
     nan = float("nan")
-    return {"sample_id": sid, "tag": tag, "d": d, "h": h, "E": E,
-            "O1": o1 if ok else nan, "O2": 0.1 if ok else nan, "O3": 10.0 if ok else nan,
-            "force": 100.0 if ok else nan, "force_ref": 99.0 if ok else nan,
-            "image": np.full(SHAPE, o1, dtype=np.float32) if ok else None,
-            "params_json": "{}", "status": status, "error": "" if ok else "SolverError: boom",
-            "ndofs": 10 if ok else None, "newton_iterations": 1 if ok else None, "seconds": 1.5,
-            "peak_memory_mb": 50.0, "code_version": "test", "host": "h"}
+    return {
+        "sample_id": sid,
+        "tag": tag,
+        "d": d,
+        "h": h,
+        "E": E,
+        "O1": o1 if ok else nan,
+        "O2": 0.1 if ok else nan,
+        "O3": 10.0 if ok else nan,
+        "force": 100.0 if ok else nan,
+        "force_ref": 99.0 if ok else nan,
+        "image": np.full(SHAPE, o1, dtype=np.float32) if ok else None,
+        "params_json": "{}",
+        "status": status,
+        "error": "" if ok else "SolverError: boom",
+        "ndofs": 10 if ok else None,
+        "newton_iterations": 1 if ok else None,
+        "seconds": 1.5,
+        "peak_memory_mb": 50.0,
+        "code_version": "test",
+        "host": "h",
+    }
 
 
 def _land(tmp, rows, shape=SHAPE):
@@ -122,8 +137,19 @@ def test_cli_inspect_export_compact_plot(tmp_path, capsys):
     ds.mkdir()
     rng = np.random.default_rng(1)
     for i in range(6):
-        _land(ds, [_row(f"s{i}", d=rng.uniform(2, 15), h=rng.uniform(5, 8), E=rng.uniform(10, 200),
-                        o1=rng.uniform(0, 0.03), tag="phantom:size-1" if i == 0 else "design")])
+        _land(
+            ds,
+            [
+                _row(
+                    f"s{i}",
+                    d=rng.uniform(2, 15),
+                    h=rng.uniform(5, 8),
+                    E=rng.uniform(10, 200),
+                    o1=rng.uniform(0, 0.03),
+                    tag="phantom:size-1" if i == 0 else "design",
+                )
+            ],
+        )
     _land(ds, [_row("bad", status="failed")])
     code, out, err = _cli(["inspect", str(ds)], capsys)
     assert code == 0, err
@@ -143,7 +169,9 @@ def test_cli_inspect_export_compact_plot(tmp_path, capsys):
 
 def test_cli_bad_path_is_one_line(tmp_path, capsys):
     code, out, err = _cli(["inspect", str(tmp_path / "nope")], capsys)
-    assert code == 2 and err.strip().count("\n") == 0 and err.startswith("error: PATH:")  # the argument, as --help names it
+    assert (
+        code == 2 and err.strip().count("\n") == 0 and err.startswith("error: PATH:")
+    )  # the argument, as --help names it
     (tmp_path / "x.parquet").write_bytes(b"junk")
     code, out, err = _cli(["inspect", str(tmp_path / "x.parquet")], capsys)
     assert code == 2 and "not a readable Parquet file" in err

@@ -32,25 +32,28 @@ def dhe():
 
 # ---------------------------------------------------------------- effects and format
 def test_effect_spec_parsing_and_switches():
-    (e, m), = fx.parse_spec("friction=0.3")
+    ((e, m),) = fx.parse_spec("friction=0.3")
     assert e.name == "friction" and m == 0.3
     for bad in ("friction", "nope=1", "friction=x", "friction=0.1,friction=0.2", "skin=1000"):
         with pytest.raises(UserError):
             fx.parse_spec(bad)
     from elastimap.solver.params import SolveParams
+
     p = SolveParams()
-    assert fx.get("friction").apply_params(p, 0.0) is p                       # nominal = baseline
+    assert fx.get("friction").apply_params(p, 0.0) is p  # nominal = baseline
     assert fx.get("friction").apply_params(p, 0.5).disc.friction_kt == 0.5
     assert fx.get("skin").apply_params(p, 20.0).tissue.skin_thickness == fx.SKIN_THICKNESS
     assert fx.get("probe_moduli").apply_params(p, 2.0).probe.layers[0][1] == 600.0
     assert fx.get("offaxis").apply_params(p, 2.0).disc.symmetry == "full"
     from elastimap.camera.optics import SensorModel
+
     assert fx.get("saturation").apply_sensor(SensorModel(), 0.2).w_sat == 0.2
     assert "offaxis" not in fx.DEFAULT_CANDIDATES
 
 
 def test_phantom_design_is_valid_for_every_effect():
     from elastimap.gap.simulate import base_params
+
     for row in synth.phantom_design(30, 3):
         for e in fx.EFFECTS.values():
             for m in e.grid:
@@ -67,10 +70,12 @@ def test_measured_roundtrip_and_validation(tmp_path, toy, dhe):
         back = measured.load(d)
         assert back.ids == meas.ids and np.allclose(back.y, meas.y) and np.allclose(back.se, meas.se)
         assert back.difference[0].shape == meas.difference[0].shape and back.synthetic
-        assert np.allclose(back.force, meas.force) and np.allclose(back.difference_se[0], meas.difference_se[0], rtol=1e-6)
+        assert np.allclose(back.force, meas.force) and np.allclose(
+            back.difference_se[0], meas.difference_se[0], rtol=1e-6
+        )
         assert any(p.name.startswith("synthetic_") for p in d.iterdir())
         assert synth.unseal(d)["effects"][0]["name"] == "skin"
-        assert "skin" not in tp.read_text() if fmt == "csv" else True          # the label is not in the table
+        assert "skin" not in tp.read_text() if fmt == "csv" else True  # the label is not in the table
     d = tmp_path / "csv"
     df = pd.read_csv(d / "measured.csv")
 
@@ -98,6 +103,7 @@ def test_measured_roundtrip_and_validation(tmp_path, toy, dhe):
 
 def test_simulator_cache_reuses_solves(tmp_path, dhe):
     from elastimap.gap.simulate import base_params
+
     ps = [base_params("tiny", *r) for r in dhe[:3]]
     a = Simulator(tmp_path, "tiny", "toy")
     ra = a.run(ps)
@@ -109,6 +115,7 @@ def test_simulator_cache_reuses_solves(tmp_path, dhe):
     # the cache is a solve store: the same rows read through SolveStore, labelled SYNTHETIC,
     # and they never answer for the FEM
     from elastimap.dataset.store import SolveStore
+
     got = SolveStore(tmp_path, solver="synthetic").get(ps[1], need_raw=True)
     assert got is not None and np.array_equal(got.image, ra[1].image) and np.array_equal(got.image_raw, ra[1].image_raw)
     assert SolveStore(tmp_path).get(ps[1]) is None
@@ -130,11 +137,23 @@ class MeshToy:
 
     def run(self, plist):
         from elastimap.gap.simulate import Record
+
         out = []
         for r in self.inner.run(plist):
             bg = r.image_raw - r.image
-            out.append(Record(f"{r.key}@{self.mesh}", r.O1 * self.f, r.O2 * self.f, r.O3, r.force * self.g, r.pixel,
-                              r.image * self.f, bg + r.image * self.f, r.seconds))
+            out.append(
+                Record(
+                    f"{r.key}@{self.mesh}",
+                    r.O1 * self.f,
+                    r.O2 * self.f,
+                    r.O3,
+                    r.force * self.g,
+                    r.pixel,
+                    r.image * self.f,
+                    bg + r.image * self.f,
+                    r.seconds,
+                )
+            )
         return out
 
 
@@ -143,8 +162,12 @@ SMALL = "friction,background_E,probe_E1,probe_E2,probe_moduli,saturation,blur,ga
 
 def test_diagnosis_identifies_fits_and_shrinks(toy, dhe, tmp_path):
     meas, _ = synth.synthesize(dhe, [(fx.get("friction"), 0.6)], toy, frames=6, seed=2)
-    res = diagnose(meas, fx.parse_list(SMALL), toy, Settings(inverse=True, n_train=30, train_repeats=2,
-                                                             train_epochs=150, bootstrap=50))
+    res = diagnose(
+        meas,
+        fx.parse_list(SMALL),
+        toy,
+        Settings(inverse=True, n_train=30, train_repeats=2, train_epochs=150, bootstrap=50),
+    )
     ev = res["evaluation"]
     assert ev["outcome"] == "explained" and ev["winner"] == "friction" and ev["views"] == ["profile"]
     top = ev["ranking"][0]
@@ -155,6 +178,7 @@ def test_diagnosis_identifies_fits_and_shrinks(toy, dhe, tmp_path):
     assert si["mean_error_after"] < si["mean_error_before"]
     assert res["where"]["image"]["rings"] and "image_after" in res["where"]
     from elastimap.gap import report
+
     doc = report.write(res, tmp_path / "rep")
     md = (tmp_path / "rep" / "report.md").read_text()
     assert "SYNTHETIC" in md and "explained by friction" in md and "Every view" in md
@@ -198,8 +222,9 @@ def test_ambiguity_reported_with_separating_measurement(toy, dhe):
     """In the TOY model only the first probe layer acts, so a softer layer 1 and a softer probe
     (all layers) are look-alikes: both are reported, with what would separate them."""
     meas, _ = synth.synthesize(dhe, [(fx.get("probe_E1"), 200.0)], toy, frames=6, seed=5)
-    res = diagnose(meas, fx.parse_list("probe_E1,probe_moduli,friction,saturation"), toy,
-                   Settings(inverse=False, bootstrap=20))
+    res = diagnose(
+        meas, fx.parse_list("probe_E1,probe_moduli,friction,saturation"), toy, Settings(inverse=False, bootstrap=20)
+    )
     ev = res["evaluation"]
     assert ev["outcome"] == "ambiguous" and set(ev["ambiguous_set"]) == {"probe_E1", "probe_moduli"}
     rows = {r["effect"]: r for r in ev["ranking"]}
@@ -207,16 +232,18 @@ def test_ambiguity_reported_with_separating_measurement(toy, dhe):
     p = res["proposal"]
     assert p["recommendation"]["measurement"] and len(p["phantoms"]) == 3
     (sep_force,) = p["force"].values()
-    assert sep_force == pytest.approx(0.0, abs=1e-9)   # the TOY force ignores the probe
+    assert sep_force == pytest.approx(0.0, abs=1e-9)  # the TOY force ignores the probe
     assert p["second_depth"] and "solved_pair_separation" in p["phantoms"][0]
     from elastimap.gap import report
+
     assert "cannot be told apart" in report.verdict_line(res)
 
 
 def test_family_composes_members_and_pays_for_its_parameters(toy, dhe):
     meas, _ = synth.synthesize(dhe, [(fx.get("probe_E1"), 220.0)], toy, frames=6, seed=6)
-    ev = diagnose(meas, fx.parse_list("probe_E1,probe_E2,probe_E3,saturation"), toy,
-                  Settings(inverse=False, bootstrap=20))["evaluation"]
+    ev = diagnose(
+        meas, fx.parse_list("probe_E1,probe_E2,probe_E3,saturation"), toy, Settings(inverse=False, bootstrap=20)
+    )["evaluation"]
     rows = {r["effect"]: r for r in ev["ranking"]}
     fam = rows["probe_layers_E"]
     assert fam["n_params"] == 3 and fam["members"] == ["probe_E1", "probe_E2", "probe_E3"]
@@ -229,6 +256,7 @@ def test_frames_give_features_images_and_pixel_noise(tmp_path, toy, dhe):
     from elastimap.camera.frames import write_frames
     from elastimap.camera.optics import SensorModel, render_pair
     from elastimap.gap.simulate import base_params
+
     sensor = SensorModel()
     recs = toy.run([base_params("tiny", *r) for r in dhe[:4]])
     rows = []
@@ -237,8 +265,16 @@ def test_frames_give_features_images_and_pixel_noise(tmp_path, toy, dhe):
         L, B = render_pair(sensor, r.image_raw, r.image, r.pixel, 4, rng)
         li = write_frames(L, tmp_path, f"les{i}")
         bi = write_frames(B, tmp_path, f"bg{i}")
-        rows.append({"id": f"P{i}", "d": dhe[i, 0], "h": dhe[i, 1], "E": dhe[i, 2],
-                     "images": ";".join(Path(x).name for x in li), "background": ";".join(Path(x).name for x in bi)})
+        rows.append(
+            {
+                "id": f"P{i}",
+                "d": dhe[i, 0],
+                "h": dhe[i, 1],
+                "E": dhe[i, 2],
+                "images": ";".join(Path(x).name for x in li),
+                "background": ";".join(Path(x).name for x in bi),
+            }
+        )
     pd.DataFrame(rows).to_csv(tmp_path / "measured.csv", index=False)
     m = measured.load(tmp_path)
     assert m.has_images and all(s is not None and s.shape == m.difference[0].shape for s in m.difference_se)
@@ -249,6 +285,7 @@ def test_profile_noise_is_calibrated(toy, dhe):
     """Noise-only data: χ²/N of the profile and features with the frame-scatter errors is about 1."""
     from elastimap.gap.diagnose import measured_views, sim_views
     from elastimap.gap.simulate import base_params
+
     recs = toy.run([base_params("tiny", *r) for r in dhe])
     zs = {"features": [], "profile": []}
     for seed in range(3):
@@ -263,10 +300,22 @@ def test_profile_noise_is_calibrated(toy, dhe):
 
 def test_tiny_blind_benchmark_with_model_form_error(dhe):
     from elastimap.gap import selftest
+
     cands = fx.parse_list("friction,background_E,saturation,blur")
     outside = fx.parse_list("aspect,stray_light")
-    res = selftest.run(4, MeshToy("tiny"), MeshToy("default"), cands, outside, MeshToy("coarse"), n_phantoms=10,
-                       frames=6, seed=5, st=Settings(inverse=False, bootstrap=20), log=None)
+    res = selftest.run(
+        4,
+        MeshToy("tiny"),
+        MeshToy("default"),
+        cands,
+        outside,
+        MeshToy("coarse"),
+        n_phantoms=10,
+        frames=6,
+        seed=5,
+        st=Settings(inverse=False, bootstrap=20),
+        log=None,
+    )
     assert [r["kind"] for r in res["trials"]] == ["none", "in", "out", "in"]
     assert res["no_effect_no_gap_rate"] == 1.0
     assert res["in_library_set_holds_truth_rate"] >= 0.5
@@ -289,30 +338,74 @@ def test_fem_backend_small_diagnosis(tmp_path):
     res = diagnose(meas, [fr, fx.get("saturation")], sim, Settings(inverse=False, bootstrap=20))
     ev = res["evaluation"]
     assert ev["best"] == "friction" and ev["ranking"][0]["magnitude"][0] == pytest.approx(0.3, rel=0.05)
-    assert sim.stats["solved"] == n_true + 4            # only the baseline was new: friction=0.3 came from the cache
+    assert sim.stats["solved"] == n_true + 4  # only the baseline was new: friction=0.3 came from the cache
 
 
 # ---------------------------------------------------------------- CLI
 def test_cli_end_to_end_and_errors(tmp_path):
     py = [sys.executable, "-m", "elastimap.gap.cli"]
     m = tmp_path / "m"
-    r = subprocess.run(py + ["synth", "--out", str(m), "--effect", "saturation=0.2", "--backend", "toy",
-                             "--mesh", "tiny", "--n", "8", "--cache", "none", "--quiet"], capture_output=True, text=True, cwd=ROOT)
+    r = subprocess.run(
+        py
+        + [
+            "synth",
+            "--out",
+            str(m),
+            "--effect",
+            "saturation=0.2",
+            "--backend",
+            "toy",
+            "--mesh",
+            "tiny",
+            "--n",
+            "8",
+            "--cache",
+            "none",
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
     assert r.returncode == 0, r.stderr
     assert "SYNTHETIC" in r.stdout
     out = tmp_path / "d"
-    r = subprocess.run(py + ["diagnose", "--measured", str(m), "--out", str(out), "--backend", "toy", "--cache", "none",
-                             "--effects", "saturation,friction,blur", "--no-inverse", "--quiet", "--json"],
-                       capture_output=True, text=True, cwd=ROOT)
+    r = subprocess.run(
+        py
+        + [
+            "diagnose",
+            "--measured",
+            str(m),
+            "--out",
+            str(out),
+            "--backend",
+            "toy",
+            "--cache",
+            "none",
+            "--effects",
+            "saturation,friction,blur",
+            "--no-inverse",
+            "--quiet",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["winner"] == "saturation"
     assert (out / "report.md").exists() and (out / "candidates.png").exists() and (out / "report.html").exists()
-    for args, word in ((["diagnose", "--measured", str(tmp_path / "none"), "--out", str(out)], "no such"),
-                       (["synth", "--out", str(tmp_path / "m2"), "--effect", "bogus=1"], "unknown effect"),
-                       (["synth", "--out", str(m), "--effect", "friction=0.3"], "--overwrite"),
-                       (["diagnose", "--measured", str(m), "--out", str(out), "--effects", "x"], "unknown effect"),
-                       (["diagnose", "--measured", str(m), "--out", str(out), "--alpha", "2"], "alpha"),
-                       (["diagnose", "--measured", str(m), "--out", str(out), "--error-mesh", "huge", "--backend", "toy"], "error-mesh"),
-                       (["selftest", "--outside", "friction", "--effects", "friction", "--backend", "toy"], "outside")):
+    for args, word in (
+        (["diagnose", "--measured", str(tmp_path / "none"), "--out", str(out)], "no such"),
+        (["synth", "--out", str(tmp_path / "m2"), "--effect", "bogus=1"], "unknown effect"),
+        (["synth", "--out", str(m), "--effect", "friction=0.3"], "--overwrite"),
+        (["diagnose", "--measured", str(m), "--out", str(out), "--effects", "x"], "unknown effect"),
+        (["diagnose", "--measured", str(m), "--out", str(out), "--alpha", "2"], "alpha"),
+        (
+            ["diagnose", "--measured", str(m), "--out", str(out), "--error-mesh", "huge", "--backend", "toy"],
+            "error-mesh",
+        ),
+        (["selftest", "--outside", "friction", "--effects", "friction", "--backend", "toy"], "outside"),
+    ):
         r = subprocess.run(py + args, capture_output=True, text=True, cwd=ROOT)
         assert r.returncode == 2 and word in r.stderr and r.stderr.count("\n") == 1, r.stderr

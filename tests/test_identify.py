@@ -17,14 +17,24 @@ def _synthetic_data(n: int = 48, seed: int = 0, phantoms: int = 6) -> Data:
     E = np.exp(rng.uniform(np.log(10), np.log(200), n))
     y, x = np.mgrid[0:12, 0:12] * 0.5
     r2 = x.ravel() ** 2 + y.ravel() ** 2
-    amp = 1e-3 * d ** 2 / h * (E / (E + 20))
+    amp = 1e-3 * d**2 / h * (E / (E + 20))
     width = 0.5 * d + 0.3 * h
     images = amp[:, None] * np.exp(-r2[None] / (2 * width[:, None] ** 2))
     feats = np.column_stack([amp, images.sum(1), (images > 0.5 * amp[:, None]).sum(1) + 1.0])
     tags = np.array([f"phantom:p{i}" if i < phantoms else "design" for i in range(n)])
     ids = np.array([f"s{i:04d}" for i in range(n)])
-    return Data(theta=np.column_stack([d, h, E]), features=feats, images=images, dforce=amp * 100,
-                force_ref=np.full(n, 1400.0), tags=tags, ids=ids, shape=(12, 12), pixel=0.5, source="SYNTHETIC")
+    return Data(
+        theta=np.column_stack([d, h, E]),
+        features=feats,
+        images=images,
+        dforce=amp * 100,
+        force_ref=np.full(n, 1400.0),
+        tags=tags,
+        ids=ids,
+        shape=(12, 12),
+        pixel=0.5,
+        source="SYNTHETIC",
+    )
 
 
 def test_shape_pca_separates_amplitude_from_shape():
@@ -73,24 +83,35 @@ def test_image_model_save_load_predict(tmp_path):
     from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data()
-    model = fit_image_model(data, "scg", repeats=2, cfg=TrainConfig(hidden=((6, "tansig"),), epochs=20,
-                                                                    progress=False), k=4)
+    model = fit_image_model(
+        data, "scg", repeats=2, cfg=TrainConfig(hidden=((6, "tansig"),), epochs=20, progress=False), k=4
+    )
     path = model.save(str(tmp_path / "m"))
     back = ImageModel.load(path)
     np.testing.assert_allclose(back.predict(data.images[:5]), model.predict(data.images[:5]), rtol=1e-10)
     assert back.predict(data.images[:5].reshape(5, 12, 12)).shape == (2, 5, 3)
     from elastimap.errors import UserError
+
     with pytest.raises(UserError, match="pixels"):
         back.predict(np.ones((2, 7)))
 
 
-@pytest.mark.parametrize("args,param", [(["--k", "1"], "--k"), (["--algo", "adam"], "--algo"),
-                                        (["--validate", "kfold"], "--validate"),
-                                        (["--data", "/nonexistent"], "--data")])
+@pytest.mark.parametrize(
+    "args,param",
+    [
+        (["--k", "1"], "--k"),
+        (["--algo", "adam"], "--algo"),
+        (["--validate", "kfold"], "--validate"),
+        (["--data", "/nonexistent"], "--data"),
+    ],
+)
 def test_cli_bad_options_exit_2(args, param):
     import subprocess
     import sys
-    r = subprocess.run([sys.executable, "-m", "elastimap.workflows.studies.imagenet", *args], capture_output=True, text=True)
+
+    r = subprocess.run(
+        [sys.executable, "-m", "elastimap.workflows.studies.imagenet", *args], capture_output=True, text=True
+    )
     assert r.returncode == 2
     assert r.stderr.startswith("error: ") and param in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
@@ -110,8 +131,8 @@ def test_log_e_target_scores_on_E_and_round_trips(tmp_path):
     t = data.theta[log.extra["test"]]
     mre_E = 100 * np.mean(np.abs(p[..., 2] - t[:, 2]) / t[:, 2], axis=1)
     np.testing.assert_allclose(mre_E.mean(), log.row["mre_E_mean"], rtol=1e-9)
-    Et = data.theta[~log.extra["test"], 2]                    # linear [-1, 1] scaling over the training rows
-    s = lambda e: 2 * (e - Et.min()) / (Et.max() - Et.min()) - 1   # noqa: E731
+    Et = data.theta[~log.extra["test"], 2]  # linear [-1, 1] scaling over the training rows
+    s = lambda e: 2 * (e - Et.min()) / (Et.max() - Et.min()) - 1  # noqa: E731
     mse = 100 * np.mean((s(p[..., 2]) - s(t[:, 2])) ** 2, axis=1)
     np.testing.assert_allclose(mse.mean(), log.row["mse100_E_mean"], rtol=1e-9)
     assert np.isfinite(lin.row["mse100_E_mean"]) and np.isfinite(log.row["mse100_E_mean"])
@@ -131,12 +152,13 @@ def test_shared_noise_predictions_put_one_noisy_image_through_every_network():
     r = run_image_validation(data, "scg", "loocv", 2, cfg, seed=0, k=3, image_noise=0.02)
     ps, p = r.extra["pred_shared_noise"], r.extra["pred"]
     assert ps.shape == p.shape == (2, 30, 3) and np.isfinite(ps).all()
-    assert not np.allclose(ps, p)                       # a different (single) noise draw than each repeat's own
+    assert not np.allclose(ps, p)  # a different (single) noise draw than each repeat's own
     assert run_image_validation(data, "scg", "loocv", 1, cfg, k=3, image_noise=0.0).extra["pred_shared_noise"] is None
 
 
-@pytest.mark.parametrize("name", ["global_cv", "fd_check", "fdgrid", "crbmap", "mapcheck", "imagenet",
-                                  "region_score", "refine"])
+@pytest.mark.parametrize(
+    "name", ["global_cv", "fd_check", "fdgrid", "crbmap", "mapcheck", "imagenet", "region_score", "refine"]
+)
 def test_every_study_is_a_click_main_with_help(name):
     """The studies live in elastimap.workflows.studies, each a click command ``main`` with -h."""
     import importlib

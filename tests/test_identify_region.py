@@ -36,7 +36,7 @@ def test_bound_interpolates_the_grid_and_flags_outside():
     r, _ = m.bound(_theta(5.0, 0.5, Em), "features")
     assert r[0, 2] == pytest.approx(np.sqrt(m.relstd["features"][0, 0, 5, 2] * m.relstd["features"][0, 0, 6, 2]))
     r, inside = m.bound(np.array([[5.0, 6.0, 400.0]]), "features")
-    assert not inside[0] and r[0, 2] == pytest.approx(0.8)          # evaluated at the box edge
+    assert not inside[0] and r[0, 2] == pytest.approx(0.8)  # evaluated at the box edge
     with pytest.raises(UserError, match="no set"):
         m.bound(_theta(5, 0.5, 30), "two-depths")
 
@@ -137,8 +137,9 @@ def test_image_model_inference_from_fem_images(tmp_path):
     from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data()
-    model = fit_image_model(data, "scg", repeats=2, cfg=TrainConfig(hidden=((6, "tansig"),), epochs=20,
-                                                                    progress=False), k=4)
+    model = fit_image_model(
+        data, "scg", repeats=2, cfg=TrainConfig(hidden=((6, "tansig"),), epochs=20, progress=False), k=4
+    )
     model.save(str(tmp_path / "img"))
     back = load_model(tmp_path / "img")
     assert back.shape == (12, 12) and back.pixel == 0.5
@@ -164,14 +165,25 @@ def test_cli_infer_fem_image_prints_non_identifiable_as_interval(tmp_path):
     from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data()
-    fit_image_model(data, "scg", repeats=2, cfg=TrainConfig(hidden=((6, "tansig"),), epochs=10, progress=False),
-                    k=4).save(str(tmp_path / "img"))
+    fit_image_model(
+        data, "scg", repeats=2, cfg=TrainConfig(hidden=((6, "tansig"),), epochs=10, progress=False), k=4
+    ).save(str(tmp_path / "img"))
     m = _map()
-    m.relstd["image"][..., 2] = 0.5                  # SYNTHETIC: E never identifiable from this "image"
+    m.relstd["image"][..., 2] = 0.5  # SYNTHETIC: E never identifiable from this "image"
     m.save(tmp_path / "map.npz")
     np.save(tmp_path / "img.npy", data.images[:2].reshape(2, 12, 12))
-    base = [sys.executable, "-m", "elastimap.camera.cli", "infer", "--model", str(tmp_path / "img"),
-            "--fem-image", str(tmp_path / "img.npy"), "--identifiability", str(tmp_path / "map.npz")]
+    base = [
+        sys.executable,
+        "-m",
+        "elastimap.camera.cli",
+        "infer",
+        "--model",
+        str(tmp_path / "img"),
+        "--fem-image",
+        str(tmp_path / "img.npy"),
+        "--identifiability",
+        str(tmp_path / "map.npz"),
+    ]
     r = subprocess.run(base, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     lines = r.stdout.strip().splitlines()
@@ -179,8 +191,11 @@ def test_cli_infer_fem_image_prints_non_identifiable_as_interval(tmp_path):
     r = subprocess.run(base + ["--json"], capture_output=True, text=True)
     rows = json.loads(r.stdout)
     assert rows[0]["input"] == "image" and rows[0]["E_identifiable"] is False
-    r = subprocess.run(base[:6] + ["--fem-image", str(tmp_path / "nope.npy"), "--identifiability", "none"],
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        base[:6] + ["--fem-image", str(tmp_path / "nope.npy"), "--identifiability", "none"],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2 and r.stderr.startswith("error: --fem-image")
     r = subprocess.run(base[:-2] + ["--identifiability", "none", "--threshold", "0"], capture_output=True, text=True)
     assert r.returncode == 2 and "--threshold" in r.stderr
@@ -191,13 +206,13 @@ def test_region_score_coverage_of_reported_intervals():
 
     m = _map()
     theta = np.vstack([_theta(8, 0.5, 20.0), _theta(8, 0.5, 150.0), _theta(10, 0.3, 15.0)])
-    pred = np.stack([theta * 1.01, theta * 0.99])            # close to the truth: every interval covers it
+    pred = np.stack([theta * 1.01, theta * 0.99])  # close to the truth: every interval covers it
     c = coverage(pred, theta, m, "features")
     assert c["E"]["n_flagged"] == 1 and c["E"]["cover_flagged"] == 100 and c["E"]["cover_rest"] == 100
     assert c["h"]["n_flagged"] == 0 and np.isnan(c["h"]["cover_flagged"])
     theta = np.vstack([theta, _theta(3, 0.5, 30.0), _theta(14, 0.5, 30.0)])
     far = np.stack([theta * 1.01, theta * 0.99])
-    far[..., 0] *= 1.5          # d 50 % off with a 2 % bound: not covered, except where clipped to the range edge
+    far[..., 0] *= 1.5  # d 50 % off with a 2 % bound: not covered, except where clipped to the range edge
     assert coverage(far, theta, m, "features")["d"]["cover_rest"] == 20
 
 
@@ -207,7 +222,7 @@ def test_mapcheck_compare_counts_dangerous_disagreements():
     fd = np.array([[0.05, 0.02, 0.05], [0.05, 0.02, 0.50], [0.20, 0.02, 0.08]])
     mp = np.array([[0.10, 0.02, 0.04], [0.05, 0.04, 0.09], [0.40, 0.01, 0.20]])
     c = compare(mp, fd, 0.10)
-    assert c["E"]["false_identifiable"] == 1                       # row 1: map 9 %, FD 50 %
+    assert c["E"]["false_identifiable"] == 1  # row 1: map 9 %, FD 50 %
     assert c["E"]["fd_identifiable"] == 2 and c["E"]["agree"] == pytest.approx(100 / 3)
     assert c["d"]["conservative"] == 100 and c["d"]["median"] == pytest.approx(2.0)
     assert c["h"]["min"] == pytest.approx(0.5) and c["h"]["false_identifiable"] == 0
@@ -233,4 +248,4 @@ def test_crbmap_install_writes_the_map_inference_reads(tmp_path):
     assert dest.read_bytes() == before and sorted(p.name for p in dest.parent.iterdir()) == ["default.npz"]
     with pytest.raises(UserError, match="--install"):
         check_install_target(str(tmp_path / "missing" / "default.npz"))
-    assert check_install_target(None) == DEFAULT_MAP      # the shipped map's folder is writable in a checkout
+    assert check_install_target(None) == DEFAULT_MAP  # the shipped map's folder is writable in a checkout

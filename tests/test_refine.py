@@ -11,17 +11,17 @@ from elastimap.errors import UserError
 from elastimap.identify.refine import refine, refine_rsm, to_theta, to_x
 
 _Y, _X = np.mgrid[0:16, 0:16] * 0.75
-_R2 = (_X.ravel() ** 2 + _Y.ravel() ** 2)
+_R2 = _X.ravel() ** 2 + _Y.ravel() ** 2
 
 
 def bump(theta):
     """SYNTHETIC difference image (mm): a bump whose width follows d and h, a depth-damped amplitude,
     and a broad negative halo whose share falls as E rises (so d, h and E are all identifiable)."""
     d, h, E = theta
-    amp = 1e-2 * d ** 2 / h
+    amp = 1e-2 * d**2 / h
     w = 0.45 * d + 0.35 * h
     s = E / (E + 40.0)
-    return amp * (s * np.exp(-_R2 / (2 * w ** 2)) - 0.3 * (1 - s) * np.exp(-_R2 / (8 * w ** 2)))
+    return amp * (s * np.exp(-_R2 / (2 * w**2)) - 0.3 * (1 - s) * np.exp(-_R2 / (8 * w**2)))
 
 
 def test_parametrisation_roundtrip_keeps_h_inside_the_depth_range():
@@ -52,8 +52,8 @@ def test_reported_uncertainty_matches_the_scatter_under_noise():
         sd.append(r.relstd)
     est, sd = np.array(est), np.array(sd)
     emp = np.std(np.log(est[:, 2]))
-    assert 0.6 < emp / np.median(sd[:, 2]) < 1.6            # std of ln E
-    assert abs(np.mean(np.log(est[:, 2] / truth[2]))) < 3 * emp / np.sqrt(len(est))   # no bias
+    assert 0.6 < emp / np.median(sd[:, 2]) < 1.6  # std of ln E
+    assert abs(np.mean(np.log(est[:, 2] / truth[2]))) < 3 * emp / np.sqrt(len(est))  # no bias
     assert 0.3 < r.chi2_red < 3
 
 
@@ -87,6 +87,7 @@ def test_bad_input_is_a_user_error():
     with pytest.raises(UserError, match="sigma"):
         refine_rsm(I, -1.0, [8, 7, 60], bump)
     from elastimap.identify.refine import fit
+
     with pytest.raises(UserError, match="method"):
         fit(I, 1e-3, [8, 7, 60], bump, method="newton")
 
@@ -120,6 +121,21 @@ def test_cli_refine_needs_a_fem_image(tmp_path):
     import subprocess
     import sys
 
-    r = subprocess.run([sys.executable, "-m", "elastimap.camera.cli", "infer", "--model", str(tmp_path), "--features", "1", "2",
-                        "3", "--refine"], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "elastimap.camera.cli",
+            "infer",
+            "--model",
+            str(tmp_path),
+            "--features",
+            "1",
+            "2",
+            "3",
+            "--refine",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2 and "--refine" in r.stderr and "Traceback" not in r.stderr

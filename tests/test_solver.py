@@ -23,14 +23,22 @@ def tiny(**inc) -> SolveParams:
 @pytest.fixture(scope="module")
 def solve():
     from elastimap.solver import solve as _solve
+
     return _solve
 
 
 # ---------------------------------------------------------------- validation (no DOLFINx)
-@pytest.mark.parametrize("change, param", [
-    (dict(d=-1.0), "d"), (dict(E=0.0), "E"), (dict(h=0.5), "h"), (dict(h=17.5), "h"),
-    (dict(d=19.0), "d"), (dict(nu=0.5), "inclusion.nu"),
-])
+@pytest.mark.parametrize(
+    "change, param",
+    [
+        (dict(d=-1.0), "d"),
+        (dict(E=0.0), "E"),
+        (dict(h=0.5), "h"),
+        (dict(h=17.5), "h"),
+        (dict(d=19.0), "d"),
+        (dict(nu=0.5), "inclusion.nu"),
+    ],
+)
 def test_bad_inclusion_names_parameter(change, param):
     with pytest.raises(UserError) as err:
         tiny(**change).validate()
@@ -92,7 +100,7 @@ def test_result_is_complete_and_sane(solve):
     assert res.image.shape == (50, 50) and res.image.dtype == np.float32
     assert np.allclose(res.image, res.image[::-1, :]) and np.allclose(res.image, res.image[:, ::-1])
     assert res.O1 > 0 and res.O2 > 0 and res.O3 > 0
-    assert res.force > res.force_ref > 0          # a stiff inclusion stiffens the tissue
+    assert res.force > res.force_ref > 0  # a stiff inclusion stiffens the tissue
     assert res.ndofs > 1000 and res.newton_iterations == 2
     assert res.interface["tension_patch_fraction"] == 0.0
     # the raw image is largest at the probe corners (flat-punch edge), the difference at the centre
@@ -100,10 +108,13 @@ def test_result_is_complete_and_sane(solve):
     assert np.unravel_index(np.argmax(res.image), res.image.shape) in [(24, 24), (24, 25), (25, 24), (25, 25)]
 
 
-@pytest.mark.parametrize("name, lo, hi", [
-    ("d", dict(d=5.0, h=7.0), dict(d=9.0, h=7.0)),
-    ("E", dict(E=20.0), dict(E=120.0)),
-])
+@pytest.mark.parametrize(
+    "name, lo, hi",
+    [
+        ("d", dict(d=5.0, h=7.0), dict(d=9.0, h=7.0)),
+        ("E", dict(E=20.0), dict(E=120.0)),
+    ],
+)
 def test_paper_trends_size_and_modulus(solve, name, lo, hi):
     """Paper 3.2: the elasticity image grows with the inclusion's size and modulus."""
     a, b = solve(tiny(**lo)), solve(tiny(**hi))
@@ -125,8 +136,8 @@ def test_tied_and_contact_agree_bonded_differs(solve):
     bond = solve(base.replace(disc=Discretisation(mesh="tiny", interface="bonded")))
     for f in ("O1", "O2", "O3", "force"):
         assert getattr(cont, f) == pytest.approx(getattr(tied, f), rel=1e-3)
-    assert cont.interface["open_pair_fraction"] == 0.0    # the footprint stays closed under the flat punch
-    assert abs(bond.O2 / tied.O2 - 1) > 0.03              # gluing the probe changes the image
+    assert cont.interface["open_pair_fraction"] == 0.0  # the footprint stays closed under the flat punch
+    assert abs(bond.O2 / tied.O2 - 1) > 0.03  # gluing the probe changes the image
 
 
 def test_prescribed_force(solve):
@@ -151,19 +162,21 @@ def test_off_axis_inclusion_breaks_symmetry(solve):
     p = tiny(d=8.0, h=6.0, E=100.0, offset_x=4.0).replace(disc=Discretisation(mesh="tiny", symmetry="full"))
     res = solve(p)
     iy, ix = np.unravel_index(np.argmax(res.image), res.image.shape)
-    assert (ix + 0.5) * 0.5 - 12.5 > 2.0     # the peak follows the inclusion to +x
+    assert (ix + 0.5) * 0.5 - 12.5 > 2.0  # the peak follows the inclusion to +x
 
 
 def test_hertz_contact_coarse():
     from elastimap.solver.hertz import hertz
+
     r = hertz(level="test")
     assert abs(r.force_error) < 0.05, r
     assert abs(r.radius_error) < 0.10, r
-    assert r.iterations > 1            # the active set really moved
+    assert r.iterations > 1  # the active set really moved
 
 
 def test_vtx_output(tmp_path):
     from elastimap.solver.api import solve_with_fields
+
     out = tmp_path / "u.bp"
     solve_with_fields(tiny(), str(out))
     assert (out / "md.idx").exists() and (out / "data.0").stat().st_size > 0
@@ -171,6 +184,7 @@ def test_vtx_output(tmp_path):
 
 def test_jit_cache_cleaning(tmp_path, monkeypatch):
     from elastimap.solver import _boot
+
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     d = tmp_path / "fenics"
     d.mkdir()
@@ -187,11 +201,22 @@ def test_jit_cache_cleaning(tmp_path, monkeypatch):
 
 # ---------------------------------------------------------------- CLI
 def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "elastimap.solver.cli", *args], capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "elastimap.solver.cli", *args], capture_output=True, text=True, timeout=300
+    )
 
 
-@pytest.mark.parametrize("args, word", [(["--d", "-2"], "d:"), (["--h", "0.5"], "h:"), (["--mesh", "huge"], "--mesh"),
-                                        (["--nu", "0.5"], "nu"), (["--E", "0"], "E:"), (["--layers", "2:300,x"], "--layers")])
+@pytest.mark.parametrize(
+    "args, word",
+    [
+        (["--d", "-2"], "d:"),
+        (["--h", "0.5"], "h:"),
+        (["--mesh", "huge"], "--mesh"),
+        (["--nu", "0.5"], "nu"),
+        (["--E", "0"], "E:"),
+        (["--layers", "2:300,x"], "--layers"),
+    ],
+)
 def test_cli_bad_input_exit_2_one_line(args, word):
     r = _cli(*args)
     assert r.returncode == 2

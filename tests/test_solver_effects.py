@@ -15,6 +15,7 @@ def tiny(**disc) -> SolveParams:
 @pytest.fixture(scope="module")
 def solve():
     from elastimap.solver import solve as _solve
+
     return _solve
 
 
@@ -40,7 +41,7 @@ def test_effect_switch_validation_and_serialisation():
 
 def test_friction_zero_is_frictionless_and_large_is_bonded(solve, base):
     zero = solve(tiny(friction_kt=0.0))
-    assert zero.O2 == base.O2 and np.array_equal(zero.image, base.image)   # bit-identical default path
+    assert zero.O2 == base.O2 and np.array_equal(zero.image, base.image)  # bit-identical default path
     bonded = solve(tiny(interface="bonded"))
     stiff = solve(tiny(friction_kt=1e5))
     for f in ("O1", "O2", "O3", "force"):
@@ -64,12 +65,12 @@ def test_neo_hookean_small_strain_limit_is_linear(solve):
     assert nh.O1 == pytest.approx(lin.O1, rel=2e-3)
     assert nh.O2 == pytest.approx(lin.O2, rel=2e-3)
     assert nh.force == pytest.approx(lin.force, rel=2e-3)
-    assert nh.newton_iterations > 2       # Newton actually ran
+    assert nh.newton_iterations > 2  # Newton actually ran
 
 
 def test_neo_hookean_changes_the_image_at_3mm(solve, base):
     nh = solve(tiny().replace(tissue=Tissue(nonlinearity=1.0)))
-    assert nh.force > base.force                   # compression stiffens the neo-Hookean tissue
+    assert nh.force > base.force  # compression stiffens the neo-Hookean tissue
     assert abs(nh.O1 / base.O1 - 1) > 0.05
     half = solve(tiny().replace(tissue=Tissue(nonlinearity=0.3)))
     assert base.force < half.force < nh.force

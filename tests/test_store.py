@@ -29,40 +29,54 @@ def _p(d=8.0, h=7.0, E=50.0, **disc) -> SolveParams:
 
 # ----------------------------------------------------------------------------- key
 
+
 def test_key_is_sha256_of_canonical_params_and_normalises_numbers():
     p = _p()
     assert len(params_key(p)) == 64 and params_key(p) == params_key(_p())
     assert json.loads(canonical_json(p)) == json.loads(json.dumps(p.to_dict()))  # nothing but to_dict
-    assert params_key(_p(d=8)) == params_key(_p(d=8.0))                        # int and float: one key
-    assert params_key(p.with_inclusion(offset_x=-0.0)) == params_key(p)          # -0.0 is 0.0
+    assert params_key(_p(d=8)) == params_key(_p(d=8.0))  # int and float: one key
+    assert params_key(p.with_inclusion(offset_x=-0.0)) == params_key(p)  # -0.0 is 0.0
     # an effect switch at its default is left out of to_dict: the key of a plain solve stays put
     assert params_key(p.replace(disc=dataclasses.replace(p.disc, friction_kt=0.0))) == params_key(p)
 
 
 def test_different_params_give_different_keys():
     p = _p()
-    variants = [p, p.with_inclusion(d=8.000001), p.with_inclusion(h=7.5), p.with_inclusion(E=51.0),
-                p.replace(tissue=dataclasses.replace(p.tissue, nonlinearity=0.5)),
-                p.replace(disc=dataclasses.replace(p.disc, mesh="coarse")),
-                p.replace(disc=dataclasses.replace(p.disc, friction_kt=0.3)),
-                p.replace(probe=dataclasses.replace(p.probe, layers=((2.0, 300.0), (3.0, 150.0), (5.0, 60.0)))),
-                p.replace(loading=dataclasses.replace(p.loading, force=100.0))]
+    variants = [
+        p,
+        p.with_inclusion(d=8.000001),
+        p.with_inclusion(h=7.5),
+        p.with_inclusion(E=51.0),
+        p.replace(tissue=dataclasses.replace(p.tissue, nonlinearity=0.5)),
+        p.replace(disc=dataclasses.replace(p.disc, mesh="coarse")),
+        p.replace(disc=dataclasses.replace(p.disc, friction_kt=0.3)),
+        p.replace(probe=dataclasses.replace(p.probe, layers=((2.0, 300.0), (3.0, 150.0), (5.0, 60.0)))),
+        p.replace(loading=dataclasses.replace(p.loading, force=100.0)),
+    ]
     assert len({params_key(v) for v in variants}) == len(variants)
 
 
 def test_key_same_in_another_process():
     p = _p(d=6.25, h=5.5, E=123.4)
-    code = ("from elastimap.dataset.store import params_key\n"
-            "from elastimap.solver.params import SolveParams, Discretisation\n"
-            "p = SolveParams(disc=Discretisation(mesh='tiny')).with_inclusion(d=6.25, h=5.5, E=123.4)\n"
-            "print(params_key(p))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-                         env={**os.environ, "PYTHONHASHSEED": "123"})
+    code = (
+        "from elastimap.dataset.store import params_key\n"
+        "from elastimap.solver.params import SolveParams, Discretisation\n"
+        "p = SolveParams(disc=Discretisation(mesh='tiny')).with_inclusion(d=6.25, h=5.5, E=123.4)\n"
+        "print(params_key(p))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONHASHSEED": "123"},
+    )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == params_key(p)
 
 
 # ----------------------------------------------------------------------------- round trip
+
 
 def test_put_get_round_trip_and_labels(tmp_path):
     st = SolveStore(tmp_path / "s", solver="synthetic")
@@ -72,12 +86,18 @@ def test_put_get_round_trip_and_labels(tmp_path):
     key = st.put(p, res)
     assert key == params_key(p)
     got = SolveStore(tmp_path / "s", solver="synthetic").get(p, need_raw=True)  # a fresh reader
-    assert got.params == p and (got.O1, got.O2, got.O3, got.force, got.force_ref, got.delta) == \
-        (res.O1, res.O2, res.O3, res.force, res.force_ref, res.delta)
+    assert got.params == p and (got.O1, got.O2, got.O3, got.force, got.force_ref, got.delta) == (
+        res.O1,
+        res.O2,
+        res.O3,
+        res.force,
+        res.force_ref,
+        res.delta,
+    )
     assert got.image.dtype == np.float32 and np.array_equal(got.image, res.image.astype(np.float32))
     assert np.array_equal(got.image_raw, res.image_raw.astype(np.float32)) and got.pixel == res.pixel
     assert st.get(p.with_inclusion(E=51.0)) is None
-    assert SolveStore(tmp_path / "s").get(p) is None          # SYNTHETIC rows never answer for the FEM
+    assert SolveStore(tmp_path / "s").get(p) is None  # SYNTHETIC rows never answer for the FEM
     # the newest row of a key wins
     later = dataclasses.replace(res, O1=res.O1 * 2)
     st.put(p, later)
@@ -88,6 +108,7 @@ def test_put_get_round_trip_and_labels(tmp_path):
     def counting(q):
         calls.append(q)
         return synthetic.solve(q)
+
     counting.solver_name = "synthetic"
     q = _p(d=5.0, h=6.0)
     a = st.solve(q, counting)
@@ -110,8 +131,12 @@ def test_get_many_reads_each_file_once_and_skips_failed(tmp_path):
 def test_old_rows_without_key_still_read_and_compact(tmp_path):
     """A sweep folder from before the key (no key/solver/delta/image_raw columns) serves as a store."""
     p = _p(d=6.0)
-    row = {k: v for k, v in __import__("elastimap.sweep.jobs", fromlist=["x"]).result_row(
-        {"sample_id": "old-1", "d": 6.0, "h": 7.0, "E": 50.0}, p, synthetic.solve(p), 0.1).items()}
+    row = {
+        k: v
+        for k, v in __import__("elastimap.sweep.jobs", fromlist=["x"])
+        .result_row({"sample_id": "old-1", "d": 6.0, "h": 7.0, "E": 50.0}, p, synthetic.solve(p), 0.1)
+        .items()
+    }
     t = io.to_table([row], (50, 50), 0.5).drop_columns(["key", "solver", "delta", "image_raw"])
     io.write_atomic(t, tmp_path / io.new_name("b"))
     got = SolveStore(tmp_path).get(p)  # no solver column: counted as 'fem'
@@ -168,6 +193,7 @@ def test_kill_9_while_putting_leaves_a_readable_store(tmp_path):
 
 
 # ----------------------------------------------------------------------------- the three users
+
 
 def test_sweep_folder_serves_as_a_store(tmp_path):
     from elastimap.sweep import jobs

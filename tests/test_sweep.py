@@ -43,8 +43,14 @@ def _synthetic(**faults) -> list[str]:
 
 
 def _sweep(args, env=None, timeout=240):
-    return subprocess.run([sys.executable, "-m", "elastimap.sweep.cli", *args], env=env or _env(), capture_output=True,
-                          text=True, timeout=timeout, cwd=ROOT)
+    return subprocess.run(
+        [sys.executable, "-m", "elastimap.sweep.cli", *args],
+        env=env or _env(),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+    )
 
 
 def _cli(args, capsys):
@@ -55,6 +61,7 @@ def _cli(args, capsys):
 
 
 # ----------------------------------------------------------------------------- design
+
 
 def test_design_points_valid_deterministic_and_spread():
     r = dsg.parse_ranges(None)
@@ -77,11 +84,20 @@ def test_design_points_valid_deterministic_and_spread():
         assert max(3, lo) - 1e-9 <= p["h"] <= min(9, hi) + 1e-9 and 20 <= p["E"] <= 40
 
 
-@pytest.mark.parametrize("text, msg", [
-    ("d=2", "expected LO:HI"), ("x=1:2", "unknown parameter"), ("d=5:2", "LO must be < HI"),
-    ("E=0:10:log", "needs LO > 0"), ("d=2:18", "does not fit"), ("h=0.1:1", "no valid depth"),
-    ("d=a:3", "not a number"), ("E=1:2:cubic", "lin or log"), ("d=2:3,d=2:4", "given twice"),
-])
+@pytest.mark.parametrize(
+    "text, msg",
+    [
+        ("d=2", "expected LO:HI"),
+        ("x=1:2", "unknown parameter"),
+        ("d=5:2", "LO must be < HI"),
+        ("E=0:10:log", "needs LO > 0"),
+        ("d=2:18", "does not fit"),
+        ("h=0.1:1", "no valid depth"),
+        ("d=a:3", "not a number"),
+        ("E=1:2:cubic", "lin or log"),
+        ("d=2:3,d=2:4", "given twice"),
+    ],
+)
 def test_bad_ranges(text, msg):
     with pytest.raises(UserError, match=msg):
         dsg.parse_ranges(text)
@@ -93,7 +109,10 @@ def test_samples_table_parquet_and_csv(tmp_path):
     df = pd.DataFrame({"d": [5.0, 8.0], "h": [6.0, 9.0], "E": [50.0, 120.0], "sample_id": ["a", "b"]})
     df.to_parquet(tmp_path / "s.parquet")
     rows = dsg.load_samples(str(tmp_path / "s.parquet"))
-    assert [(r["sample_id"], r["d"], r["E"], r["tag"]) for r in rows] == [("a", 5.0, 50.0, "user"), ("b", 8.0, 120.0, "user")]
+    assert [(r["sample_id"], r["d"], r["E"], r["tag"]) for r in rows] == [
+        ("a", 5.0, 50.0, "user"),
+        ("b", 8.0, 120.0, "user"),
+    ]
     (tmp_path / "s.csv").write_text("# comment\nd, h, E\n5,6,50\n")
     (r,) = dsg.load_samples(str(tmp_path / "s.csv"))
     assert r["sample_id"].startswith("user-") and r["h"] == 6.0
@@ -109,16 +128,20 @@ def test_phantoms_file_nine_valid_inclusions():
 
 # ----------------------------------------------------------------------------- input errors: nothing written
 
-@pytest.mark.parametrize("args, msg", [
-    (["--n", "-3"], "--n: must be an integer"),
-    (["--jobs", "0"], "--jobs: must be an integer"),
-    (["--ranges", "d=1:30"], "--ranges: d up to 30"),
-    (["--mesh", "huge"], "--mesh: must be one of"),
-    (["--samples", "/nonexistent.csv"], "--samples: /nonexistent.csv does not exist"),
-    (["--n", "0"], "nothing to run"),
-    (["--design", "grid"], "--design: must be one of"),
-    (["--timeout", "-1"], "--timeout: must be >= 0"),
-])
+
+@pytest.mark.parametrize(
+    "args, msg",
+    [
+        (["--n", "-3"], "--n: must be an integer"),
+        (["--jobs", "0"], "--jobs: must be an integer"),
+        (["--ranges", "d=1:30"], "--ranges: d up to 30"),
+        (["--mesh", "huge"], "--mesh: must be one of"),
+        (["--samples", "/nonexistent.csv"], "--samples: /nonexistent.csv does not exist"),
+        (["--n", "0"], "nothing to run"),
+        (["--design", "grid"], "--design: must be one of"),
+        (["--timeout", "-1"], "--timeout: must be >= 0"),
+    ],
+)
 def test_invalid_options_clear_error_nothing_written(tmp_path, capsys, args, msg):
     out = tmp_path / "out"
     code, _, err = _cli(["run", "--out", str(out), *args], capsys)
@@ -126,14 +149,17 @@ def test_invalid_options_clear_error_nothing_written(tmp_path, capsys, args, msg
     assert not out.exists()
 
 
-@pytest.mark.parametrize("content, msg", [
-    ("d,h\n5,6\n", "lacks column(s) E"),
-    ("d,h,E,colour\n5,6,50,red\n", "unknown column(s) colour"),
-    ("d,h,E\n5,6,50\n5,,50\n", "row 2: h is missing"),
-    ("d,h,E\n5,6,50\n8,15,50\n", "is not a valid solve: h: centre depth must be in"),
-    ("d,h,E\n5,6,50\n5,6,50\n", "duplicate sample id"),
-    ("d,h,E\n5,6,-1\n", "E: must be > 0 kPa"),
-])
+@pytest.mark.parametrize(
+    "content, msg",
+    [
+        ("d,h\n5,6\n", "lacks column(s) E"),
+        ("d,h,E,colour\n5,6,50,red\n", "unknown column(s) colour"),
+        ("d,h,E\n5,6,50\n5,,50\n", "row 2: h is missing"),
+        ("d,h,E\n5,6,50\n8,15,50\n", "is not a valid solve: h: centre depth must be in"),
+        ("d,h,E\n5,6,50\n5,6,50\n", "duplicate sample id"),
+        ("d,h,E\n5,6,-1\n", "E: must be > 0 kPa"),
+    ],
+)
 def test_bad_sample_tables(tmp_path, capsys, content, msg):
     f = tmp_path / "s.csv"
     f.write_text(content)
@@ -162,12 +188,28 @@ def test_unreadable_samples_file(tmp_path, capsys):
 
 # ----------------------------------------------------------------------------- runs (fake solver)
 
+
 def test_synthetic_sweep_phantoms_user_rows_and_resume(tmp_path):
     table = tmp_path / "t.csv"
     table.write_text("sample_id,d,h,E\nmine-1,6,7,40\n")
     out = tmp_path / "ds"
-    args = ["run", *_synthetic(), "--n", "6", "--jobs", "2", "--mesh", "tiny", "--phantoms", "--samples", str(table),
-            "--out", str(out), "--seed", "4"]
+    args = [
+        "run",
+        *_synthetic(),
+        "--n",
+        "6",
+        "--jobs",
+        "2",
+        "--mesh",
+        "tiny",
+        "--phantoms",
+        "--samples",
+        str(table),
+        "--out",
+        str(out),
+        "--seed",
+        "4",
+    ]
     r = _sweep(args)
     assert r.returncode == 0, r.stderr
     assert "16 done this run (ok 16, failed 0), 0 skipped" in r.stdout and "samples/min" in r.stdout
@@ -223,8 +265,22 @@ def test_hung_sample_times_out_once_others_land(tmp_path):
     table.write_text("d,h,E\n5,6,50\n6,7,60\n7,8,70\n")
     out = tmp_path / "ds"
     log = tmp_path / "starts.log"
-    r = _sweep(["run", "--samples", str(table), "--jobs", "2", "--mesh", "tiny", "--out", str(out),
-                "--timeout", "3", *_synthetic(hang_d=6, log=log, seconds=0.1)])
+    r = _sweep(
+        [
+            "run",
+            "--samples",
+            str(table),
+            "--jobs",
+            "2",
+            "--mesh",
+            "tiny",
+            "--out",
+            str(out),
+            "--timeout",
+            "3",
+            *_synthetic(hang_d=6, log=log, seconds=0.1),
+        ]
+    )
     assert r.returncode == 0, r.stderr
     df = io.read_samples(out, status=None).set_index("d")
     assert list(df["status"]) == ["ok", "failed", "ok"]
@@ -242,6 +298,7 @@ def test_bench_command_small(tmp_path):
 
 # ----------------------------------------------------------------------------- real tiny solves
 
+
 def _wait_rows(out: Path, k: int, proc, timeout=120) -> None:
     t0 = time.time()
     while time.time() - t0 < timeout:
@@ -257,8 +314,15 @@ def test_sigkill_driver_then_rerun_exactly_n_ok_real_solves(tmp_path):
     n = 10
     out = tmp_path / "ds"
     args = ["run", "--n", str(n), "--jobs", "2", "--mesh", "tiny", "--out", str(out), "--no-progress"]
-    proc = subprocess.Popen([sys.executable, "-m", "elastimap.sweep.cli", *args], env=_env(), cwd=ROOT,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "elastimap.sweep.cli", *args],
+        env=_env(),
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     try:
         _wait_rows(out, 2, proc)
         proc.send_signal(signal.SIGKILL)
@@ -283,8 +347,9 @@ def test_external_scheduler_real_solves(tmp_path):
 
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
         out = tmp_path / "ds"
-        r = _sweep(["run", "--n", "3", "--mesh", "tiny", "--out", str(out), "--scheduler", cluster.scheduler_address],
-                   _env())
+        r = _sweep(
+            ["run", "--n", "3", "--mesh", "tiny", "--out", str(out), "--scheduler", cluster.scheduler_address], _env()
+        )
     assert r.returncode == 0, r.stderr
     df = io.read_samples(out)
     assert len(df) == 3 and (df["ndofs"] > 0).all()

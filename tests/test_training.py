@@ -68,6 +68,7 @@ def test_parse_hidden_and_arch():
     assert arch.n_params == 25 * 4 + 10 * 26 + 3 * 11 == 393
     assert Arch(3, parse_hidden("25,10,7:purelin"), 3).n_params == 393 + 7 * 11 - 3 * 11 + 3 * 8
     from elastimap.errors import UserError
+
     for bad in ("", "25,x", "0,10", "25:relu"):
         with pytest.raises(UserError):
             parse_hidden(bad)
@@ -122,17 +123,22 @@ def test_lm_step_matches_dense_solve_and_flags_indefinite():
     for dt in (torch.float32, F64):
         a = torch.randn(4, 12, 30, generator=g, dtype=F64)
         jj = (a @ a.transpose(1, 2)).to(dt)
-        jj[2] = -torch.eye(12, dtype=dt)                      # not positive definite at mu = 0.5
+        jj[2] = -torch.eye(12, dtype=dt)  # not positive definite at mu = 0.5
         je = torch.randn(4, 12, generator=g, dtype=F64).to(dt)
         mu = torch.tensor([1e-3, 1.0, 0.5, 10.0], dtype=dt)
-        garbage = jj + torch.tril(torch.full_like(jj, float("nan")), -1)   # only the upper triangle is read
+        garbage = jj + torch.tril(torch.full_like(jj, float("nan")), -1)  # only the upper triangle is read
         before = garbage.clone()
         dx, ok = lm_step(garbage, je, mu)
         assert torch.equal(garbage.isnan(), before.isnan()) and torch.equal(garbage.nan_to_num(), before.nan_to_num())
         assert ok.tolist() == [True, True, False, True]
         for b in (0, 1, 3):
             ref = -torch.linalg.solve(jj[b].double() + mu[b].double() * torch.eye(12, dtype=F64), je[b].double())
-            torch.testing.assert_close(dx[b].double(), ref, rtol=1e-3 if dt == torch.float32 else 1e-10, atol=1e-4 if dt == torch.float32 else 1e-10)
+            torch.testing.assert_close(
+                dx[b].double(),
+                ref,
+                rtol=1e-3 if dt == torch.float32 else 1e-10,
+                atol=1e-4 if dt == torch.float32 else 1e-10,
+            )
         idx = torch.tensor([3, 0])
         dx2, ok2 = lm_step(garbage, je, mu[idx], idx)
         assert ok2.all() and torch.equal(dx2, dx[idx])
@@ -150,7 +156,7 @@ def test_mapminmax_matches_matlab_convention():
     S = mapminmax_apply(A, lo, hi)
     np.testing.assert_allclose(S, [[-1, -1], [1, 1], [0, 0]])
     np.testing.assert_allclose(mapminmax_reverse(S, lo, hi), A)
-    lo2, hi2 = mapminmax_fit(A, mask=np.array([True, False, True]))   # training rows only
+    lo2, hi2 = mapminmax_fit(A, mask=np.array([True, False, True]))  # training rows only
     np.testing.assert_allclose(hi2, [2.0, 20.0])
 
 
@@ -159,6 +165,7 @@ def test_nguyen_widrow_init_shapes_and_ranges():
     th = init_nguyen_widrow(arch, 4, torch.Generator().manual_seed(0))
     assert th.shape == (4, 393) and torch.isfinite(th).all()
     from elastimap.training.net import unpack
+
     W1, b1 = unpack(th, arch)[0]
     # tansig layer: |w| = 2 * 0.7 * 25^(1/3) per row (inputs in [-1, 1])
     torch.testing.assert_close(W1.norm(dim=2), torch.full((4, 25), 2 * 0.7 * 25 ** (1 / 3), dtype=F64))
@@ -192,8 +199,9 @@ def test_lm_reaches_scipy_least_squares_loss():
         ours = obj.sse(res.theta).item()
         assert ours == pytest.approx(2 * ref.cost, rel=1e-9)
         # same fitted function (parameters may differ by hidden-unit symmetries)
-        np.testing.assert_allclose(forward(res.theta, X, arch)[0].numpy(), (fun(ref.x).reshape(n, 2) + T[0].numpy()),
-                                   atol=1e-6)
+        np.testing.assert_allclose(
+            forward(res.theta, X, arch)[0].numpy(), (fun(ref.x).reshape(n, 2) + T[0].numpy()), atol=1e-6
+        )
 
 
 def test_lm_trainlm_semantics_mu_and_stops():
@@ -219,7 +227,7 @@ def test_validation_early_stop_returns_best_network():
     g = torch.Generator().manual_seed(3)
     n = 40
     X = torch.randn(1, n, 3, generator=g, dtype=F64)
-    T = torch.randn(1, n, 2, generator=g, dtype=F64)         # pure noise: overfits at once
+    T = torch.randn(1, n, 2, generator=g, dtype=F64)  # pure noise: overfits at once
     val = torch.zeros(1, n, dtype=F64)
     val[0, :12] = 1
     obj = NetObjective(arch, X, T, 1 - val, w_val=val)
@@ -238,7 +246,7 @@ def test_scg_solves_quadratic_in_n_steps():
     g = torch.Generator().manual_seed(1)
     Q, _ = torch.linalg.qr(torch.randn(P, P, generator=g, dtype=F64))
     A = Q @ torch.diag(torch.linspace(1, 10, P, dtype=F64)) @ Q.T
-    b = torch.randn(3, P, generator=g, dtype=F64)          # three problems in one batch
+    b = torch.randn(3, P, generator=g, dtype=F64)  # three problems in one batch
     obj = FnObjective(lambda th: 0.5 * ((th @ A) * th).sum(1) - (th * b).sum(1))
     res = train_scg(obj, torch.zeros(3, P, dtype=F64), epochs=P, min_grad=0.0, goal=-np.inf)
     xs = torch.linalg.solve(A, b.T).T
@@ -276,8 +284,9 @@ def test_batched_equals_unbatched(algo):
         s = slice(b, b + 1)
         alone = fn(NetObjective(arch, X[s], T[s], w[s], w_test=test[s]), th0[s], epochs=30)
         torch.testing.assert_close(batched.theta[s], alone.theta, rtol=1e-9, atol=1e-9)
-        torch.testing.assert_close(batched.history["train"][s], alone.history["train"], rtol=1e-9, atol=1e-12,
-                                   equal_nan=True)
+        torch.testing.assert_close(
+            batched.history["train"][s], alone.history["train"], rtol=1e-9, atol=1e-12, equal_nan=True
+        )
         assert batched.stop[b] == alone.stop[0]
 
 
@@ -291,7 +300,7 @@ def test_chunked_training_equals_one_chunk():
     cfg = TrainConfig(hidden=((4, "tansig"),), epochs=15, progress=False)
     b = make_batch(X, T, fit, ~fit, cfg, np.random.default_rng(0), torch.Generator().manual_seed(0))
     whole = train_batch("lm", b.obj, b.theta0, cfg)
-    cfg_small = TrainConfig(hidden=((4, "tansig"),), epochs=15, progress=False, mem_bytes=1)   # one net per chunk
+    cfg_small = TrainConfig(hidden=((4, "tansig"),), epochs=15, progress=False, mem_bytes=1)  # one net per chunk
     pieces = train_batch("lm", b.obj, b.theta0, cfg_small)
     torch.testing.assert_close(whole.theta, pieces.theta, rtol=1e-10, atol=1e-10)
 
@@ -313,5 +322,6 @@ def test_worker_processes_give_the_serial_result(algo):
     torch.testing.assert_close(parallel.theta, serial.theta, rtol=1e-12, atol=1e-12)
     assert parallel.stop == serial.stop
     assert torch.equal(parallel.epochs, serial.epochs)
-    torch.testing.assert_close(parallel.history["train"], serial.history["train"], rtol=1e-12, atol=1e-12,
-                               equal_nan=True)
+    torch.testing.assert_close(
+        parallel.history["train"], serial.history["train"], rtol=1e-12, atol=1e-12, equal_nan=True
+    )

@@ -39,10 +39,12 @@ def toy():
 
 
 def test_import_does_not_pull_solver():
-    code = ("import sys, elastimap.training, elastimap.training.api, elastimap.training.model, elastimap.training.cli, elastimap.training.experiment;"
-            "heavy = ('dolfinx', 'gmsh', 'elastimap.solver.api', 'elastimap.solver.fem', 'elastimap.solver.geometry', 'elastimap.sweep');"
-            "bad = [m for m in sys.modules if m.startswith(heavy)];"
-            "assert not bad, bad")
+    code = (
+        "import sys, elastimap.training, elastimap.training.api, elastimap.training.model, elastimap.training.cli, elastimap.training.experiment;"
+        "heavy = ('dolfinx', 'gmsh', 'elastimap.solver.api', 'elastimap.solver.fem', 'elastimap.solver.geometry', 'elastimap.sweep');"
+        "bad = [m for m in sys.modules if m.startswith(heavy)];"
+        "assert not bad, bad"
+    )
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
@@ -75,7 +77,7 @@ def test_bad_data_errors(tmp_path, toy):
     with pytest.raises(UserError, match=r"1 'ok' row\(s\).*NaN/inf in O3"):
         prepare(nan)
     with pytest.raises(UserError, match="too few samples for the network"):
-        fit_ensemble(toy.iloc[:40], repeats=1, epochs=1)          # 393 weights, 40 usable rows
+        fit_ensemble(toy.iloc[:40], repeats=1, epochs=1)  # 393 weights, 40 usable rows
     allfail = toy.assign(status="failed")
     with pytest.raises(UserError, match="no usable samples"):
         prepare(allfail)
@@ -111,6 +113,7 @@ def test_fit_save_load_roundtrip(tmp_path, toy):
     # torch-side forward agrees with the NumPy predict
     from elastimap.training.net import forward
     from elastimap.training.problem import mapminmax_apply, mapminmax_reverse
+
     Xs = torch.as_tensor(mapminmax_apply(X, back.x_min, back.x_max))[None].expand(3, -1, -1)
     Yt = forward(torch.as_tensor(back.theta), Xs, back.arch).numpy()
     np.testing.assert_allclose(mapminmax_reverse(Yt, back.y_min, back.y_max), Y, rtol=1e-12)
@@ -120,8 +123,9 @@ def test_literal_variant_trains_and_roundtrips(tmp_path, toy):
     ens = fit_ensemble(toy, algo="scg", repeats=2, epochs=5, hidden="4,3,2:purelin")
     back = Ensemble.load(ens.save(str(tmp_path / "m")))
     assert back.arch.hidden == ((4, "tansig"), (3, "tansig"), (2, "purelin"))
-    np.testing.assert_allclose(back.predict(toy[["O1", "O2", "O3"]].to_numpy()[:3]),
-                               ens.predict(toy[["O1", "O2", "O3"]].to_numpy()[:3]))
+    np.testing.assert_allclose(
+        back.predict(toy[["O1", "O2", "O3"]].to_numpy()[:3]), ens.predict(toy[["O1", "O2", "O3"]].to_numpy()[:3])
+    )
 
 
 def test_validation_runner_metrics(toy):
@@ -152,18 +156,21 @@ def _cli(args, capsys):
     return exc.value.code, cap.out, cap.err
 
 
-@pytest.mark.parametrize("args, msg", [
-    (["--synthetic", "60", "--algo", "adam"], "--algo"),
-    (["--synthetic", "60", "--validate", "kfold"], "--validate"),
-    (["--synthetic", "60", "--hidden", "25,x"], "--hidden"),
-    (["--synthetic", "60", "--repeats", "0"], "--repeats"),
-    (["--synthetic", "60", "--workers", "-1"], "--workers"),
-    (["--synthetic", "60", "--feature-noise", "-1"], "--feature-noise"),
-    (["--synthetic", "60", "--test-split", "1.5"], "--test-split"),
-    ([], "--data"),
-    (["--data", "/nonexistent/x.parquet"], "does not exist"),
-    (["--synthetic", "60", "--bogus"], "no such option"),
-])
+@pytest.mark.parametrize(
+    "args, msg",
+    [
+        (["--synthetic", "60", "--algo", "adam"], "--algo"),
+        (["--synthetic", "60", "--validate", "kfold"], "--validate"),
+        (["--synthetic", "60", "--hidden", "25,x"], "--hidden"),
+        (["--synthetic", "60", "--repeats", "0"], "--repeats"),
+        (["--synthetic", "60", "--workers", "-1"], "--workers"),
+        (["--synthetic", "60", "--feature-noise", "-1"], "--feature-noise"),
+        (["--synthetic", "60", "--test-split", "1.5"], "--test-split"),
+        ([], "--data"),
+        (["--data", "/nonexistent/x.parquet"], "does not exist"),
+        (["--synthetic", "60", "--bogus"], "no such option"),
+    ],
+)
 def test_cli_bad_options_exit_2(args, msg, capsys):
     code, out, err = _cli(args + ["--quiet"], capsys)
     assert code == 2
@@ -174,20 +181,46 @@ def test_cli_run_writes_tables_curves_and_models(tmp_path, toy, capsys):
     data = tmp_path / "toy.parquet"
     write_samples(toy, data)
     out = tmp_path / "out"
-    code, stdout, err = _cli(["--data", str(data), "--algo", "all", "--validate", "hov", "--repeats", "2",
-                              "--epochs", "8", "--hidden", "5,3", "--out", str(out), "--quiet", "--threads", "1"],
-                             capsys)
+    code, stdout, err = _cli(
+        [
+            "--data",
+            str(data),
+            "--algo",
+            "all",
+            "--validate",
+            "hov",
+            "--repeats",
+            "2",
+            "--epochs",
+            "8",
+            "--hidden",
+            "5,3",
+            "--out",
+            str(out),
+            "--quiet",
+            "--threads",
+            "1",
+        ],
+        capsys,
+    )
     assert code == 0, err
     files = sorted(os.listdir(out))
-    for f in ("results.csv", "results.md", "run.json", "curves-lm-hov.png", "curves-scg-hov.png",
-              "model-lm", "model-scg"):
+    for f in (
+        "results.csv",
+        "results.md",
+        "run.json",
+        "curves-lm-hov.png",
+        "curves-scg-hov.png",
+        "model-lm",
+        "model-scg",
+    ):
         assert f in files
     tab = pd.read_csv(out / "results.csv")
     assert list(tab["algo"]) == ["lm", "scg"] and (tab["repeats"] == 2).all()
     assert "| LM | HOV | 2 |" in stdout and "MSE×100 d (%)" in stdout
     assert "3 failed sample(s) excluded" in err
     ens = Ensemble.load(str(out / "model-scg"))
-    assert ens.n_members == 2 and ens.meta["n_train"] == 51       # HOV only: phantom rows held out
+    assert ens.n_members == 2 and ens.meta["n_train"] == 51  # HOV only: phantom rows held out
 
 
 def test_files_vanishing_during_read_are_read_again(tmp_path, toy, monkeypatch):
@@ -201,7 +234,7 @@ def test_files_vanishing_during_read_are_read_again(tmp_path, toy, monkeypatch):
     def racing(f):
         if not calls:
             calls.append(f)
-            os.replace(d / "r-part-0.parquet", d / "b-part-0.parquet")   # compaction meanwhile
+            os.replace(d / "r-part-0.parquet", d / "b-part-0.parquet")  # compaction meanwhile
         return real(f)
 
     monkeypatch.setattr(dio, "_meta", racing)

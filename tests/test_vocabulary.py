@@ -11,8 +11,13 @@ from elastimap.dataset import schema
 
 ROOT = Path(__file__).resolve().parents[1]
 ROOMS = ("elastimap", "solver", "sweep", "dataset", "training", "camera", "gap", "identify", "workflows")
-HOME = {"FEATURES": "dataset/schema.py", "TARGETS": "dataset/schema.py", "UNITS": "dataset/schema.py",
-        "THICKNESS": "solver/params.py", "DESIGN_BOX": "solver/params.py"}
+HOME = {
+    "FEATURES": "dataset/schema.py",
+    "TARGETS": "dataset/schema.py",
+    "UNITS": "dataset/schema.py",
+    "THICKNESS": "solver/params.py",
+    "DESIGN_BOX": "solver/params.py",
+}
 
 
 def _sources():
@@ -41,13 +46,23 @@ def test_vocabulary_is_defined_once():
                         found.append(f"{rel}:{node.lineno} defines {t.id}")
                 if value in (schema.FEATURES, schema.TARGETS) and rel != HOME["TARGETS"]:
                     found.append(f"{rel}:{node.lineno} spells out {value}")
-                if (isinstance(value, dict) and value and rel != HOME["UNITS"]
-                        and all(k in schema.UNITS and str(u).replace("²", "^2") == schema.UNITS[k] for k, u in value.items())):
+                if (
+                    isinstance(value, dict)
+                    and value
+                    and rel != HOME["UNITS"]
+                    and all(
+                        k in schema.UNITS and str(u).replace("²", "^2") == schema.UNITS[k] for k, u in value.items()
+                    )
+                ):
                     found.append(f"{rel}:{node.lineno} spells out the units {value}")
             # a parameter or field named like the slab thickness with a literal default
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 args = node.args.args + node.args.kwonlyargs
-                defaults = [None] * (len(node.args.args) - len(node.args.defaults)) + node.args.defaults + node.args.kw_defaults
+                defaults = (
+                    [None] * (len(node.args.args) - len(node.args.defaults))
+                    + node.args.defaults
+                    + node.args.kw_defaults
+                )
                 for a, d in zip(args, defaults):
                     if d is not None and "thick" in a.arg and "skin" not in a.arg and _literal(d) == thick:
                         found.append(f"{rel}:{node.lineno} default {a.arg}={thick}")
@@ -63,12 +78,15 @@ def test_vocabulary_values_and_units():
     assert schema.THICKNESS == 20.0 and schema.DESIGN_BOX == {"d": (2.0, 15.0), "E": (10.0, 200.0)}
     from elastimap.solver.params import Tissue, depth_range
     from elastimap.sweep.design import DEFAULT_RANGES
+
     assert Tissue().thickness == schema.THICKNESS and schema.depth_range is depth_range
     assert DEFAULT_RANGES == "d=2:15,h=auto,E=10:200:log"
 
 
 def test_schema_imports_nothing_heavy():
-    code = ("import sys, elastimap.dataset.schema; "
-            "print(sorted({m.split('.')[0] for m in sys.modules} & {'dolfinx', 'torch', 'gmsh', 'petsc4py', 'ufl'}))")
+    code = (
+        "import sys, elastimap.dataset.schema; "
+        "print(sorted({m.split('.')[0] for m in sys.modules} & {'dolfinx', 'torch', 'gmsh', 'petsc4py', 'ufl'}))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

@@ -25,10 +25,21 @@ from .net import parse_hidden
 __all__ = ["fit_ensemble", "Ensemble"]
 
 
-def fit_ensemble(df: pd.DataFrame | Samples, algo: str = "scg", repeats: int = 10, epochs: int = 100,
-                 hidden=(25, 10), seed: int = 0, *, activation: str = "tansig", feature_noise: float = 0.0,
-                 val_fraction: float = 0.0, device: str | None = None, progress: bool = False,
-                 dtype: torch.dtype = torch.float64) -> Ensemble:
+def fit_ensemble(
+    df: pd.DataFrame | Samples,
+    algo: str = "scg",
+    repeats: int = 10,
+    epochs: int = 100,
+    hidden=(25, 10),
+    seed: int = 0,
+    *,
+    activation: str = "tansig",
+    feature_noise: float = 0.0,
+    val_fraction: float = 0.0,
+    device: str | None = None,
+    progress: bool = False,
+    dtype: torch.dtype = torch.float64,
+) -> Ensemble:
     """Train ``repeats`` networks (independent initialisations) on every usable row of ``df``.
 
     ``df`` is a sample table (columns ``O1, O2, O3, d, h, E``; ``status``,
@@ -43,8 +54,15 @@ def fit_ensemble(df: pd.DataFrame | Samples, algo: str = "scg", repeats: int = 1
     if int(epochs) < 1:
         raise UserError("epochs", f"must be >= 1 (got {epochs})")
     samples = df if isinstance(df, Samples) else prepare(df)
-    cfg = TrainConfig(hidden=parse_hidden(hidden, activation), epochs=int(epochs), feature_noise=float(feature_noise),
-                      val_fraction=float(val_fraction), device=device, dtype=dtype, progress=progress)
+    cfg = TrainConfig(
+        hidden=parse_hidden(hidden, activation),
+        epochs=int(epochs),
+        feature_noise=float(feature_noise),
+        val_fraction=float(val_fraction),
+        device=device,
+        dtype=dtype,
+        progress=progress,
+    )
     d = samples.df
     X = d[list(FEATURES)].to_numpy(np.float64)
     T = d[list(TARGETS)].to_numpy(np.float64)
@@ -56,21 +74,39 @@ def fit_ensemble(df: pd.DataFrame | Samples, algo: str = "scg", repeats: int = 1
     from elastimap.provenance import code_version
 
     meta = {
-        "algo": algo, "epochs": cfg.epochs, "repeats": R, "seed": int(seed),
-        "feature_noise": cfg.feature_noise, "val_fraction": cfg.val_fraction,
-        "n_train": n, "n_failed_excluded": samples.n_failed, "data_source": samples.source,
-        "data_sha256": data_hash(d), "tags": sorted(set(d["tag"])),
-        "stop_reasons": res.stop, "epochs_run": res.epochs.tolist(),
+        "algo": algo,
+        "epochs": cfg.epochs,
+        "repeats": R,
+        "seed": int(seed),
+        "feature_noise": cfg.feature_noise,
+        "val_fraction": cfg.val_fraction,
+        "n_train": n,
+        "n_failed_excluded": samples.n_failed,
+        "data_source": samples.source,
+        "data_sha256": data_hash(d),
+        "tags": sorted(set(d["tag"])),
+        "stop_reasons": res.stop,
+        "epochs_run": res.epochs.tolist(),
         "final_train_mse": [float(v) for v in _last(res.history["train"])],
-        "dtype": str(cfg.dtype).replace("torch.", ""), "device": str(cfg.resolved_device()),
+        "dtype": str(cfg.dtype).replace("torch.", ""),
+        "device": str(cfg.resolved_device()),
         "code_version": code_version(),
         "initialisation": "Nguyen-Widrow (MATLAB initnw) hidden layers, uniform [-1,1] purelin layers",
     }
-    return Ensemble(arch=cfg.arch, theta=res.theta.detach().cpu().numpy().astype(np.float64),
-                    x_min=batch.x_lo[0], x_max=batch.x_hi[0], y_min=batch.t_lo[0], y_max=batch.t_hi[0],
-                    feature_names=FEATURES, target_names=TARGETS, units=dict(UNITS),
-                    feature_range=np.stack([X.min(0), X.max(0)]), target_range=np.stack([T.min(0), T.max(0)]),
-                    meta=meta)
+    return Ensemble(
+        arch=cfg.arch,
+        theta=res.theta.detach().cpu().numpy().astype(np.float64),
+        x_min=batch.x_lo[0],
+        x_max=batch.x_hi[0],
+        y_min=batch.t_lo[0],
+        y_max=batch.t_hi[0],
+        feature_names=FEATURES,
+        target_names=TARGETS,
+        units=dict(UNITS),
+        feature_range=np.stack([X.min(0), X.max(0)]),
+        target_range=np.stack([T.min(0), T.max(0)]),
+        meta=meta,
+    )
 
 
 def _last(h: torch.Tensor) -> np.ndarray:

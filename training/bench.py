@@ -37,11 +37,19 @@ def _cpu() -> float:
 @click.option("--epochs", default=100, show_default=True)
 @click.option("--hidden", default="25,10", show_default=True)
 @click.option("--device", default=None)
-@click.option("--threads", default=1, show_default=True,
-              help="Torch CPU threads (0 = torch default); more threads were slower on the shared 2-core machine.")
+@click.option(
+    "--threads",
+    default=1,
+    show_default=True,
+    help="Torch CPU threads (0 = torch default); more threads were slower on the shared 2-core machine.",
+)
 @click.option("--float32", "float32", is_flag=True)
-@click.option("--workers", default=1, show_default=True,
-              help="CPU processes sharing the networks (0 = one per core); each uses one thread.")
+@click.option(
+    "--workers",
+    default=1,
+    show_default=True,
+    help="CPU processes sharing the networks (0 = one per core); each uses one thread.",
+)
 @click.option("--quiet", is_flag=True)
 def bench(n, repeats, folds, algo, epochs, hidden, device, threads, float32, workers, quiet):
     """Time batched LOOCV training on the SYNTHETIC toy table."""
@@ -67,19 +75,26 @@ def bench(n, repeats, folds, algo, epochs, hidden, device, threads, float32, wor
         raise UserError("--folds", f"must be in [1, {n}] (got {folds})")
     tune_malloc()
     nthreads = set_threads(threads)
-    cfg = TrainConfig(hidden=parse_hidden(hidden), epochs=epochs, device=device,
-                      dtype=torch.float32 if float32 else torch.float64, progress=not quiet,
-                      workers=workers)
+    cfg = TrainConfig(
+        hidden=parse_hidden(hidden),
+        epochs=epochs,
+        device=device,
+        dtype=torch.float32 if float32 else torch.float64,
+        progress=not quiet,
+        workers=workers,
+    )
     df = synthetic_table(n, seed=0)
     X, T = df[list(FEATURES)].to_numpy(), df[list(TARGETS)].to_numpy()
     fit = np.ones((repeats * folds, n), bool)
     fold_idx = np.tile(np.arange(folds), repeats)
     fit[np.arange(repeats * folds), fold_idx] = False
     dev = cfg.resolved_device()
-    click.echo(f"SYNTHETIC toy table n={n}; LOOCV {folds}/{n} folds x {repeats} repeats = {fit.shape[0]} trainings "
-               f"per algorithm; {cfg.arch.describe()} ({cfg.arch.n_params} weights), {epochs} epochs, "
-               f"{str(cfg.dtype).replace('torch.', '')}, device {dev}, {nthreads} thread(s), "
-               f"{workers or os.cpu_count()} worker process(es) (1 thread each when > 1), {os.cpu_count()} CPU(s) visible, {platform.processor() or platform.machine()}")
+    click.echo(
+        f"SYNTHETIC toy table n={n}; LOOCV {folds}/{n} folds x {repeats} repeats = {fit.shape[0]} trainings "
+        f"per algorithm; {cfg.arch.describe()} ({cfg.arch.n_params} weights), {epochs} epochs, "
+        f"{str(cfg.dtype).replace('torch.', '')}, device {dev}, {nthreads} thread(s), "
+        f"{workers or os.cpu_count()} worker process(es) (1 thread each when > 1), {os.cpu_count()} CPU(s) visible, {platform.processor() or platform.machine()}"
+    )
     if dev.type == "cuda":
         click.echo(f"GPU: {torch.cuda.get_device_name(dev)}")
     rows = []
@@ -94,15 +109,30 @@ def bench(n, repeats, folds, algo, epochs, hidden, device, threads, float32, wor
         wall, cpu = time.perf_counter() - t0, _cpu() - c0
         k = fit.shape[0]
         full = n * repeats
-        rows.append((a, k, wall, cpu, k / wall, full / (k / wall), n * 10 / (k / wall), n * 10 * cpu / k,
-                     float(res.epochs.double().mean())))
+        rows.append(
+            (
+                a,
+                k,
+                wall,
+                cpu,
+                k / wall,
+                full / (k / wall),
+                n * 10 / (k / wall),
+                n * 10 * cpu / k,
+                float(res.epochs.double().mean()),
+            )
+        )
     click.echo("")
-    click.echo(f"| algo | trainings | wall s | CPU s | trainings/s | projected LOOCV x {repeats} wall (min) "
-               f"| projected LOOCV x 10 wall (min) | LOOCV x 10 CPU (min) | mean epochs |")
+    click.echo(
+        f"| algo | trainings | wall s | CPU s | trainings/s | projected LOOCV x {repeats} wall (min) "
+        f"| projected LOOCV x 10 wall (min) | LOOCV x 10 CPU (min) | mean epochs |"
+    )
     click.echo("|---|---|---|---|---|---|---|---|---|")
     for a, k, wall, cpu, rate, proj, proj10, cpu10, ep in rows:
-        click.echo(f"| {a.upper()} | {k} | {wall:.1f} | {cpu:.1f} | {rate:.2f} | {proj / 60:.1f} | {proj10 / 60:.1f} "
-                   f"| {cpu10 / 60:.1f} | {ep:.1f} |")
+        click.echo(
+            f"| {a.upper()} | {k} | {wall:.1f} | {cpu:.1f} | {rate:.2f} | {proj / 60:.1f} | {proj10 / 60:.1f} "
+            f"| {cpu10 / 60:.1f} | {ep:.1f} |"
+        )
     return 0
 
 

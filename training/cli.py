@@ -30,38 +30,102 @@ VALIDATE_CHOICES = ("hov", "loocv", "all")
 
 @click.command(context_settings=CONTEXT_SETTINGS)
 @data_option()
-@click.option("--synthetic", type=int, default=None, metavar="N",
-              help="Use the SYNTHETIC analytic toy table with N rows instead of --data (development only).")
-@click.option("--algo", type=Choice(ALGO_CHOICES), default="scg", show_default=True,
-              help="Levenberg–Marquardt, scaled conjugate gradient or both.")
-@click.option("--validate", type=Choice(VALIDATE_CHOICES), default="hov", show_default=True,
-              help="Hold-out (the phantom rows), leave-one-out or both.")
+@click.option(
+    "--synthetic",
+    type=int,
+    default=None,
+    metavar="N",
+    help="Use the SYNTHETIC analytic toy table with N rows instead of --data (development only).",
+)
+@click.option(
+    "--algo",
+    type=Choice(ALGO_CHOICES),
+    default="scg",
+    show_default=True,
+    help="Levenberg–Marquardt, scaled conjugate gradient or both.",
+)
+@click.option(
+    "--validate",
+    type=Choice(VALIDATE_CHOICES),
+    default="hov",
+    show_default=True,
+    help="Hold-out (the phantom rows), leave-one-out or both.",
+)
 @click.option("--repeats", default=10, show_default=True, type=int, help="Independent random initialisations.")
 @click.option("--epochs", default=100, show_default=True, type=int)
-@click.option("--hidden", default="25,10", show_default=True,
-              help="Hidden layer sizes; per-layer transfer function with ':', e.g. 25,10,7:purelin.")
+@click.option(
+    "--hidden",
+    default="25,10",
+    show_default=True,
+    help="Hidden layer sizes; per-layer transfer function with ':', e.g. 25,10,7:purelin.",
+)
 @click.option("--activation", default="tansig", show_default=True, help="Hidden transfer function: tansig or logsig.")
-@click.option("--feature-noise", default=0.0, show_default=True, type=float,
-              help="Relative Gaussian noise on O1..O3 (0.01 = 1 %), drawn per network.")
-@click.option("--test-split", default=None, type=float,
-              help="HOV: random test fraction instead of the phantom rows.")
-@click.option("--val-fraction", default=0.0, show_default=True, type=float,
-              help="Validation rows per network for early stopping (6 failures); 0 = none.")
+@click.option(
+    "--feature-noise",
+    default=0.0,
+    show_default=True,
+    type=float,
+    help="Relative Gaussian noise on O1..O3 (0.01 = 1 %), drawn per network.",
+)
+@click.option("--test-split", default=None, type=float, help="HOV: random test fraction instead of the phantom rows.")
+@click.option(
+    "--val-fraction",
+    default=0.0,
+    show_default=True,
+    type=float,
+    help="Validation rows per network for early stopping (6 failures); 0 = none.",
+)
 @click.option("--seed", default=0, show_default=True, type=int)
 @out_option(default="runs/train", help="Output directory (one run; an existing one only with --overwrite).")
-@click.option("--overwrite", is_flag=True, help="Replace an existing --out folder whole (after the new run has finished).")
+@click.option(
+    "--overwrite", is_flag=True, help="Replace an existing --out folder whole (after the new run has finished)."
+)
 @click.option("--device", default=None, help="cpu or cuda (default: cuda when available).")
-@click.option("--threads", default=1, show_default=True, type=int,
-              help="Torch CPU threads (0 = torch default); more threads were slower on the shared 2-core machine.")
-@click.option("--float32", "float32", is_flag=True,
-              help="Single precision: about 2x faster on the CPU; see docs/training.md for its effect on the table.")
-@click.option("--workers", default=0, show_default=True, type=int,
-              help="CPU processes sharing the networks (0 = one per core); each uses one torch thread. "
-                   "Results do not depend on it.")
+@click.option(
+    "--threads",
+    default=1,
+    show_default=True,
+    type=int,
+    help="Torch CPU threads (0 = torch default); more threads were slower on the shared 2-core machine.",
+)
+@click.option(
+    "--float32",
+    "float32",
+    is_flag=True,
+    help="Single precision: about 2x faster on the CPU; see docs/training.md for its effect on the table.",
+)
+@click.option(
+    "--workers",
+    default=0,
+    show_default=True,
+    type=int,
+    help="CPU processes sharing the networks (0 = one per core); each uses one torch thread. "
+    "Results do not depend on it.",
+)
 @click.option("--no-model", is_flag=True, help="Skip training the saved ensemble.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def train(data, synthetic, algo, validate, repeats, epochs, hidden, activation, feature_noise, test_split,
-          val_fraction, seed, out, overwrite, device, threads, float32, workers, no_model, quiet):
+def train(
+    data,
+    synthetic,
+    algo,
+    validate,
+    repeats,
+    epochs,
+    hidden,
+    activation,
+    feature_noise,
+    test_split,
+    val_fraction,
+    seed,
+    out,
+    overwrite,
+    device,
+    threads,
+    float32,
+    workers,
+    no_model,
+    quiet,
+):
     """Train and validate the inverse MLP (O1, O2, O3) -> (d, h, E)."""
     import torch
 
@@ -77,9 +141,16 @@ def train(data, synthetic, algo, validate, repeats, epochs, hidden, activation, 
     if (data is None) == (synthetic is None):
         raise UserError("data", "give exactly one of --data PATH or --synthetic N")
     hidden_t = parse_hidden(hidden, activation)
-    cfg = TrainConfig(hidden=hidden_t, epochs=epochs, feature_noise=feature_noise, val_fraction=val_fraction,
-                      device=device, dtype=torch.float32 if float32 else torch.float64, progress=not quiet,
-                      workers=workers).validate()
+    cfg = TrainConfig(
+        hidden=hidden_t,
+        epochs=epochs,
+        feature_noise=feature_noise,
+        val_fraction=val_fraction,
+        device=device,
+        dtype=torch.float32 if float32 else torch.float64,
+        progress=not quiet,
+        workers=workers,
+    ).validate()
     if device and device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError("device", "cuda requested but no GPU is available")
     if threads < 0:
@@ -97,14 +168,54 @@ def train(data, synthetic, algo, validate, repeats, epochs, hidden, activation, 
     algos = list(ALGOS) if algo == "all" else [algo]
     vals = list(VALIDATIONS) if validate == "all" else [validate]
     with staged_dir(out, "out", overwrite=overwrite) as tmp:
-        _run(samples, algos, vals, cfg, repeats, epochs, hidden, hidden_t, activation, feature_noise, test_split,
-             val_fraction, seed, device, nthreads, workers, no_model, quiet, str(tmp), out)
+        _run(
+            samples,
+            algos,
+            vals,
+            cfg,
+            repeats,
+            epochs,
+            hidden,
+            hidden_t,
+            activation,
+            feature_noise,
+            test_split,
+            val_fraction,
+            seed,
+            device,
+            nthreads,
+            workers,
+            no_model,
+            quiet,
+            str(tmp),
+            out,
+        )
     click.echo(f"wrote {out}", err=True)
     return 0
 
 
-def _run(samples, algos, vals, cfg, repeats, epochs, hidden, hidden_t, activation, feature_noise, test_split,
-         val_fraction, seed, device, nthreads, workers, no_model, quiet, out, final):
+def _run(
+    samples,
+    algos,
+    vals,
+    cfg,
+    repeats,
+    epochs,
+    hidden,
+    hidden_t,
+    activation,
+    feature_noise,
+    test_split,
+    val_fraction,
+    seed,
+    device,
+    nthreads,
+    workers,
+    no_model,
+    quiet,
+    out,
+    final,
+):
     """The run itself, writing into ``out`` (the staged folder that becomes ``final``)."""
     from .api import fit_ensemble
     from .data import data_hash, prepare
@@ -112,8 +223,11 @@ def _run(samples, algos, vals, cfg, repeats, epochs, hidden, hidden_t, activatio
     from .report import markdown, plot_curves, table
 
     click.echo(samples.report(), err=True)
-    click.echo(f"network {cfg.arch.describe()} ({cfg.arch.n_params} weights), device "
-               f"{cfg.resolved_device()}, {nthreads} thread(s)", err=True)
+    click.echo(
+        f"network {cfg.arch.describe()} ({cfg.arch.n_params} weights), device "
+        f"{cfg.resolved_device()}, {nthreads} thread(s)",
+        err=True,
+    )
 
     results = []
     t0 = time.perf_counter()
@@ -122,15 +236,20 @@ def _run(samples, algos, vals, cfg, repeats, epochs, hidden, hidden_t, activatio
             r = run_validation(samples, a, v, repeats, cfg, seed=seed, test_split=test_split)
             results.append(r)
             plot_curves(r, os.path.join(out, f"curves-{a}-{v}.png"))
-            click.echo(f"{a} {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s "
-                       f"({r.row['trainings_per_s']:.2f}/s); stops {r.row['stops']}", err=True)
+            click.echo(
+                f"{a} {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s "
+                f"({r.row['trainings_per_s']:.2f}/s); stops {r.row['stops']}",
+                err=True,
+            )
     df = table(results)
     df.insert(0, "data_sha256", data_hash(samples.df))
     df.insert(0, "data", samples.source)
     df.to_csv(os.path.join(out, "results.csv"), index=False)
-    title = (f"Test errors, {samples.source}, {cfg.arch.describe()}, {epochs} epochs, feature noise "
-             f"{feature_noise:g}; mean [2.5 %, 97.5 %] over {repeats} repeat(s). MSE×100 is paper eq. (1) "
-             f"on mapminmax [-1, 1]-scaled targets.")
+    title = (
+        f"Test errors, {samples.source}, {cfg.arch.describe()}, {epochs} epochs, feature noise "
+        f"{feature_noise:g}; mean [2.5 %, 97.5 %] over {repeats} repeat(s). MSE×100 is paper eq. (1) "
+        f"on mapminmax [-1, 1]-scaled targets."
+    )
     md = markdown(df, title)
     with open(os.path.join(out, "results.md"), "w") as f:
         f.write(md)
@@ -143,23 +262,54 @@ def _run(samples, algos, vals, cfg, repeats, epochs, hidden, hidden_t, activatio
             s = samples
             if drop_test:
                 from .experiment import rng_for, split_rows
+
                 test_rows, _ = split_rows(samples, "hov", test_split, rng_for(seed, "hov")[0])
                 s = prepare(samples.df[~test_rows], source=samples.source)
                 s.n_failed = samples.n_failed
-            ens = fit_ensemble(s, algo=a, repeats=repeats, epochs=epochs, hidden=hidden_t, seed=seed,
-                               feature_noise=feature_noise, val_fraction=val_fraction, device=device,
-                               progress=not quiet, dtype=cfg.dtype)
+            ens = fit_ensemble(
+                s,
+                algo=a,
+                repeats=repeats,
+                epochs=epochs,
+                hidden=hidden_t,
+                seed=seed,
+                feature_noise=feature_noise,
+                val_fraction=val_fraction,
+                device=device,
+                progress=not quiet,
+                dtype=cfg.dtype,
+            )
             ens.save(os.path.join(out, f"model-{a}"))
             path = os.path.join(final, f"model-{a}")
             models[a] = path
             click.echo(f"saved {ens.n_members}-member {a} ensemble ({s.n} training rows) to {path}", err=True)
     with open(os.path.join(out, "run.json"), "w") as f:
-        json.dump({"data": samples.source, "n_samples": samples.n, "n_failed_excluded": samples.n_failed,
-                   "data_sha256": data_hash(samples.df), "algo": algos, "validate": vals, "repeats": repeats,
-                   "epochs": epochs, "hidden": hidden, "activation": activation, "feature_noise": feature_noise,
-                   "test_split": test_split, "val_fraction": val_fraction, "seed": seed,
-                   "device": str(cfg.resolved_device()), "threads": nthreads, "workers": workers, "dtype": str(cfg.dtype),
-                   "wall_s": round(time.perf_counter() - t0, 3), "models": models}, f, indent=2)
+        json.dump(
+            {
+                "data": samples.source,
+                "n_samples": samples.n,
+                "n_failed_excluded": samples.n_failed,
+                "data_sha256": data_hash(samples.df),
+                "algo": algos,
+                "validate": vals,
+                "repeats": repeats,
+                "epochs": epochs,
+                "hidden": hidden,
+                "activation": activation,
+                "feature_noise": feature_noise,
+                "test_split": test_split,
+                "val_fraction": val_fraction,
+                "seed": seed,
+                "device": str(cfg.resolved_device()),
+                "threads": nthreads,
+                "workers": workers,
+                "dtype": str(cfg.dtype),
+                "wall_s": round(time.perf_counter() - t0, 3),
+                "models": models,
+            },
+            f,
+            indent=2,
+        )
     return 0
 
 

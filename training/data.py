@@ -24,10 +24,10 @@ PHANTOM_PREFIX = "phantom:"
 class Samples:
     """The usable (status 'ok') rows, sorted by ``sample_id``, and what was dropped."""
 
-    df: pd.DataFrame          # columns sample_id, tag, O1, O2, O3, d, h, E
-    n_total: int              # rows read
-    n_failed: int             # rows with status != 'ok' (excluded)
-    source: str               # path or '<dataframe>'
+    df: pd.DataFrame  # columns sample_id, tag, O1, O2, O3, d, h, E
+    n_total: int  # rows read
+    n_failed: int  # rows with status != 'ok' (excluded)
+    source: str  # path or '<dataframe>'
 
     @property
     def n(self) -> int:
@@ -91,8 +91,11 @@ def prepare(df: pd.DataFrame, source: str = "<dataframe>") -> Samples:
     if bad.any():
         first = df["sample_id"].to_numpy()[bad][0]
         cols = [c for j, c in enumerate(FEATURES + TARGETS) if (~np.isfinite(vals[bad, j])).any()]
-        raise UserError("data", f"{int(bad.sum())} 'ok' row(s) of {source} have NaN/inf in {', '.join(cols)} "
-                                f"(first: sample_id {first}); fix or mark them failed")
+        raise UserError(
+            "data",
+            f"{int(bad.sum())} 'ok' row(s) of {source} have NaN/inf in {', '.join(cols)} "
+            f"(first: sample_id {first}); fix or mark them failed",
+        )
     if len(df) == 0:
         raise UserError("data", f"{source} has no usable samples ({n_failed} failed)")
     dup = df["sample_id"].duplicated()
@@ -115,9 +118,15 @@ def data_hash(df: pd.DataFrame) -> str:
 # SYNTHETIC toy table (tests, development, benchmarks) -- not FEM results.
 
 SYNTH_PHANTOMS = {  # name: (d mm, h mm, E kPa) -- invented values for the toy table
-    "size-1": (4.0, 8.0, 60.0), "size-2": (7.0, 8.0, 60.0), "size-3": (10.0, 8.0, 60.0),
-    "depth-1": (7.0, 5.0, 60.0), "depth-2": (7.0, 9.0, 60.0), "depth-3": (7.0, 12.0, 60.0),
-    "hardness-1": (7.0, 8.0, 20.0), "hardness-2": (7.0, 8.0, 80.0), "hardness-3": (7.0, 8.0, 200.0),
+    "size-1": (4.0, 8.0, 60.0),
+    "size-2": (7.0, 8.0, 60.0),
+    "size-3": (10.0, 8.0, 60.0),
+    "depth-1": (7.0, 5.0, 60.0),
+    "depth-2": (7.0, 9.0, 60.0),
+    "depth-3": (7.0, 12.0, 60.0),
+    "hardness-1": (7.0, 8.0, 20.0),
+    "hardness-2": (7.0, 8.0, 80.0),
+    "hardness-3": (7.0, 8.0, 200.0),
 }
 
 
@@ -155,11 +164,32 @@ def synthetic_table(n: int = 512, seed: int = 0, phantoms: bool = True, n_failed
         d, h, E = np.r_[d, ph[:, 0]], np.r_[h, ph[:, 1]], np.r_[E, ph[:, 2]]
         tags += [PHANTOM_PREFIX + k for k in SYNTH_PHANTOMS]
     O1, O2, O3 = synthetic_features(d, h, E)
-    df = pd.DataFrame({"sample_id": [f"synthetic-{seed}-{i:05d}" for i in range(n)], "tag": tags,
-                       "d": d, "h": h, "E": E, "O1": O1, "O2": O2, "O3": O3, "status": "ok"})
+    df = pd.DataFrame(
+        {
+            "sample_id": [f"synthetic-{seed}-{i:05d}" for i in range(n)],
+            "tag": tags,
+            "d": d,
+            "h": h,
+            "E": E,
+            "O1": O1,
+            "O2": O2,
+            "O3": O3,
+            "status": "ok",
+        }
+    )
     if n_failed:
-        bad = pd.DataFrame({"sample_id": [f"synthetic-{seed}-failed-{i:03d}" for i in range(n_failed)],
-                            "tag": "design", "d": 5.0, "h": 7.0, "E": 50.0, "O1": np.nan, "O2": np.nan,
-                            "O3": np.nan, "status": "failed"})
+        bad = pd.DataFrame(
+            {
+                "sample_id": [f"synthetic-{seed}-failed-{i:03d}" for i in range(n_failed)],
+                "tag": "design",
+                "d": 5.0,
+                "h": 7.0,
+                "E": 50.0,
+                "O1": np.nan,
+                "O2": np.nan,
+                "O3": np.nan,
+                "status": "failed",
+            }
+        )
         df = pd.concat([df, bad], ignore_index=True)
     return df

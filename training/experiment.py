@@ -60,25 +60,33 @@ class TrainConfig:
     hidden: tuple = ((25, "tansig"), (10, "tansig"))
     epochs: int = 100
     feature_noise: float = 0.0
-    val_fraction: float = 0.0      # > 0: random validation rows per network, early stop after 6 failures
+    val_fraction: float = 0.0  # > 0: random validation rows per network, early stop after 6 failures
     max_fail: int = 6
     device: str | None = None
     dtype: torch.dtype = torch.float64
-    mem_bytes: int | None = None   # memory budget for one chunk of networks
+    mem_bytes: int | None = None  # memory budget for one chunk of networks
     progress: bool = True
-    workers: int = 1               # CPU processes training chunks of networks in parallel (0 = one per core)
+    workers: int = 1  # CPU processes training chunks of networks in parallel (0 = one per core)
 
     #: What each setting must be (the command line shows the names as its flags).
     _parameter_constraints = {
-        "hidden": [Predicate(lambda h: len(h) >= 1 and all(int(n) >= 1 and a in _net.ACTIVATIONS for n, a in h),
-                             "a non-empty tuple of (size >= 1, transfer function) layers")],
+        "hidden": [
+            Predicate(
+                lambda h: len(h) >= 1 and all(int(n) >= 1 and a in _net.ACTIVATIONS for n, a in h),
+                "a non-empty tuple of (size >= 1, transfer function) layers",
+            )
+        ],
         "epochs": [Interval(int, 1, None)],  # 0 epochs would save the untrained initial weights
         "feature_noise": [Interval(float, 0, 1)],
         "val_fraction": [Interval(float, 0, 1, closed="left")],
         "max_fail": [Interval(int, 1, None)],
-        "device": [None, InstanceOf(torch.device, "a torch.device"),
-                   Predicate(lambda d: d in ("cpu", "cuda") or (d.startswith("cuda:") and d[5:].isdigit()),
-                             "cpu, cuda or cuda:N")],
+        "device": [
+            None,
+            InstanceOf(torch.device, "a torch.device"),
+            Predicate(
+                lambda d: d in ("cpu", "cuda") or (d.startswith("cuda:") and d[5:].isdigit()), "cpu, cuda or cuda:N"
+            ),
+        ],
         "dtype": [Options((torch.float32, torch.float64))],
         "mem_bytes": [None, Interval(int, 1, None)],
         "workers": [Interval(int, 0, None)],
@@ -117,9 +125,12 @@ def check_trainable(n_train: int, arch: Arch, what: str = "training fold") -> No
         raise UserError("data", f"the {what} has {n_train} sample(s); need at least 2")
     if n_train * arch.n_out < arch.n_params:
         need = math.ceil(arch.n_params / arch.n_out)
-        raise UserError("data", f"too few samples for the network: the {what} has {n_train} samples "
-                                f"({n_train * arch.n_out} target values) but {arch.describe()} has "
-                                f"{arch.n_params} weights; need >= {need} samples or a smaller --hidden")
+        raise UserError(
+            "data",
+            f"too few samples for the network: the {what} has {n_train} samples "
+            f"({n_train * arch.n_out} target values) but {arch.describe()} has "
+            f"{arch.n_params} weights; need >= {need} samples or a smaller --hidden",
+        )
 
 
 @dataclass
@@ -128,17 +139,24 @@ class Batch:
 
     obj: NetObjective
     theta0: torch.Tensor
-    x_lo: np.ndarray   # (B, 3)
+    x_lo: np.ndarray  # (B, 3)
     x_hi: np.ndarray
     t_lo: np.ndarray
     t_hi: np.ndarray
     X_phys: np.ndarray  # (B, n, 3) features as the networks saw them (noise included) or (1, n, 3)
-    train: np.ndarray   # (B, n) bool (training rows, excluding validation rows)
-    test: np.ndarray    # (B, n) bool
+    train: np.ndarray  # (B, n) bool (training rows, excluding validation rows)
+    test: np.ndarray  # (B, n) bool
 
 
-def make_batch(X: np.ndarray, T: np.ndarray, fit_rows: np.ndarray, test_rows: np.ndarray | None,
-               cfg: TrainConfig, rng: np.random.Generator, gen: torch.Generator) -> Batch:
+def make_batch(
+    X: np.ndarray,
+    T: np.ndarray,
+    fit_rows: np.ndarray,
+    test_rows: np.ndarray | None,
+    cfg: TrainConfig,
+    rng: np.random.Generator,
+    gen: torch.Generator,
+) -> Batch:
     """Build the batched problem.  ``fit_rows``/``test_rows``: ``(B, n)`` bool."""
     arch = cfg.arch
     dev = cfg.resolved_device()
@@ -170,11 +188,13 @@ def make_batch(X: np.ndarray, T: np.ndarray, fit_rows: np.ndarray, test_rows: np
     tt = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=cfg.dtype, device=dev)  # noqa: E731
     Xs = mapminmax_apply(Xp, x_lo, x_hi)
     Ts = mapminmax_apply(T[None], t_lo, t_hi)
-    obj = NetObjective(arch, tt(Xs), tt(Ts), tt(train), None if val is None else tt(val),
-                       None if test_rows is None else tt(test_rows))
+    obj = NetObjective(
+        arch, tt(Xs), tt(Ts), tt(train), None if val is None else tt(val), None if test_rows is None else tt(test_rows)
+    )
     theta0 = _net.init_nguyen_widrow(arch, B, gen, dtype=cfg.dtype, device=dev)
-    return Batch(obj, theta0, x_lo, x_hi, t_lo, t_hi, Xp, train,
-                 np.zeros_like(train) if test_rows is None else test_rows)
+    return Batch(
+        obj, theta0, x_lo, x_hi, t_lo, t_hi, Xp, train, np.zeros_like(train) if test_rows is None else test_rows
+    )
 
 
 def chunk_size(algo: str, cfg: TrainConfig, n: int) -> int:
@@ -195,6 +215,7 @@ def chunk_size(algo: str, cfg: TrainConfig, n: int) -> int:
 
 def _worker_init(threads: int) -> None:
     from .perf import set_threads, tune_malloc
+
     tune_malloc()
     set_threads(threads)
 
@@ -221,17 +242,26 @@ def train_batch(algo: str, obj: NetObjective, theta0: torch.Tensor, cfg: TrainCo
     bar = None
     if cfg.progress:
         from tqdm import tqdm
-        bar = tqdm(total=len(chunks) * (cfg.epochs + 1), desc=desc or algo, unit="epoch", leave=False,
-                   postfix={"nets": B, "workers": workers})
+
+        bar = tqdm(
+            total=len(chunks) * (cfg.epochs + 1),
+            desc=desc or algo,
+            unit="epoch",
+            leave=False,
+            postfix={"nets": B, "workers": workers},
+        )
     results: list = [None] * len(chunks)
     if workers > 1:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_worker_init,
-                                 initargs=(1,)) as pool:
-            futs = {pool.submit(_train_chunk, algo, obj.subset(idx), theta0[idx], cfg.epochs, cfg.max_fail): i
-                    for i, idx in enumerate(chunks)}
+        with ProcessPoolExecutor(
+            workers, mp_context=mp.get_context("spawn"), initializer=_worker_init, initargs=(1,)
+        ) as pool:
+            futs = {
+                pool.submit(_train_chunk, algo, obj.subset(idx), theta0[idx], cfg.epochs, cfg.max_fail): i
+                for i, idx in enumerate(chunks)
+            }
             for f in as_completed(futs):
                 results[futs[f]] = f.result()
                 if bar is not None:
@@ -269,12 +299,13 @@ def predict_scaled(theta: torch.Tensor, Xs: torch.Tensor, arch: Arch, mem_bytes:
     out = []
     with torch.no_grad():
         for s in range(0, B, step):
-            out.append(_net.forward(theta[s:s + step], Xs[s:s + step], arch).cpu().numpy())
+            out.append(_net.forward(theta[s : s + step], Xs[s : s + step], arch).cpu().numpy())
     return np.concatenate(out).astype(np.float64)
 
 
 def _t975(dof: int) -> float:
     from scipy.stats import t
+
     return float(t.ppf(0.975, dof)) if dof > 0 else float("nan")
 
 
@@ -285,8 +316,14 @@ def summarize(values: np.ndarray) -> dict:
     mean = float(v.mean())
     std = float(v.std(ddof=1)) if R > 1 else 0.0
     half = _t975(R - 1) * std / math.sqrt(R) if R > 1 else float("nan")
-    return {"mean": mean, "std": std, "lo": float(np.percentile(v, 2.5)), "hi": float(np.percentile(v, 97.5)),
-            "ci_lo": mean - half, "ci_hi": mean + half}
+    return {
+        "mean": mean,
+        "std": std,
+        "lo": float(np.percentile(v, 2.5)),
+        "hi": float(np.percentile(v, 97.5)),
+        "ci_lo": mean - half,
+        "ci_hi": mean + half,
+    }
 
 
 @dataclass
@@ -294,10 +331,10 @@ class ValidationResult:
     algo: str
     validate: str
     repeats: int
-    row: dict                       # one table row (flat)
-    per_repeat: dict                # metric -> (R, 3)
-    curves: dict                    # name -> (B, epochs+1) numpy, NaN after stop
-    stops: dict                     # reason -> count
+    row: dict  # one table row (flat)
+    per_repeat: dict  # metric -> (R, 3)
+    curves: dict  # name -> (B, epochs+1) numpy, NaN after stop
+    stops: dict  # reason -> count
     wall_s: float
     extra: dict = field(default_factory=dict)
 
@@ -341,11 +378,19 @@ def rng_for(seed: int, validate: str):
     return rng, gen
 
 
-def run_validation(samples: Samples, algo: str, validate: str, repeats: int, cfg: TrainConfig,
-                   seed: int = 0, test_split: float | None = None) -> ValidationResult:
+def run_validation(
+    samples: Samples,
+    algo: str,
+    validate: str,
+    repeats: int,
+    cfg: TrainConfig,
+    seed: int = 0,
+    test_split: float | None = None,
+) -> ValidationResult:
     """Train and score ``algo`` under ``validate`` with ``repeats`` random initialisations."""
-    validate_params(dict(algo=algo, validate=validate, repeats=repeats, seed=seed, test_split=test_split),
-                    RUN_CONSTRAINTS)
+    validate_params(
+        dict(algo=algo, validate=validate, repeats=repeats, seed=seed, test_split=test_split), RUN_CONSTRAINTS
+    )
     cfg.validate()
     df = samples.df
     X = df[list(FEATURES)].to_numpy(np.float64)
@@ -370,14 +415,14 @@ def run_validation(samples: Samples, algo: str, validate: str, repeats: int, cfg
     batch = make_batch(X, T, fit, test, cfg, rng, gen)
     res = train_batch(algo, batch.obj, batch.theta0, cfg, desc=f"{algo} {validate}")
     wall = time.perf_counter() - t0
-    Ys = predict_scaled(res.theta, batch.obj.X, cfg.arch)               # (B, n, 3) scaled
+    Ys = predict_scaled(res.theta, batch.obj.X, cfg.arch)  # (B, n, 3) scaled
     Ts = batch.obj.T.cpu().numpy()
     Yp = mapminmax_reverse(Ys, batch.t_lo, batch.t_hi)
     B = test.shape[0]
     R = repeats
     shp = (R, folds, n)
     tm = test.reshape(shp)[..., None]
-    cnt = tm.sum(axis=(1, 2))                                            # (R, 1)
+    cnt = tm.sum(axis=(1, 2))  # (R, 1)
     Tp = np.broadcast_to(T, Yp.shape)
     per = {
         "mse100": 100.0 * (((Ts - Ys) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
@@ -386,13 +431,25 @@ def run_validation(samples: Samples, algo: str, validate: str, repeats: int, cfg
     }
     trm = batch.train.reshape(shp)[..., None]
     train_mse = 100.0 * ((((Ts - Ys) ** 2).reshape(*shp, 3) * trm).sum(axis=2) / trm.sum(axis=2)).mean(axis=1)
-    row = {"algo": algo, "validate": validate, "repeats": R, "n_samples": n,
-           "n_train": int(batch.train[0].sum()), "n_test_per_repeat": int(cnt[0, 0]),
-           "trainings": B, "hidden": ",".join(f"{s}" if a == "tansig" else f"{s}:{a}" for s, a in cfg.hidden),
-           "epochs": cfg.epochs, "feature_noise": cfg.feature_noise, "val_fraction": cfg.val_fraction,
-           "test_set": note, "wall_s": round(wall, 3), "trainings_per_s": round(B / wall, 3),
-           "mean_epochs_run": float(res.epochs.double().mean()), "dtype": str(cfg.dtype).replace("torch.", ""),
-           "workers": res.workers}
+    row = {
+        "algo": algo,
+        "validate": validate,
+        "repeats": R,
+        "n_samples": n,
+        "n_train": int(batch.train[0].sum()),
+        "n_test_per_repeat": int(cnt[0, 0]),
+        "trainings": B,
+        "hidden": ",".join(f"{s}" if a == "tansig" else f"{s}:{a}" for s, a in cfg.hidden),
+        "epochs": cfg.epochs,
+        "feature_noise": cfg.feature_noise,
+        "val_fraction": cfg.val_fraction,
+        "test_set": note,
+        "wall_s": round(wall, 3),
+        "trainings_per_s": round(B / wall, 3),
+        "mean_epochs_run": float(res.epochs.double().mean()),
+        "dtype": str(cfg.dtype).replace("torch.", ""),
+        "workers": res.workers,
+    }
     for m in METRICS:
         for j, tname in enumerate(TARGETS):
             for k, v in summarize(per[m][:, j]).items():

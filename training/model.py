@@ -51,16 +51,16 @@ class Ensemble:
     """``M`` networks sharing one architecture and one input/target scaling."""
 
     arch: Arch
-    theta: np.ndarray                    # (M, P) flat parameters, layout of elastimap.training.net
-    x_min: np.ndarray                    # (n_in,) mapminmax input scaling
+    theta: np.ndarray  # (M, P) flat parameters, layout of elastimap.training.net
+    x_min: np.ndarray  # (n_in,) mapminmax input scaling
     x_max: np.ndarray
-    y_min: np.ndarray                    # (n_out,) mapminmax target scaling
+    y_min: np.ndarray  # (n_out,) mapminmax target scaling
     y_max: np.ndarray
     feature_names: tuple[str, ...] = FEATURES
     target_names: tuple[str, ...] = TARGETS
     units: dict = field(default_factory=lambda: dict(UNITS))
-    feature_range: np.ndarray | None = None   # (2, n_in) min, max over training data
-    target_range: np.ndarray | None = None    # (2, n_out)
+    feature_range: np.ndarray | None = None  # (2, n_in) min, max over training data
+    target_range: np.ndarray | None = None  # (2, n_out)
     meta: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -100,8 +100,11 @@ class Ensemble:
         if X.ndim == 1:
             X = X[None, :]
         if X.ndim != 2 or X.shape[1] != self.arch.n_in:
-            raise UserError("features", f"expected an array of shape (n, {self.arch.n_in}) with columns "
-                                        f"{', '.join(self.feature_names)} (got shape {X.shape})")
+            raise UserError(
+                "features",
+                f"expected an array of shape (n, {self.arch.n_in}) with columns "
+                f"{', '.join(self.feature_names)} (got shape {X.shape})",
+            )
         if not np.isfinite(X).all():
             raise UserError("features", "contain NaN or inf")
         a = np.broadcast_to(mapminmax_apply(X, self.x_min, self.x_max), (self.n_members, *X.shape))
@@ -122,17 +125,25 @@ class Ensemble:
     # ------------------------------------------------------------------ I/O
     def to_json(self) -> dict:
         return {
-            "format": FORMAT, "format_version": FORMAT_VERSION,
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
             "architecture": self.arch.to_json(),
             "n_members": self.n_members,
             "weights_file": WEIGHTS_FILE,
             "parameter_layout": "layer<l>.weight (members, out, in) and layer<l>.bias (members, out), l = 0 .. input to output",
-            "feature_names": list(self.feature_names), "target_names": list(self.target_names),
+            "feature_names": list(self.feature_names),
+            "target_names": list(self.target_names),
             "units": {k: self.units.get(k, "") for k in (*self.feature_names, *self.target_names)},
-            "scaling": {"method": "mapminmax", "ymin": -1.0, "ymax": 1.0,
-                        "note": "y = (ymax-ymin)(x-xmin)/(xmax-xmin)+ymin per column, fitted on the training rows",
-                        "x_min": self.x_min.tolist(), "x_max": self.x_max.tolist(),
-                        "t_min": self.y_min.tolist(), "t_max": self.y_max.tolist()},
+            "scaling": {
+                "method": "mapminmax",
+                "ymin": -1.0,
+                "ymax": 1.0,
+                "note": "y = (ymax-ymin)(x-xmin)/(xmax-xmin)+ymin per column, fitted on the training rows",
+                "x_min": self.x_min.tolist(),
+                "x_max": self.x_max.tolist(),
+                "t_min": self.y_min.tolist(),
+                "t_max": self.y_max.tolist(),
+            },
             "feature_range": self.feature_range.tolist(),
             "target_range": self.target_range.tolist(),
             "training": self.meta,
@@ -190,7 +201,9 @@ class Ensemble:
             raise UserError("model", f"{directory}: no such model directory")
         for p in (meta_p, w_p):
             if not os.path.isfile(p):
-                raise UserError("model", f"{directory} is not a trained model directory (missing {os.path.basename(p)})")
+                raise UserError(
+                    "model", f"{directory} is not a trained model directory (missing {os.path.basename(p)})"
+                )
 
         def bad_meta(why: str) -> UserError:
             return UserError("model", f"{meta_p}: {why}")
@@ -248,24 +261,38 @@ class Ensemble:
         want = {f"layer{l}.{k}" for l in range(len(arch.layers)) for k in ("weight", "bias")}
         if set(t) != want:
             missing, extra = sorted(want - set(t)), sorted(set(t) - want)
-            raise bad_weights("tensors do not match the architecture in model.json"
-                              + (f"; missing {', '.join(missing)}" if missing else "")
-                              + (f"; unexpected {', '.join(extra)}" if extra else ""))
+            raise bad_weights(
+                "tensors do not match the architecture in model.json"
+                + (f"; missing {', '.join(missing)}" if missing else "")
+                + (f"; unexpected {', '.join(extra)}" if extra else "")
+            )
         parts, M = [], None
         for l, (fi, fo, _) in enumerate(arch.layers):
             W, b = t[f"layer{l}.weight"], t[f"layer{l}.bias"]
             M = W.shape[0] if M is None else M
             if W.shape != (M, fo, fi) or b.shape != (M, fo) or M < 1:
-                raise bad_weights(f"layer{l} has shapes {W.shape} and {b.shape}; model.json's architecture "
-                                  f"needs ({M}, {fo}, {fi}) and ({M}, {fo})")
+                raise bad_weights(
+                    f"layer{l} has shapes {W.shape} and {b.shape}; model.json's architecture "
+                    f"needs ({M}, {fo}, {fi}) and ({M}, {fo})"
+                )
             parts.append(np.concatenate([W, b[:, :, None]], axis=2).reshape(M, -1))
         theta = np.concatenate(parts, axis=1).astype(np.float64)
         if not np.isfinite(theta).all():
             raise bad_weights("holds NaN or inf weights")
-        return cls(arch=arch, theta=theta, x_min=scal["x_min"], x_max=scal["x_max"], y_min=scal["t_min"],
-                   y_max=scal["t_max"], feature_names=tuple(names_f), target_names=tuple(names_t),
-                   units=dict(meta.get("units", {})), feature_range=fr, target_range=tr,
-                   meta=dict(meta.get("training", {})))
+        return cls(
+            arch=arch,
+            theta=theta,
+            x_min=scal["x_min"],
+            x_max=scal["x_max"],
+            y_min=scal["t_min"],
+            y_max=scal["t_max"],
+            feature_names=tuple(names_f),
+            target_names=tuple(names_t),
+            units=dict(meta.get("units", {})),
+            feature_range=fr,
+            target_range=tr,
+            meta=dict(meta.get("training", {})),
+        )
 
 
 def _sha256(path: str) -> str:

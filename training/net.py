@@ -30,8 +30,14 @@ import torch
 from elastimap.errors import UserError
 
 ACTIVATIONS = ("tansig", "logsig", "purelin")
-_ALIASES = {"tanh": "tansig", "sigmoid": "logsig", "logistic": "logsig", "linear": "purelin",
-            "lin": "purelin", "identity": "purelin"}
+_ALIASES = {
+    "tanh": "tansig",
+    "sigmoid": "logsig",
+    "logistic": "logsig",
+    "linear": "purelin",
+    "lin": "purelin",
+    "identity": "purelin",
+}
 # Output range of each transfer function (the input range of the next layer),
 # and the "active" net-input range used by Nguyen-Widrow initialisation.
 _OUT_RANGE = {"tansig": (-1.0, 1.0), "logsig": (0.0, 1.0), "purelin": (-math.inf, math.inf)}
@@ -71,21 +77,30 @@ class Arch:
         return out
 
     def to_json(self) -> dict:
-        return {"n_in": self.n_in, "n_out": self.n_out,
-                "hidden": [{"size": s, "activation": a} for s, a in self.hidden],
-                "output_activation": "purelin", "n_params": self.n_params}
+        return {
+            "n_in": self.n_in,
+            "n_out": self.n_out,
+            "hidden": [{"size": s, "activation": a} for s, a in self.hidden],
+            "output_activation": "purelin",
+            "n_params": self.n_params,
+        }
 
     @classmethod
     def from_json(cls, obj: dict) -> Arch:
-        return cls(n_in=int(obj["n_in"]), n_out=int(obj["n_out"]),
-                   hidden=tuple((int(h["size"]), str(h["activation"])) for h in obj["hidden"]))
+        return cls(
+            n_in=int(obj["n_in"]),
+            n_out=int(obj["n_out"]),
+            hidden=tuple((int(h["size"]), str(h["activation"])) for h in obj["hidden"]),
+        )
 
     def describe(self) -> str:
         parts = [f"{s} {a}" for s, a in self.hidden] + [f"{self.n_out} purelin"]
         return f"{self.n_in} -> " + " -> ".join(parts)
 
 
-def parse_hidden(spec: str | tuple | list, activation: str = "tansig", param: str = "hidden") -> tuple[tuple[int, str], ...]:
+def parse_hidden(
+    spec: str | tuple | list, activation: str = "tansig", param: str = "hidden"
+) -> tuple[tuple[int, str], ...]:
     """Parse ``"25,10"`` or ``"25,10,7:purelin"`` (per-layer ``:activation`` suffix).
 
     Also accepts a sequence of ints or ``(size, activation)`` pairs.
@@ -106,7 +121,9 @@ def parse_hidden(spec: str | tuple | list, activation: str = "tansig", param: st
         try:
             n = int(size)
         except (TypeError, ValueError):
-            raise UserError(param, f"layer sizes must be positive integers, e.g. 25,10 or 25,10,7:purelin (got {spec!r})") from None
+            raise UserError(
+                param, f"layer sizes must be positive integers, e.g. 25,10 or 25,10,7:purelin (got {spec!r})"
+            ) from None
         if n < 1:
             raise UserError(param, f"layer sizes must be positive integers (got {n})")
         out.append((n, _canon_act(act, param)))
@@ -228,8 +245,10 @@ def residual_jacobian(theta: torch.Tensor, X: torch.Tensor, T: torch.Tensor, w: 
     K = arch.n_out
     Y, acts, deltas = _output_deltas(theta, X, w, arch)
     r = ((Y - T) * w.unsqueeze(-1)).reshape(B, n * K)
-    blocks = [(dl.unsqueeze(-1) * _augment(acts[li])[:, :, None, None, :]).reshape(B, n, K, -1)
-              for li, dl in enumerate(deltas)]
+    blocks = [
+        (dl.unsqueeze(-1) * _augment(acts[li])[:, :, None, None, :]).reshape(B, n, K, -1)
+        for li, dl in enumerate(deltas)
+    ]
     return r, torch.cat(blocks, dim=3).reshape(B, n * K, arch.n_params)
 
 
@@ -245,6 +264,7 @@ def _sym_plan(ol: int, il: int, device) -> tuple[torch.Tensor, torch.Tensor]:
     """
     key = (ol, il, str(device))
     if key not in _SYM_CACHE:
+
         def maps(m):
             iu = torch.triu_indices(m, m)
             mp = torch.empty(m, m, dtype=torch.long)
@@ -252,11 +272,14 @@ def _sym_plan(ol: int, il: int, device) -> tuple[torch.Tensor, torch.Tensor]:
             mp[iu[0], iu[1]] = ar
             mp[iu[1], iu[0]] = ar
             return mp, iu.shape[1]
+
         mo, _ = maps(ol)
         mi, ni = maps(il)
         iu = torch.triu_indices(ol, ol)
-        _SYM_CACHE[key] = ((iu[0] * ol + iu[1]).to(device),
-                           (mo[:, None, :, None] * ni + mi[None, :, None, :]).reshape(-1).to(device))
+        _SYM_CACHE[key] = (
+            (iu[0] * ol + iu[1]).to(device),
+            (mo[:, None, :, None] * ni + mi[None, :, None, :]).reshape(-1).to(device),
+        )
     return _SYM_CACHE[key]
 
 
@@ -268,13 +291,20 @@ def _pair_products(a: torch.Tensor) -> torch.Tensor:
     out = torch.empty(B, m * (m + 1) // 2, n, dtype=a.dtype, device=a.device)
     o = 0
     for i in range(m):
-        torch.mul(a[:, i:i + 1], a[:, i:], out=out[:, o:o + m - i])
+        torch.mul(a[:, i : i + 1], a[:, i:], out=out[:, o : o + m - i])
         o += m - i
     return out
 
 
-def gn_system(theta: torch.Tensor, X: torch.Tensor, T: torch.Tensor | None, w: torch.Tensor, arch: Arch,
-              upper: bool = False, out: torch.Tensor | None = None):
+def gn_system(
+    theta: torch.Tensor,
+    X: torch.Tensor,
+    T: torch.Tensor | None,
+    w: torch.Tensor,
+    arch: Arch,
+    upper: bool = False,
+    out: torch.Tensor | None = None,
+):
     """Training SSE ``E = Σ r²`` ``(B,)``, ``JᵀJ`` ``(B, P, P)`` and ``Jᵀr`` ``(B, P)`` from one
     forward pass, without forming ``J`` (residuals and ``J`` as in :func:`residual_jacobian`).
 
@@ -302,20 +332,20 @@ def gn_system(theta: torch.Tensor, X: torch.Tensor, T: torch.Tensor | None, w: t
     B, n, _ = X.shape
     K = arch.n_out
     layers = arch.layers
-    q = len(layers) - 1                      # the output layer
+    q = len(layers) - 1  # the output layer
     dt, dev = theta.dtype, theta.device
     Y, acts = forward(theta, X, arch, keep=True)
     params = unpack(theta, arch)
     ones = torch.ones(B, 1, n, dtype=dt, device=dev)
-    aT = [torch.cat([a.transpose(1, 2), ones], dim=1) for a in acts[:-1]]     # ã_l: (B, in_l + 1, n)
+    aT = [torch.cat([a.transpose(1, 2), ones], dim=1) for a in acts[:-1]]  # ã_l: (B, in_l + 1, n)
     der = [_dact(acts[l + 1].transpose(1, 2), layers[l][2]) for l in range(q)]  # (B, out_l, n), None = 1
     P, sl = arch.n_params, arch.slices
     E = je = None
     if T is not None:
-        r = (Y - T) * w.unsqueeze(-1)                                          # (B, n, K)
+        r = (Y - T) * w.unsqueeze(-1)  # (B, n, K)
         E = (r * r).sum(dim=(1, 2))
         je = torch.empty(B, P, dtype=dt, device=dev)
-        e = r.transpose(1, 2)                                                  # Σ_k δ_l[., k] r_k
+        e = r.transpose(1, 2)  # Σ_k δ_l[., k] r_k
     # δ_l: (B, out_l, K, n), w folded in
     deltas = [None] * (q + 1)
     d = torch.eye(K, dtype=dt, device=dev)[None, :, :, None] * w[:, None, None, :]
@@ -325,7 +355,7 @@ def gn_system(theta: torch.Tensor, X: torch.Tensor, T: torch.Tensor | None, w: t
         if T is not None:
             je[:, sl[l]] = torch.bmm(e, aT[l].transpose(1, 2)).reshape(B, -1)
         if l > 0:
-            Wt = params[l][0].transpose(1, 2)                                   # (B, out_{l-1}, out_l)
+            Wt = params[l][0].transpose(1, 2)  # (B, out_{l-1}, out_l)
             d = torch.bmm(Wt, d.reshape(B, fo, K * n)).reshape(B, fi, K, n)
             if der[l - 1] is not None:
                 d.mul_(der[l - 1].unsqueeze(2))
@@ -340,7 +370,7 @@ def gn_system(theta: torch.Tensor, X: torch.Tensor, T: torch.Tensor | None, w: t
     Gq = G[:, sl[q], sl[q]]
     Gq.zero_()
     for k in range(K):
-        Gq[:, k * iq:(k + 1) * iq, k * iq:(k + 1) * iq] = H
+        Gq[:, k * iq : (k + 1) * iq, k * iq : (k + 1) * iq] = H
     # per hidden layer: its diagonal-block strategy and, where needed, S_m (B, out_m, out_m, n)
     explicit, S = [], [None] * q
     for m in range(q):
@@ -366,14 +396,14 @@ def gn_system(theta: torch.Tensor, X: torch.Tensor, T: torch.Tensor | None, w: t
             G[:, sl[l], sl[l]] = torch.bmm(Jl, Jl.transpose(1, 2))
         else:
             pairs, flat = _sym_plan(ol, il, dev)
-            C = S[l].reshape(B, ol * ol, n)[:, pairs]                           # (B, #pairs_o, n)
-            A = _pair_products(al)                                              # (B, #pairs_i, n)
+            C = S[l].reshape(B, ol * ol, n)[:, pairs]  # (B, #pairs_o, n)
+            A = _pair_products(al)  # (B, #pairs_i, n)
             M = torch.bmm(C, A.transpose(1, 2)).reshape(B, -1)
             G[:, sl[l], sl[l]] = M.index_select(1, flat).reshape(B, s_l, s_l)
-        for m in range(l + 1, q):                        # hidden cross blocks
+        for m in range(l + 1, q):  # hidden cross blocks
             om, im = layers[m][1], aT[m].shape[1]
             C = S[m]
-            for p in range(m - 1, l - 1, -1):            # C_{p,m} = D_p W_{p+1}ᵀ C_{p+1,m}
+            for p in range(m - 1, l - 1, -1):  # C_{p,m} = D_p W_{p+1}ᵀ C_{p+1,m}
                 C = torch.bmm(params[p + 1][0].transpose(1, 2), C.reshape(B, layers[p + 1][1], om * n))
                 C = C.reshape(B, layers[p][1], om, n)
                 if der[p] is not None:
@@ -392,8 +422,9 @@ def gn_system(theta: torch.Tensor, X: torch.Tensor, T: torch.Tensor | None, w: t
     return E, G, je
 
 
-def init_nguyen_widrow(arch: Arch, B: int, generator: torch.Generator, dtype=torch.float64,
-                       device="cpu") -> torch.Tensor:
+def init_nguyen_widrow(
+    arch: Arch, B: int, generator: torch.Generator, dtype=torch.float64, device="cpu"
+) -> torch.Tensor:
     """Initial parameters ``(B, P)``, MATLAB ``initnw`` style.
 
     Nguyen & Widrow (1990), "Improving the learning speed of 2-layer neural

@@ -30,11 +30,11 @@ import torch
 
 @dataclass
 class TrainResult:
-    theta: torch.Tensor                 # (B, P) final parameters (best-validation ones when validating)
-    epochs: torch.Tensor                # (B,) epochs run
-    stop: list[str]                     # stopping reason per problem
+    theta: torch.Tensor  # (B, P) final parameters (best-validation ones when validating)
+    epochs: torch.Tensor  # (B,) epochs run
+    stop: list[str]  # stopping reason per problem
     history: dict[str, torch.Tensor] = field(default_factory=dict)  # name -> (B, epochs+1), NaN after stop
-    workers: int = 1                    # processes that trained it (set by elastimap.training.experiment.train_batch)
+    workers: int = 1  # processes that trained it (set by elastimap.training.experiment.train_batch)
 
 
 def _new_history(names, B, epochs, dtype):
@@ -102,8 +102,8 @@ def lm_step(jj: torch.Tensor, je: torch.Tensor, mu: torch.Tensor, idx: torch.Ten
     out = np.empty((len(rows), P), dtype=J.dtype)
     ok = np.zeros(len(rows), dtype=bool)
     for t, b in enumerate(rows):
-        np.copyto(buf, J[b].T)             # Fortran order: buf's lower triangle is JᵀJ's upper one
-        buf.T.flat[::P + 1] += m[t]
+        np.copyto(buf, J[b].T)  # Fortran order: buf's lower triangle is JᵀJ's upper one
+        buf.T.flat[:: P + 1] += m[t]
         c, info = potrf(buf, lower=1, clean=0, overwrite_a=1)
         if info == 0:
             x, info = potrs(c, G[b], lower=1)
@@ -121,9 +121,20 @@ def _lm_step_torch(jj, je, mu, idx=None):
     return -torch.cholesky_solve(g.unsqueeze(-1), U, upper=True).squeeze(-1), info == 0
 
 
-def train_lm(obj, theta0: torch.Tensor, *, epochs: int = 100, mu: float = 1e-3, mu_dec: float = 0.1,
-             mu_inc: float = 10.0, mu_max: float = 1e10, min_grad: float = 1e-7, max_fail: int = 6,
-             goal: float = 0.0, progress=None) -> TrainResult:
+def train_lm(
+    obj,
+    theta0: torch.Tensor,
+    *,
+    epochs: int = 100,
+    mu: float = 1e-3,
+    mu_dec: float = 0.1,
+    mu_inc: float = 10.0,
+    mu_max: float = 1e10,
+    min_grad: float = 1e-7,
+    max_fail: int = 6,
+    goal: float = 0.0,
+    progress=None,
+) -> TrainResult:
     """Levenberg–Marquardt back-propagation, batched (MATLAB ``trainlm`` semantics).
 
     References: K. Levenberg (1944); D. W. Marquardt (1963); M. T. Hagan and
@@ -179,7 +190,7 @@ def train_lm(obj, theta0: torch.Tensor, *, epochs: int = 100, mu: float = 1e-3, 
             break
         # --- Levenberg–Marquardt trials for the problems still running
         loc = keep.nonzero().squeeze(1)
-        if loc.numel() < keep.numel():          # (indexing copies; skip it while every network runs)
+        if loc.numel() < keep.numel():  # (indexing copies; skip it while every network runs)
             jj, je, th, E = jj[loc], je[loc], th[loc], E[loc]
             o = o.subset(loc)
         gidx = active[loc]
@@ -207,8 +218,18 @@ def train_lm(obj, theta0: torch.Tensor, *, epochs: int = 100, mu: float = 1e-3, 
     return TrainResult(final, ep_run, stop, hist)
 
 
-def train_scg(obj, theta0: torch.Tensor, *, epochs: int = 100, sigma: float = 5e-5, lambda_: float = 5e-7,
-              min_grad: float = 1e-6, max_fail: int = 6, goal: float = 0.0, progress=None) -> TrainResult:
+def train_scg(
+    obj,
+    theta0: torch.Tensor,
+    *,
+    epochs: int = 100,
+    sigma: float = 5e-5,
+    lambda_: float = 5e-7,
+    min_grad: float = 1e-6,
+    max_fail: int = 6,
+    goal: float = 0.0,
+    progress=None,
+) -> TrainResult:
     """Scaled conjugate gradient, batched (Møller 1993; MATLAB ``trainscg``).
 
     Reference: M. F. Møller, "A scaled conjugate gradient algorithm for fast

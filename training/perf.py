@@ -26,7 +26,7 @@ def tune_malloc() -> bool:
     except (OSError, AttributeError):
         return False
     M_TRIM_THRESHOLD, M_TOP_PAD, M_MMAP_THRESHOLD = -1, -2, -3
-    ok = bool(mallopt(M_MMAP_THRESHOLD, 32 << 20))   # glibc's maximum
+    ok = bool(mallopt(M_MMAP_THRESHOLD, 32 << 20))  # glibc's maximum
     ok &= bool(mallopt(M_TRIM_THRESHOLD, 1 << 30))
     ok &= bool(mallopt(M_TOP_PAD, 64 << 20))
     return ok
@@ -46,5 +46,6 @@ def set_threads(threads: int | None) -> int:
         torch.set_num_threads(int(threads))
         from scipy.linalg import lapack  # noqa: F401  (load scipy's BLAS so the limit reaches it)
         from threadpoolctl import threadpool_limits
+
         threadpool_limits(int(threads), user_api="blas")
     return torch.get_num_threads()

@@ -66,8 +66,7 @@ class NetObjective:
     of one ``JᵀJ`` block (networks are processed in sub-chunks).
     """
 
-    def __init__(self, arch: Arch, X, T, w_train, w_val=None, w_test=None, work_bytes: int = 64 << 20,
-                 _rows=None):
+    def __init__(self, arch: Arch, X, T, w_train, w_val=None, w_test=None, work_bytes: int = 64 << 20, _rows=None):
         self.arch = arch
         self.X, self.T, self.w = X, T, w_train
         self.w_val, self.w_test = w_val, w_test
@@ -83,9 +82,17 @@ class NetObjective:
         return self.X.shape[0]
 
     def subset(self, idx) -> NetObjective:
-        sel = (lambda t: None if t is None else t[idx])
-        return NetObjective(self.arch, self.X[idx], self.T[idx], self.w[idx], sel(self.w_val), sel(self.w_test),
-                            self.work_bytes, {k: (i[idx], w[idx]) for k, (i, w) in self._rows.items()})
+        sel = lambda t: None if t is None else t[idx]
+        return NetObjective(
+            self.arch,
+            self.X[idx],
+            self.T[idx],
+            self.w[idx],
+            sel(self.w_val),
+            sel(self.w_test),
+            self.work_bytes,
+            {k: (i[idx], w[idx]) for k, (i, w) in self._rows.items()},
+        )
 
     def sse(self, theta):
         return _net.sse(theta, self.X, self.T, self.w, self.arch)
@@ -112,8 +119,11 @@ class NetObjective:
         # largest temporaries per network: each hidden layer's deltas, pair products, cross
         # products and explicit first-layer Jacobian, over the n samples; plus JᵀJ itself
         per_sample = sum(fo * K + fo * fo + (fi + 1) * (fi + 2) // 2 for fi, fo, _ in lay[:-1])
-        per_sample += sum((lay[a][0] + 1) * (lay[b][0] + 1) + lay[a][1] * lay[b][1]
-                          for a in range(len(lay)) for b in range(a + 1, len(lay)))
+        per_sample += sum(
+            (lay[a][0] + 1) * (lay[b][0] + 1) + lay[a][1] * lay[b][1]
+            for a in range(len(lay))
+            for b in range(a + 1, len(lay))
+        )
         per_sample += lay[0][1] * (lay[0][0] + 1) * K
         per = n * el * per_sample + P * P * el
         step = max(1, int(self.work_bytes // max(per, 1)))
@@ -122,8 +132,9 @@ class NetObjective:
         je = torch.empty(B, P, dtype=theta.dtype, device=theta.device)
         for s in range(0, B, step):
             sl = slice(s, min(B, s + step))
-            E[sl], _, je[sl] = _net.gn_system(theta[sl], self.X[sl], self.T[sl], self.w[sl], self.arch,
-                                              upper=True, out=jj[sl])
+            E[sl], _, je[sl] = _net.gn_system(
+                theta[sl], self.X[sl], self.T[sl], self.w[sl], self.arch, upper=True, out=jj[sl]
+            )
         return E, jj, je
 
     def monitor(self, theta):

@@ -10,8 +10,12 @@ import pandas as pd
 from .data import TARGETS, UNITS
 from .experiment import METRICS, ValidationResult
 
-PAPER_BEST = {"algo": "scg", "validate": "loocv", "epochs": 100,
-              "mse100": {"d": 0.58, "h": 1.12, "E": 0.51}}  # paper section 5.2 (MSE x 100 %)
+PAPER_BEST = {
+    "algo": "scg",
+    "validate": "loocv",
+    "epochs": 100,
+    "mse100": {"d": 0.58, "h": 1.12, "E": 0.51},
+}  # paper section 5.2 (MSE x 100 %)
 
 
 def table(results: list[ValidationResult]) -> pd.DataFrame:
@@ -57,7 +61,7 @@ def plot_curves(res: ValidationResult, path: str, label: str = "") -> str:
         c = res.curves.get(name)
         if c is None or np.isnan(c).all():
             continue
-        c = pd.DataFrame(c).ffill(axis=1).to_numpy()      # a stopped network keeps its last value
+        c = pd.DataFrame(c).ffill(axis=1).to_numpy()  # a stopped network keeps its last value
         with np.errstate(all="ignore"):
             med = np.nanmedian(c, axis=0)
             lo, hi = np.nanpercentile(c, 10, axis=0), np.nanpercentile(c, 90, axis=0)
@@ -68,8 +72,9 @@ def plot_curves(res: ValidationResult, path: str, label: str = "") -> str:
     ax.set_yscale("log")
     ax.set_xlabel("epoch")
     ax.set_ylabel("MSE on [-1, 1]-scaled targets")
-    ax.set_title(f"{res.algo.upper()} / {res.validate.upper()}, {res.curves['train'].shape[0]} networks{label}",
-                 fontsize=9)
+    ax.set_title(
+        f"{res.algo.upper()} / {res.validate.upper()}, {res.curves['train'].shape[0]} networks{label}", fontsize=9
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()

@@ -54,8 +54,10 @@ def _table(name: str, truth: np.ndarray, ests) -> list[str]:
     cells = []
     for j in range(3):
         r = rel[rep[:, j], j]
-        cells.append(f"{100 * rel[:, j].mean():.1f} % | {100 * (np.median(rel[:, j])):.1f} % | "
-                     f"{100 * r.mean() if r.size else float('nan'):.1f} % ({rep[:, j].sum()}) | {100 * cov[:, j].mean():.0f} %")
+        cells.append(
+            f"{100 * rel[:, j].mean():.1f} % | {100 * (np.median(rel[:, j])):.1f} % | "
+            f"{100 * r.mean() if r.size else float('nan'):.1f} % ({rep[:, j].sum()}) | {100 * cov[:, j].mean():.0f} %"
+        )
     return [f"| {name} | {len(ests)} | " + " | ".join(cells) + " |"]
 
 
@@ -68,8 +70,13 @@ def _table(name: str, truth: np.ndarray, ests) -> list[str]:
 @click.option("--frames", default=30, show_default=True, type=int)
 @click.option("--seed", default=101, show_default=True, type=int, help="Seed of the held-out design and the noise.")
 @click.option("--cache", default="data/identify/solves", show_default=True, help="Solve cache.")
-@click.option("--model-error", default=0.01, show_default=True, type=float,
-              help="Refine: forward-model error floor x peak, added in quadrature to the frames' noise.")
+@click.option(
+    "--model-error",
+    default=0.01,
+    show_default=True,
+    type=float,
+    help="Refine: forward-model error floor x peak, added in quadrature to the frames' noise.",
+)
 @click.option("--out", required=True)
 def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, model_error, out):
     from elastimap.camera import calibration as C
@@ -94,13 +101,22 @@ def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, model_err
         from elastimap.training.experiment import TrainConfig
 
         data = load(data_path, design_only=True)
-        model = fit_image_model(data, "scg", repeats=4, cfg=TrainConfig(hidden=((12, "tansig"), (6, "tansig")), epochs=300, progress=False), k=10,
-                                image_noise=0.01, log_e=True)
+        model = fit_image_model(
+            data,
+            "scg",
+            repeats=4,
+            cfg=TrainConfig(hidden=((12, "tansig"), (6, "tansig")), epochs=300, progress=False),
+            k=10,
+            image_noise=0.01,
+            log_e=True,
+        )
         model_dir = os.path.join(out, "image-model")
         os.makedirs(model_dir, exist_ok=True)
         model.save(model_dir)
-        say(f"image model: scg, 4 members, k 10, 10-12-6-3, ln E, 300 epochs, 1 % image noise, {data.n} rows of {data_path} "
-            f"({time.perf_counter() - t0:.0f} s)")
+        say(
+            f"image model: scg, 4 members, k 10, 10-12-6-3, ln E, 300 epochs, 1 % image noise, {data.n} rows of {data_path} "
+            f"({time.perf_counter() - t0:.0f} s)"
+        )
     from elastimap.camera.infer import load_model
 
     model = load_model(model_dir)
@@ -120,11 +136,12 @@ def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, model_err
     ph = C.load_phantoms()
     fem_f, cam_f, res = C.simulate_phantoms(ph, fem, sensor, FeatureSettings(), frames, seed, frames_out=pairs)
     defl = C.deflection_calibration(res, pairs, sensor)
-    cal = C.fit_calibration(ph, fem_f, cam_f, FeatureSettings().to_dict(), sensor.to_dict(), True, {"mesh": mesh},
-                            defl)
+    cal = C.fit_calibration(ph, fem_f, cam_f, FeatureSettings().to_dict(), sensor.to_dict(), True, {"mesh": mesh}, defl)
     cal.save(os.path.join(out, "cal.json"))
-    say(f"calibration: scale {defl['scale']:.4f}, phantom rel. rms {min(defl['rel_rms']):.3f}-{max(defl['rel_rms']):.3f}"
-        f" ({time.perf_counter() - t:.0f} s)")
+    say(
+        f"calibration: scale {defl['scale']:.4f}, phantom rel. rms {min(defl['rel_rms']):.3f}-{max(defl['rel_rms']):.3f}"
+        f" ({time.perf_counter() - t:.0f} s)"
+    )
     ref, pixel = cal.reference_image()
     idm = load_identifiability("default")
     truth = _lesions(n, seed)
@@ -137,47 +154,70 @@ def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, model_err
         di.append(difference_image(F, B, sensor, ref, pixel, scale=defl["scale"]))
         fem_imgs.append(r.image)
         z = (di[-1].image - r.image) / di[-1].sigma
-        say(f"lesion {i}: d {d:.2f} h {h:.2f} E {E:.1f}  peak {r.image.max():.4g} mm, recovered "
-            f"{di[-1].peak:.4g}, z rms {np.sqrt(np.mean(z ** 2)):.2f}")
+        say(
+            f"lesion {i}: d {d:.2f} h {h:.2f} E {E:.1f}  peak {r.image.max():.4g} mm, recovered "
+            f"{di[-1].peak:.4g}, z rms {np.sqrt(np.mean(z**2)):.2f}"
+        )
     t_frames = time.perf_counter() - t
     ids = [str(i) for i in range(n)]
     net = estimate_fem_images(np.array(fem_imgs), model, ids, idm)
     cam = estimate_fem_images(np.array([x.image for x in di]), model, ids, idm, sigma=np.array([x.sigma for x in di]))
-    lines = ["| estimator | lesions | d MRE | d median | d MRE reportable (n) | d coverage | h MRE | h median | "
-             "h MRE reportable (n) | h coverage | E MRE | E median | E MRE reportable (n) | E coverage |",
-             "|" + "---|" * 14]
+    lines = [
+        "| estimator | lesions | d MRE | d median | d MRE reportable (n) | d coverage | h MRE | h median | "
+        "h MRE reportable (n) | h coverage | E MRE | E median | E MRE reportable (n) | E coverage |",
+        "|" + "---|" * 14,
+    ]
     lines += _table("network (FEM image, no camera)", truth, net)
     lines += _table("frames -> network", truth, cam)
     zr = [float(np.sqrt(np.mean(((x.image - f) / x.sigma) ** 2))) for x, f in zip(di, fem_imgs)]
     extra = [f"recovered image vs FEM image: z rms median {np.median(zr):.2f} (max {np.max(zr):.2f}) over {n} lesions"]
     if refine_n > 0:
-        sub = [copy.deepcopy(cam[i]) for i in range(min(refine_n, n))]      # cam stays the network's
+        sub = [copy.deepcopy(cam[i]) for i in range(min(refine_n, n))]  # cam stays the network's
         t = time.perf_counter()
         times = []
 
         def progress(i, k):
             times.append(time.perf_counter())
+
         ref_ests = refine_estimates(sub, None, mesh=mesh, cache=cache, progress=progress, model_error=model_error)
         wall = time.perf_counter() - t
-        lines += _table("network (FEM image) [refined subset]", truth[:len(sub)], net[:len(sub)])
-        lines += _table("frames -> network [refined subset]", truth[:len(sub)],
-                        estimate_fem_images(np.array([x.image for x in di[:len(sub)]]), model, ids[:len(sub)], idm))
-        lines += _table("frames -> refine", truth[:len(sub)], ref_ests)
+        lines += _table("network (FEM image) [refined subset]", truth[: len(sub)], net[: len(sub)])
+        lines += _table(
+            "frames -> network [refined subset]",
+            truth[: len(sub)],
+            estimate_fem_images(np.array([x.image for x in di[: len(sub)]]), model, ids[: len(sub)], idm),
+        )
+        lines += _table("frames -> refine", truth[: len(sub)], ref_ests)
         ts = time.perf_counter()
         cached_solve(8.1234, 7.0, 50.0, mesh=mesh, cache=os.path.join(out, "timing-cache"))
         one = time.perf_counter() - ts
-        extra.append(f"refine (model error floor {model_error:g} x peak): {wall / len(sub):.0f} s per lesion ({len(sub)} lesions, 30 solves each); one uncached "
-                     f"{mesh}-mesh solve (inclusion + reference) took {one:.1f} s at the time")
+        extra.append(
+            f"refine (model error floor {model_error:g} x peak): {wall / len(sub):.0f} s per lesion ({len(sub)} lesions, 30 solves each); one uncached "
+            f"{mesh}-mesh solve (inclusion + reference) took {one:.1f} s at the time"
+        )
         with open(os.path.join(out, "refined.json"), "w") as fh:
             json.dump([e.to_dict() for e in ref_ests], fh, indent=2)
-    md = "\n".join([f"SYNTHETIC camera frames, {n} held-out lesions (LHS seed {seed}), mesh {mesh}, {frames} frames, "
-                    f"model {model_dir}; frames {t_frames:.0f} s; total {time.perf_counter() - t0:.0f} s", ""]
-                   + lines + [""] + extra) + "\n"
+    md = (
+        "\n".join(
+            [
+                f"SYNTHETIC camera frames, {n} held-out lesions (LHS seed {seed}), mesh {mesh}, {frames} frames, "
+                f"model {model_dir}; frames {t_frames:.0f} s; total {time.perf_counter() - t0:.0f} s",
+                "",
+            ]
+            + lines
+            + [""]
+            + extra
+        )
+        + "\n"
+    )
     with open(os.path.join(out, "results.md"), "w") as fh:
         fh.write(md)
     with open(os.path.join(out, "estimates.json"), "w") as fh:
-        json.dump({"truth": truth.tolist(), "network": [e.to_dict() for e in net],
-                   "frames": [e.to_dict() for e in cam]}, fh, indent=2)
+        json.dump(
+            {"truth": truth.tolist(), "network": [e.to_dict() for e in net], "frames": [e.to_dict() for e in cam]},
+            fh,
+            indent=2,
+        )
     click.echo(md)
 
 

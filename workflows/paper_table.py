@@ -47,10 +47,18 @@ def _run(argv: list[str]) -> None:
 @click.option("--mesh", default="default", show_default=True)
 @click.option("--repeats", type=click.IntRange(1), default=10, show_default=True)
 @click.option("--lm-loocv-repeats", type=click.IntRange(1), default=None, help="Repeats of the LM+LOOCV cell only.")
-@click.option("--lm-loocv-float32", is_flag=True,
-              help="Train the LM+LOOCV cell in single precision (about 2x faster; the table says so).")
-@click.option("--workers", type=click.IntRange(0), default=0, show_default=True,
-              help="Training processes per cell (0 = one per core).")
+@click.option(
+    "--lm-loocv-float32",
+    is_flag=True,
+    help="Train the LM+LOOCV cell in single precision (about 2x faster; the table says so).",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(0),
+    default=0,
+    show_default=True,
+    help="Training processes per cell (0 = one per core).",
+)
 @click.option("--epochs", type=click.IntRange(1), default=100, show_default=True)
 @click.option("--hidden", default="25,10", show_default=True, help="Hidden layers (smaller for tiny test runs).")
 @click.option("--noise", "noises", default="0,0.01", show_default=True, help="Feature-noise levels (relative).")
@@ -69,26 +77,58 @@ def main(out, n, jobs, mesh, repeats, lm_loocv_repeats, lm_loocv_float32, worker
                 run_dir = os.path.join(out, "train", f"{algo}-{validate}-noise{100 * noise:g}")
                 res = os.path.join(run_dir, "results.csv")
                 if not os.path.exists(res):
-                    _run(["train", "--algo", algo, "--validate", validate, "--repeats", str(reps), "--epochs", str(epochs),
-                          "--feature-noise", str(noise), "--hidden", hidden, "--data", data, "--out", run_dir, "--quiet", "--no-model", "--workers", str(workers)]
-                         + (["--float32"] if (lm_loocv and lm_loocv_float32) else []))
+                    _run(
+                        [
+                            "train",
+                            "--algo",
+                            algo,
+                            "--validate",
+                            validate,
+                            "--repeats",
+                            str(reps),
+                            "--epochs",
+                            str(epochs),
+                            "--feature-noise",
+                            str(noise),
+                            "--hidden",
+                            hidden,
+                            "--data",
+                            data,
+                            "--out",
+                            run_dir,
+                            "--quiet",
+                            "--no-model",
+                            "--workers",
+                            str(workers),
+                        ]
+                        + (["--float32"] if (lm_loocv and lm_loocv_float32) else [])
+                    )
                 else:
                     click.echo(f"skip {run_dir} (done)")
                 rows.append(pd.read_csv(res))
     table = pd.concat(rows, ignore_index=True)
     table.to_csv(os.path.join(out, "paper_table.csv"), index=False)
-    lines = ["| algorithm | validation | repeats | feature noise | MSE×100 d (%) | MSE×100 h (%) | MSE×100 E (%) | "
-             "MRE d (%) | MRE h (%) | MRE E (%) | precision | wall s |", "|" + "---|" * 12]
+    lines = [
+        "| algorithm | validation | repeats | feature noise | MSE×100 d (%) | MSE×100 h (%) | MSE×100 E (%) | "
+        "MRE d (%) | MRE h (%) | MRE E (%) | precision | wall s |",
+        "|" + "---|" * 12,
+    ]
     for _, r in table.iterrows():
+
         def ci(k, r=r):
             return f"{r[k + '_mean']:.3g} [{r[k + '_lo']:.3g}, {r[k + '_hi']:.3g}]"
-        lines.append(f"| {r['algo'].upper()} | {r['validate'].upper()} | {r['repeats']} | {100 * r['feature_noise']:g} % | "
-                     f"{ci('mse100_d')} | {ci('mse100_h')} | {ci('mse100_E')} | {ci('mre_d')} | {ci('mre_h')} | "
-                     f"{ci('mre_E')} | {r.get('dtype', 'float64') if isinstance(r.get('dtype'), str) else 'float64'} | "
-                     f"{r['wall_s']:.0f} |")
+
+        lines.append(
+            f"| {r['algo'].upper()} | {r['validate'].upper()} | {r['repeats']} | {100 * r['feature_noise']:g} % | "
+            f"{ci('mse100_d')} | {ci('mse100_h')} | {ci('mse100_E')} | {ci('mre_d')} | {ci('mre_h')} | "
+            f"{ci('mre_E')} | {r.get('dtype', 'float64') if isinstance(r.get('dtype'), str) else 'float64'} | "
+            f"{r['wall_s']:.0f} |"
+        )
     lines.append(f"| {PAPER[0]} | | 10/50/100 | (measured) | {PAPER[1]} | {PAPER[2]} | {PAPER[3]} | | | | | |")
-    text = ("Error table, mean [2.5 %, 97.5 %] over repeats; MSE×100 is paper eq. (1) on [-1, 1]-scaled targets; "
-            f"data {data} ({n} design samples + 9 phantoms, {mesh} mesh).\n\n" + "\n".join(lines) + "\n")
+    text = (
+        "Error table, mean [2.5 %, 97.5 %] over repeats; MSE×100 is paper eq. (1) on [-1, 1]-scaled targets; "
+        f"data {data} ({n} design samples + 9 phantoms, {mesh} mesh).\n\n" + "\n".join(lines) + "\n"
+    )
     with open(os.path.join(out, "paper_table.md"), "w") as fh:
         fh.write(text)
     click.echo(text)
@@ -96,4 +136,5 @@ def main(out, n, jobs, mesh, repeats, lm_loocv_repeats, lm_loocv_float32, worker
 
 if __name__ == "__main__":
     from elastimap.cli_util import run
+
     run(main, sys.argv[1:], prog_name="workflows/paper_table.py")

@@ -44,7 +44,9 @@ SETS = ("features", "image", "image+force", "two-depths")
 FD_SCALE_QUANTILE = 90.0
 
 
-def fd_interpolate(theta_fd: np.ndarray, r_fd: np.ndarray, theta: np.ndarray, thickness: float = THICKNESS) -> np.ndarray:
+def fd_interpolate(
+    theta_fd: np.ndarray, r_fd: np.ndarray, theta: np.ndarray, thickness: float = THICKNESS
+) -> np.ndarray:
     """Bound ``r`` (n, 3) at ``theta`` from FD bounds at scattered points: linear in (d, u, ln E) of ln r
     (``u`` the depth fraction of :func:`elastimap.identify.local.grid`), nearest FD point outside their hull."""
     from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
@@ -91,13 +93,17 @@ def check_install_target(dest: str | None = None) -> str:
     dest = dest or DEFAULT_MAP
     folder = os.path.dirname(os.path.abspath(dest))
     if not (os.path.isdir(folder) and os.access(folder, os.W_OK)):
-        raise UserError("--install", f"cannot write the shipped map {dest} (folder missing or read-only; "
-                                     "use an editable install of the repository)")
+        raise UserError(
+            "--install",
+            f"cannot write the shipped map {dest} (folder missing or read-only; "
+            "use an editable install of the repository)",
+        )
     return dest
 
 
-def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_grid: str | None = None,
-            install: str | None = None):
+def compute(
+    data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_grid: str | None = None, install: str | None = None
+):
     """Fit, bound and plot (see the module docstring); with ``install`` (a path) the map is also
     written there by :func:`install_map`.  Returns ``{set: (n_grid, 3)}`` relative std."""
     if install:
@@ -118,8 +124,10 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
     Rp = {s: crb_relstd(Fp[s], P) for s in SETS}
     for s in SETS:
         for th, rr in zip(POINTS, Rp[s] * 100):
-            click.echo(f"surrogate d={th[0]:g} h={th[1]:g} E={th[2]:g}  {s:12s} CRB rel std %: "
-                       f"d {rr[0]:.3g}  h {rr[1]:.3g}  E {rr[2]:.3g}")
+            click.echo(
+                f"surrogate d={th[0]:g} h={th[1]:g} E={th[2]:g}  {s:12s} CRB rel std %: "
+                f"d {rr[0]:.3g}  h {rr[1]:.3g}  E {rr[2]:.3g}"
+            )
     scale = {s: np.ones(3) for s in SETS}
     npts = 0
     use_grid = fd_scale and bool(fd_grid) and os.path.isfile(fd_grid)
@@ -127,8 +135,10 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
         fd = fd_crb(POINTS, noise)
         for s in SETS:
             for th, rr in zip(POINTS, fd[s] * 100):
-                click.echo(f"real FD   d={th[0]:g} h={th[1]:g} E={th[2]:g}  {s:12s} CRB rel std %: "
-                           f"d {rr[0]:.3g}  h {rr[1]:.3g}  E {rr[2]:.3g}")
+                click.echo(
+                    f"real FD   d={th[0]:g} h={th[1]:g} E={th[2]:g}  {s:12s} CRB rel std %: "
+                    f"d {rr[0]:.3g}  h {rr[1]:.3g}  E {rr[2]:.3g}"
+                )
         ratios = {s: [fd[s] / Rp[s]] for s in SETS}
         npts = len(POINTS)
         if use_grid:
@@ -144,8 +154,10 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
             q = np.concatenate(ratios[s])
             q = q[np.isfinite(q).all(axis=1)]
             scale[s] = np.maximum(1.0, np.percentile(q, FD_SCALE_QUANTILE, axis=0))
-            click.echo(f"conservative scale {s:12s}: d x{scale[s][0]:.3g}  h x{scale[s][1]:.3g}  E x{scale[s][2]:.3g}"
-                       f"  ({FD_SCALE_QUANTILE:g}th percentile of FD / surrogate over {len(q)} points)")
+            click.echo(
+                f"conservative scale {s:12s}: d x{scale[s][0]:.3g}  h x{scale[s][1]:.3g}  E x{scale[s][2]:.3g}"
+                f"  ({FD_SCALE_QUANTILE:g}th percentile of FD / surrogate over {len(q)} points)"
+            )
     R = {s: R0[s] * scale[s] for s in SETS}
     if use_grid:
         # the surrogate of the three features disagrees with real FD by up to ~100x (O3 is a thresholded
@@ -153,17 +165,33 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
         R["features"] = fd_interpolate(np.vstack([P, tg]), np.vstack([fd["features"], fdg["features"]]), T)
         click.echo("features: map = real-FD bound interpolated from the FD points (linear in d, u, ln E of ln r)")
     os.makedirs(out, exist_ok=True)
-    src = (f"GP surrogate (k={k}) of {data_path} ({data.n} rows)"
-           + (f", scaled per output by max(1, {FD_SCALE_QUANTILE:g}th percentile of real-FD / surrogate over "
-              f"{npts} FD points)" if fd_scale else "")
-           + ("; features entry: real-FD bound interpolated from those points" if use_grid else "")
-           + "; Cramér–Rao relative std, noise 1 % features, 1 % of the image peak per pixel, 0.1 % force; "
-             "python -m elastimap.workflows.studies.crbmap")
+    src = (
+        f"GP surrogate (k={k}) of {data_path} ({data.n} rows)"
+        + (
+            f", scaled per output by max(1, {FD_SCALE_QUANTILE:g}th percentile of real-FD / surrogate over "
+            f"{npts} FD points)"
+            if fd_scale
+            else ""
+        )
+        + ("; features entry: real-FD bound interpolated from those points" if use_grid else "")
+        + "; Cramér–Rao relative std, noise 1 % features, 1 % of the image peak per pixel, 0.1 % force; "
+        "python -m elastimap.workflows.studies.crbmap"
+    )
     grid_file = os.path.join(out, "crb_grid.npz")
-    np.savez(grid_file, theta=T, d=ds, u=us, E=Es, thickness=THICKNESS, source=src,
-             **{s: R[s] for s in SETS}, **{f"{s}_surrogate": R0[s] for s in SETS},
-             **{f"scale_{s}": scale[s] for s in SETS})
+    np.savez(
+        grid_file,
+        theta=T,
+        d=ds,
+        u=us,
+        E=Es,
+        thickness=THICKNESS,
+        source=src,
+        **{s: R[s] for s in SETS},
+        **{f"{s}_surrogate": R0[s] for s in SETS},
+        **{f"scale_{s}": scale[s] for s in SETS},
+    )
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -177,14 +205,19 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
             axs[j].set_ylabel("d (mm)")
             axs[j].set_title(f"{name}: CRB rel std <= 10 %")
         fig.colorbar(im, ax=axs, label="fraction of the 5 depths")
-        how = ("real-FD Cramér–Rao interpolated from the FD points" if s == "features" and use_grid
-               else f"surrogate Cramér–Rao{' (FD-scaled)' if fd_scale else ''}")
+        how = (
+            "real-FD Cramér–Rao interpolated from the FD points"
+            if s == "features" and use_grid
+            else f"surrogate Cramér–Rao{' (FD-scaled)' if fd_scale else ''}"
+        )
         fig.suptitle(f"{s}: {how}, noise 1 % (features / image), 0.1 % force")
         fig.savefig(os.path.join(out, f"identifiability_crb_{s.replace('+', '_')}.png"), dpi=90)
         plt.close(fig)
         frac, frac0 = (R[s] <= 0.10).mean(axis=0) * 100, (R0[s] <= 0.10).mean(axis=0) * 100
-        click.echo(f"{s:12s} grid fraction identifiable within 10 %: d {frac[0]:.0f} %  h {frac[1]:.0f} %  "
-                   f"E {frac[2]:.0f} %   (unscaled surrogate: d {frac0[0]:.0f} %  h {frac0[1]:.0f} %  E {frac0[2]:.0f} %)")
+        click.echo(
+            f"{s:12s} grid fraction identifiable within 10 %: d {frac[0]:.0f} %  h {frac[1]:.0f} %  "
+            f"E {frac[2]:.0f} %   (unscaled surrogate: d {frac0[0]:.0f} %  h {frac0[1]:.0f} %  E {frac0[2]:.0f} %)"
+        )
     if install:
         click.echo(f"installed {grid_file} as the shipped map {install_map(grid_file, install)}")
     return R
@@ -194,10 +227,17 @@ def compute(data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_gri
 @click.option("--data", "data_path", default="data/sweep512", show_default=True, help="Sweep with images.")
 @click.option("--out", default="docs/figures", show_default=True, help="Directory for the PNG maps and crb_grid.npz.")
 @click.option("--no-fd-scale", is_flag=True, help="Keep the raw surrogate bounds (no real-FD correction, no solves).")
-@click.option("--fd-grid", default="data/identify/fdgrid.npz", show_default=True,
-              help="Real-FD Jacobians of python -m elastimap.workflows.studies.fdgrid, used for the scale when the file exists.")
-@click.option("--install", is_flag=True,
-              help="Also replace the shipped map inference reads (identify/maps/default.npz) with the new one.")
+@click.option(
+    "--fd-grid",
+    default="data/identify/fdgrid.npz",
+    show_default=True,
+    help="Real-FD Jacobians of python -m elastimap.workflows.studies.fdgrid, used for the scale when the file exists.",
+)
+@click.option(
+    "--install",
+    is_flag=True,
+    help="Also replace the shipped map inference reads (identify/maps/default.npz) with the new one.",
+)
 def main(data_path, out, no_fd_scale, fd_grid, install):
     """Cramér–Rao identifiability maps (local evidence) and the map inference uses."""
     from elastimap.identify.region import DEFAULT_MAP

@@ -31,8 +31,9 @@ def main():
     for i, th in enumerate(POINTS):
         for k in ("features", "image", "image+force", "two-depths"):
             r = R[k][i] * 100
-            click.echo(f"d={th[0]:g} h={th[1]:g} E={th[2]:g}  {k:12s} CRB rel std %: "
-                       f"d {r[0]:.3g}  h {r[1]:.3g}  E {r[2]:.3g}")
+            click.echo(
+                f"d={th[0]:g} h={th[1]:g} E={th[2]:g}  {k:12s} CRB rel std %: d {r[0]:.3g}  h {r[1]:.3g}  E {r[2]:.3g}"
+            )
 
 
 if __name__ == "__main__":

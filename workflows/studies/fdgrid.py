@@ -32,7 +32,7 @@ def fd_grid_points(ds=FD_D, us=FD_U, Es=FD_E, thickness: float = THICKNESS) -> n
     pts = []
     for d in ds:
         lo, hi = depth_range(d, thickness)
-        lo2, hi2 = lo + 0.5, hi - 0.5        # room for the +-0.5 mm depth step
+        lo2, hi2 = lo + 0.5, hi - 0.5  # room for the +-0.5 mm depth step
         for u in us:
             for E in Es:
                 pts.append((d, lo2 + u * (hi2 - lo2), E, u))
@@ -50,7 +50,9 @@ def compute(out: str, mesh: str = "default", progress: bool = True) -> dict:
         for k in ("image", "lnF", "dF", "image0", "lnF0", "dF0"):
             res[k].append(J[k])
         if progress:
-            click.echo(f"[{i + 1}/{len(pts)}] d={p[0]:g} h={p[1]:.2f} E={p[2]:g}  {time.perf_counter() - t0:.0f} s", err=True)
+            click.echo(
+                f"[{i + 1}/{len(pts)}] d={p[0]:g} h={p[1]:.2f} E={p[2]:g}  {time.perf_counter() - t0:.0f} s", err=True
+            )
         res["background"] = J["background"]
     out_d = {k: np.asarray(v) for k, v in res.items()}
     os.makedirs(os.path.dirname(out) or ".", exist_ok=True)

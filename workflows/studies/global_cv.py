@@ -46,7 +46,9 @@ def evaluate(df, noise: float = 0.0, seed: int = 0, folds: int = 10) -> dict[str
             steps.append(PCA(20, random_state=seed))
         preds = []
         for j in range(3):
-            model = make_pipeline(*steps, HistGradientBoostingRegressor(max_iter=400, learning_rate=0.05, random_state=seed))
+            model = make_pipeline(
+                *steps, HistGradientBoostingRegressor(max_iter=400, learning_rate=0.05, random_state=seed)
+            )
             preds.append(cross_val_predict(model, X, y[:, j], cv=cv))
         P = np.column_stack([preds[0], preds[1], np.exp(preds[2])])
         out[name] = 100 * np.mean(np.abs(P - T) / T, axis=0)
@@ -55,10 +57,13 @@ def evaluate(df, noise: float = 0.0, seed: int = 0, folds: int = 10) -> dict[str
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--data", required=True, help="Sweep dataset with images.")
-@click.option("--noise", type=float, default=0.0, show_default=True, help="Relative noise on features and image pixels.")
+@click.option(
+    "--noise", type=float, default=0.0, show_default=True, help="Relative noise on features and image pixels."
+)
 def main(data, noise):
     """Cross-validated mean relative error of d, h, E per measurement set."""
     from elastimap.dataset.io import read_samples
+
     df = read_samples(data)
     df = df[df["tag"] == "design"].reset_index(drop=True)
     res = evaluate(df, noise)

@@ -21,29 +21,55 @@ from elastimap.errors import UserError
 
 
 @click.command(context_settings=CONTEXT_SETTINGS)
-@click.option("--data", "data_path", default="data/sweep512", show_default=True,
-              help="Sweep directory with stored elasticity images.")
+@click.option(
+    "--data",
+    "data_path",
+    default="data/sweep512",
+    show_default=True,
+    help="Sweep directory with stored elasticity images.",
+)
 @click.option("--algo", default="scg", show_default=True, help="scg, lm or scg,lm.")
-@click.option("--validate", default="hov", show_default=True,
-              help="hov, loocv, hov,loocv, or none (only --save-model).")
+@click.option(
+    "--validate", default="hov", show_default=True, help="hov, loocv, hov,loocv, or none (only --save-model)."
+)
 @click.option("--repeats", default=10, show_default=True, type=int)
-@click.option("--k", "k", default=10, show_default=True, type=int,
-              help="Inputs from the image: ln(peak) and k-1 shape-PCA scores.")
+@click.option(
+    "--k",
+    "k",
+    default=10,
+    show_default=True,
+    type=int,
+    help="Inputs from the image: ln(peak) and k-1 shape-PCA scores.",
+)
 @click.option("--force", is_flag=True, help="Add the plate-force difference 100 dF/F_ref as an input.")
-@click.option("--image-noise", default=0.01, show_default=True, type=float,
-              help="Per-pixel Gaussian noise, relative to each image's peak, drawn per repeat.")
-@click.option("--log-e", "log_e", is_flag=True,
-              help="The network learns ln E instead of E (metrics still on E; algo row '<algo>-image-lnE').")
+@click.option(
+    "--image-noise",
+    default=0.01,
+    show_default=True,
+    type=float,
+    help="Per-pixel Gaussian noise, relative to each image's peak, drawn per repeat.",
+)
+@click.option(
+    "--log-e",
+    "log_e",
+    is_flag=True,
+    help="The network learns ln E instead of E (metrics still on E; algo row '<algo>-image-lnE').",
+)
 @click.option("--epochs", default=100, show_default=True, type=int)
 @click.option("--workers", default=0, show_default=True, type=int, help="Training processes (0 = one per core).")
 @click.option("--float32", "float32", is_flag=True, help="Single precision.")
 @click.option("--seed", default=0, show_default=True, type=int)
 @click.option("--out", default="runs/image-inverse", show_default=True, help="Output directory.")
-@click.option("--save-model", "save_model", default=None,
-              help="Also train on every row (first --algo, --repeats initialisations) and save the ensemble "
-                   "here, for `infer --model DIR --fem-image ...` / camera frames.")
-def main(data_path, algo, validate, repeats, k, force, image_noise, log_e, epochs, workers, float32, seed, out,
-         save_model):
+@click.option(
+    "--save-model",
+    "save_model",
+    default=None,
+    help="Also train on every row (first --algo, --repeats initialisations) and save the ensemble "
+    "here, for `infer --model DIR --fem-image ...` / camera frames.",
+)
+def main(
+    data_path, algo, validate, repeats, k, force, image_noise, log_e, epochs, workers, float32, seed, out, save_model
+):
     """Validate the image-based inverse (image PCA -> the paper's MLP -> d, h, E).
 
     Same HOV split (the 9 phantom rows), LOOCV folds, seeds, metrics and table layout as
@@ -80,25 +106,34 @@ def main(data_path, algo, validate, repeats, k, force, image_noise, log_e, epoch
     tune_malloc()
     set_threads(1)
     data = load(data_path)
-    cfg = TrainConfig(epochs=epochs, progress=True, workers=workers,
-                      dtype=torch.float32 if float32 else torch.float64)
+    cfg = TrainConfig(epochs=epochs, progress=True, workers=workers, dtype=torch.float32 if float32 else torch.float64)
     os.makedirs(out, exist_ok=True)
     results = []
     for v in vals:
         for a in algos:
-            r = run_image_validation(data, a, v, repeats, cfg, seed=seed, k=k, image_noise=image_noise, force=force,
-                                     log_e=log_e)
+            r = run_image_validation(
+                data, a, v, repeats, cfg, seed=seed, k=k, image_noise=image_noise, force=force, log_e=log_e
+            )
             r.row["dtype"] = str(cfg.dtype).replace("torch.", "")
             results.append(r)
             # held-out predictions (repeats, rows, 3: d mm, h mm, E kPa; NaN where not a test row)
-            extra = {} if r.extra["pred_shared_noise"] is None else {"pred_shared_noise": r.extra["pred_shared_noise"],
-                                                                     "image_noise": image_noise, "seed": seed}
-            np.savez(os.path.join(out, f"pred-{a}{'-lnE' if log_e else ''}-{v}.npz"), pred=r.extra["pred"],
-                     ids=np.asarray(data.ids, dtype=str), theta=data.theta, **extra)
+            extra = (
+                {}
+                if r.extra["pred_shared_noise"] is None
+                else {"pred_shared_noise": r.extra["pred_shared_noise"], "image_noise": image_noise, "seed": seed}
+            )
+            np.savez(
+                os.path.join(out, f"pred-{a}{'-lnE' if log_e else ''}-{v}.npz"),
+                pred=r.extra["pred"],
+                ids=np.asarray(data.ids, dtype=str),
+                theta=data.theta,
+                **extra,
+            )
             click.echo(f"{a}-image {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s", err=True)
     if save_model:
-        model = fit_image_model(data, algos[0], repeats, cfg, seed=seed, k=k, force=force, image_noise=image_noise,
-                                log_e=log_e)
+        model = fit_image_model(
+            data, algos[0], repeats, cfg, seed=seed, k=k, force=force, image_noise=image_noise, log_e=log_e
+        )
         os.makedirs(save_model, exist_ok=True)
         model.save(save_model)
         click.echo(f"saved {algos[0]}-image ensemble ({repeats} members, {data.n} rows) to {save_model}", err=True)
@@ -107,9 +142,11 @@ def main(data_path, algo, validate, repeats, k, force, image_noise, log_e, epoch
     df = table(results)
     df.insert(0, "data", data.source)
     df.to_csv(os.path.join(out, "results.csv"), index=False)
-    title = (f"Image-based inverse, {data.source} ({data.n} rows), inputs ln(peak) + {k - 1} shape-PCA scores"
-             f"{' + force' if force else ''}{', target ln E' if log_e else ''}, image noise {image_noise:g} of the peak, {epochs} epochs; "
-             f"mean [2.5 %, 97.5 %] over {repeats} repeat(s).")
+    title = (
+        f"Image-based inverse, {data.source} ({data.n} rows), inputs ln(peak) + {k - 1} shape-PCA scores"
+        f"{' + force' if force else ''}{', target ln E' if log_e else ''}, image noise {image_noise:g} of the peak, {epochs} epochs; "
+        f"mean [2.5 %, 97.5 %] over {repeats} repeat(s)."
+    )
     md = markdown(df, title)
     with open(os.path.join(out, "results.md"), "w") as f:
         f.write(md)

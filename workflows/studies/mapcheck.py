@@ -43,16 +43,26 @@ def compare(map_r: np.ndarray, fd_r: np.ndarray, threshold: float = 0.10) -> dic
     m_ok, f_ok = map_r <= threshold, fd_r <= threshold
     out = {}
     for j, q in enumerate(("d", "h", "E")):
-        out[q] = {"median": float(np.median(ratio[:, j])), "min": float(ratio[:, j].min()),
-                  "max": float(ratio[:, j].max()), "conservative": float(100 * (ratio[:, j] >= 1).mean()),
-                  "agree": float(100 * (m_ok[:, j] == f_ok[:, j]).mean()),
-                  "false_identifiable": int((m_ok[:, j] & ~f_ok[:, j]).sum()),
-                  "fd_identifiable": int(f_ok[:, j].sum()), "n": int(ratio.shape[0])}
+        out[q] = {
+            "median": float(np.median(ratio[:, j])),
+            "min": float(ratio[:, j].min()),
+            "max": float(ratio[:, j].max()),
+            "conservative": float(100 * (ratio[:, j] >= 1).mean()),
+            "agree": float(100 * (m_ok[:, j] == f_ok[:, j]).mean()),
+            "false_identifiable": int((m_ok[:, j] & ~f_ok[:, j]).sum()),
+            "fd_identifiable": int(f_ok[:, j].sum()),
+            "n": int(ratio.shape[0]),
+        }
     return out
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--fdgrid", default="data/identify/fdgrid.npz", show_default=True, help="Output of elastimap.workflows.studies.fdgrid.")
+@click.option(
+    "--fdgrid",
+    default="data/identify/fdgrid.npz",
+    show_default=True,
+    help="Output of elastimap.workflows.studies.fdgrid.",
+)
 @click.option("--map", "map_path", default="default", show_default=True, help="Map file or 'default' (shipped).")
 @click.option("--threshold", default=0.10, show_default=True, type=float)
 def main(fdgrid, map_path, threshold):
@@ -62,19 +72,23 @@ def main(fdgrid, map_path, threshold):
     theta, fd = fd_bounds(fdgrid)
     idm = IdentifiabilityMap.load(None if map_path == "default" else map_path)
     click.echo(f"{theta.shape[0]} FD points; map: {idm.source}")
-    click.echo("| set | output | map/FD median [min, max] | map >= FD (%) | same 10 % call (%) "
-               "| FD identifiable | map says identifiable, FD not |")
+    click.echo(
+        "| set | output | map/FD median [min, max] | map >= FD (%) | same 10 % call (%) "
+        "| FD identifiable | map says identifiable, FD not |"
+    )
     click.echo("|---|---|---|---|---|---|---|")
     for s in SETS:
         if s not in idm.relstd:
             continue
         r, _ = idm.bound(theta, s)
         ok = np.isfinite(r).all(axis=1) & np.isfinite(fd[s]).all(axis=1)
-        if not ok.all():   # e.g. O3 = 0 (nothing above the threshold) makes ln O3 and its FD undefined
+        if not ok.all():  # e.g. O3 = 0 (nothing above the threshold) makes ln O3 and its FD undefined
             click.echo(f"({s}: {int((~ok).sum())} point(s) without a finite FD bound left out)")
         for q, c in compare(r[ok], fd[s][ok], threshold).items():
-            click.echo(f"| {s} | {q} | {c['median']:.3g} [{c['min']:.3g}, {c['max']:.3g}] | {c['conservative']:.0f} "
-                       f"| {c['agree']:.0f} | {c['fd_identifiable']}/{c['n']} | {c['false_identifiable']} |")
+            click.echo(
+                f"| {s} | {q} | {c['median']:.3g} [{c['min']:.3g}, {c['max']:.3g}] | {c['conservative']:.0f} "
+                f"| {c['agree']:.0f} | {c['fd_identifiable']}/{c['n']} | {c['false_identifiable']} |"
+            )
     return 0
 
 

@@ -24,9 +24,22 @@ def _refine_row(args):
     return fit(image, sigma, theta0, fem_model(mesh, cache), method, max_iter)
 
 
-def study(pred_path: str, data_path: str, *, rows: str = "identifiable", threshold: float = 0.10,
-          image_noise: float | None = None, seed: int | None = None, mesh: str = "default", cache: str | None = None,
-          jobs: int = 2, max_iter: int = 12, limit: int = 0, progress: bool = True, method: str = "rsm") -> dict:
+def study(
+    pred_path: str,
+    data_path: str,
+    *,
+    rows: str = "identifiable",
+    threshold: float = 0.10,
+    image_noise: float | None = None,
+    seed: int | None = None,
+    mesh: str = "default",
+    cache: str | None = None,
+    jobs: int = 2,
+    max_iter: int = 12,
+    limit: int = 0,
+    progress: bool = True,
+    method: str = "rsm",
+) -> dict:
     """Refine the held-out ensemble estimates of ``pred_path`` (elastimap.workflows.studies.imagenet) with the FEM.
 
     The measured image of each row is rebuilt exactly as imagenet drew the *shared* noisy image
@@ -39,11 +52,16 @@ def study(pred_path: str, data_path: str, *, rows: str = "identifiable", thresho
 
     z = np.load(pred_path, allow_pickle=False)
     if "pred_shared_noise" not in z.files:
-        raise UserError("--pred", f"{pred_path} has no pred_shared_noise (run elastimap.workflows.studies.imagenet with --image-noise > 0)")
+        raise UserError(
+            "--pred",
+            f"{pred_path} has no pred_shared_noise (run elastimap.workflows.studies.imagenet with --image-noise > 0)",
+        )
     level = float(z["image_noise"]) if image_noise is None and "image_noise" in z.files else image_noise
     sd = int(z["seed"]) if seed is None and "seed" in z.files else seed
     if level is None or sd is None:
-        raise UserError("--image-noise", f"{pred_path} does not record its noise level and seed; give --image-noise and --seed")
+        raise UserError(
+            "--image-noise", f"{pred_path} does not record its noise level and seed; give --image-noise and --seed"
+        )
     data = load(data_path)
     ids = np.asarray(z["ids"]).astype(str)
     if list(ids) != list(np.asarray(data.ids).astype(str)):
@@ -70,13 +88,14 @@ def study(pred_path: str, data_path: str, *, rows: str = "identifiable", thresho
     bar = None
     if progress:
         from tqdm import tqdm
+
         bar = tqdm(total=len(sel), desc="refine", unit="row")
     if jobs > 1:
         import multiprocessing as mp
         import os
 
-        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):   # inherited by the
-            os.environ.setdefault(var, "1")                                          # spawned workers
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # inherited by the
+            os.environ.setdefault(var, "1")  # spawned workers
 
         with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as ex:
             futs = {ex.submit(_refine_row, a): k for k, a in enumerate(args)}
@@ -91,34 +110,54 @@ def study(pred_path: str, data_path: str, *, rows: str = "identifiable", thresho
                 bar.update()
     if bar:
         bar.close()
-    return {"ids": ids[sel], "theta": theta[sel], "start": start[sel], "crb_map": crb[sel],
-            "refined": np.array([r.theta for r in out]), "relstd": np.array([r.relstd for r in out]),
-            "chi2_red": np.array([r.chi2_red for r in out]), "chi2_red_start": np.array([r.chi2_red0 for r in out]),
-            "n_solves": np.array([r.n_solves for r in out]), "status": np.array([r.status for r in out]),
-            "image_noise": level, "seed": sd, "rows": rows, "threshold": threshold, "method": method}
+    return {
+        "ids": ids[sel],
+        "theta": theta[sel],
+        "start": start[sel],
+        "crb_map": crb[sel],
+        "refined": np.array([r.theta for r in out]),
+        "relstd": np.array([r.relstd for r in out]),
+        "chi2_red": np.array([r.chi2_red for r in out]),
+        "chi2_red_start": np.array([r.chi2_red0 for r in out]),
+        "n_solves": np.array([r.n_solves for r in out]),
+        "status": np.array([r.status for r in out]),
+        "image_noise": level,
+        "seed": sd,
+        "rows": rows,
+        "threshold": threshold,
+        "method": method,
+    }
 
 
 def summary_table(res: dict) -> str:
     """Markdown: MRE (%) of the start and the refined estimate, and 95 % interval coverage."""
     T, S, R, rs = res["theta"], res["start"], res["refined"], res["relstd"]
-    mre = lambda P: 100 * np.mean(np.abs(P - T) / T, axis=0)          # noqa: E731
-    med = lambda P: 100 * np.median(np.abs(P - T) / T, axis=0)        # noqa: E731
+    mre = lambda P: 100 * np.mean(np.abs(P - T) / T, axis=0)  # noqa: E731
+    med = lambda P: 100 * np.median(np.abs(P - T) / T, axis=0)  # noqa: E731
+
     def cover(scale):
         lo, hi = interval(R, rs, scale)
         return 100 * ((lo <= T) & (T <= hi)).mean(axis=0)
 
     cov1, cov = cover(1.0), cover(INTERVAL_SCALE)
     a, b, ma, mb = mre(S), mre(R), med(S), med(R)
-    lines = ["| output | network ensemble MRE (%) | refined MRE (%) | network median (%) | refined median (%) "
-             f"| coverage: CRB 95 % interval (%) | coverage: reported interval, x{INTERVAL_SCALE:g} (%) "
-             "| median CRB at estimate (%) |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| output | network ensemble MRE (%) | refined MRE (%) | network median (%) | refined median (%) "
+        f"| coverage: CRB 95 % interval (%) | coverage: reported interval, x{INTERVAL_SCALE:g} (%) "
+        "| median CRB at estimate (%) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for j, k in enumerate(("d", "h", "E")):
-        lines.append(f"| {k} | {a[j]:.3g} | {b[j]:.3g} | {ma[j]:.3g} | {mb[j]:.3g} | {cov1[j]:.3g} | {cov[j]:.3g} "
-                     f"| {100 * np.median(rs[:, j]):.3g} |")
+        lines.append(
+            f"| {k} | {a[j]:.3g} | {b[j]:.3g} | {ma[j]:.3g} | {mb[j]:.3g} | {cov1[j]:.3g} | {cov[j]:.3g} "
+            f"| {100 * np.median(rs[:, j]):.3g} |"
+        )
     lines.append("")
-    lines.append(f"{len(T)} rows; forward solves per row: median {np.median(res['n_solves']):.0f}, "
-                 f"max {np.max(res['n_solves'])}; reduced chi² at the refined estimate: median "
-                 f"{np.median(res['chi2_red']):.3g} (start {np.median(res['chi2_red_start']):.3g}).")
+    lines.append(
+        f"{len(T)} rows; forward solves per row: median {np.median(res['n_solves']):.0f}, "
+        f"max {np.max(res['n_solves'])}; reduced chi² at the refined estimate: median "
+        f"{np.median(res['chi2_red']):.3g} (start {np.median(res['chi2_red_start']):.3g})."
+    )
     return "\n".join(lines)
 
 
@@ -150,22 +189,40 @@ def plot(res: dict, path: str) -> str:
 
 
 @click.command(context_settings=CONTEXT_SETTINGS)
-@click.option("--pred", "pred_path", required=True,
-              help="pred-<algo>-loocv.npz of python -m elastimap.workflows.studies.imagenet (with image noise).")
+@click.option(
+    "--pred",
+    "pred_path",
+    required=True,
+    help="pred-<algo>-loocv.npz of python -m elastimap.workflows.studies.imagenet (with image noise).",
+)
 @click.option("--data", "data_path", default="data/sweep512", show_default=True, help="The sweep it was made from.")
-@click.option("--rows", default="identifiable", show_default=True,
-              help="'identifiable' (E's map CRB <= --threshold at the true values), 'all', or sample ids a,b,c.")
+@click.option(
+    "--rows",
+    default="identifiable",
+    show_default=True,
+    help="'identifiable' (E's map CRB <= --threshold at the true values), 'all', or sample ids a,b,c.",
+)
 @click.option("--threshold", default=0.10, show_default=True, type=float)
-@click.option("--image-noise", default=None, type=float,
-              help="Noise level of the prediction file (default: the one it records).")
+@click.option(
+    "--image-noise", default=None, type=float, help="Noise level of the prediction file (default: the one it records)."
+)
 @click.option("--seed", default=None, type=int, help="Its seed (default: the one it records).")
 @mesh_option(help="Must be the sweep's mesh.")
 @jobs_option(default=2, help="Rows refined in parallel.")
-@click.option("--max-iter", default=12, show_default=True, type=int, help="trf only: trial points per row (each "
-              "accepted one costs 6 more solves for the central-difference Jacobian).")
-@click.option("--method", default="rsm", show_default=True,
-              help="rsm: response surface over two 15-solve stencils (averages the remeshing jitter); "
-                   "trf: trust-region least squares with a central-difference Jacobian.")
+@click.option(
+    "--max-iter",
+    default=12,
+    show_default=True,
+    type=int,
+    help="trf only: trial points per row (each accepted one costs 6 more solves for the central-difference Jacobian).",
+)
+@click.option(
+    "--method",
+    default="rsm",
+    show_default=True,
+    help="rsm: response surface over two 15-solve stencils (averages the remeshing jitter); "
+    "trf: trust-region least squares with a central-difference Jacobian.",
+)
 @click.option("--limit", default=0, type=int, help="Only the first N selected rows (0 = all).")
 @click.option("--out", default="runs/refine", show_default=True)
 def main(pred_path, data_path, rows, threshold, image_noise, seed, mesh, jobs, max_iter, method, limit, out):
@@ -192,8 +249,19 @@ def main(pred_path, data_path, rows, threshold, image_noise, seed, mesh, jobs, m
     if max_iter < 1:
         raise UserError("--max-iter", f"must be >= 1 (got {max_iter})")
     t0 = time.perf_counter()
-    res = study(pred_path, data_path, rows=rows, threshold=threshold, image_noise=image_noise, seed=seed,
-                mesh=mesh, jobs=jobs, max_iter=max_iter, limit=limit, method=method)
+    res = study(
+        pred_path,
+        data_path,
+        rows=rows,
+        threshold=threshold,
+        image_noise=image_noise,
+        seed=seed,
+        mesh=mesh,
+        jobs=jobs,
+        max_iter=max_iter,
+        limit=limit,
+        method=method,
+    )
     wall = time.perf_counter() - t0
     os.makedirs(out, exist_ok=True)
     np.savez(os.path.join(out, "refine.npz"), **{k: np.asarray(v) for k, v in res.items()})
@@ -206,8 +274,10 @@ def main(pred_path, data_path, rows, threshold, image_noise, seed, mesh, jobs, m
     df["chi2_red"] = res["chi2_red"]
     df["n_solves"] = res["n_solves"]
     df.to_csv(os.path.join(out, "refine.csv"), index=False)
-    md = (f"FEM refinement ({method}) of {pred_path} ({data_path}, mesh {mesh}, {100 * res['image_noise']:g} % image noise, "
-          f"seed {res['seed']}), rows: {rows}; {wall:.0f} s wall with {jobs} job(s).\n\n" + summary_table(res) + "\n")
+    md = (
+        f"FEM refinement ({method}) of {pred_path} ({data_path}, mesh {mesh}, {100 * res['image_noise']:g} % image noise, "
+        f"seed {res['seed']}), rows: {rows}; {wall:.0f} s wall with {jobs} job(s).\n\n" + summary_table(res) + "\n"
+    )
     with open(os.path.join(out, "results.md"), "w") as f:
         f.write(md)
     plot(res, os.path.join(out, "refine.png"))

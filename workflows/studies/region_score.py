@@ -44,9 +44,16 @@ def score(pred: np.ndarray, theta: np.ndarray, crb: np.ndarray, threshold: float
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--pred", "pred_path", required=True, help="pred-<algo>-<validation>.npz from elastimap.workflows.studies.imagenet.")
-@click.option("--map", "map_path", default="default", show_default=True,
-              help="Identifiability map (crb_grid.npz of python -m elastimap.workflows.studies.crbmap) or 'default' (shipped).")
+@click.option(
+    "--pred", "pred_path", required=True, help="pred-<algo>-<validation>.npz from elastimap.workflows.studies.imagenet."
+)
+@click.option(
+    "--map",
+    "map_path",
+    default="default",
+    show_default=True,
+    help="Identifiability map (crb_grid.npz of python -m elastimap.workflows.studies.crbmap) or 'default' (shipped).",
+)
 @click.option("--set", "mset", default="image", show_default=True, help="Measurement set: " + ", ".join(SETS) + ".")
 @click.option("--threshold", default=0.10, show_default=True, type=float, help="CRB relative std limit.")
 def main(pred_path, map_path, mset, threshold):
@@ -64,29 +71,42 @@ def main(pred_path, map_path, mset, threshold):
         pred, theta = z["pred"], z["theta"]
         shared = z["pred_shared_noise"] if "pred_shared_noise" in z.files else None
     except Exception as exc:
-        raise UserError("--pred", f"{pred_path}: not a prediction file of elastimap.workflows.studies.imagenet ({exc})") from None
+        raise UserError(
+            "--pred", f"{pred_path}: not a prediction file of elastimap.workflows.studies.imagenet ({exc})"
+        ) from None
     idm = IdentifiabilityMap.load(None if map_path == "default" else map_path)
     crb, _ = idm.bound(theta, mset)
     res = score(pred, theta, crb, threshold)
-    click.echo(f"{pred_path}: {pred.shape[0]} repeat(s), {pred.shape[1]} rows; region: map CRB ({mset}) "
-               f"rel std <= {100 * threshold:g} % ({idm.source})")
+    click.echo(
+        f"{pred_path}: {pred.shape[0]} repeat(s), {pred.shape[1]} rows; region: map CRB ({mset}) "
+        f"rel std <= {100 * threshold:g} % ({idm.source})"
+    )
     _print_scores(res)
     if shared is not None:
         click.echo("")
-        click.echo(f"Ensemble estimate as inference reports it: ONE noisy image of each held-out row through all "
-                   f"{shared.shape[0]} networks, their mean:")
+        click.echo(
+            f"Ensemble estimate as inference reports it: ONE noisy image of each held-out row through all "
+            f"{shared.shape[0]} networks, their mean:"
+        )
         _print_scores(score(np.nanmean(shared, axis=0)[None], theta, crb, threshold))
     cov = coverage(pred if shared is None else shared, theta, idm, mset, threshold)
     click.echo("")
-    click.echo("Intervals as inference reports them (estimate = mean over repeats"
-               + (", one shared noisy image" if shared is not None else ", each repeat its own noise draw") + "):")
-    click.echo("| output | flagged non-identifiable [rows] | coverage flagged (%) | coverage rest (%) "
-               "| median hi/lo flagged | median hi/lo rest |")
+    click.echo(
+        "Intervals as inference reports them (estimate = mean over repeats"
+        + (", one shared noisy image" if shared is not None else ", each repeat its own noise draw")
+        + "):"
+    )
+    click.echo(
+        "| output | flagged non-identifiable [rows] | coverage flagged (%) | coverage rest (%) "
+        "| median hi/lo flagged | median hi/lo rest |"
+    )
     click.echo("|---|---|---|---|---|---|")
     for name in ("d", "h", "E"):
         c = cov[name]
-        click.echo(f"| {name} | {c['n_flagged']} | {c['cover_flagged']:.3g} | {c['cover_rest']:.3g} "
-                   f"| {c['width_flagged']:.3g} | {c['width_rest']:.3g} |")
+        click.echo(
+            f"| {name} | {c['n_flagged']} | {c['cover_flagged']:.3g} | {c['cover_rest']:.3g} "
+            f"| {c['width_flagged']:.3g} | {c['width_rest']:.3g} |"
+        )
     return 0
 
 
@@ -103,8 +123,14 @@ def coverage(pred: np.ndarray, theta: np.ndarray, idm, mset: str, threshold: flo
     ok = np.isfinite(pred).all(axis=2).any(axis=0)
     P, T = pred[:, ok], theta[ok]
     mean = np.nanmean(P, axis=0)
-    a = idm.assess(mean, mset, threshold, p10=np.nanpercentile(P, 10, axis=0), p90=np.nanpercentile(P, 90, axis=0),
-                   target_range=np.stack([theta.min(0), theta.max(0)]))
+    a = idm.assess(
+        mean,
+        mset,
+        threshold,
+        p10=np.nanpercentile(P, 10, axis=0),
+        p90=np.nanpercentile(P, 90, axis=0),
+        target_range=np.stack([theta.min(0), theta.max(0)]),
+    )
     inside = (a.lo <= T) & (T <= a.hi)
     ratio = a.hi / np.clip(a.lo, 1e-12, None)
     out = {}
@@ -112,8 +138,13 @@ def coverage(pred: np.ndarray, theta: np.ndarray, idm, mset: str, threshold: flo
         f = ~a.identifiable[:, j]
         pct = lambda m, j=j: float(100 * inside[m, j].mean()) if m.any() else float("nan")
         med = lambda m, j=j: float(np.median(ratio[m, j])) if m.any() else float("nan")
-        out[name] = {"n_flagged": int(f.sum()), "cover_flagged": pct(f), "cover_rest": pct(~f),
-                     "width_flagged": med(f), "width_rest": med(~f)}
+        out[name] = {
+            "n_flagged": int(f.sum()),
+            "cover_flagged": pct(f),
+            "cover_rest": pct(~f),
+            "width_flagged": med(f),
+            "width_rest": med(~f),
+        }
     return out
 
 
