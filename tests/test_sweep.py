@@ -7,7 +7,6 @@ SIGKILL/resume test use real tiny-mesh solves.
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -16,6 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sweep_helpers import ROOT, run_sweep
+from sweep_helpers import sweep_env as _env
+from sweep_helpers import synthetic as _synthetic
 
 from elastimap.dataset import io
 from elastimap.errors import UserError
@@ -23,34 +25,9 @@ from elastimap.solver.params import depth_range
 from elastimap.sweep import design as dsg
 from elastimap.sweep.cli import main as sweep_main
 
-ROOT = Path(__file__).resolve().parent.parent
-
-
-def _env(**extra):
-    env = dict(os.environ)
-    env.update({"OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)})
-    for k in list(env):
-        if k.startswith("ELASTIMAP_"):
-            del env[k]
-    env.update(extra)
-    return env
-
-
-def _synthetic(**faults) -> list[str]:
-    """The hidden option that runs the SYNTHETIC stand-in (with fault injection) instead of the FEM."""
-    spec = ",".join(f"{k}={v}" for k, v in faults.items())
-    return ["--solver", f"synthetic:{spec}" if spec else "synthetic"]
-
 
 def _sweep(args, env=None, timeout=240):
-    return subprocess.run(
-        [sys.executable, "-m", "elastimap.sweep.cli", *args],
-        env=env or _env(),
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=ROOT,
-    )
+    return run_sweep(args, env=env, timeout=timeout)
 
 
 def _cli(args, capsys):

@@ -21,38 +21,16 @@ import time
 from pathlib import Path
 
 import pytest
+from sweep_helpers import ROOT, run_sweep
+from sweep_helpers import sweep_env as _env
+from sweep_helpers import synthetic as _synthetic
 
 from elastimap.dataset import io
 from elastimap.sweep.cli import main as sweep_main
 
-ROOT = Path(__file__).resolve().parent.parent
-
-
-def _env(**extra):
-    env = dict(os.environ)
-    env.update({"OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)})
-    for k in list(env):
-        if k.startswith("ELASTIMAP_"):
-            del env[k]
-    env.update(extra)
-    return env
-
-
-def _synthetic(**faults) -> list[str]:
-    """The hidden option that runs the SYNTHETIC stand-in (with fault injection) instead of the FEM."""
-    spec = ",".join(f"{k}={v}" for k, v in faults.items())
-    return ["--solver", f"synthetic:{spec}" if spec else "synthetic"]
-
 
 def _sweep(args, env=None, timeout=180):
-    return subprocess.run(
-        [sys.executable, "-m", "elastimap.sweep.cli", *args],
-        env=env or _env(),
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=ROOT,
-    )
+    return run_sweep(args, env=env, timeout=timeout)
 
 
 def _popen(args, env=None):
