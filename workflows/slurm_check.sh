@@ -46,7 +46,7 @@ MEM=$(free -m | awk '/^Mem:/ {print int($2 * 0.9)}')
 PORT=${SLURM_CHECK_PORT:-16817}
 cat >"$WORK/etc/slurm.conf" <<EOF
 ClusterName=elastimapcheck
-SlurmctldHost=$HOST
+SlurmctldHost=$HOST(127.0.0.1)
 SlurmUser=root
 SlurmdUser=root
 AuthType=auth/munge
@@ -71,7 +71,7 @@ SlurmdParameters=config_overrides
 KillWait=10
 MinJobAge=30
 # more CPUs than the machine has: a driver job and several one-core worker jobs share 2 cores
-NodeName=$HOST CPUs=8 RealMemory=$MEM State=UNKNOWN
+NodeName=$HOST NodeAddr=127.0.0.1 CPUs=8 RealMemory=$MEM State=UNKNOWN
 PartitionName=check Nodes=$HOST Default=YES MaxTime=INFINITE State=UP
 EOF
 export SLURM_CONF=$WORK/etc/slurm.conf
@@ -154,7 +154,7 @@ PYEOF
 start_cluster() {  # NAME WORKERS WALLTIME: slurm_cluster.py in the background, wait for its address file
     local addr=$WORK/scheduler.$1
     "$PY" workflows/slurm_cluster.py --workers "$2" --walltime "$3" --memory 2GiB --address-file "$addr" \
-        --log-dir "$WORK/log" --dashboard :0 >"$WORK/log/cluster-$1.log" 2>&1 &
+        --log-dir "$WORK/log" --dashboard :0 --interface lo >"$WORK/log/cluster-$1.log" 2>&1 &
     CL_PID=$!
     for _ in $(seq 300); do
         [ -s "$addr" ] && break
@@ -197,7 +197,7 @@ fi
 
 # ------------------------------------------------------------------ B: sbatch workflows/sweep.sbatch
 submit() {  # NAME SEED: sbatch workflows/sweep.sbatch for an N-sample tiny sweep into $WORK/sweeps/NAME
-    WORKERS=2 WORKER_WALLTIME=00:10:00 WORKER_MEMORY=2GiB WORKER_LOG_DIR=$WORK/log \
+    WORKERS=2 WORKER_WALLTIME=00:10:00 WORKER_MEMORY=2GiB WORKER_LOG_DIR=$WORK/log INTERFACE=lo \
         sbatch --parsable -D "$ROOT" -o "$WORK/log/sweep-$1-%j.log" workflows/sweep.sbatch \
         --n "$N" --mesh tiny --seed "$2" --out "$WORK/sweeps/$1"
 }

@@ -68,6 +68,11 @@ def main() -> int:
     )
     ap.add_argument("--log-dir", default=None, help="folder for the worker jobs' SLURM logs (default: SLURM's)")
     ap.add_argument("--dashboard", default=":8787", help="dashboard address (':0' for any free port)")
+    ap.add_argument(
+        "--interface",
+        default=None,
+        help="network interface the scheduler and the workers listen on (e.g. ib0; lo keeps a one-node check on loopback)",
+    )
     args = ap.parse_args()
     if args.workers < 1 or not 0 <= args.wait_workers <= args.workers:
         print("error: --workers must be >= 1 and --wait-workers in [0, --workers]", file=sys.stderr)
@@ -105,6 +110,7 @@ def main() -> int:
     cluster = SLURMCluster(
         cores=1,
         processes=1,
+        interface=args.interface,
         memory=args.memory,
         walltime=args.walltime,
         queue=args.partition,
