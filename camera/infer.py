@@ -377,7 +377,7 @@ def refine_estimates(
     from elastimap.identify.refine import fem_model, fit
 
     if not 0 < image_noise < 1:
-        raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
+        raise UserError("image_noise", f"must be in (0, 1) (got {image_noise:g})")
     if images is None:
         if any(e.image is None for e in ests):
             raise UserError("images", "an estimate carries no image to refine against")
@@ -543,7 +543,7 @@ def estimate_lesions_csv(
 
 def _need_cal(calibration):
     if calibration is None:
-        raise UserError("--calibration", "camera features and frames need the FEM<->camera calibration file")
+        raise UserError("calibration", "camera features and frames need the FEM<->camera calibration file")
     return calibration
 
 
