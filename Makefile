@@ -25,7 +25,7 @@ demo: venv
 	$(VENV)/bin/elastimap demo
 
 test: venv
-	$(VENV)/bin/pytest -q
+	$(VENV)/bin/pytest -q -n 2 --dist loadgroup
 
 lint: venv
 	$(VENV)/bin/ruff check .

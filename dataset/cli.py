@@ -13,7 +13,7 @@ from pathlib import Path
 
 import click
 
-from elastimap.cli_util import CONTEXT_SETTINGS, out_option
+from elastimap.cli_util import CONTEXT_SETTINGS, out_option, param_flags
 from elastimap.cli_util import run as run_cli
 from elastimap.errors import UserError
 
@@ -36,6 +36,7 @@ def inspect_cmd(path, as_json, top):
     return 0
 
 
+@param_flags({"n_images": "--images", "out_dir": "--out"})
 @cli.command("plot")
 @click.argument("path")
 @out_option(required=True, help="directory for the PNG figures")

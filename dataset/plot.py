@@ -53,8 +53,8 @@ def plot_all(path, out_dir, n_images: int = 12) -> list[Path]:
     from elastimap.outputs import check_out_dir
 
     if n_images < 1:
-        raise UserError("--images", f"must be >= 1 (got {n_images})")
-    out = check_out_dir(out_dir, "--out", allow_existing=True)  # before reading and plotting
+        raise UserError("n_images", f"must be >= 1 (got {n_images})")
+    out = check_out_dir(out_dir, "out_dir", allow_existing=True)  # before reading and plotting
     df = io.read_samples(path, status="ok")
     if len(df) == 0:
         raise UserError("path", f"{path} has no ok samples to plot")

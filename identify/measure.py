@@ -77,26 +77,27 @@ class Data:
         )
 
 
-def load(path: str, design_only: bool = False) -> Data:
+def load(data_path: str, design_only: bool = False) -> Data:
     """Read a sweep (Parquet directory) with its images; rows sorted by ``sample_id``."""
     import os
 
     from elastimap.dataset.io import read_image_meta, read_samples
 
+    path = data_path
     if not os.path.exists(path):
-        raise UserError("--data", f"no such file or directory: {path}")
+        raise UserError("data_path", f"no such file or directory: {path}")
     df = read_samples(path)
     if "image" not in df.columns or df["image"].isna().any():
-        raise UserError("--data", f"{path} has no stored elasticity images (the image column is missing or empty)")
+        raise UserError("data_path", f"{path} has no stored elasticity images (the image column is missing or empty)")
     shape, pixel = read_image_meta(path)
     df = df.sort_values("sample_id", kind="stable").reset_index(drop=True)
     if design_only:
         df = df[~df["tag"].astype(str).str.startswith("phantom:")].reset_index(drop=True)
     if len(df) < 10:
-        raise UserError("--data", f"{path}: only {len(df)} usable rows; need at least 10")
+        raise UserError("data_path", f"{path}: only {len(df)} usable rows; need at least 10")
     images = np.stack(df["image"].to_numpy()).astype(np.float64)
     if images.shape[1] != shape[0] * shape[1]:
-        raise UserError("--data", f"{path}: images have {images.shape[1]} pixels, metadata says {shape}")
+        raise UserError("data_path", f"{path}: images have {images.shape[1]} pixels, metadata says {shape}")
     return Data(
         theta=df[["d", "h", "E"]].to_numpy(float),
         features=df[["O1", "O2", "O3"]].to_numpy(float),
@@ -137,7 +138,7 @@ class ShapePCA:
     @classmethod
     def fit(cls, images: np.ndarray, k: int = 10) -> ShapePCA:
         if k < 2:
-            raise UserError("--pca", f"need at least 2 inputs (log peak + 1 component), got {k}")
+            raise UserError("k", f"need at least 2 inputs (log peak + 1 component), got {k}")
         S = _shapes(images)
         mean = S.mean(axis=0)
         U, sv, Vt = np.linalg.svd(S - mean, full_matrices=False)

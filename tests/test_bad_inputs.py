@@ -25,6 +25,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# its module fixture is costly: under pytest-xdist (make test) this module runs on one worker
+pytestmark = pytest.mark.xdist_group("test_bad_inputs")
+
 REPO = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent
 

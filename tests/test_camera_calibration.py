@@ -14,6 +14,9 @@ from elastimap.camera.optics import SensorModel
 from elastimap.errors import UserError
 from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 
+# its module fixture is costly: under pytest-xdist (make test) this module runs on one worker
+pytestmark = pytest.mark.xdist_group("test_camera_calibration")
+
 REPO = Path(__file__).resolve().parent.parent
 PHANTOMS_FALLBACK = """# temporary copy for tests
 name,phantom,d,h,E,tissue_E,tissue_thickness

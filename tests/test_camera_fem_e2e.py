@@ -23,6 +23,9 @@ from elastimap.camera.optics import SensorModel, render_pair
 from elastimap.solver import solve
 from elastimap.solver.params import Discretisation, SolveParams
 
+# its module fixture is costly: under pytest-xdist (make test) this module runs on one worker
+pytestmark = pytest.mark.xdist_group("test_camera_fem_e2e")
+
 TRUTH = (9.0, 7.5, 45.0)  # d mm, h mm, E kPa — not a table row, not a phantom
 
 

@@ -20,6 +20,9 @@ import pytest
 from elastimap.camera.deflection import difference_image, fit_scale, sampling_matrix
 from elastimap.camera.optics import SensorModel, background_deflection, render_pair
 
+# its module fixture is costly: under pytest-xdist (make test) this module runs on one worker
+pytestmark = pytest.mark.xdist_group("test_camera_frames_fem")
+
 pytest.importorskip("elastimap.solver.api", reason="the DOLFINx solver is not available")
 
 TRUTH = (8.0, 7.0, 50.0)

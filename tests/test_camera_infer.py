@@ -16,6 +16,9 @@ from elastimap.camera.optics import SensorModel, render_pair
 from elastimap.errors import UserError
 from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 
+# its module fixture is costly: under pytest-xdist (make test) this module runs on one worker
+pytestmark = pytest.mark.xdist_group("test_camera_infer")
+
 REPO = Path(__file__).resolve().parent.parent
 PHANTOMS = [
     ("size-1", 5, 8, 80),

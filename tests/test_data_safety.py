@@ -23,6 +23,9 @@ from test_bad_inputs import SYNTH, invoke, make_dataset, make_model, snapshot
 
 from elastimap.errors import UserError, check_range
 
+# its module fixture is costly: under pytest-xdist (make test) this module runs on one worker
+pytestmark = pytest.mark.xdist_group("test_data_safety")
+
 REPO = Path(__file__).resolve().parent.parent
 ROOMS = ("solver", "sweep", "dataset", "training", "camera", "gap", "identify", "elastimap", "workflows")
 

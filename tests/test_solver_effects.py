@@ -7,6 +7,9 @@ import pytest
 from elastimap.errors import UserError
 from elastimap.solver.params import Discretisation, Loading, SolveParams, Tissue
 
+# its module fixture is costly: under pytest-xdist (make test) this module runs on one worker
+pytestmark = pytest.mark.xdist_group("test_solver_effects")
+
 
 def tiny(**disc) -> SolveParams:
     return SolveParams(disc=Discretisation(mesh="tiny", **disc))

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from dataclasses import dataclass
 
 import click
 
@@ -167,55 +168,39 @@ def train(
     nthreads = set_threads(threads)
     algos = list(ALGOS) if algo == "all" else [algo]
     vals = list(VALIDATIONS) if validate == "all" else [validate]
+    spec = RunSpec(
+        algos=algos,
+        validations=vals,
+        repeats=repeats,
+        seed=seed,
+        test_split=test_split,
+        hidden=hidden,
+        activation=activation,
+        threads=nthreads,
+        save_models=not no_model,
+    )
     with staged_dir(out, "out", overwrite=overwrite) as tmp:
-        _run(
-            samples,
-            algos,
-            vals,
-            cfg,
-            repeats,
-            epochs,
-            hidden,
-            hidden_t,
-            activation,
-            feature_noise,
-            test_split,
-            val_fraction,
-            seed,
-            device,
-            nthreads,
-            workers,
-            no_model,
-            quiet,
-            str(tmp),
-            out,
-        )
+        _run(samples, cfg, spec, out=str(tmp), final=out)
     click.echo(f"wrote {out}", err=True)
     return 0
 
 
-def _run(
-    samples,
-    algos,
-    vals,
-    cfg,
-    repeats,
-    epochs,
-    hidden,
-    hidden_t,
-    activation,
-    feature_noise,
-    test_split,
-    val_fraction,
-    seed,
-    device,
-    nthreads,
-    workers,
-    no_model,
-    quiet,
-    out,
-    final,
-):
+@dataclass(frozen=True)
+class RunSpec:
+    """What one ``train`` run does besides how each network trains (that is :class:`TrainConfig`)."""
+
+    algos: list[str]
+    validations: list[str]
+    repeats: int
+    seed: int
+    test_split: float
+    hidden: str  # as typed, for run.json
+    activation: str
+    threads: int
+    save_models: bool
+
+
+def _run(samples, cfg, spec: RunSpec, out: str, final: str) -> int:
     """The run itself, writing into ``out`` (the staged folder that becomes ``final``)."""
     from .api import fit_ensemble
     from .data import data_hash, prepare
@@ -225,15 +210,15 @@ def _run(
     click.echo(samples.report(), err=True)
     click.echo(
         f"network {cfg.arch.describe()} ({cfg.arch.n_params} weights), device "
-        f"{cfg.resolved_device()}, {nthreads} thread(s)",
+        f"{cfg.resolved_device()}, {spec.threads} thread(s)",
         err=True,
     )
 
     results = []
     t0 = time.perf_counter()
-    for v in vals:
-        for a in algos:
-            r = run_validation(samples, a, v, repeats, cfg, seed=seed, test_split=test_split)
+    for v in spec.validations:
+        for a in spec.algos:
+            r = run_validation(samples, a, v, spec.repeats, cfg, seed=spec.seed, test_split=spec.test_split)
             results.append(r)
             plot_curves(r, os.path.join(out, f"curves-{a}-{v}.png"))
             click.echo(
@@ -246,8 +231,8 @@ def _run(
     df.insert(0, "data", samples.source)
     df.to_csv(os.path.join(out, "results.csv"), index=False)
     title = (
-        f"Test errors, {samples.source}, {cfg.arch.describe()}, {epochs} epochs, feature noise "
-        f"{feature_noise:g}; mean [2.5 %, 97.5 %] over {repeats} repeat(s). MSE×100 is paper eq. (1) "
+        f"Test errors, {samples.source}, {cfg.arch.describe()}, {cfg.epochs} epochs, feature noise "
+        f"{cfg.feature_noise:g}; mean [2.5 %, 97.5 %] over {spec.repeats} repeat(s). MSE×100 is paper eq. (1) "
         f"on mapminmax [-1, 1]-scaled targets."
     )
     md = markdown(df, title)
@@ -256,27 +241,27 @@ def _run(
     click.echo(md)
 
     models = {}
-    if not no_model:
-        drop_test = vals == ["hov"]
-        for a in algos:
+    if spec.save_models:
+        drop_test = spec.validations == ["hov"]
+        for a in spec.algos:
             s = samples
             if drop_test:
                 from .experiment import rng_for, split_rows
 
-                test_rows, _ = split_rows(samples, "hov", test_split, rng_for(seed, "hov")[0])
+                test_rows, _ = split_rows(samples, "hov", spec.test_split, rng_for(spec.seed, "hov")[0])
                 s = prepare(samples.df[~test_rows], source=samples.source)
                 s.n_failed = samples.n_failed
             ens = fit_ensemble(
                 s,
                 algo=a,
-                repeats=repeats,
-                epochs=epochs,
-                hidden=hidden_t,
-                seed=seed,
-                feature_noise=feature_noise,
-                val_fraction=val_fraction,
-                device=device,
-                progress=not quiet,
+                repeats=spec.repeats,
+                epochs=cfg.epochs,
+                hidden=cfg.hidden,
+                seed=spec.seed,
+                feature_noise=cfg.feature_noise,
+                val_fraction=cfg.val_fraction,
+                device=cfg.device,
+                progress=cfg.progress,
                 dtype=cfg.dtype,
             )
             ens.save(os.path.join(out, f"model-{a}"))
@@ -290,19 +275,19 @@ def _run(
                 "n_samples": samples.n,
                 "n_failed_excluded": samples.n_failed,
                 "data_sha256": data_hash(samples.df),
-                "algo": algos,
-                "validate": vals,
-                "repeats": repeats,
-                "epochs": epochs,
-                "hidden": hidden,
-                "activation": activation,
-                "feature_noise": feature_noise,
-                "test_split": test_split,
-                "val_fraction": val_fraction,
-                "seed": seed,
+                "algo": spec.algos,
+                "validate": spec.validations,
+                "repeats": spec.repeats,
+                "epochs": cfg.epochs,
+                "hidden": spec.hidden,
+                "activation": spec.activation,
+                "feature_noise": cfg.feature_noise,
+                "test_split": spec.test_split,
+                "val_fraction": cfg.val_fraction,
+                "seed": spec.seed,
                 "device": str(cfg.resolved_device()),
-                "threads": nthreads,
-                "workers": workers,
+                "threads": spec.threads,
+                "workers": cfg.workers,
                 "dtype": str(cfg.dtype),
                 "wall_s": round(time.perf_counter() - t0, 3),
                 "models": models,
