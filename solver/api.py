@@ -101,28 +101,60 @@ def _solve(params: SolveParams, vtx_path: str | None = None) -> SolveResult:
     from .errors import SolverError
     from .fem import Model
     from .geometry import MeshError, build_mesh
-    from .image import features, mirror_quarter
 
     p = params.validate()
+    if p.disc.geometry == "morph":
+        if vtx_path:
+            from elastimap.errors import UserError
+
+            raise UserError("geometry", "writing the fields needs geometry='remesh'")
+        from .morph import shared_forward
+
+        inc = p.inclusion
+        return shared_forward(p).solve(inc.d, inc.h, inc.E)
     t0 = time.perf_counter()
-    inc = p.inclusion
-    tag = f"(d={inc.d:g} mm, h={inc.h:g} mm, E={inc.E:g} kPa)"
     try:
         raw = build_mesh(p)
         model = Model(raw, p)
     except (MeshError, SolverError) as exc:
-        raise SolverError(f"mesh/setup failed for {tag}: {exc}") from exc
+        raise SolverError(f"mesh/setup failed for {sample_tag(p)}: {exc}") from exc
     try:
-        sol, diag, delta, force = _solve_at(model, inc.E, p)
+        return run_sample(model, p, t0, {"mesh": raw.seconds}, vtx_path=vtx_path)[0]
+    finally:
+        model.destroy()
+
+
+def sample_tag(p: SolveParams) -> str:
+    inc = p.inclusion
+    return f"(d={inc.d:g} mm, h={inc.h:g} mm, E={inc.E:g} kPa)"
+
+
+def run_sample(
+    model, p: SolveParams, t0: float, extra_timings: dict, *, vtx_path: str | None = None, reference=None
+) -> tuple[SolveResult, tuple]:
+    """The two solves of one sample on a built ``model`` whose mesh has the geometry of ``p``.
+
+    ``reference``: the (sol_ref, diag_ref, delta_ref, force_ref, w_ref) of the reference solve when
+    the caller already has it (it does not depend on the inclusion's modulus).  Returns the
+    result and that reference tuple, so a caller can keep it for the next modulus.
+    """
+    from .errors import SolverError
+    from .image import features, mirror_quarter
+
+    tag = sample_tag(p)
+    model.timings = {"setup": model.timings.get("setup", 0.0)}
+    try:
+        sol, diag, delta, force = _solve_at(model, p.inclusion.E, p)
         w = model.probe_bottom_w(sol, delta)
-        sol_ref, diag_ref, delta_ref, force_ref = _solve_at(model, p.tissue.E, p)
-        w_ref = model.probe_bottom_w(sol_ref, delta_ref)
+        if reference is None:
+            sol_ref, diag_ref, delta_ref, force_ref = _solve_at(model, p.tissue.E, p)
+            w_ref = model.probe_bottom_w(sol_ref, delta_ref)
+            reference = (sol_ref, diag_ref, delta_ref, force_ref, w_ref)
+        sol_ref, diag_ref, delta_ref, force_ref, w_ref = reference
         if vtx_path:
             _write_vtx(model, vtx_path, {"u": sol.u, "u_ref": sol_ref.u})
     except SolverError as exc:
         raise SolverError(f"solve failed for {tag}: {exc}") from exc
-    finally:
-        model.destroy()
     if p.disc.symmetry == "quarter":
         w, w_ref = mirror_quarter(w), mirror_quarter(w_ref)
     if p.disc.interface == "tied" and diag["tension_patch_fraction"] > 0:
@@ -137,9 +169,9 @@ def _solve(params: SolveParams, vtx_path: str | None = None) -> SolveResult:
     diff = w - w_ref
     O1, O2, O3 = features(diff, p.image.pixel, p.image.threshold, p.image.supersample)
     timings = dict(model.timings)
-    timings["mesh"] = raw.seconds
+    timings.update(extra_timings)
     seconds = time.perf_counter() - t0
-    return SolveResult(
+    res = SolveResult(
         params=p,
         O1=O1,
         O2=O2,
@@ -158,6 +190,7 @@ def _solve(params: SolveParams, vtx_path: str | None = None) -> SolveResult:
         peak_memory_mb=_peak_mb(),
         interface={**diag, "reference_tension_patch_fraction": diag_ref["tension_patch_fraction"]},
     )
+    return res, reference
 
 
 def warmup(params: SolveParams | None = None) -> float:

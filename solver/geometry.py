@@ -70,11 +70,12 @@ class RawMesh:
     seconds: float
 
 
-def _sizes(p: SolveParams) -> tuple[float, float, float, float]:
+def _sizes(p: SolveParams) -> tuple[float, float, float, float, float]:
+    """(h0, h_max, grading away from the footprint, h_inc, grading away from the inclusion), mm."""
     h0, hmax, grading, per_d = LEVELS[p.disc.mesh]
     inc = p.inclusion
     h_inc = min(h0, max(inc.d * min(1.0, inc.aspect) / per_d, 0.25))
-    return h0, hmax, grading, h_inc
+    return h0, hmax, grading, h_inc, grading
 
 
 def build_mesh(p: SolveParams) -> RawMesh:
@@ -92,7 +93,7 @@ def build_mesh(p: SolveParams) -> RawMesh:
     px0 = 0.0 if quarter else -P / 2
     cx, cy, cz = inc.offset_x, inc.offset_y, T - inc.h
     r = inc.d / 2
-    h0, hmax, grading, h_inc = _sizes(p)
+    h0, hmax, grading, h_inc, grading_inc = _sizes(p)
 
     with _gmsh_lock:
         in_main = threading.current_thread() is threading.main_thread()
@@ -161,7 +162,7 @@ def build_mesh(p: SolveParams) -> RawMesh:
                 dz = max(T - 2.0 - zz, 0.0)
                 s = h0 + grading * math.sqrt(dx * dx + dy * dy + dz * dz)
                 rr = math.sqrt((x - cx) ** 2 + (y - cy) ** 2 + ((zz - cz) / inc.aspect) ** 2)
-                s = min(s, h_inc + grading * abs(rr - r))
+                s = min(s, h_inc + grading_inc * abs(rr - r))
                 return min(s, hmax)
 
             gmsh.model.mesh.setSizeCallback(size)

@@ -23,6 +23,8 @@ from elastimap.errors import UserError, check_range
 MESH_LEVELS = ("tiny", "coarse", "default", "fine")
 INTERFACES = ("tied", "contact", "bonded")
 SYMMETRIES = ("quarter", "full")
+#: how the mesh of a sample is made: gmsh for every (d, h), or a reference mesh morphed to (d, h)
+GEOMETRIES = ("remesh", "morph")
 
 #: mm, the default tissue slab thickness (``Tissue.thickness``; every room's default)
 THICKNESS = 20.0
@@ -53,6 +55,7 @@ PARAMETER_CONSTRAINTS = {
     "interface": [Options(INTERFACES)],
     "friction_kt": [Interval(float, 0, None, unit="kPa/mm")],
     "symmetry": [Options(SYMMETRIES)],
+    "geometry": [Options(GEOMETRIES)],
     "threshold": [Interval(float, 0, None, unit="mm")],
     "supersample": [Interval(int, 1, 32)],
 }
@@ -123,7 +126,12 @@ class Loading:
 
 @dataclass(frozen=True)
 class Discretisation:
-    """Mesh level, element degree, interface model and symmetry."""
+    """Mesh level, element degree, interface model, symmetry and how the mesh is made.
+
+    ``geometry``: ``"remesh"`` (default) meshes every sample with gmsh; ``"morph"`` moves a
+    reference mesh (one per bin of (d, h), :mod:`elastimap.solver.morph`) to the sample's
+    (d, h), which makes the forward map smooth in (d, h) and skips gmsh and the setup.
+    """
 
     mesh: str = "default"
     degree: int = 2
@@ -132,6 +140,7 @@ class Discretisation:
     # effect switch: tangential probe-tissue interface stiffness k_t (kPa/mm) of the tied/contact
     # interface; 0 = frictionless (default), -> infinity approaches ``bonded`` (solver/interface.py)
     friction_kt: float = 0.0
+    geometry: str = "remesh"
 
 
 @dataclass(frozen=True)
@@ -212,6 +221,7 @@ class SolveParams:
             "interface": ds.interface,
             "friction_kt": ds.friction_kt,
             "symmetry": ds.symmetry,
+            "geometry": ds.geometry,
             "threshold": im.threshold,
             "supersample": im.supersample,
         }
@@ -301,7 +311,11 @@ def delta_limit(params: SolveParams) -> float:
 
 
 # effect switches omitted from ``SolveParams.to_dict`` while at these defaults
-EFFECT_DEFAULTS = {("tissue", "nonlinearity"): 0.0, ("disc", "friction_kt"): 0.0}
+EFFECT_DEFAULTS = {
+    ("tissue", "nonlinearity"): 0.0,
+    ("disc", "friction_kt"): 0.0,
+    ("disc", "geometry"): "remesh",
+}
 
 
 def depth_range(

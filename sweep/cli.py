@@ -16,7 +16,7 @@ import click
 
 from elastimap.cli_util import CONTEXT_SETTINGS, Choice, jobs_option, mesh_option, options, out_option, param_flags
 from elastimap.cli_util import run as run_cli
-from elastimap.solver.params import INTERFACES
+from elastimap.solver.params import GEOMETRIES, INTERFACES
 
 from . import design as dsg
 
@@ -66,6 +66,13 @@ _common = options(
 @_common
 @jobs_option(default=2, help="local worker processes (one solve each)")
 @out_option(help="dataset directory (default sweeps/<mesh>-<interface>-<design><n>-s<seed>)")
+@click.option(
+    "--geometry",
+    type=Choice(GEOMETRIES),
+    default="remesh",
+    show_default=True,
+    help="mesh every sample with gmsh, or morph a few reference meshes to each (d, h) (smooth in d, h)",
+)
 @click.option("--retry-failed", is_flag=True, help="run samples that landed as failed again")
 @click.option(
     "--scheduler",
@@ -114,6 +121,7 @@ def run_cmd(
     solver_spec,
     jobs,
     out,
+    geometry,
     retry_failed,
     scheduler,
     batch_rows,
@@ -135,6 +143,7 @@ def run_cmd(
         out=out,
         mesh=mesh,
         interface=interface,
+        geometry=geometry,
         design=design,
         ranges=dsg.parse_ranges_text(ranges),
         samples=samples,

@@ -47,7 +47,7 @@ from elastimap.constraints import Interval, Options, Predicate, validate_params
 from elastimap.dataset import io, store
 from elastimap.errors import UserError
 from elastimap.provenance import code_version, host
-from elastimap.solver.params import INTERFACES, MESH_LEVELS, Discretisation, SolveParams
+from elastimap.solver.params import GEOMETRIES, INTERFACES, MESH_LEVELS, Discretisation, SolveParams
 
 from . import design as dsg
 from . import jobs
@@ -66,6 +66,7 @@ class SweepConfig:
     out: str | None = None
     mesh: str = "default"
     interface: str = "tied"
+    geometry: str = "remesh"  # or "morph": reference meshes moved to each (d, h) (solver/morph.py)
     design: str = "lhs"
     ranges: dict | None = None
     samples: str | None = None
@@ -92,6 +93,7 @@ class SweepConfig:
         "seed": [Interval(int, 0, None)],
         "mesh": [Options(MESH_LEVELS)],
         "interface": [Options(INTERFACES)],
+        "geometry": [Options(GEOMETRIES)],
         "design": [Options(dsg.DESIGNS)],
         "ranges": [None, Predicate(lambda r: isinstance(r, dict), "a dict {name: (lo, hi[, scale])}")],
         "batch_rows": [Interval(int, 1, None)],
@@ -132,7 +134,7 @@ class Terminated(KeyboardInterrupt):
 
 
 def default_out(cfg: SweepConfig, n: int) -> str:
-    parts = [cfg.mesh, cfg.interface]
+    parts = [cfg.mesh, cfg.interface] + (["morph"] if cfg.geometry == "morph" else [])
     if cfg.samples:
         parts.append(Path(cfg.samples).stem)
     if n:
@@ -150,7 +152,8 @@ def make_plan(cfg: SweepConfig) -> Plan:
     """Check everything and list the samples; writes nothing."""
     cfg.validate()
     n = cfg.n if cfg.n is not None else (0 if cfg.samples else 512)
-    base = SolveParams(disc=Discretisation(mesh=cfg.mesh, interface=cfg.interface)).validate()
+    disc = Discretisation(mesh=cfg.mesh, interface=cfg.interface, geometry=cfg.geometry)
+    base = SolveParams(disc=disc).validate()
     ranges = dsg.check_ranges(cfg.ranges, base.tissue.thickness)
     samples = dsg.design_points(n, cfg.design, cfg.seed, ranges, base.tissue.thickness)
     if cfg.samples:

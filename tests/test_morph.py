@@ -1,0 +1,142 @@
+"""Mesh morphing (elastimap.solver.morph) on the tiny mesh: exactness at the reference, the
+sphere maps onto the new sphere, no inverted cells, smoothness in (d, h), agreement with remeshing.
+
+These compare the morphed forward map with the same code's remeshed one: they check the
+morph's own properties and its consistency, not the physics (tests/test_solver.py does that).
+"""
+
+import numpy as np
+import pytest
+
+from elastimap.errors import UserError
+from elastimap.solver.params import Discretisation, SolveParams
+
+TINY = SolveParams(disc=Discretisation(mesh="tiny"))
+
+
+@pytest.fixture(scope="module")
+def fwd():
+    from elastimap.solver.morph import MorphedForward
+
+    with MorphedForward(TINY) as f:
+        yield f
+
+
+def _sphere_nodes(e):
+    from elastimap.solver.geometry import INCLUSION, PROBE_LAYER0
+
+    raw = e.raw
+    inc_nodes = np.unique(raw.cells[raw.markers == INCLUSION])
+    other = np.unique(raw.cells[(raw.markers != INCLUSION) & (raw.markers < PROBE_LAYER0)])
+    return np.intersect1d(inc_nodes, other)  # nodes shared by inclusion and tissue cells: the sphere
+
+
+def test_geometry_switch_is_validated_and_omitted_at_default():
+    assert "geometry" not in TINY.to_dict()["disc"]
+    p = TINY.replace(disc=Discretisation(mesh="tiny", geometry="morph"))
+    assert p.to_dict()["disc"]["geometry"] == "morph"
+    assert SolveParams.from_dict(p.to_dict()) == p
+    with pytest.raises(UserError) as err:
+        TINY.replace(disc=Discretisation(geometry="warp")).validate()
+    assert err.value.param == "geometry"
+
+
+def test_reference_bins():
+    from elastimap.solver.morph import reference_for
+
+    assert reference_for(8.0, 7.0) == reference_for(8.0, 7.0)
+    r = reference_for(8.0, 7.0)
+    assert (r.d0, r.h0) == (8.0, 7.0)  # the default sample is a reference
+    r = reference_for(8.9, 7.2)
+    assert (r.d0, r.h0) == (8.0, 7.0)  # same bin
+    assert reference_for(10.0, 7.0).d0 == pytest.approx(8 * 2**0.5)  # next d bin
+    for d in (2.0, 3.0, 4.0, 6.0, 12.0, 15.0):
+        r = reference_for(d, d / 2 + 3)
+        assert 2**-0.25 - 1e-9 <= d / r.d0 <= 2**0.25 + 1e-9
+
+
+def test_morph_at_reference_is_the_reference_mesh(fwd):
+    ref = fwd.reference_for(8.0, 7.0)
+    e, _ = fwd._entry(ref)
+    x = e.motion.coordinates(ref.d0, ref.h0)
+    assert np.array_equal(x, e.raw.x)
+
+
+def test_sphere_nodes_lie_on_the_new_sphere_and_cells_stay_positive(fwd):
+    ref = fwd.reference_for(8.0, 7.0)
+    e, _ = fwd._entry(ref)
+    T = TINY.tissue.thickness
+    s = _sphere_nodes(e)
+    r0 = np.linalg.norm(e.raw.x[s] - [0, 0, T - ref.h0], axis=1)
+    assert np.allclose(r0, ref.d0 / 2, rtol=1e-3)  # gmsh puts them on the sphere
+    for d, h in [(9.4, 7.0), (6.8, 7.0), (8.0, 6.4), (8.0, 7.6), (9.4, 6.4), (6.8, 7.6)]:
+        x = e.motion.coordinates(d, h)
+        r = np.linalg.norm(x[s] - [0, 0, T - h], axis=1)
+        np.testing.assert_allclose(r, r0 * d / ref.d0, rtol=1e-12)
+        q = e.motion.quality(x)
+        assert q.ok and q.min_volume_ratio > 0.3, (d, h, q)  # bin corners: positive, not squashed
+        # the probe, the tissue surface and the chest wall do not move
+        top = np.abs(e.raw.x[:, 2] - T) < 1e-9
+        assert np.array_equal(x[top], e.raw.x[top])
+
+
+def test_too_large_a_motion_is_refused(fwd):
+    ref = fwd.reference_for(8.0, 7.0)
+    q = fwd.quality(3.0, 7.0, reference=ref)  # d/d0 = 0.375: cells shrink to 5 % of their volume
+    assert not q.ok
+
+
+def test_morph_solve_at_the_reference_equals_remesh(fwd):
+    from elastimap.solver import solve
+
+    a = solve(TINY)
+    b = fwd.solve(8.0, 7.0, 50.0)
+    assert b.params.disc.geometry == "morph"
+    assert np.array_equal(a.image, b.image)
+    assert (a.O1, a.O2, a.force) == (b.O1, b.O2, b.force)
+
+
+def test_morph_agrees_with_remesh_off_the_reference(fwd):
+    """Away from the reference the two meshes differ: they agree to the tiny mesh's
+    discretisation error (its O1/O2 change from tiny to coarse is about 2–4 %)."""
+    from elastimap.solver import solve
+
+    p = TINY.with_inclusion(d=8.9, h=6.6)
+    a = solve(p)
+    b = solve(p.replace(disc=Discretisation(mesh="tiny", geometry="morph")))
+    assert abs(b.O1 / a.O1 - 1) < 0.02
+    assert abs(b.O2 / a.O2 - 1) < 0.04
+    assert np.linalg.norm(b.image - a.image) / np.linalg.norm(a.image) < 0.04
+
+
+def test_modulus_only_change_reuses_the_reference_solve(fwd):
+    a = fwd.solve(8.3, 7.1, 50.0)
+    b = fwd.solve(8.3, 7.1, 80.0)
+    assert b.O1 > a.O1
+    assert b.force_ref == a.force_ref
+    assert b.timings["assemble"] < 0.75 * a.timings["assemble"]  # one solve instead of two
+
+
+def _central(f, x, step):
+    return (f(x + step) - f(x - step)) / (2 * step)
+
+
+def test_derivatives_are_smooth_with_morph_not_with_remesh(fwd):
+    """Central differences of O2 in d at steps 0.05 and 0.25 mm: the morphed map is smooth, so
+    the two agree to the truncation error; the remeshed map jitters."""
+    from elastimap.solver import solve
+
+    ref = fwd.reference_for(8.0, 7.0)
+
+    def morph_o2(d):
+        return fwd.solve(d, 7.0, 50.0, reference=ref).O2
+
+    def remesh_o2(d):
+        return solve(TINY.with_inclusion(d=d, h=7.0)).O2
+
+    dm = [_central(morph_o2, 8.0, s) for s in (0.05, 0.25)]
+    dr = [_central(remesh_o2, 8.0, s) for s in (0.05, 0.25)]
+    spread_m = abs(dm[0] / dm[1] - 1)
+    spread_r = abs(dr[0] / dr[1] - 1)
+    assert spread_m < 0.01, dm
+    assert spread_r > 5 * spread_m, (dr, dm)
