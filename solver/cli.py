@@ -9,7 +9,19 @@ import click
 
 from elastimap.cli_util import CONTEXT_SETTINGS, Choice, mesh_option, param_flags, run
 
-from .params import INTERFACES, THICKNESS, Discretisation, ImageSpec, Inclusion, Loading, Probe, SolveParams, Tissue
+from .params import (
+    GEOMETRIES,
+    INTERFACES,
+    SIZINGS,
+    THICKNESS,
+    Discretisation,
+    ImageSpec,
+    Inclusion,
+    Loading,
+    Probe,
+    SolveParams,
+    Tissue,
+)
 
 
 def _layers(text: str | None):
@@ -64,6 +76,20 @@ def _check_outputs(image_png: str | None, image_npy: str | None, vtx: str | None
     help="Probe-tissue interface: tied = frictionless closed (normal tied, tangentially free); "
     "contact = frictionless unilateral contact (active set); bonded = glued (comparison only).",
 )
+@click.option(
+    "--geometry",
+    type=Choice(GEOMETRIES),
+    default="remesh",
+    show_default=True,
+    help="remesh = gmsh mesh for this (d, h); morph = a reference mesh moved to (d, h) (smooth in d, h).",
+)
+@click.option(
+    "--sizing",
+    type=Choice(SIZINGS),
+    default="fixed",
+    show_default=True,
+    help="Element size near the inclusion: fixed = the first sweeps' rule; by_d = scaled with d (converged).",
+)
 @click.option("--full", is_flag=True, help="Full model instead of the quarter-symmetry model.")
 @click.option("--delta", type=float, default=3.0, show_default=True, help="Plate indentation (mm).")
 @click.option("--force", type=float, default=None, help="Prescribe the total plate force (mN) instead of --delta.")
@@ -106,6 +132,8 @@ def command(
     E,
     mesh,
     interface,
+    geometry,
+    sizing,
     full,
     delta,
     force,
@@ -135,7 +163,14 @@ def command(
         tissue=Tissue(E=tissue_E, thickness=thickness, nu=nu),
         probe=Probe(layers=_layers(layers), nu=nu),
         loading=Loading(delta=delta, force=force),
-        disc=Discretisation(mesh=mesh, degree=degree, interface=interface, symmetry="full" if full else "quarter"),
+        disc=Discretisation(
+            mesh=mesh,
+            degree=degree,
+            interface=interface,
+            symmetry="full" if full else "quarter",
+            geometry=geometry,
+            sizing=sizing,
+        ),
         image=ImageSpec(pixel=pixel, threshold=threshold),
     ).validate()
     _check_outputs(image_png, image_npy, vtx)  # before the solve, not after it

@@ -40,13 +40,27 @@ from .params import SolveParams
 TISSUE, INCLUSION, SKIN = 1, 2, 3
 PROBE_LAYER0 = 10  # layer i (0 = tissue side) gets PROBE_LAYER0 + i
 
-# mesh levels: (h0 probe/footprint mm, h_max mm, grading, inclusion resolution = elements per diameter)
+# mesh levels: (h0 probe/footprint mm, h_max mm, grading, inclusion resolution = elements per diameter);
+# ``Discretisation.sizing = "fixed"``: the inclusion's element size d / per_d has a 0.25 mm floor and
+# the size grows away from the inclusion with the same grading as away from the footprint
 LEVELS = {
     "tiny": (3.2, 20.0, 0.6, 6.0),
     "coarse": (2.0, 14.0, 0.45, 10.0),
     "default": (1.6, 12.0, 0.35, 12.0),
     "fine": (1.1, 9.0, 0.28, 16.0),
+    "finer": (0.8, 7.0, 0.22, 22.0),
 }
+#: ``Discretisation.sizing = "by_d"``: (per_d, grading away from the inclusion) per level, no floor
+#: but ``MIN_H_INC``.  The zone the inclusion refines scales with d and reaches the surface above
+#: it (the grading away from the inclusion is what O2 converges with, docs/forward-model.md).
+SIZED_BY_D = {
+    "tiny": (6.0, 0.45),
+    "coarse": (10.0, 0.28),
+    "default": (12.0, 0.2),
+    "fine": (16.0, 0.14),
+    "finer": (22.0, 0.1),
+}
+MIN_H_INC = 0.05  # mm
 
 _gmsh_lock = threading.Lock()
 
@@ -74,7 +88,11 @@ def _sizes(p: SolveParams) -> tuple[float, float, float, float, float]:
     """(h0, h_max, grading away from the footprint, h_inc, grading away from the inclusion), mm."""
     h0, hmax, grading, per_d = LEVELS[p.disc.mesh]
     inc = p.inclusion
-    h_inc = min(h0, max(inc.d * min(1.0, inc.aspect) / per_d, 0.25))
+    size = inc.d * min(1.0, inc.aspect)
+    if p.disc.sizing == "by_d":
+        per_d, grading_inc = SIZED_BY_D[p.disc.mesh]
+        return h0, hmax, grading, min(h0, max(size / per_d, MIN_H_INC)), grading_inc
+    h_inc = min(h0, max(size / per_d, 0.25))
     return h0, hmax, grading, h_inc, grading
 
 

@@ -20,11 +20,14 @@ import numpy as np
 from elastimap.constraints import Interval, Options, validate_params
 from elastimap.errors import UserError, check_range
 
-MESH_LEVELS = ("tiny", "coarse", "default", "fine")
+MESH_LEVELS = ("tiny", "coarse", "default", "fine", "finer")
 INTERFACES = ("tied", "contact", "bonded")
 SYMMETRIES = ("quarter", "full")
 #: how the mesh of a sample is made: gmsh for every (d, h), or a reference mesh morphed to (d, h)
 GEOMETRIES = ("remesh", "morph")
+#: how the element size near the inclusion is chosen (solver/geometry.py): the first sweeps' rule, or
+#: scaled with d so that small inclusions converge like large ones
+SIZINGS = ("fixed", "by_d")
 
 #: mm, the default tissue slab thickness (``Tissue.thickness``; every room's default)
 THICKNESS = 20.0
@@ -56,6 +59,7 @@ PARAMETER_CONSTRAINTS = {
     "friction_kt": [Interval(float, 0, None, unit="kPa/mm")],
     "symmetry": [Options(SYMMETRIES)],
     "geometry": [Options(GEOMETRIES)],
+    "sizing": [Options(SIZINGS)],
     "threshold": [Interval(float, 0, None, unit="mm")],
     "supersample": [Interval(int, 1, 32)],
 }
@@ -131,6 +135,9 @@ class Discretisation:
     ``geometry``: ``"remesh"`` (default) meshes every sample with gmsh; ``"morph"`` moves a
     reference mesh (one per bin of (d, h), :mod:`elastimap.solver.morph`) to the sample's
     (d, h), which makes the forward map smooth in (d, h) and skips gmsh and the setup.
+    ``sizing``: ``"fixed"`` (default, the first sweeps' meshes) or ``"by_d"``, the element size
+    near the inclusion scaled with d and a finer zone around it (:mod:`elastimap.solver.geometry`).
+    The converged, smooth forward model is ``geometry="morph", sizing="by_d"``.
     """
 
     mesh: str = "default"
@@ -141,6 +148,7 @@ class Discretisation:
     # interface; 0 = frictionless (default), -> infinity approaches ``bonded`` (solver/interface.py)
     friction_kt: float = 0.0
     geometry: str = "remesh"
+    sizing: str = "fixed"
 
 
 @dataclass(frozen=True)
@@ -222,6 +230,7 @@ class SolveParams:
             "friction_kt": ds.friction_kt,
             "symmetry": ds.symmetry,
             "geometry": ds.geometry,
+            "sizing": ds.sizing,
             "threshold": im.threshold,
             "supersample": im.supersample,
         }
@@ -315,6 +324,7 @@ EFFECT_DEFAULTS = {
     ("tissue", "nonlinearity"): 0.0,
     ("disc", "friction_kt"): 0.0,
     ("disc", "geometry"): "remesh",
+    ("disc", "sizing"): "fixed",
 }
 
 
