@@ -88,7 +88,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from .geometry import INCLUSION, PROBE_LAYER0, SKIN, RawMesh
-from .params import SolveParams, SolveResult, depth_range
+from .params import THICKNESS, SolveParams, SolveResult, depth_range
 
 #: d-bin width (ratio of edges) and the diameter (mm) at which the d-grid is anchored
 D_RATIO = math.sqrt(2.0)
@@ -128,7 +128,7 @@ def _gaps(d: float, h: float, thickness: float, aspect: float) -> tuple[float, f
     return h - half, thickness - h - half
 
 
-def reference_for(d: float, h: float, thickness: float = 20.0, aspect: float = 1.0) -> Reference:
+def reference_for(d: float, h: float, thickness: float = THICKNESS, aspect: float = 1.0) -> Reference:
     """The reference (d₀, h₀) of the bin holding (d, h) (see the module docstring)."""
     k = round(math.log(d / D_ANCHOR) / math.log(D_RATIO))
     d0 = D_ANCHOR * D_RATIO**k

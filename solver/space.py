@@ -12,9 +12,11 @@ with P2 by default (P1 locks at ν = 0.49).  One block of V_h (three flat dofs
 3i, 3i+1, 3i+2) is one node i.  Coordinates: x, y in the tissue surface, z up, chest
 wall at z = 0, tissue surface Γ_s at z = T, probe top at z = T + H.
 
-Everything here depends on the mesh geometry only (no material, no loading), so a
-morphed mesh with the same topology gets its node sets by building a new
-:class:`Space`.
+Everything here depends on the mesh geometry only (no material, no loading).  A mesh
+morphed by :mod:`elastimap.solver.morph` keeps its topology and moves no node of these
+sets off its plane (the probe, the chest wall and the tissue surface do not move, the
+symmetry-plane nodes slide in their plane), so the node sets of the reference mesh stay
+valid and only ``X`` is recomputed.
 """
 
 from __future__ import annotations
