@@ -87,6 +87,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
+from elastimap.errors import UserError
+
 from .geometry import INCLUSION, PROBE_LAYER0, SKIN, RawMesh
 from .params import THICKNESS, SolveParams, SolveResult, depth_range
 
@@ -305,7 +307,11 @@ class MorphedForward:
         d, h = p.inclusion.d, p.inclusion.h
         fallback = 0
         ref = reference or self.reference_for(d, h)
-        e, built = self._entry(ref)
+        try:
+            e, built = self._entry(ref)
+        except UserError:  # the bin's reference does not fit these settings (e.g. an offset inclusion)
+            fallback, ref = 2, Reference(d, h)
+            e, built = self._entry(ref)
         x = e.motion.coordinates(d, h)
         q = e.motion.quality(x)
         if not q.ok and reference is not None and reference != self.reference_for(d, h):

@@ -140,3 +140,30 @@ def test_derivatives_are_smooth_with_morph_not_with_remesh(fwd):
     spread_r = abs(dr[0] / dr[1] - 1)
     assert spread_m < 0.01, dm
     assert spread_r > 5 * spread_m, (dr, dm)
+
+
+def test_sizing_by_d_drops_the_floor_and_refines_around_the_inclusion():
+    from elastimap.solver.geometry import _sizes
+
+    fixed = SolveParams().with_inclusion(d=2.0, h=4.0)
+    by_d = fixed.replace(disc=Discretisation(sizing="by_d"))
+    *_, h_inc_f, g_f = _sizes(fixed)
+    *_, h_inc_d, g_d = _sizes(by_d)
+    assert h_inc_f == 0.25 and h_inc_d == pytest.approx(2.0 / 12)  # elements per diameter kept for d = 2
+    assert g_d < g_f
+    assert "sizing" not in fixed.to_dict()["disc"] and by_d.to_dict()["disc"]["sizing"] == "by_d"
+
+
+def test_sweep_and_verify_reject_bad_switches():
+    import subprocess
+    import sys
+
+    from elastimap.sweep.run import SweepConfig
+
+    with pytest.raises(UserError) as err:
+        SweepConfig(geometry="warp").validate()
+    assert err.value.param == "geometry"
+    r = subprocess.run(
+        [sys.executable, "-m", "elastimap.solver.verify_morph", "--steps", "0.1,-1"], capture_output=True, text=True
+    )
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "--steps" in r.stderr
