@@ -16,7 +16,7 @@ import click
 
 from elastimap.cli_util import CONTEXT_SETTINGS, Choice, jobs_option, mesh_option, options, out_option, param_flags
 from elastimap.cli_util import run as run_cli
-from elastimap.solver.params import GEOMETRIES, INTERFACES
+from elastimap.solver.params import GEOMETRIES, INTERFACES, SIZINGS
 
 from . import design as dsg
 
@@ -73,6 +73,13 @@ _common = options(
     show_default=True,
     help="mesh every sample with gmsh, or morph a few reference meshes to each (d, h) (smooth in d, h)",
 )
+@click.option(
+    "--sizing",
+    type=Choice(SIZINGS),
+    default="fixed",
+    show_default=True,
+    help="element size near the inclusion: fixed (the first sweeps' rule) or by_d (scaled with d, converged)",
+)
 @click.option("--retry-failed", is_flag=True, help="run samples that landed as failed again")
 @click.option(
     "--scheduler",
@@ -122,6 +129,7 @@ def run_cmd(
     jobs,
     out,
     geometry,
+    sizing,
     retry_failed,
     scheduler,
     batch_rows,
@@ -144,6 +152,7 @@ def run_cmd(
         mesh=mesh,
         interface=interface,
         geometry=geometry,
+        sizing=sizing,
         design=design,
         ranges=dsg.parse_ranges_text(ranges),
         samples=samples,

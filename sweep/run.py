@@ -47,7 +47,7 @@ from elastimap.constraints import Interval, Options, Predicate, validate_params
 from elastimap.dataset import io, store
 from elastimap.errors import UserError
 from elastimap.provenance import code_version, host
-from elastimap.solver.params import GEOMETRIES, INTERFACES, MESH_LEVELS, Discretisation, SolveParams
+from elastimap.solver.params import GEOMETRIES, INTERFACES, MESH_LEVELS, SIZINGS, Discretisation, SolveParams
 
 from . import design as dsg
 from . import jobs
@@ -67,6 +67,7 @@ class SweepConfig:
     mesh: str = "default"
     interface: str = "tied"
     geometry: str = "remesh"  # or "morph": reference meshes moved to each (d, h) (solver/morph.py)
+    sizing: str = "fixed"  # or "by_d": element size near the inclusion scaled with d (solver/geometry.py)
     design: str = "lhs"
     ranges: dict | None = None
     samples: str | None = None
@@ -94,6 +95,7 @@ class SweepConfig:
         "mesh": [Options(MESH_LEVELS)],
         "interface": [Options(INTERFACES)],
         "geometry": [Options(GEOMETRIES)],
+        "sizing": [Options(SIZINGS)],
         "design": [Options(dsg.DESIGNS)],
         "ranges": [None, Predicate(lambda r: isinstance(r, dict), "a dict {name: (lo, hi[, scale])}")],
         "batch_rows": [Interval(int, 1, None)],
@@ -134,7 +136,7 @@ class Terminated(KeyboardInterrupt):
 
 
 def default_out(cfg: SweepConfig, n: int) -> str:
-    parts = [cfg.mesh, cfg.interface] + (["morph"] if cfg.geometry == "morph" else [])
+    parts = [cfg.mesh, cfg.interface] + [v for v in (cfg.geometry, cfg.sizing) if v in ("morph", "by_d")]
     if cfg.samples:
         parts.append(Path(cfg.samples).stem)
     if n:
@@ -152,7 +154,7 @@ def make_plan(cfg: SweepConfig) -> Plan:
     """Check everything and list the samples; writes nothing."""
     cfg.validate()
     n = cfg.n if cfg.n is not None else (0 if cfg.samples else 512)
-    disc = Discretisation(mesh=cfg.mesh, interface=cfg.interface, geometry=cfg.geometry)
+    disc = Discretisation(mesh=cfg.mesh, interface=cfg.interface, geometry=cfg.geometry, sizing=cfg.sizing)
     base = SolveParams(disc=disc).validate()
     ranges = dsg.check_ranges(cfg.ranges, base.tissue.thickness)
     samples = dsg.design_points(n, cfg.design, cfg.seed, ranges, base.tissue.thickness)
