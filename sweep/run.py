@@ -419,6 +419,16 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
             for s in plan.samples
             if s["sample_id"] not in landed or (cfg.retry_failed and landed[s["sample_id"]] != "ok")
         ]
+        if plan.base.disc.geometry == "morph":
+            # samples of one reference mesh one after another, so a worker reuses its morphed Model
+            from elastimap.solver.morph import reference_for
+
+            def _ref(s):
+                p = jobs.sample_params(s, plan.base)
+                r = reference_for(p.inclusion.d, p.inclusion.h, p.tissue.thickness, p.inclusion.aspect)
+                return (r.d0, r.h0)
+
+            todo.sort(key=_ref)
         summary["skipped"] = len(plan.samples) - len(todo)
         summary["todo"] = len(todo)
         man = io.read_manifest(out) or {
