@@ -156,15 +156,24 @@ def crb_relstd(F: np.ndarray, theta: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- real FD
-FD_STEP = np.array([0.5, 0.5, 0.1])  # d mm, h mm, ln E: large enough to beat remeshing noise
+# d mm, h mm, ln E: large enough to beat remeshing noise; on the morphed map the 0.5 mm step's
+# truncation error in dO2 is 0.3-0.6 % (docs/forward-model.md, derivative smoothness)
+FD_STEP = np.array([0.5, 0.5, 0.1])
 
 
-def fd_jacobian_solves(theta, mesh: str = "default", cache: str | None = None) -> dict:
-    """Jacobians from 7 real (cached) forward solves, central differences with :data:`FD_STEP`."""
-    from .solves import DEFAULT_CACHE, cached_solve
+def fd_jacobian_solves(theta, mesh: str = "default", cache: str | None = None, geometry: str = "morph") -> dict:
+    """Jacobians from 7 real (cached) forward solves, central differences with :data:`FD_STEP`.
+
+    ``geometry="morph"`` (default) takes all 7 on the smooth morphed map, the reference mesh
+    pinned at the centre's (:func:`elastimap.identify.solves.morph_reference`), so the
+    differences carry no remeshing jitter; ``"remesh"`` meshes each solve anew (the older maps).
+    """
+    from .solves import DEFAULT_CACHE, cached_solve, morph_reference
 
     d, h, E = (float(v) for v in theta)
-    kw = {"mesh": mesh, "cache": cache or DEFAULT_CACHE}
+    kw = {"mesh": mesh, "cache": cache or DEFAULT_CACHE, "geometry": geometry}
+    if geometry == "morph":
+        kw["reference"] = morph_reference(d, h)
     base = cached_solve(d, h, E, **kw)
     J = {"image": np.zeros((base["image"].size, 3)), "lnF": np.zeros((3, 3)), "dF": np.zeros(3)}
     for j in range(3):

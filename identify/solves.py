@@ -20,12 +20,12 @@ DEFAULT_CACHE = "data/identify/solves"
 _STORES: dict = {}
 
 
-def _params(d: float, h: float, E: float, mesh: str, delta: float, nonlinearity: float):
+def _params(d: float, h: float, E: float, mesh: str, delta: float, nonlinearity: float, geometry: str = "remesh"):
     from elastimap.solver.params import SolveParams
 
     p = SolveParams().with_inclusion(d=float(d), h=float(h), E=float(E))
     return p.replace(
-        disc=dataclasses.replace(p.disc, mesh=mesh),
+        disc=dataclasses.replace(p.disc, mesh=mesh, geometry=geometry),
         loading=dataclasses.replace(p.loading, delta=float(delta)),
         tissue=dataclasses.replace(p.tissue, nonlinearity=float(nonlinearity)),
     )
@@ -46,6 +46,37 @@ def _store(cache: str, solver: str):
     return _STORES[k]
 
 
+class PinnedMorph:
+    """The morphed forward map with its reference mesh pinned at (d₀, h₀) (mm), as a solve function.
+
+    Central differences around a point must not cross from one reference mesh to another (the
+    result jumps there by the discretisation error, :mod:`elastimap.solver.morph`), so a
+    finite-difference stencil pins the reference of its centre.  ``solver_name`` names the
+    reference: the solve store keeps these solves apart from the bins' own (same parameters,
+    another mesh).
+    """
+
+    def __init__(self, d0: float, h0: float):
+        from elastimap.solver.morph import Reference
+
+        self.reference = Reference(float(d0), float(h0))
+        self.solver_name = f"fem-morph@{float(d0):.9g},{float(h0):.9g}"
+
+    def __call__(self, p):
+        from elastimap.solver.morph import shared_forward
+
+        inc = p.inclusion
+        return shared_forward(p).solve(inc.d, inc.h, inc.E, reference=self.reference)
+
+
+def morph_reference(d: float, h: float) -> tuple[float, float]:
+    """(d₀, h₀) of the reference mesh that the morphed map uses at (d, h) unpinned."""
+    from elastimap.solver.morph import reference_for
+
+    r = reference_for(float(d), float(h))
+    return r.d0, r.h0
+
+
 def cached_solve(
     d: float,
     h: float,
@@ -56,15 +87,24 @@ def cached_solve(
     nonlinearity: float = 0.0,
     cache: str = DEFAULT_CACHE,
     solver: Callable | None = None,
+    geometry: str = "remesh",
+    reference: tuple[float, float] | None = None,
 ) -> dict:
     """One forward solve (tied interface, quarter model) -> dict of image, image_raw, features, force.
 
     ``solver``: the solve function (default the forward model; tests pass the SYNTHETIC stand-in,
-    whose solves the store keeps apart).  Images come as stored (float32 values, as float64 arrays).
+    whose solves the store keeps apart).  ``geometry``: ``"remesh"`` (gmsh mesh at (d, h)) or
+    ``"morph"`` (:mod:`elastimap.solver.morph`); with ``"morph"``, ``reference=(d0, h0)`` pins the
+    reference mesh (:class:`PinnedMorph`).  Images come as stored (float32 values, as float64 arrays).
     """
     from elastimap.dataset.store import solver_label
 
-    p = _params(d, h, E, mesh, delta, nonlinearity)
+    p = _params(d, h, E, mesh, delta, nonlinearity, geometry)
+    if reference is not None:
+        if geometry != "morph":
+            raise ValueError("reference= pins a morphed mesh: it needs geometry='morph'")
+        if solver is None:
+            solver = PinnedMorph(*reference)
     store = _store(cache, solver_label(solver))
     res = store.get(p, need_raw=True)
     if res is None and solver is None and os.path.exists(_legacy_npz(cache, p)):

@@ -5,29 +5,39 @@
 Noise: O1, O2, O3 1 % relative each; image 1 % of its peak per pixel (iid); plate force 0.1 % per
 reading.  "two-depths" is 2 x the image Fisher matrix: the forward model is linear, so the image
 at a second indentation depth is the first image scaled (checked on cached solves, see
-docs/identifiability.md) and only averages noise.  Solves are cached in data/identify/solves
+docs/identifiability.md) and only averages noise.  ``--geometry morph`` (default) takes the
+differences on the morphed map with its reference pinned at the point; ``remesh`` as the first maps did.  Solves are cached in data/identify/solves
 (about 3 s each on the default mesh when absent).
 """
 
 import click
 import numpy as np
 
-from elastimap.cli_util import CONTEXT_SETTINGS, run
+from elastimap.cli_util import CONTEXT_SETTINGS, Choice, run
 from elastimap.identify.local import NoiseSpec, fd_jacobian_solves, fd_relstd, stack
+from elastimap.solver.params import GEOMETRIES
 
 POINTS = ((8.0, 8.0, 30.0), (8.0, 8.0, 120.0))
 NOISE = NoiseSpec(feature=0.01, image=0.01, force=0.001)
 
 
-def fd_crb(points=POINTS, noise: NoiseSpec = NOISE) -> dict:
+def fd_crb(points=POINTS, noise: NoiseSpec = NOISE, geometry: str = "morph") -> dict:
     """Real-FD CRB relative std ``{set: (len(points), 3)}`` (cached solves, default mesh)."""
-    return fd_relstd(stack([fd_jacobian_solves(th) for th in points]), np.array(points, dtype=float), noise)
+    J = stack([fd_jacobian_solves(th, geometry=geometry) for th in points])
+    return fd_relstd(J, np.array(points, dtype=float), noise)
 
 
 @click.command(context_settings=CONTEXT_SETTINGS)
-def main():
+@click.option(
+    "--geometry",
+    type=Choice(GEOMETRIES),
+    default="morph",
+    show_default=True,
+    help="morph: the smooth morphed map, reference pinned per point; remesh: gmsh per solve.",
+)
+def main(geometry):
     """Print the real-FD Cramér–Rao relative std of d, h, E at the two check points."""
-    R = fd_crb()
+    R = fd_crb(geometry=geometry)
     for i, th in enumerate(POINTS):
         for k in ("features", "image", "image+force", "two-depths"):
             r = R[k][i] * 100

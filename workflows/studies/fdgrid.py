@@ -1,9 +1,10 @@
 """Real finite-difference Jacobians on a coarse (d, depth fraction, E) grid (cached solves).
 
-    python -m elastimap.workflows.studies.fdgrid [--mesh default] [--out data/identify/fdgrid.npz]
+    python -m elastimap.workflows.studies.fdgrid [--mesh default] [--geometry morph] [--out data/identify/fdgrid.npz]
 
 7 forward solves per grid point (centre and central differences in d, h, ln E with
-:data:`elastimap.identify.local.FD_STEP`); every solve is cached by :mod:`elastimap.identify.solves`, so an
+:data:`elastimap.identify.local.FD_STEP`), on the morphed map with the reference mesh pinned at the
+point (``--geometry morph``, no remeshing jitter) or remeshed per solve (``remesh``); every solve is cached by :mod:`elastimap.identify.solves`, so an
 interrupted run resumes.  The result file holds the grid and the Jacobians; turning them into
 Cramér–Rao maps (:func:`elastimap.identify.local.fisher` / :func:`~elastimap.identify.local.crb_relstd`) is NOT done
 yet (see docs/identifiability.md).
@@ -18,8 +19,9 @@ import time
 import click
 import numpy as np
 
-from elastimap.cli_util import CONTEXT_SETTINGS, mesh_option, run
+from elastimap.cli_util import CONTEXT_SETTINGS, Choice, mesh_option, run
 from elastimap.dataset.schema import THICKNESS
+from elastimap.solver.params import GEOMETRIES
 
 FD_D = (4.0, 7.0, 10.0, 13.0)
 FD_U = (0.25, 0.75)
@@ -39,14 +41,14 @@ def fd_grid_points(ds=FD_D, us=FD_U, Es=FD_E, thickness: float = THICKNESS) -> n
     return np.array(pts)
 
 
-def compute(out: str, mesh: str = "default", progress: bool = True) -> dict:
+def compute(out: str, mesh: str = "default", progress: bool = True, geometry: str = "morph") -> dict:
     from elastimap.identify.local import fd_jacobian_solves
 
     pts = fd_grid_points()
     res = {"theta": pts[:, :3], "u": pts[:, 3], "image": [], "lnF": [], "dF": [], "image0": [], "lnF0": [], "dF0": []}
     t0 = time.perf_counter()
     for i, p in enumerate(pts):
-        J = fd_jacobian_solves(p[:3], mesh=mesh)
+        J = fd_jacobian_solves(p[:3], mesh=mesh, geometry=geometry)
         for k in ("image", "lnF", "dF", "image0", "lnF0", "dF0"):
             res[k].append(J[k])
         if progress:
@@ -56,16 +58,23 @@ def compute(out: str, mesh: str = "default", progress: bool = True) -> dict:
         res["background"] = J["background"]
     out_d = {k: np.asarray(v) for k, v in res.items()}
     os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
-    np.savez(out, **out_d, mesh=np.array(mesh))
+    np.savez(out, **out_d, mesh=np.array(mesh), geometry=np.array(geometry))
     return out_d
 
 
 @click.command(context_settings=CONTEXT_SETTINGS)
 @mesh_option()
+@click.option(
+    "--geometry",
+    type=Choice(GEOMETRIES),
+    default="morph",
+    show_default=True,
+    help="morph: the smooth morphed map, reference pinned per point; remesh: gmsh per solve.",
+)
 @click.option("--out", default="data/identify/fdgrid.npz", show_default=True)
-def main(mesh, out):
+def main(mesh, geometry, out):
     """Finite-difference Jacobians from real solves on the coarse study grid."""
-    compute(out, mesh)
+    compute(out, mesh, geometry=geometry)
     click.echo(f"wrote {out}")
 
 
