@@ -42,8 +42,9 @@ the held-out study that chose the defaults and :data:`INTERVAL_SCALE` is
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -353,12 +354,270 @@ def fem_model(mesh: str = "default", cache: str | None = None) -> Callable[[np.n
     return model
 
 
-# ----------------------------------------------------------------------------- the fit inference calls
+# ============================================================================ the fit inference uses
+# Maximum-likelihood fit of (d, h, E) to a measured difference image on a smooth forward map.
+#
+# The measured image ``I`` (mm, ``p`` pixels, e.g. recovered from camera frames by
+# :mod:`elastimap.camera.deflection`) has per-pixel standard errors ``σ_meas`` (mm, from the frames'
+# own scatter).  The forward map ``m(θ)`` (mm), ``θ = (d mm, h mm, E kPa)``, is itself only a
+# discretisation: its error against the continuum is measured, not assumed, as the difference of
+# two mesh levels of the map at the same ``θ``,
+#
+#     σ_model,i(θ) = sqrt( mean_{3x3 around i} (m_i(θ) − m_i^alt(θ))² ),
+#
+# (``m^alt`` the neighbouring mesh level; a local rms over the pixel's 3 x 3 neighbourhood so that a
+# pixel where the two levels happen to cross zero does not claim a perfect model).  The fit is
+#
+#     θ̂ = argmin_θ  ½ Σ_i ((m_i(θ) − I_i) / σ_i)²,      σ_i² = σ_meas,i² + σ_model,i(θ̂)²,
+#
+# the maximum-likelihood estimate for independent Gaussian pixel errors.  Parameters
+# ``x = (d, u, ln E)``, ``h = lo(d) + u (hi(d) − lo(d))`` (:func:`elastimap.solver.params.depth_range`),
+# so the feasible set is the box ``[d_lo, d_hi] x [0, 1] x [ln E_lo, ln E_hi]`` (the design box).
+#
+# Minimiser: :func:`scipy.optimize.least_squares` (trust-region reflective, bounds).  The Jacobian is
+# by central differences on the map (steps :data:`FD_STEPS`: 0.15 mm in d and h, 3 % in E) at the
+# start and at the end; between them it is carried by Broyden's rank-one update from the steps
+# taken (``J ← J + ((r₊ − r) − J Δx) Δxᵀ / |Δx|²``), so an iteration costs one map evaluation
+# instead of seven.  This needs a map that is smooth in (d, h, E) -- a remeshing forward model's
+# jitter defeats it.  The model error is measured at the start, re-measured at the first optimum,
+# and the fit repeated from there with it (the re-fit starts from a fresh central-difference
+# Jacobian, most of whose evaluations it shares with nothing; a few evaluations in all).
+#
+# Uncertainty: Gauss–Newton covariance at ``θ̂`` from the fresh central-difference Jacobian,
+# ``C_x = (JᵀJ)⁻¹ max(1, χ²_red)`` (the Birge factor: a misfit larger than the stated errors widens
+# the interval, a smaller one never narrows it), mapped to (d, h, ln E) by the delta method.  The
+# 95 % interval is ``q ± 1.96 sd`` for d and h and ``E exp(±1.96 sd_ln E)`` for E, clipped to the
+# design box (the prior: no lesion outside it).  No factor is tuned.
+
+FD_STEPS = (0.15, 0.15, 0.03)  # central-difference steps: d mm, h mm (at fixed d), ln E
+Z95 = 1.959963984540054
+
+
+def image_of(out) -> np.ndarray:
+    """The difference image (mm) from what a forward map returns: an array, a tuple/list whose first
+    item is the image, or an object with ``.image`` (e.g. :class:`elastimap.solver.params.SolveResult`)."""
+    if hasattr(out, "image"):
+        out = out.image
+    elif isinstance(out, (tuple, list)):
+        out = out[0]
+    return np.asarray(out, dtype=float)
+
+
+@dataclass
+class FitResult:
+    """The fitted (d mm, h mm, E kPa), its Gauss–Newton uncertainty and 95 % interval, and the cost."""
+
+    theta: np.ndarray
+    theta0: np.ndarray
+    relstd: np.ndarray  # rel. std of d and h, std of ln E (Birge-widened Gauss–Newton covariance)
+    lo: np.ndarray  # 95 % interval, clipped to the design box
+    hi: np.ndarray
+    chi2_red: float  # Σ r² / (p − 3) at theta with the final σ
+    chi2_red0: float  # the same at theta0
+    model_error: float  # rms σ_model / rms σ_meas over the pixels where the image is above 10 % of its peak
+    n_solves: int  # forward-map evaluations at the fit's level
+    n_alt: int  # evaluations at the other level (model error)
+    seconds: float
+    message: str
+    at_bound: list[str] = field(default_factory=list)  # parameters that ended on the design box's edge
+
+    @property
+    def sd(self) -> np.ndarray:
+        """Absolute standard deviations (for E: first order, E x sd ln E)."""
+        return self.relstd * self.theta
+
+
+def _box(d_range, E_range):
+    lb = np.array([d_range[0], 0.0, math.log(E_range[0])])
+    ub = np.array([d_range[1], 1.0, math.log(E_range[1])])
+    return lb, ub
+
+
+def _local_rms(diff: np.ndarray, shape) -> np.ndarray:
+    from scipy import ndimage
+
+    if shape is None:
+        return np.abs(diff)
+    return np.sqrt(ndimage.uniform_filter((diff * diff).reshape(shape), size=3, mode="nearest")).ravel()
+
+
+def fit_image(
+    image,
+    sigma,
+    theta0,
+    forward: Callable,
+    *,
+    forward_alt: Callable | None = None,
+    d_range=DESIGN_BOX["d"],
+    E_range=DESIGN_BOX["E"],
+    thickness: float = THICKNESS,
+    fd=FD_STEPS,
+    max_nfev: int = 15,
+    max_passes: int = 4,
+) -> FitResult:
+    """Maximum-likelihood (d, h, E) of ``image`` (mm, ``(ny, nx)`` or flat) with per-pixel standard
+    errors ``sigma`` (mm, scalar or like ``image``), starting from ``theta0`` (d mm, h mm, E kPa).
+
+    ``forward(d, h, E)`` and ``forward_alt(d, h, E)`` return the difference image (see
+    :func:`image_of`) of the map and of its neighbouring mesh level; without ``forward_alt`` the
+    model error is taken as zero (say so when reporting).  ``max_nfev`` bounds the trial points
+    per pass, ``max_passes`` the passes (each from a fresh central-difference Jacobian).  See the module docstring."""
+    from scipy.optimize import least_squares
+
+    t0 = time.perf_counter()
+    I = np.asarray(image, dtype=float)
+    shape = I.shape if I.ndim == 2 else None
+    I = I.ravel()
+    if I.size == 0 or not np.isfinite(I).all():
+        raise UserError("image", "must be a non-empty finite difference image")
+    s_meas = np.broadcast_to(np.asarray(sigma, dtype=float), np.shape(image)).ravel().copy()
+    if not (np.isfinite(s_meas).all() and (s_meas > 0).all()):
+        raise UserError("sigma", "pixel noise must be finite and > 0")
+    theta0 = np.asarray(theta0, dtype=float)
+    if theta0.shape != (3,) or not np.isfinite(theta0).all() or theta0[2] <= 0:
+        raise UserError("theta0", f"need a finite (d, h, E > 0) start (got {theta0})")
+    lb, ub = _box(d_range, E_range)
+    pad = 1e-3 * (ub - lb)
+    th0 = np.clip(theta0, [d_range[0], -np.inf, E_range[0]], [d_range[1], np.inf, E_range[1]])
+    x0 = np.clip(to_x(th0, thickness), lb + pad, ub - pad)
+
+    maps: dict = {}
+    alts: dict = {}
+
+    def key(x):
+        return tuple(np.round(np.asarray(x, float), 10))
+
+    def m(x):
+        k = key(x)
+        if k not in maps:
+            v = image_of(forward(*to_theta(x, thickness))).ravel()
+            if v.shape != I.shape:
+                raise RuntimeError(f"the forward map returned {v.size} pixels, the image has {I.size}")
+            maps[k] = v
+        return maps[k]
+
+    def sigma_at(x):
+        if forward_alt is None:
+            return s_meas, np.zeros_like(s_meas)
+        k = key(x)
+        if k not in alts:
+            a = image_of(forward_alt(*to_theta(x, thickness))).ravel()
+            if a.shape != I.shape:
+                raise RuntimeError(f"the alternative forward map returned {a.size} pixels, the image has {I.size}")
+            alts[k] = a
+        sm = _local_rms(m(x) - alts[k], shape)
+        return np.hypot(s_meas, sm), sm
+
+    def steps_at(x):
+        lo, hi = h_range(x[0], thickness)
+        return np.array([fd[0], fd[1] / (hi - lo), fd[2]])
+
+    def fd_jac(x, s):
+        """Central differences (one-sided at the box), in x units, whitened by ``s``."""
+        J = np.empty((I.size, 3))
+        st = steps_at(x)
+        for j in range(3):
+            xp, xm = np.array(x, float), np.array(x, float)
+            xp[j] += st[j]
+            xm[j] -= st[j]
+            if lb[j] <= xm[j] and xp[j] <= ub[j]:
+                J[:, j] = (m(xp) - m(xm)) / (2 * st[j])
+            elif xp[j] <= ub[j]:
+                J[:, j] = (m(xp) - m(x)) / st[j]
+            else:
+                J[:, j] = (m(x) - m(xm)) / st[j]
+        return J / s[:, None]
+
+    def one_pass(xs, s, J0):
+        state = {"x": None, "J": None, "r": None}
+
+        def resid(x):
+            return (m(x) - I) / s
+
+        def jac(x):
+            x = np.asarray(x, float)
+            if state["J"] is None:
+                J = J0
+            else:  # Broyden's rank-one update from the last accepted point
+                dx = x - state["x"]
+                dr = resid(x) - state["r"]
+                J = state["J"] + np.outer(dr - state["J"] @ dx, dx) / max(float(dx @ dx), 1e-300)
+            state.update(x=x.copy(), J=J, r=resid(x))
+            return J
+
+        res = least_squares(
+            resid,
+            xs,
+            jac=jac,
+            bounds=(lb, ub),
+            method="trf",
+            x_scale=np.array([1.0, 0.1, 0.1]),
+            max_nfev=max_nfev,
+            xtol=1e-4,
+            ftol=1e-6,
+            gtol=1e-8,
+        )
+        return np.clip(res.x, lb, ub), res
+
+    s_tot, _ = sigma_at(x0)
+    r0 = (m(x0) - I) / s_tot
+    x, msg, J = x0, [], None
+    for _ in range(max_passes):
+        # each pass starts from a fresh central-difference Jacobian and the model error measured
+        # where it starts; the fit is accepted when a pass no longer moves (within a tenth of a step)
+        s_tot, _ = sigma_at(x)
+        J = fd_jac(x, s_tot)
+        xn, res = one_pass(x, s_tot, J)
+        msg.append(str(res.message))
+        moved = np.any(np.abs(xn - x) > 0.1 * steps_at(x))
+        x = xn
+        if not moved:
+            break
+    else:
+        msg.append(f"still moving after {max_passes} passes")
+    s_tot, s_mod = sigma_at(x)
+    if J is None or moved:
+        J = fd_jac(x, s_tot)
+    r = (m(x) - I) / s_tot
+    dof = max(I.size - 3, 1)
+    chi2 = float(r @ r) / dof
+    G = _dtheta_dx(x, thickness)
+    C = G @ np.linalg.pinv(J.T @ J) @ G.T * max(1.0, chi2)
+    th = to_theta(x, thickness)
+    sd = np.sqrt(np.clip(np.diag(C), 0, None))
+    relstd = np.array([sd[0] / th[0], sd[1] / th[1], sd[2]])
+    hlo, hhi = h_range(th[0], thickness)
+    lo = np.array([max(th[0] - Z95 * sd[0], d_range[0]), max(th[1] - Z95 * sd[1], hlo), th[2] * math.exp(-Z95 * sd[2])])
+    hi = np.array([min(th[0] + Z95 * sd[0], d_range[1]), min(th[1] + Z95 * sd[1], hhi), th[2] * math.exp(Z95 * sd[2])])
+    lo[2], hi[2] = max(lo[2], E_range[0]), min(hi[2], E_range[1])
+    tol = 1e-3 * (ub - lb)
+    at = [q for j, q in enumerate(("d", "h", "E")) if x[j] <= lb[j] + tol[j] or x[j] >= ub[j] - tol[j]]
+    big = np.abs(I) >= 0.1 * np.abs(I).max()
+    me = float(np.sqrt(np.mean(s_mod[big] ** 2)) / np.sqrt(np.mean(s_meas[big] ** 2)))
+    return FitResult(
+        th,
+        theta0.copy(),
+        relstd,
+        lo,
+        hi,
+        chi2,
+        float(r0 @ r0) / dof,
+        me,
+        len(maps),
+        len(alts),
+        time.perf_counter() - t0,
+        "; ".join(msg),
+        at,
+    )
+
+
+# ----------------------------------------------------------------------------- the remeshing-era study fits
 METHODS = ("rsm", "trf")
 
 
 def fit(image, sigma, theta0, model, method: str = "rsm", max_iter: int = 12) -> RefineResult:
-    """:func:`refine_rsm` (``rsm``, default) or :func:`refine` (``trf``)."""
+    """The remeshing-era fits of the held-out study (:mod:`elastimap.workflows.studies.refine`):
+    :func:`refine_rsm` (``rsm``, default) or :func:`refine` (``trf``).  Inference uses :func:`fit_image`."""
     if method == "rsm":
         return refine_rsm(image, sigma, theta0, model)
     if method == "trf":
