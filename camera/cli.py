@@ -346,21 +346,23 @@ def calibrate(
 @click.option(
     "--refine",
     is_flag=True,
-    help="Image models (--fem-image, --images or --csv): refine each estimate by a maximum-likelihood fit of "
-    "the FEM image (elastimap.identify.refine, response surface: runs the solver, 30 forward solves per "
-    "lesion); intervals from the local Cramér–Rao bound.  From frames, every pixel is weighted by "
-    "its own noise, measured from the frames' scatter.",
+    help="Image models (--fem-image, --images or --csv): refine each estimate by the maximum-likelihood fit of "
+    "the forward map (elastimap.identify.refine.fit_image: runs the solver, about 20-30 forward solves per "
+    "lesion); 95 % intervals from the Gauss-Newton covariance.  From frames, every pixel is weighted by "
+    "its own noise, measured from the frames' scatter, plus the forward map's error measured between two "
+    "mesh levels.",
 )
 @click.option(
     "--image-noise",
     default=0.01,
     show_default=True,
     type=float,
-    help="--refine: with --fem-image the pixel noise relative to the image's peak; from frames (which "
-    "measure their own noise) the forward model's error floor relative to the peak, added in "
-    "quadrature to the frames' noise.",
+    help="--refine with --fem-image: the pixel noise relative to the image's peak (frames measure their own).",
 )
-@mesh_option(help="--refine: mesh of the forward model (the one the model's training sweep used).")
+@mesh_option(
+    default="coarse",
+    help="--refine: mesh level of the forward map (its error is measured against the neighbouring level).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also write .csv or .json here.")
 def infer(
@@ -416,10 +418,8 @@ def infer(
         check_out_file(out, "--out")
     idm = load_identifiability(None if identifiability == "none" else identifiability)
     model = load_model(model_dir)
-    if refine and not _is_image_model(model):
-        raise UserError(
-            "--refine", "needs an image model (python -m elastimap.workflows.studies.imagenet --save-model DIR)"
-        )
+    if refine and fem_image is not None and not _is_image_model(model):
+        raise UserError("--refine", "--fem-image needs an image model (python -m elastimap.workflows.studies.imagenet --save-model DIR)")
     if fem_image is not None:
         try:
             arr = np.load(fem_image, allow_pickle=False)
@@ -434,9 +434,13 @@ def infer(
         if images:
             if not background:
                 raise UserError("background", "--images needs --background frames (the same press without the lesion)")
-            ests = [estimate_images(expand(list(images)), expand(list(background)), cal, model, "1", idm, threshold)]
+            ests = [
+                estimate_images(
+                    expand(list(images)), expand(list(background)), cal, model, "1", idm, threshold, keep_image=refine
+                )
+            ]
         elif csv_path:
-            ests = estimate_lesions_csv(csv_path, cal, model, idm, threshold)
+            ests = estimate_lesions_csv(csv_path, cal, model, idm, threshold, keep_image=refine)
         else:
             ests = estimate(np.array([feats]), cal, model, ["1"], idm, threshold)
     if refine:
@@ -452,7 +456,6 @@ def infer(
                 mesh=mesh,
                 threshold=threshold,
                 progress=lambda i, n: bar.update(1),
-                model_error=image_noise,
             )
     rows = [e.to_dict() for e in ests]
     if out:

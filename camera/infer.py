@@ -62,7 +62,6 @@ from elastimap.errors import UserError
 from .calibration import Calibration
 
 DETECT_SIGMA = 5.0  # from frames: the inclusion is visible when some pixel is this many standard errors up
-MODEL_ERROR = 0.01  # --refine from frames: forward-model error floor, x the image's peak (see refine_estimates)
 TARGET_UNITS = {k: UNITS[k] for k in TARGETS}
 
 
@@ -83,6 +82,7 @@ class Estimate:
     input: str = "features"  # features | image | frames | ... +fem_refined
     image: np.ndarray | None = None  # the difference image estimated from (mm, FEM grid; image models)
     sigma: np.ndarray | None = None  # its per-pixel standard error (mm; from frames), else None
+    fit: object | None = None  # elastimap.identify.refine.FitResult after refine_estimates
 
     d = property(lambda s: float(s.mean[0]))
     h = property(lambda s: float(s.mean[1]))
@@ -122,6 +122,11 @@ class Estimate:
             j = int(np.argmax(self.image))
             out["image_peak_mm"] = float(self.image.ravel()[j])
             out["image_peak_sigma_mm"] = float(self.sigma.ravel()[j]) if self.sigma is not None else math.nan
+        if self.fit is not None:
+            out["fit_chi2_red"] = float(self.fit.chi2_red)
+            out["fit_model_error"] = float(self.fit.model_error)
+            out["fit_solves"] = int(self.fit.n_solves + self.fit.n_alt)
+            out["fit_seconds"] = float(self.fit.seconds)
         out["input"] = self.input
         out["n_members"] = self.n_members
         out["flags"] = ";".join(self.flags)
@@ -348,59 +353,64 @@ def refine_estimates(
     ests: list[Estimate],
     images=None,
     image_noise: float = 0.01,
-    mesh: str = "default",
+    mesh: str = "coarse",
     threshold: float = 0.10,
     chi2_limit: float = 3.0,
-    method: str = "rsm",
-    cache: str | None = None,
     progress=None,
-    model_error: float = MODEL_ERROR,
+    forward=None,
+    forward_alt=None,
+    geometry: str | None = None,
 ) -> list[Estimate]:
-    """Refine image-model estimates by a maximum-likelihood fit of the FEM image (:mod:`elastimap.identify.refine`).
+    """Refine image-model estimates by the maximum-likelihood fit of the forward map
+    (:func:`elastimap.identify.refine.fit_image`).
 
     ``images`` as given to :func:`estimate_fem_images` (FEM difference images, mm, on the model's
-    grid; default: each estimate's own ``image``); pixel noise: where the frames measured it
-    (:func:`difference_of_frames`) ``sqrt(sigma² + (model_error x peak)²)`` -- the frames' own
-    standard error and a floor for the forward model's own error (its remeshing jitter, about 1 %
-    of the peak, exceeds the noise of 30 frames, ~0.3 % of the peak, and a fit weighted by the
-    camera noise alone claims intervals the forward model cannot support; 1 % is also the noise
-    level :data:`elastimap.identify.refine.INTERVAL_SCALE` was measured at) -- else
-    ``image_noise`` x the image's peak;
-    ``progress(i, n)`` is called after each lesion; ``method`` ``rsm`` (default, 30 forward
-    solves per image) or ``trf`` (15-48, median about 30 in the study), see :mod:`elastimap.identify.refine`.  Runs the solver
-    (DOLFINx).  Each estimate's mean becomes the fitted (d, h, E), ``sd``/``crb`` the local
-    Cramér–Rao bound at it, ``lo``/``hi`` that bound's 95 % interval widened by
-    :data:`elastimap.identify.refine.INTERVAL_SCALE` (measured errors exceed the bound), and the
-    identifiability flags are re-decided from the bound; ``model_mismatch`` is added when the
-    fitted image leaves a reduced chi² above ``chi2_limit`` (the FEM cannot reproduce the image at
-    the stated noise)."""
-    from elastimap.identify.refine import fem_model, fit
+    grid; default: each estimate's own ``image``).  Pixel noise: where the frames measured it
+    (:func:`difference_of_frames`) each pixel's own standard error, else ``image_noise`` x the
+    image's peak (``--fem-image``); to it the fit adds the forward map's own error, measured as the
+    difference of two mesh levels at the estimate (no assumed floor).  Forward map:
+    ``forward``/``forward_alt`` (``(d, h, E) -> image``) or, by default, the solver's map at
+    ``mesh`` and its neighbouring level (:func:`elastimap.identify.refine.forward_map`, mesh
+    morphing where available; runs DOLFINx).  ``progress(i, n)`` after each lesion.
+
+    Each estimate's mean becomes the fitted (d, h, E), ``sd``/``crb`` the Gauss–Newton standard
+    deviation (relative for ``crb``), ``lo``/``hi`` its 95 % interval (no tuned factor);
+    ``non_identifiable:q`` is re-decided from that standard deviation (``> threshold``), and
+    ``model_mismatch`` added when the fit leaves a reduced chi² above ``chi2_limit`` (the forward
+    model cannot reproduce the image at the stated noise); ``input`` gains ``+fem_refined``."""
+    from elastimap.identify.refine import _maps, fit_image, neighbour_level
 
     if not 0 < image_noise < 1:
         raise UserError("image_noise", f"must be in (0, 1) (got {image_noise:g})")
     if images is None:
         if any(e.image is None for e in ests):
             raise UserError("images", "an estimate carries no image to refine against")
-        imgs = np.array([e.image for e in ests], dtype=float)
+        imgs = [np.asarray(e.image, dtype=float) for e in ests]
     else:
-        imgs = np.asarray(images, dtype=float).reshape(len(ests), -1)
-    model = fem_model(mesh, cache)
+        imgs = list(np.asarray(images, dtype=float).reshape(len(ests), -1))
+    if forward is None:
+        forward = _maps(mesh, geometry)
+        forward_alt = _maps(neighbour_level(mesh), geometry) if forward_alt is None else forward_alt
     for i, (e, img) in enumerate(zip(ests, imgs)):
-        if "no_signal" in e.flags:
-            continue
-        pk = np.abs(img).max()
-        sig = np.hypot(e.sigma, model_error * pk) if e.sigma is not None else image_noise * pk
-        r = fit(img, sig, e.mean, model, method)
-        e.mean = r.theta
-        e.crb = r.relstd
-        e.sd = r.relstd * r.theta  # (for E: std of ln E x E, first order)
-        e.lo, e.hi = r.lo, r.hi
-        e.flags = [f for f in e.flags if not f.startswith("non_identifiable:") and f != "outside_identifiability_map"]
-        e.flags += [f"non_identifiable:{q}" for j, q in enumerate(TARGETS) if not r.relstd[j] <= threshold]
-        if r.chi2_red > chi2_limit:
-            e.flags.append("model_mismatch")
-        e.input = e.input + "+fem_refined"
-        _plausibility([e])
+        if "no_signal" not in e.flags:
+            n = int(round(math.sqrt(img.size)))
+            img2 = img.reshape(n, n) if n * n == img.size else img
+            pk = np.abs(img).max()
+            sig = np.asarray(e.sigma, float).reshape(img2.shape) if e.sigma is not None else image_noise * pk
+            r = fit_image(img2, sig, e.mean, forward, forward_alt=forward_alt)
+            e.mean = r.theta
+            e.crb = r.relstd
+            e.sd = r.sd
+            e.lo, e.hi = r.lo, r.hi
+            e.flags = [
+                f for f in e.flags if not f.startswith("non_identifiable:") and f != "outside_identifiability_map"
+            ]
+            e.flags += [f"non_identifiable:{q}" for j, q in enumerate(TARGETS) if not r.relstd[j] <= threshold]
+            if r.chi2_red > chi2_limit:
+                e.flags.append("model_mismatch")
+            e.input = e.input + "+fem_refined"
+            e.fit = r
+            _plausibility([e])
         if progress:
             progress(i + 1, len(ests))
     return ests
@@ -467,15 +477,23 @@ def estimate_images(
     id: str = "1",
     identifiability="default",
     threshold: float = 0.10,
+    keep_image: bool = False,
 ) -> Estimate:
     """One lesion's camera frames -> :class:`Estimate`, with a feature ensemble or an image model.
 
-    Feature ensemble: camera features -> the calibration's lines -> the network.  Image model:
-    :func:`difference_of_frames` -> the network; the estimate keeps the image and its per-pixel
-    noise for :func:`refine_estimates`."""
+    Feature ensemble: camera features -> the calibration's lines -> the network (with
+    ``keep_image`` the estimate also carries :func:`difference_of_frames`' image and noise, for
+    :func:`refine_estimates`).  Image model: :func:`difference_of_frames` -> the network; the
+    estimate keeps the image and its per-pixel noise for :func:`refine_estimates`."""
     cf = features_of_images(images, background, calibration)
     if not _is_image_model(model):
-        return estimate(cf.values[None], calibration, model, [id], identifiability, threshold)[0]
+        e = estimate(cf.values[None], calibration, model, [id], identifiability, threshold)[0]
+        if keep_image:
+            di = difference_of_frames(images, background, calibration)
+            e.image, e.sigma = di.image.ravel(), di.sigma.ravel()
+            if di.saturated:
+                e.flags.append("saturated")
+        return e
     out_cal = calibration.outside(cf.values[None])[0]
     flags = [f"outside_calibration:{k}" for j, k in enumerate(FEATURES) if out_cal[j]]
     di = difference_of_frames(images, background, calibration, model)
@@ -502,8 +520,11 @@ def estimate_lesions_csv(
     identifiability="default",
     threshold: float = 0.10,
     progress=None,
+    keep_image: bool = False,
 ) -> list[Estimate]:
-    """Batch of lesions from a CSV, for every model kind (format in :func:`read_lesions_table`).
+    """Batch of lesions from a CSV, for every model kind (format in :func:`read_lesions_table`);
+    ``keep_image``: frames rows of a feature ensemble also keep their difference image (for
+    :func:`refine_estimates`).
 
     Feature ensemble: ``O1,O2,O3`` or ``images,background``; image model: ``images,background``
     (each lesion's frames -> :func:`estimate_images`) or ``fem_image`` (a ``.npy`` FEM difference
@@ -529,13 +550,13 @@ def estimate_lesions_csv(
                 raise UserError("csv", f"{path}: lesion {i}: {f} is not a .npy array ({exc})") from None
         return estimate_fem_images(np.array(imgs, dtype=float), model, ids, identifiability, threshold)
     cal = _need_cal(calibration)
-    if not image_model:
+    if not image_model and not keep_image:
         cam = np.array([features_of_images(im, bg, cal).values for im, bg in rows])
         return estimate(cam, cal, model, ids, identifiability, threshold)
     idm = load_identifiability(identifiability)
     out = []
     for k, (i, (im, bg)) in enumerate(zip(ids, rows)):
-        out.append(estimate_images(im, bg, cal, model, i, idm, threshold))
+        out.append(estimate_images(im, bg, cal, model, i, idm, threshold, keep_image=keep_image))
         if progress:
             progress(k + 1, len(rows))
     return out

@@ -623,3 +623,81 @@ def fit(image, sigma, theta0, model, method: str = "rsm", max_iter: int = 12) ->
     if method == "trf":
         return refine(image, sigma, theta0, model, max_iter=max_iter)
     raise UserError("method", f"must be one of {', '.join(METHODS)} (got {method!r})")
+
+
+# ----------------------------------------------------------------------------- the forward maps the fit uses
+GEOMETRIES = ("morph", "remesh")
+
+
+def neighbour_level(mesh: str) -> str:
+    """The mesh level whose difference from ``mesh`` measures the map's discretisation error: the next
+    coarser level (the next finer for the coarsest)."""
+    from elastimap.solver.params import MESH_LEVELS
+
+    if mesh not in MESH_LEVELS:
+        raise UserError("mesh", f"must be one of {', '.join(MESH_LEVELS)} (got {mesh!r})")
+    i = MESH_LEVELS.index(mesh)
+    return MESH_LEVELS[i - 1] if i > 0 else MESH_LEVELS[1]
+
+
+def default_geometry() -> str:
+    """``morph`` where :mod:`elastimap.solver.morph` is installed, else ``remesh``."""
+    import importlib.util
+
+    try:
+        return "morph" if importlib.util.find_spec("elastimap.solver.morph") else "remesh"
+    except ImportError:
+        return "remesh"
+
+
+def forward_map(mesh: str = "coarse", geometry: str | None = None, template=None) -> Callable:
+    """``forward(d, h, E) -> SolveResult`` of the forward model (tied probe, quarter model, default
+    loading, or ``template``'s) at mesh level ``mesh``.
+
+    ``geometry="morph"``: one mesh per level, morphed smoothly to each (d, h)
+    (:mod:`elastimap.solver.morph`; built on first use and reused); ``"remesh"``: a new mesh per
+    call (:func:`elastimap.solver.solve`; jitters in d and h, so central differences are unreliable)."""
+    import dataclasses
+
+    from elastimap.solver.params import SolveParams
+
+    geometry = geometry or default_geometry()
+    if geometry not in GEOMETRIES:
+        raise UserError("geometry", f"must be one of {', '.join(GEOMETRIES)} (got {geometry!r})")
+    neighbour_level(mesh)  # checks the level
+    base = template or SolveParams()
+    base = base.replace(disc=dataclasses.replace(base.disc, mesh=mesh))
+    if geometry == "morph":
+        from elastimap.solver.morph import MorphedForward
+
+        return MorphedForward(base).solve
+
+    def forward(d, h, E):
+        from elastimap.solver import solve
+
+        return solve(base.with_inclusion(d=float(d), h=float(h), E=float(E)))
+
+    return forward
+
+
+def fit_forward(image, sigma, theta0, mesh: str = "coarse", geometry: str | None = None, **kw) -> FitResult:
+    """:func:`fit_image` on :func:`forward_map` at ``mesh`` with its model error measured against the
+    neighbouring level (:func:`neighbour_level`)."""
+    return fit_image(
+        image,
+        sigma,
+        theta0,
+        _maps(mesh, geometry),
+        forward_alt=_maps(neighbour_level(mesh), geometry),
+        **kw,
+    )
+
+
+_MAPS: dict = {}
+
+
+def _maps(mesh: str, geometry: str | None) -> Callable:
+    k = (mesh, geometry or default_geometry())
+    if k not in _MAPS:  # one per process: a morphed map keeps its mesh and forms
+        _MAPS[k] = forward_map(mesh, geometry)
+    return _MAPS[k]

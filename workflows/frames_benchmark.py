@@ -8,10 +8,28 @@ fit's forward map -- and kept in the solve store ``OUT/solves``.  Resumable: sol
 read back.  Everything it makes is SYNTHETIC.
 
     OMP_NUM_THREADS=1 .venv/bin/python workflows/frames_benchmark.py lesions --n 120 --out runs/frames-bench
+
+Stage ``run``: the calibration (the nine phantoms' frames rendered from the world's solves, their
+FEM side -- reference press, scale, feature lines -- from the fit's forward map), then per lesion
+30 lesion + 30 background frames from the nominal SYNTHETIC camera (own noise seed per lesion) ->
+the FEM-equivalent difference image and its per-pixel noise (:mod:`elastimap.camera.deflection`) ->
+the image network (``--model``) -> the maximum-likelihood fit on the forward map at ``--fit-mesh``
+(:func:`elastimap.camera.infer.refine_estimates`).  One JSON file per lesion in ``OUT/fits``
+(resumable; ``--shard K/N`` splits the lesions between processes; the calibration and the fits
+are kept per forward map, ``OUT/cal-<geometry>-<mesh>.json`` and ``OUT/fits-<geometry>-<mesh>``).
+
+    OMP_NUM_THREADS=1 .venv/bin/python workflows/frames_benchmark.py run --model M --out runs/frames-bench
+
+Stage ``report``: the table (printed, ``OUT/benchmark.md``), ``OUT/benchmark.json`` and
+``OUT/benchmark.png``.  Regions: the shipped identifiability map (image set, 10 % threshold)
+evaluated at the TRUE lesion says whether d, h and E are identifiable there.
+
+    .venv/bin/python workflows/frames_benchmark.py report --out runs/frames-bench
 """
 
 from __future__ import annotations
 
+import copy
 import os
 import sys
 import time
@@ -69,6 +87,309 @@ def lesions(n, seed, truth_mesh, out):
     for d, h, E in tqdm(todo, desc=f"SYNTHETIC world solves ({truth_mesh} mesh, remeshing)"):
         truth_solve(d, h, E, truth_mesh, cache)
     click.echo(f"{len(todo)} solves ({len(ph)} phantoms + {n} lesions) in {time.perf_counter() - t0:.0f} s", err=True)
+
+
+def _fit_results(forward, phantoms):
+    """Objects with image, image_raw, pixel, O1..O3 for the calibration, from the fit's forward map."""
+    from types import SimpleNamespace
+
+    from elastimap.solver.image import features
+
+    out = []
+    for _, r in phantoms.iterrows():
+        res = forward(float(r["d"]), float(r["h"]), float(r["E"]))
+        img, raw = np.asarray(res.image, float), np.asarray(res.image_raw, float)
+        o = features(img, float(res.pixel))
+        out.append(SimpleNamespace(image=img, image_raw=raw, pixel=float(res.pixel), O1=o[0], O2=o[1], O3=o[2]))
+    return out
+
+
+def calibrate(out: str, truth_mesh: str, forward, frames: int, seed: int, tag: str):
+    """The SYNTHETIC calibration: phantom frames from the world, FEM side from the fit's map."""
+    from elastimap.camera import calibration as C
+    from elastimap.camera.features import FeatureSettings, camera_features
+    from elastimap.camera.optics import SensorModel, render_pair
+
+    path = os.path.join(out, f"cal-{tag}.json")
+    if os.path.exists(path):
+        return C.Calibration.load(path)
+    sensor = SensorModel(seed=seed)
+    ph = C.load_phantoms()
+    rng = np.random.default_rng([seed, 0])
+    pairs, cam = [], []
+    for _, r in ph.iterrows():
+        w = truth_solve(r["d"], r["h"], r["E"], truth_mesh, os.path.join(out, "solves"))
+        F, B = render_pair(sensor, w["image_raw"], w["image"], 0.5, frames, rng)
+        pairs.append((F, B))
+        cam.append(camera_features(F, B, sensor.full_scale, sensor.window, sensor.pixel_mm, FeatureSettings()).values)
+    res = _fit_results(forward, ph)
+    defl = C.deflection_calibration(res, pairs, sensor)
+    fem = np.array([[x.O1, x.O2, x.O3] for x in res])
+    cal = C.fit_calibration(
+        ph,
+        fem,
+        np.array(cam),
+        FeatureSettings().to_dict(),
+        sensor.to_dict(),
+        True,
+        {"world": f"remeshing solver, {truth_mesh} mesh", "fit_map": tag},
+        defl,
+    )
+    cal.save(path)
+    return cal
+
+
+def _timed(fn, acc: dict, name: str):
+    def wrapped(*a):
+        t = time.perf_counter()
+        try:
+            return fn(*a)
+        finally:
+            acc[name] = acc.get(name, 0.0) + time.perf_counter() - t
+            acc[name + "_n"] = acc.get(name + "_n", 0) + 1
+
+    return wrapped
+
+
+@main.command("run")
+@click.option("--model", "model_dir", required=True, help="Image model (the network that gives the start).")
+@click.option("--n", "n", default=120, show_default=True, type=int, help="Held-out lesions (as in 'lesions').")
+@click.option("--seed", default=TRUTH_SEED, show_default=True, type=int, help="Seed of the lesion design and camera.")
+@click.option("--truth-mesh", default="default", show_default=True)
+@click.option("--fit-mesh", default="coarse", show_default=True, help="Mesh level of the fit's forward map.")
+@click.option("--geometry", default=None, help="Fit's forward map: morph (default where available) or remesh.")
+@click.option("--frames", default=30, show_default=True, type=int, help="Lesion and background frames per lesion.")
+@click.option("--shard", default="0/1", show_default=True, help="K/N: this process fits lesions i with i % N == K.")
+@click.option("--limit", default=0, type=int, help="Stop after this many new fits (0: all).")
+@click.option("--out", required=True)
+def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, geometry, frames, shard, limit, out):
+    """Frames -> network -> physics fit for every held-out lesion (resumable, one JSON per lesion)."""
+    import json
+
+    from elastimap.camera.deflection import difference_image
+    from elastimap.camera.infer import estimate_fem_images, load_identifiability, load_model, refine_estimates
+    from elastimap.camera.optics import SensorModel, render_pair
+    from elastimap.errors import UserError
+    from elastimap.identify.refine import default_geometry, forward_map, neighbour_level
+
+    try:
+        k, nsh = (int(v) for v in shard.split("/"))
+        assert 0 <= k < nsh
+    except (ValueError, AssertionError):
+        raise UserError("--shard", f"must be K/N with 0 <= K < N (got {shard!r})") from None
+    geometry = geometry or default_geometry()
+    tag = f"{geometry}-{fit_mesh}"
+    fits = os.path.join(out, f"fits-{tag}")
+    os.makedirs(fits, exist_ok=True)
+    acc: dict = {}
+    t = time.perf_counter()
+    fwd = _timed(forward_map(fit_mesh, geometry), acc, "fit_level")
+    alt_level = neighbour_level(fit_mesh)
+    fwd_alt = _timed(forward_map(alt_level, geometry), acc, "alt_level")
+    cal = calibrate(out, truth_mesh, fwd, frames, seed, tag)
+    setup = time.perf_counter() - t
+    model = load_model(model_dir)
+    idm = load_identifiability("default")
+    sensor = SensorModel(seed=seed)
+    ref, pixel = cal.reference_image()
+    truth = draw_lesions(n, seed)
+    done = 0
+    for i in range(k, n, nsh):
+        path = os.path.join(fits, f"lesion-{i:04d}.json")
+        if os.path.exists(path):
+            continue
+        d, h, E = truth[i]
+        w = truth_solve(d, h, E, truth_mesh, os.path.join(out, "solves"))
+        F, B = render_pair(sensor, w["image_raw"], w["image"], 0.5, frames, np.random.default_rng([seed, 1, i]))
+        t1 = time.perf_counter()
+        di = difference_image(F, B, sensor, ref, pixel, scale=float(cal.deflection["scale"]))
+        (net,) = estimate_fem_images(di.image[None], model, [str(i)], idm, sigma=di.sigma[None])
+        t_net = time.perf_counter() - t1
+        before = dict(acc)
+        (fit,) = refine_estimates([copy.deepcopy(net)], None, forward=fwd, forward_alt=fwd_alt)
+        spent = {key: acc.get(key, 0) - before.get(key, 0) for key in acc}
+        rec = {
+            "synthetic": True,
+            "i": i,
+            "truth": [float(d), float(h), float(E)],
+            "world": f"remeshing solver, {truth_mesh} mesh, tied, quarter",
+            "fit_map": f"{geometry}, {fit_mesh} mesh; model error vs {alt_level}",
+            "frames": frames,
+            "image_peak_mm": float(w["image"].max()),
+            "recovered_z_rms": float(np.sqrt(np.mean(((di.image - w["image"]) / di.sigma) ** 2))),
+            "network": net.to_dict(),
+            "fit": fit.to_dict(),
+            "seconds_camera_and_network": t_net,
+            "seconds_fit": float(fit.fit.seconds) if fit.fit is not None else 0.0,
+            "seconds_fit_level_solves": spent.get("fit_level", 0.0),
+            "n_fit_level_solves": spent.get("fit_level_n", 0),
+            "seconds_alt_level_solves": spent.get("alt_level", 0.0),
+            "n_alt_level_solves": spent.get("alt_level_n", 0),
+            "setup_seconds_this_process": setup,
+        }
+        tmp = path + ".tmp"
+        with open(tmp, "w") as fh:
+            json.dump(rec, fh, indent=1)
+        os.replace(tmp, path)
+        f = rec["fit"]
+        click.echo(
+            f"lesion {i}: truth {d:.2f}/{h:.2f}/{E:.1f}  net {net.d:.2f}/{net.h:.2f}/{net.E:.1f}  "
+            f"fit {f['d']:.2f}/{f['h']:.2f}/{f['E']:.1f}  chi2 {f.get('fit_chi2_red', float('nan')):.2f}  "
+            f"{rec['seconds_fit']:.1f} s ({rec['n_fit_level_solves']}+{rec['n_alt_level_solves']} solves)",
+            err=True,
+        )
+        done += 1
+        if limit and done >= limit:
+            break
+
+
+def _region(truth: np.ndarray) -> np.ndarray:
+    """(n, 3) bool: the shipped identifiability map (image set, 10 %) calls d, h, E identifiable at the truth."""
+    from elastimap.identify.region import IdentifiabilityMap
+
+    r, _ = IdentifiabilityMap.load().bound(truth, "image")
+    return r <= 0.10
+
+
+def summarise(recs: list[dict]) -> dict:
+    """Per estimator: MRE where identifiable, coverage inside/outside, seconds; from the lesion records."""
+    truth = np.array([r["truth"] for r in recs])
+    reg = _region(truth)
+    out = {"n": len(recs), "identifiable": {q: int(reg[:, j].sum()) for j, q in enumerate("dhE")}}
+    for name in ("network", "fit"):
+        est = np.array([[r[name][q] for q in "dhE"] for r in recs])
+        lo = np.array([[r[name][f"{q}_lo"] for q in "dhE"] for r in recs])
+        hi = np.array([[r[name][f"{q}_hi"] for q in "dhE"] for r in recs])
+        rel = np.abs(est - truth) / truth
+        cov = (lo <= truth) & (truth <= hi)
+        row = {}
+        for j, q in enumerate("dhE"):
+            i_in, i_out = reg[:, j], ~reg[:, j]
+            row[q] = {
+                "mre_identifiable": float(rel[i_in, j].mean()) if i_in.any() else None,
+                "median_re_identifiable": float(np.median(rel[i_in, j])) if i_in.any() else None,
+                "mre_all": float(rel[:, j].mean()),
+                "coverage_inside": float(cov[i_in, j].mean()) if i_in.any() else None,
+                "coverage_outside": float(cov[i_out, j].mean()) if i_out.any() else None,
+                "n_inside": int(i_in.sum()),
+                "n_outside": int(i_out.sum()),
+            }
+        out[name] = row
+    sec = np.array([r["seconds_fit"] for r in recs])
+    out["seconds_fit"] = {"mean": float(sec.mean()), "median": float(np.median(sec)), "max": float(sec.max())}
+    out["seconds_network"] = float(np.mean([r["seconds_camera_and_network"] for r in recs]))
+    for key in ("seconds_fit_level_solves", "seconds_alt_level_solves", "n_fit_level_solves", "n_alt_level_solves"):
+        out[key] = float(np.mean([r[key] for r in recs]))
+    out["no_signal"] = int(sum("no_signal" in r["fit"]["flags"] for r in recs))
+    out["model_mismatch"] = int(sum("model_mismatch" in r["fit"]["flags"] for r in recs))
+    out["chi2_red_median"] = float(np.nanmedian([r["fit"].get("fit_chi2_red", np.nan) for r in recs]))
+    return out
+
+
+def _pct(v):
+    return "—" if v is None else f"{100 * v:.1f} %"
+
+
+def table(sm: dict) -> str:
+    lines = [
+        "| estimator | E MRE, E identifiable (n) | d MRE, d identifiable (n) | h MRE, h identifiable (n) | "
+        "95 % coverage inside d / h / E | 95 % coverage outside d / h / E (n) | s per lesion |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, label in (("network", "frames -> image network"), ("fit", "frames -> network -> ML fit")):
+        r = sm[name]
+        sec = (
+            f"{sm['seconds_network']:.2f}"
+            if name == "network"
+            else f"{sm['seconds_fit']['mean']:.1f} (median {sm['seconds_fit']['median']:.1f}, max {sm['seconds_fit']['max']:.1f})"
+        )
+        lines.append(
+            f"| {label} | {_pct(r['E']['mre_identifiable'])} ({r['E']['n_inside']}) | "
+            f"{_pct(r['d']['mre_identifiable'])} ({r['d']['n_inside']}) | {_pct(r['h']['mre_identifiable'])} ({r['h']['n_inside']}) | "
+            + " / ".join(_pct(r[q]["coverage_inside"]) for q in "dhE")
+            + " | "
+            + " / ".join(_pct(r[q]["coverage_outside"]) for q in "dhE")
+            + f" ({r['d']['n_outside']} / {r['h']['n_outside']} / {r['E']['n_outside']}) | {sec} |"
+        )
+    return "\n".join(lines)
+
+
+def plot(recs: list[dict], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    truth = np.array([r["truth"] for r in recs])
+    reg = _region(truth)
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4.6))
+    for j, (q, unit) in enumerate((("d", "mm"), ("h", "mm"), ("E", "kPa"))):
+        ax = axes[j]
+        net = np.array([r["network"][q] for r in recs])
+        fit = np.array([r["fit"][q] for r in recs])
+        lo = np.array([r["fit"][f"{q}_lo"] for r in recs])
+        hi = np.array([r["fit"][f"{q}_hi"] for r in recs])
+        ax.scatter(truth[:, j], net, s=10, c="0.7", label="image network")
+        for m, c, lab in ((reg[:, j], "C0", f"fit, {q} identifiable"), (~reg[:, j], "C3", f"fit, {q} not identifiable")):
+            ax.errorbar(
+                truth[m, j], fit[m], yerr=[fit[m] - lo[m], hi[m] - fit[m]], fmt="o", ms=3, c=c, lw=0.6, label=lab
+            )
+        a, b = truth[:, j].min(), truth[:, j].max()
+        ax.plot([a, b], [a, b], "k--", lw=0.8)
+        if q == "E":
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_ylim(5, 400)
+        else:
+            ax.set_ylim(0.5 * a, 1.3 * b)
+        ax.set_xlabel(f"true {q} ({unit})")
+        ax.set_ylabel(f"estimated {q} ({unit})")
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"SYNTHETIC camera frames, {len(recs)} held-out lesions: estimate vs truth (95 % intervals)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+@main.command("report")
+@click.option("--out", required=True, help="The benchmark folder.")
+@click.option("--fits", "fits_name", default=None, help="The fits folder inside OUT (default: the only one).")
+def report_cmd(out, fits_name):
+    """Table (printed and OUT/benchmark.md), OUT/benchmark.json and OUT/benchmark.png."""
+    import glob
+    import json
+
+    from elastimap.errors import UserError
+
+    names = sorted(os.path.basename(p) for p in glob.glob(os.path.join(out, "fits-*")))
+    if fits_name is None:
+        if len(names) != 1:
+            raise UserError("--fits", f"{out} holds {len(names)} fits folders ({', '.join(names)}); name one")
+        fits_name = names[0]
+    files = sorted(glob.glob(os.path.join(out, fits_name, "lesion-*.json")))
+    if not files:
+        raise UserError("--out", f"{os.path.join(out, fits_name)}: no lesion fits yet (run the 'run' stage)")
+    recs = [json.load(open(f)) for f in files]
+    sm = summarise(recs)
+    r0 = recs[0]
+    head = (
+        f"SYNTHETIC camera frames ({r0['frames']} lesion + {r0['frames']} background frames per lesion), "
+        f"{len(recs)} held-out lesions over the whole design box; world: {r0['world']}; fit: {r0['fit_map']}"
+    )
+    foot = (
+        f"fit: {sm['n_fit_level_solves']:.1f} solves at the fit's level ({sm['seconds_fit_level_solves']:.1f} s) + "
+        f"{sm['n_alt_level_solves']:.1f} at the neighbouring level ({sm['seconds_alt_level_solves']:.1f} s) per lesion "
+        f"on average; median reduced chi2 {sm['chi2_red_median']:.2f}; no_signal {sm['no_signal']}, "
+        f"model_mismatch {sm['model_mismatch']}"
+    )
+    md = head + "\n\n" + table(sm) + "\n\n" + foot + "\n"
+    with open(os.path.join(out, "benchmark.md"), "w") as fh:
+        fh.write(md)
+    with open(os.path.join(out, "benchmark.json"), "w") as fh:
+        json.dump({"synthetic": True, "summary": sm, "lesions": recs}, fh, indent=1)
+    plot(recs, os.path.join(out, "benchmark.png"))
+    click.echo(md)
 
 
 if __name__ == "__main__":
