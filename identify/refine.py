@@ -452,14 +452,16 @@ def fit_image(
     E_range=DESIGN_BOX["E"],
     thickness: float = THICKNESS,
     fd=FD_STEPS,
-    max_nfev: int = 15,
+    max_nfev: int = 12,
     max_passes: int = 4,
 ) -> FitResult:
     """Maximum-likelihood (d, h, E) of ``image`` (mm, ``(ny, nx)`` or flat) with per-pixel standard
     errors ``sigma`` (mm, scalar or like ``image``), starting from ``theta0`` (d mm, h mm, E kPa).
 
     ``forward(d, h, E)`` and ``forward_alt(d, h, E)`` return the difference image (see
-    :func:`image_of`) of the map and of its neighbouring mesh level; without ``forward_alt`` the
+    :func:`image_of`) of the map and of its neighbouring mesh level (maps with a ``pin(d, h)``
+    method returning a map with a hashable ``key`` are pinned at the start of every pass, see
+    :class:`ForwardMap`); without ``forward_alt`` the
     model error is taken as zero (say so when reporting).  ``max_nfev`` bounds the trial points
     per pass, ``max_passes`` the passes (each from a fresh central-difference Jacobian).  See the module docstring."""
     from scipy.optimize import least_squares
@@ -483,14 +485,23 @@ def fit_image(
 
     maps: dict = {}
     alts: dict = {}
+    cur = {"f": forward, "a": forward_alt}
 
-    def key(x):
-        return tuple(np.round(np.asarray(x, float), 10))
+    def pin(x):
+        """Pin the maps' reference meshes at ``x`` (maps with a ``pin(d, h)``), so that one pass
+        sees one smooth map."""
+        d, h, _ = to_theta(x, thickness)
+        cur["f"] = forward.pin(d, h) if hasattr(forward, "pin") else forward
+        if forward_alt is not None:
+            cur["a"] = forward_alt.pin(d, h) if hasattr(forward_alt, "pin") else forward_alt
+
+    def key(x, f):
+        return (getattr(f, "key", None), *np.round(np.asarray(x, float), 10))
 
     def m(x):
-        k = key(x)
+        k = key(x, cur["f"])
         if k not in maps:
-            v = image_of(forward(*to_theta(x, thickness))).ravel()
+            v = image_of(cur["f"](*to_theta(x, thickness))).ravel()
             if v.shape != I.shape:
                 raise RuntimeError(f"the forward map returned {v.size} pixels, the image has {I.size}")
             maps[k] = v
@@ -499,9 +510,9 @@ def fit_image(
     def sigma_at(x):
         if forward_alt is None:
             return s_meas, np.zeros_like(s_meas)
-        k = key(x)
+        k = key(x, cur["a"])
         if k not in alts:
-            a = image_of(forward_alt(*to_theta(x, thickness))).ravel()
+            a = image_of(cur["a"](*to_theta(x, thickness))).ravel()
             if a.shape != I.shape:
                 raise RuntimeError(f"the alternative forward map returned {a.size} pixels, the image has {I.size}")
             alts[k] = a
@@ -516,7 +527,7 @@ def fit_image(
         """Central differences (one-sided at the box), in x units, whitened by ``s``."""
         J = np.empty((I.size, 3))
         st = steps_at(x)
-        for j in range(3):
+        for j in (2, 0, 1):  # E first: a map may reuse its reference solve while (d, h) stay
             xp, xm = np.array(x, float), np.array(x, float)
             xp[j] += st[j]
             xm[j] -= st[j]
@@ -545,6 +556,7 @@ def fit_image(
             state.update(x=x.copy(), J=J, r=resid(x))
             return J
 
+        r_s = resid(xs)
         res = least_squares(
             resid,
             xs,
@@ -554,22 +566,28 @@ def fit_image(
             x_scale=np.array([1.0, 0.1, 0.1]),
             max_nfev=max_nfev,
             xtol=1e-4,
-            ftol=1e-6,
+            # stop when a step lowers ½χ² by less than 0.05 (a twentieth of a one-sigma change)
+            ftol=max(1e-10, 0.1 / max(float(r_s @ r_s), 1e-300)),
             gtol=1e-8,
         )
         return np.clip(res.x, lb, ub), res
 
+    pin(x0)
     s_tot, _ = sigma_at(x0)
     r0 = (m(x0) - I) / s_tot
     x, msg, J = x0, [], None
-    for _ in range(max_passes):
-        # each pass starts from a fresh central-difference Jacobian and the model error measured
-        # where it starts; the fit is accepted when a pass no longer moves (within a tenth of a step)
+    for k in range(max_passes):
+        # each pass starts from a fresh central-difference Jacobian, the model error measured and
+        # the reference meshes pinned where it starts; the fit is accepted when a pass moves no
+        # parameter by more than 0.2 of its standard deviation (from that Jacobian)
+        if k:
+            pin(x)
         s_tot, _ = sigma_at(x)
         J = fd_jac(x, s_tot)
         xn, res = one_pass(x, s_tot, J)
         msg.append(str(res.message))
-        moved = np.any(np.abs(xn - x) > 0.1 * steps_at(x))
+        sd_x = np.sqrt(np.clip(np.diag(np.linalg.pinv(J.T @ J)), 0, None))
+        moved = bool(np.any(np.abs(xn - x) > np.maximum(0.2 * sd_x, 1e-9)))
         x = xn
         if not moved:
             break
@@ -650,6 +668,22 @@ def default_geometry() -> str:
         return "remesh"
 
 
+class ForwardMap:
+    """``(d, h, E) -> SolveResult`` on morphed meshes; ``pin(d, h)`` gives the same map on the
+    reference mesh of (d, h) for every call (one smooth map over a fit's pass, see
+    :mod:`elastimap.solver.morph`); ``key`` names the pinned reference (None: each call's own bin)."""
+
+    def __init__(self, morphed, reference=None):
+        self.morphed, self.reference = morphed, reference
+        self.key = None if reference is None else (reference.d0, reference.h0)
+
+    def __call__(self, d, h, E):
+        return self.morphed.solve(float(d), float(h), float(E), reference=self.reference)
+
+    def pin(self, d: float, h: float) -> ForwardMap:
+        return ForwardMap(self.morphed, self.morphed.reference_for(float(d), float(h)))
+
+
 def forward_map(mesh: str = "coarse", geometry: str | None = None, template=None) -> Callable:
     """``forward(d, h, E) -> SolveResult`` of the forward model (tied probe, quarter model, default
     loading, or ``template``'s) at mesh level ``mesh``.
@@ -670,7 +704,7 @@ def forward_map(mesh: str = "coarse", geometry: str | None = None, template=None
     if geometry == "morph":
         from elastimap.solver.morph import MorphedForward
 
-        return MorphedForward(base).solve
+        return ForwardMap(MorphedForward(base))
 
     def forward(d, h, E):
         from elastimap.solver import solve

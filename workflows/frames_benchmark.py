@@ -139,16 +139,22 @@ def calibrate(out: str, truth_mesh: str, forward, frames: int, seed: int, tag: s
     return cal
 
 
-def _timed(fn, acc: dict, name: str):
-    def wrapped(*a):
+class _Timed:
+    """A forward map that adds its seconds and calls to ``acc[name]`` / ``acc[name + '_n']`` (pins pass through)."""
+
+    def __init__(self, fn, acc: dict, name: str):
+        self.fn, self.acc, self.name = fn, acc, name
+        self.key = getattr(fn, "key", None)
+        if hasattr(fn, "pin"):
+            self.pin = lambda d, h: _Timed(fn.pin(d, h), acc, name)
+
+    def __call__(self, *a):
         t = time.perf_counter()
         try:
-            return fn(*a)
+            return self.fn(*a)
         finally:
-            acc[name] = acc.get(name, 0.0) + time.perf_counter() - t
-            acc[name + "_n"] = acc.get(name + "_n", 0) + 1
-
-    return wrapped
+            self.acc[self.name] = self.acc.get(self.name, 0.0) + time.perf_counter() - t
+            self.acc[self.name + "_n"] = self.acc.get(self.name + "_n", 0) + 1
 
 
 @main.command("run")
@@ -183,9 +189,9 @@ def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, geometry, frames, shard, l
     os.makedirs(fits, exist_ok=True)
     acc: dict = {}
     t = time.perf_counter()
-    fwd = _timed(forward_map(fit_mesh, geometry), acc, "fit_level")
+    fwd = _Timed(forward_map(fit_mesh, geometry), acc, "fit_level")
     alt_level = neighbour_level(fit_mesh)
-    fwd_alt = _timed(forward_map(alt_level, geometry), acc, "alt_level")
+    fwd_alt = _Timed(forward_map(alt_level, geometry), acc, "alt_level")
     cal = calibrate(out, truth_mesh, fwd, frames, seed, tag)
     setup = time.perf_counter() - t
     model = load_model(model_dir)
