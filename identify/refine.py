@@ -453,7 +453,7 @@ def fit_image(
     thickness: float = THICKNESS,
     fd=FD_STEPS,
     max_nfev: int = 12,
-    max_passes: int = 4,
+    max_passes: int = 2,
 ) -> FitResult:
     """Maximum-likelihood (d, h, E) of ``image`` (mm, ``(ny, nx)`` or flat) with per-pixel standard
     errors ``sigma`` (mm, scalar or like ``image``), starting from ``theta0`` (d mm, h mm, E kPa).
@@ -600,7 +600,13 @@ def fit_image(
     dof = max(I.size - 3, 1)
     chi2 = float(r @ r) / dof
     G = _dtheta_dx(x, thickness)
-    C = G @ np.linalg.pinv(J.T @ J) @ G.T * max(1.0, chi2)
+    JtJi = np.linalg.pinv(J.T @ J)
+    C = G @ JtJi @ G.T * max(1.0, chi2)
+    if forward_alt is not None:
+        # the discretisation error is one image, correlated over the pixels: propagate the level
+        # difference through the estimator as a systematic shift, C_sys = b bᵀ
+        b = G @ JtJi @ J.T @ ((m(x) - alts[key(x, cur["a"])]) / s_tot)
+        C = C + np.outer(b, b)
     th = to_theta(x, thickness)
     sd = np.sqrt(np.clip(np.diag(C), 0, None))
     relstd = np.array([sd[0] / th[0], sd[1] / th[1], sd[2]])
