@@ -1,42 +1,53 @@
-"""Maximum-likelihood refinement of (d, h, E) through the forward model.
+"""Maximum-likelihood fit of (d, h, E) to a measured difference image through the forward model.
 
-A trained image network gives a fast first estimate ``θ₀``; where the identifiability map says
-the image determines the inclusion well, the remaining error is the network's, not the
-measurement's.  This module removes it by fitting the forward model itself to the measured
-difference image ``I`` (mm, ``p`` pixels) with independent Gaussian pixel noise ``σ`` (mm):
+A trained network (image or feature model) gives a fast first estimate ``θ₀``; the fit removes the
+network's error by fitting the forward model itself to the measured difference image ``I`` (mm,
+``p`` pixels, e.g. recovered from camera frames by :mod:`elastimap.camera.deflection`) whose
+pixels have standard errors ``σ_meas`` (mm, from the frames' own scatter).
 
-    θ̂ = argmin_θ  ½ Σ_i ((m_i(θ) − I_i) / σ_i)²,     θ = (d mm, h mm, E kPa),
+:func:`fit_image` (what inference uses)
+---------------------------------------
+The forward map ``m(θ)`` (mm), ``θ = (d mm, h mm, E kPa)``, is the solver on a mesh that is
+*morphed* to (d, h) (:mod:`elastimap.solver.morph`, :class:`ForwardMap`), so it is smooth in
+(d, h, E).  It is itself a discretisation; its error is measured, not assumed, as the difference
+of two mesh levels of the map at the same ``θ``, ``δ(θ) = m(θ) − m^alt(θ)`` (``m^alt`` the
+neighbouring level, :func:`neighbour_level`).  It enters twice:
 
-where ``m(θ)`` is the forward model's difference image -- by default the same FEM solve the
-sweep ran (:func:`fem_model`, cached on disk by :mod:`elastimap.identify.solves`).  With Gaussian noise this
-is the maximum-likelihood estimate, whose error approaches the Cramér–Rao bound the
-identifiability map is built from.
+* per pixel, in the weights: ``σ_i² = σ_meas,i² + σ_model,i²`` with
+  ``σ_model,i = sqrt(mean_{3x3 around i} δ²)`` (a local rms, so that a pixel where the two levels
+  happen to cross does not claim a perfect model);
+* as one correlated image, in the covariance: the shift it would cause,
+  ``b = G (JᵀJ)⁻¹ Jᵀ (δ / σ)``, is added as ``b bᵀ`` (a discretisation error moves every pixel
+  together, so it biases rather than averages out).
 
-Parametrisation ``x = (d, u, ln E)`` with ``h = lo(d) + u (hi(d) − lo(d))`` (the admissible
-depth range of :func:`elastimap.solver.params.depth_range`), so every trial point is a valid geometry and
-the feasible set is the box ``[d_lo, d_hi] x [0, 1] x [ln E_lo, ln E_hi]`` (by default the sweep's
-design box).
+The estimate
 
-Changing d or h remeshes, which adds a small deterministic jitter to the image: at a default-mesh
-point central differences of d with steps 0.25 and 0.5 mm agree to 1.6 % while 0.05 mm is off by
-8 %, and along the d–E valley ("larger softer vs smaller stiffer") the jitter moves ½χ² by several
-units -- as much as the valley's own rise over ~10 % of E.  Two minimisers:
+    θ̂ = argmin_θ  ½ Σ_i ((m_i(θ) − I_i) / σ_i)²
 
-* :func:`refine_rsm` (``rsm``, the default): a response surface.  Two rounds of a 15-point
-  face-centred central-composite stencil around the current centre; every pixel is fitted as a
-  full quadratic in the offsets (least squares), so no single mesh's jitter decides the answer,
-  and the quadratic model's χ² is minimised.  30 solves.
-* :func:`refine` (``trf``): :func:`scipy.optimize.least_squares` (trust-region reflective, bounds)
-  on the solves themselves, with a central finite-difference Jacobian (:data:`FD`).  It stops in
-  the jitter and was biased (+6 to +8 % in E on the held-out study); kept for comparison.
+is the maximum-likelihood estimate for Gaussian pixel errors, in the parameters
+``x = (d, u, ln E)``, ``h = lo(d) + u (hi(d) − lo(d))`` (:func:`elastimap.solver.params.depth_range`),
+so the feasible set is the box ``[d_lo, d_hi] x [0, 1] x [ln E_lo, ln E_hi]`` (the design box).
+Minimiser: :func:`scipy.optimize.least_squares` (trust-region reflective, bounds).  Each pass pins
+the morphed map's reference mesh where it starts (one smooth map per pass), re-measures the model
+error there and starts from a central-difference Jacobian (steps :data:`FD_STEPS`: 0.15 mm in d
+and h, 3 % in E; the E step first, so the map reuses its reference solve); within a pass the
+Jacobian is carried by Broyden's rank-one update (``J ← J + ((r₊ − r) − J Δx) Δxᵀ / |Δx|²``), one
+map evaluation per step.  A step that lowers ½χ² by less than 0.05 ends a pass; a pass that moves
+no parameter by more than 0.2 of its standard deviation ends the fit (at most two passes).
 
-Uncertainty: at ``θ̂`` the covariance of ``x`` is ``(JᵀJ)⁻¹`` (residuals are already divided by
-``σ``); it is mapped to ``(d, h, E)`` by the delta method and reported as relative standard
-deviations (for E: the std of ln E), i.e. the local Cramér–Rao bound at the estimate.
+Uncertainty: Gauss–Newton covariance at ``θ̂`` from the pass's central-difference Jacobian,
+``C_x = (JᵀJ)⁻¹ max(1, χ²_red) + b bᵀ`` (the Birge factor widens it when the misfit exceeds
+the stated errors, never narrows it), mapped to (d, h, ln E) by the delta method.  The 95 %
+interval is ``q ± 1.96 sd`` for d and h and ``E exp(±1.96 sd_ln E)``, clipped to the design box.
+No factor is tuned.
 
-Inference (:func:`elastimap.camera.infer.refine_estimates`) calls :func:`fit` with :func:`fem_model`;
-the held-out study that chose the defaults and :data:`INTERVAL_SCALE` is
-:mod:`elastimap.workflows.studies.refine`.
+The remeshing-era fits (:func:`refine`, :func:`refine_rsm`, :func:`fit`, :data:`INTERVAL_SCALE`)
+-------------------------------------------------------------------------------------------------
+Kept for the held-out study :mod:`elastimap.workflows.studies.refine` and its table in
+docs/identifiability.md.  A remeshed forward model jitters in d and h (central differences of d
+with steps 0.25 and 0.5 mm agree to 1.6 %, 0.05 mm is off by 8 %), so :func:`refine_rsm` fits a
+response surface over 30 solves and its interval is the local bound widened by
+:data:`INTERVAL_SCALE` (chosen on that study).  Inference no longer uses them.
 """
 
 from __future__ import annotations
@@ -354,41 +365,7 @@ def fem_model(mesh: str = "default", cache: str | None = None) -> Callable[[np.n
     return model
 
 
-# ============================================================================ the fit inference uses
-# Maximum-likelihood fit of (d, h, E) to a measured difference image on a smooth forward map.
-#
-# The measured image ``I`` (mm, ``p`` pixels, e.g. recovered from camera frames by
-# :mod:`elastimap.camera.deflection`) has per-pixel standard errors ``σ_meas`` (mm, from the frames'
-# own scatter).  The forward map ``m(θ)`` (mm), ``θ = (d mm, h mm, E kPa)``, is itself only a
-# discretisation: its error against the continuum is measured, not assumed, as the difference of
-# two mesh levels of the map at the same ``θ``,
-#
-#     σ_model,i(θ) = sqrt( mean_{3x3 around i} (m_i(θ) − m_i^alt(θ))² ),
-#
-# (``m^alt`` the neighbouring mesh level; a local rms over the pixel's 3 x 3 neighbourhood so that a
-# pixel where the two levels happen to cross zero does not claim a perfect model).  The fit is
-#
-#     θ̂ = argmin_θ  ½ Σ_i ((m_i(θ) − I_i) / σ_i)²,      σ_i² = σ_meas,i² + σ_model,i(θ̂)²,
-#
-# the maximum-likelihood estimate for independent Gaussian pixel errors.  Parameters
-# ``x = (d, u, ln E)``, ``h = lo(d) + u (hi(d) − lo(d))`` (:func:`elastimap.solver.params.depth_range`),
-# so the feasible set is the box ``[d_lo, d_hi] x [0, 1] x [ln E_lo, ln E_hi]`` (the design box).
-#
-# Minimiser: :func:`scipy.optimize.least_squares` (trust-region reflective, bounds).  The Jacobian is
-# by central differences on the map (steps :data:`FD_STEPS`: 0.15 mm in d and h, 3 % in E) at the
-# start and at the end; between them it is carried by Broyden's rank-one update from the steps
-# taken (``J ← J + ((r₊ − r) − J Δx) Δxᵀ / |Δx|²``), so an iteration costs one map evaluation
-# instead of seven.  This needs a map that is smooth in (d, h, E) -- a remeshing forward model's
-# jitter defeats it.  The model error is measured at the start, re-measured at the first optimum,
-# and the fit repeated from there with it (the re-fit starts from a fresh central-difference
-# Jacobian, most of whose evaluations it shares with nothing; a few evaluations in all).
-#
-# Uncertainty: Gauss–Newton covariance at ``θ̂`` from the fresh central-difference Jacobian,
-# ``C_x = (JᵀJ)⁻¹ max(1, χ²_red)`` (the Birge factor: a misfit larger than the stated errors widens
-# the interval, a smaller one never narrows it), mapped to (d, h, ln E) by the delta method.  The
-# 95 % interval is ``q ± 1.96 sd`` for d and h and ``E exp(±1.96 sd_ln E)`` for E, clipped to the
-# design box (the prior: no lesion outside it).  No factor is tuned.
-
+# ============================================================================ the fit inference uses (fit_image)
 FD_STEPS = (0.15, 0.15, 0.03)  # central-difference steps: d mm, h mm (at fixed d), ln E
 Z95 = 1.959963984540054
 

@@ -93,12 +93,12 @@ def test_bad_input_is_a_user_error():
 
 
 def test_fem_refinement_on_the_tiny_mesh(tmp_path):
-    """The real forward model: noise-free tiny-mesh image, start 30 % off in E and 6 % in d, through
-    the inference API (elastimap.camera.infer.refine_estimates, default response-surface fit).  The tiny
-    mesh's remeshing jitter is large (the fit ends ~9 % off in E, 10-15 % with the trust-region
-    variant, at a reduced chi² of ~0.1 in units of 1 % of the peak), so
-    this checks that the fit moves the right way and reports consistently; accuracy is measured on
-    the default mesh by `python -m elastimap.workflows.studies.refine` (docs/identifiability.md)."""
+    """The real forward model through the inference API (elastimap.camera.infer.refine_estimates):
+    a noise-free image of the REMESHING tiny-mesh solver (not the fit's map), 1 % pixel noise
+    assumed, start 30 % off in E and 6 % in d; the fit runs the morphed tiny map and measures its
+    error against the coarse level.  The tiny mesh is far from converged, so this checks the
+    direction of the fit and that its intervals hold the truth; accuracy: workflows/frames_benchmark.py."""
+    pytest.importorskip("elastimap.solver.morph")
     from elastimap.camera.infer import Estimate, refine_estimates
     from elastimap.identify.refine import fem_model
 
@@ -107,13 +107,13 @@ def test_fem_refinement_on_the_tiny_mesh(tmp_path):
     start = np.array([8.5, 7.0, 52.0])
     nan3 = np.full(3, np.nan)
     e = Estimate("x", nan3, nan3, start.copy(), nan3, start, start, 1, ["non_identifiable:E"], input="image")
-    (e,) = refine_estimates([e], I[None], image_noise=0.01, mesh="tiny", cache=str(tmp_path))
+    (e,) = refine_estimates([e], I[None], image_noise=0.01, mesh="tiny")
     assert e.input == "image+fem_refined"
-    assert abs(e.E / truth[2] - 1) < 0.2 < abs(start[2] / truth[2] - 1), e
-    assert abs(e.d / truth[0] - 1) < 0.03 and abs(e.h / truth[1] - 1) < 0.03, e
-    assert e.lo[2] < e.E < e.hi[2] and np.all(np.isfinite(e.crb))
+    assert abs(e.d / truth[0] - 1) < 0.05 and abs(e.h / truth[1] - 1) < 0.05, e
+    assert np.all(e.lo <= truth) and np.all(truth <= e.hi), (e.mean, e.lo, e.hi)
+    assert np.all(np.isfinite(e.crb)) and e.fit.n_solves >= 7 and e.fit.n_alt >= 1
     assert "model_mismatch" not in e.flags
-    # the flag now follows the local bound at the refined estimate
+    # the flag now follows the fit's own standard deviation
     assert ("non_identifiable:E" in e.flags) == (e.crb[2] > 0.10)
 
 

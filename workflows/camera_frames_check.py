@@ -15,7 +15,8 @@ phantoms) and, unless ``--model`` is given, the image model (trained on ``--data
 
     .venv/bin/python workflows/camera_frames_check.py --data SWEEP --mesh tiny --n 20 --refine-n 4 --out runs/frames-check
 
-Not the ≥ 100-lesion benchmark unless ``--n 100`` (or more) and ``--refine-n`` as large.
+The ≥ 100-lesion benchmark, with the lesion data from another discretisation than the fit's map,
+is ``workflows/frames_benchmark.py``.
 """
 
 from __future__ import annotations
@@ -66,19 +67,12 @@ def _table(name: str, truth: np.ndarray, ests) -> list[str]:
 @click.option("--model", "model_dir", default=None, help="An image model instead of training one on --data.")
 @click.option("--mesh", default="tiny", show_default=True, help="The sweep's mesh (lesions, phantoms, refine).")
 @click.option("--n", "n", default=20, show_default=True, type=int, help="Held-out lesions.")
-@click.option("--refine-n", default=4, show_default=True, type=int, help="How many of them to refine (30 solves each).")
+@click.option("--refine-n", default=4, show_default=True, type=int, help="How many of them to refine.")
 @click.option("--frames", default=30, show_default=True, type=int)
 @click.option("--seed", default=101, show_default=True, type=int, help="Seed of the held-out design and the noise.")
 @click.option("--cache", default="data/identify/solves", show_default=True, help="Solve cache.")
-@click.option(
-    "--model-error",
-    default=0.01,
-    show_default=True,
-    type=float,
-    help="Refine: forward-model error floor x peak, added in quadrature to the frames' noise.",
-)
 @click.option("--out", required=True)
-def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, model_error, out):
+def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, out):
     from elastimap.camera import calibration as C
     from elastimap.camera.deflection import difference_image
     from elastimap.camera.features import FeatureSettings
@@ -179,7 +173,7 @@ def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, model_err
         def progress(i, k):
             times.append(time.perf_counter())
 
-        ref_ests = refine_estimates(sub, None, mesh=mesh, cache=cache, progress=progress, model_error=model_error)
+        ref_ests = refine_estimates(sub, None, mesh=mesh, progress=progress)
         wall = time.perf_counter() - t
         lines += _table("network (FEM image) [refined subset]", truth[: len(sub)], net[: len(sub)])
         lines += _table(
@@ -192,7 +186,7 @@ def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, model_err
         cached_solve(8.1234, 7.0, 50.0, mesh=mesh, cache=os.path.join(out, "timing-cache"))
         one = time.perf_counter() - ts
         extra.append(
-            f"refine (model error floor {model_error:g} x peak): {wall / len(sub):.0f} s per lesion ({len(sub)} lesions, 30 solves each); one uncached "
+            f"refine (maximum-likelihood fit, elastimap.identify.refine.fit_image): {wall / len(sub):.0f} s per lesion ({len(sub)} lesions); one uncached "
             f"{mesh}-mesh solve (inclusion + reference) took {one:.1f} s at the time"
         )
         with open(os.path.join(out, "refined.json"), "w") as fh:
