@@ -27,7 +27,9 @@ The estimate
 is the maximum-likelihood estimate for Gaussian pixel errors, in the parameters
 ``x = (d, u, ln E)``, ``h = lo(d) + u (hi(d) − lo(d))`` (:func:`elastimap.solver.params.depth_range`),
 so the feasible set is the box ``[d_lo, d_hi] x [0, 1] x [ln E_lo, ln E_hi]`` (the design box).
-Minimiser: :func:`scipy.optimize.least_squares` (trust-region reflective, bounds).  Each pass pins
+Start: ``θ₀`` and, at its (d, h), five values of E spread log-evenly over the box (E-only
+evaluations); the best of them.  Minimiser: :func:`scipy.optimize.least_squares` (trust-region
+reflective, bounds).  Each pass pins
 the morphed map's reference mesh where it starts (one smooth map per pass), re-measures the model
 error there and starts from a central-difference Jacobian (steps :data:`FD_STEPS`: 0.15 mm in d
 and h, 3 % in E; the E step first, so the map reuses its reference solve); within a pass the
@@ -431,6 +433,7 @@ def fit_image(
     fd=FD_STEPS,
     max_nfev: int = 12,
     max_passes: int = 2,
+    e_scan: int = 5,
 ) -> FitResult:
     """Maximum-likelihood (d, h, E) of ``image`` (mm, ``(ny, nx)`` or flat) with per-pixel standard
     errors ``sigma`` (mm, scalar or like ``image``), starting from ``theta0`` (d mm, h mm, E kPa).
@@ -440,7 +443,9 @@ def fit_image(
     method returning a map with a hashable ``key`` are pinned at the start of every pass, see
     :class:`ForwardMap`); without ``forward_alt`` the
     model error is taken as zero (say so when reporting).  ``max_nfev`` bounds the trial points
-    per pass, ``max_passes`` the passes (each from a fresh central-difference Jacobian).  See the module docstring."""
+    per pass, ``max_passes`` the passes (each from a fresh central-difference Jacobian); ``e_scan``
+    values of ln E spread over the box are tried at the start's (d, h) first, and the fit starts
+    from the best of them and ``theta0`` (0 or 1: no scan).  See the module docstring."""
     from scipy.optimize import least_squares
 
     t0 = time.perf_counter()
@@ -552,6 +557,16 @@ def fit_image(
     pin(x0)
     s_tot, _ = sigma_at(x0)
     r0 = (m(x0) - I) / s_tot
+    if e_scan > 1:
+        # a start's E can be far off (the d–E valley is long): scan ln E over the box at the start's
+        # (d, h) -- E-only evaluations, the map reuses its reference solve -- and start from the best
+        best = float(r0 @ r0)
+        for lnE in np.linspace(lb[2] + pad[2], ub[2] - pad[2], e_scan):
+            xc = np.array([x0[0], x0[1], lnE])
+            rc = (m(xc) - I) / s_tot
+            if float(rc @ rc) < best:
+                best, x0 = float(rc @ rc), xc
+        s_tot, _ = sigma_at(x0)
     x, msg, J = x0, [], None
     for k in range(max_passes):
         # each pass starts from a fresh central-difference Jacobian, the model error measured and
