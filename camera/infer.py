@@ -491,6 +491,7 @@ def estimate_images(
         if keep_image:
             di = difference_of_frames(images, background, calibration)
             e.image, e.sigma = di.image.ravel(), di.sigma.ravel()
+            e.input = "frames"
             if di.saturated:
                 e.flags.append("saturated")
         return e
