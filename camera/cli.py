@@ -419,7 +419,10 @@ def infer(
     idm = load_identifiability(None if identifiability == "none" else identifiability)
     model = load_model(model_dir)
     if refine and fem_image is not None and not _is_image_model(model):
-        raise UserError("--refine", "--fem-image needs an image model (python -m elastimap.workflows.studies.imagenet --save-model DIR)")
+        raise UserError(
+            "--refine",
+            "--fem-image needs an image model (python -m elastimap.workflows.studies.imagenet --save-model DIR)",
+        )
     if fem_image is not None:
         try:
             arr = np.load(fem_image, allow_pickle=False)
