@@ -378,7 +378,7 @@ def refine_estimates(
     ``non_identifiable:q`` is re-decided from that standard deviation (``> threshold``), and
     ``model_mismatch`` added when the fit leaves a reduced chi² above ``chi2_limit`` (the forward
     model cannot reproduce the image at the stated noise); ``input`` gains ``+fem_refined``."""
-    from elastimap.identify.refine import _maps, fit_image, neighbour_level
+    from elastimap.identify.refine import fit_image, neighbour_level, shared_map
 
     if not 0 < image_noise < 1:
         raise UserError("image_noise", f"must be in (0, 1) (got {image_noise:g})")
@@ -389,8 +389,8 @@ def refine_estimates(
     else:
         imgs = list(np.asarray(images, dtype=float).reshape(len(ests), -1))
     if forward is None:
-        forward = _maps(mesh, geometry)
-        forward_alt = _maps(neighbour_level(mesh), geometry) if forward_alt is None else forward_alt
+        forward = shared_map(mesh, geometry)
+        forward_alt = shared_map(neighbour_level(mesh), geometry) if forward_alt is None else forward_alt
     for i, (e, img) in enumerate(zip(ests, imgs)):
         if "no_signal" not in e.flags:
             n = int(round(math.sqrt(img.size)))

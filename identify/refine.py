@@ -719,17 +719,19 @@ def fit_forward(image, sigma, theta0, mesh: str = "coarse", geometry: str | None
         image,
         sigma,
         theta0,
-        _maps(mesh, geometry),
-        forward_alt=_maps(neighbour_level(mesh), geometry),
+        shared_map(mesh, geometry),
+        forward_alt=shared_map(neighbour_level(mesh), geometry),
         **kw,
     )
 
 
-_MAPS: dict = {}
+_SHARED_MAPS: dict = {}
 
 
-def _maps(mesh: str, geometry: str | None) -> Callable:
+def shared_map(mesh: str, geometry: str | None = None) -> Callable:
+    """The process's :func:`forward_map` for ``mesh`` and ``geometry`` (built once: a morphed map
+    keeps its reference meshes, compiled forms and factorisation patterns between lesions)."""
     k = (mesh, geometry or default_geometry())
-    if k not in _MAPS:  # one per process: a morphed map keeps its mesh and forms
-        _MAPS[k] = forward_map(mesh, geometry)
-    return _MAPS[k]
+    if k not in _SHARED_MAPS:  # one per process: a morphed map keeps its mesh and forms
+        _SHARED_MAPS[k] = forward_map(mesh, geometry)
+    return _SHARED_MAPS[k]
