@@ -82,6 +82,12 @@ class Model:
         self.newton = self._finite_strain() if self.materials.beta is not None else None
         self.timings = {"setup": time.perf_counter() - t0}
 
+    def set_params(self, p: SolveParams) -> None:
+        """Switch to the moduli, ν and plate travel of ``p``, which must share this model's mesh
+        and switches (everything but moduli, ν and loading; :mod:`elastimap.solver.batch`)."""
+        self.p = p
+        self.materials.set_params(p)
+
     def _finite_strain(self) -> Newton:
         """Residual R(u; v) = D_u Ψ[v] and Jacobian of Ψ = ∫ ψ dx (:func:`psi_blended`)."""
         m, V = self.materials, self.space.V

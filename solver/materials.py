@@ -111,6 +111,15 @@ class CellMaterials:
             b = np.where(markers >= PROBE_LAYER0, 0.0, float(p.tissue.nonlinearity))
             self.beta.x.array[: len(b)] = b
 
+    def set_params(self, p: SolveParams) -> None:
+        """Take the moduli, ν and β of ``p`` (same mesh): the forms see the new values at their
+        next assembly, so nothing is rebuilt (:func:`elastimap.solver.batch.solve_batch`)."""
+        self.p = p
+        self.set_inclusion_modulus(p.inclusion.E)
+        if self.beta is not None:
+            b = np.where(self.markers >= PROBE_LAYER0, 0.0, float(p.tissue.nonlinearity))
+            self.beta.x.array[: len(b)] = b
+
     def set_inclusion_modulus(self, E_inclusion: float) -> None:
         """Fill E and ν from the markers, with the inclusion's modulus set to ``E_inclusion`` (kPa)."""
         p, m = self.p, self.markers

@@ -1,0 +1,181 @@
+"""``solve_batch(params_list)``: many samples, one mesh and one model per geometry.
+
+A sample (:func:`elastimap.solver.api.solve`) spends part of its time on things that only the
+geometry decides: the gmsh mesh, the DOLFINx mesh and space, the node sets, the interface pairs,
+the image sampler, the compiled forms and the sparsity pattern.  Samples that differ only in
+the **moduli** (tissue E, skin E, inclusion E, the probe layers' E), the **Poisson ratios** (ν of
+tissue, inclusion, probe) and the **plate travel** (δ or force) share all of that.  The stiffness
+form a(u, v) = ∫ σ(u) : ε(v) dx reads E and ν from cell-wise (DG0) functions, so a new
+material only refills those functions before the next assembly
+(:meth:`elastimap.solver.fem.Model.set_params`); the sparsity pattern, the reduction P and the
+symbolic LU factorisation stay.
+
+``solve_batch`` groups the parameters by :func:`geometry_key`, builds each group's mesh and
+:class:`~elastimap.solver.fem.Model` once, and runs every variant of the group on it (both
+solves of each variant: with the inclusion and the reference).  The numbers are those of
+``solve`` (same operations on the same mesh; equal within round-off, tested to 1e-10).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from .params import SolveParams, SolveResult
+
+#: the solve parameters a variant may change without a new mesh or model
+MATERIAL_FIELDS = {
+    "tissue": ("E", "nu", "skin_E"),
+    "inclusion": ("E", "nu"),
+    "probe": ("nu",),
+    "loading": ("delta", "force"),
+}
+
+
+def geometry_key(p: SolveParams) -> str:
+    """What decides the mesh and the model: every parameter except moduli, ν and plate travel
+    (the probe layers keep their thicknesses, lose their moduli)."""
+    d = p.to_dict()
+    for part, names in MATERIAL_FIELDS.items():
+        for n in names:
+            d[part].pop(n, None)
+    d["probe"]["layers"] = [float(t) for t, _E in p.probe.layers]
+    return json.dumps(d, sort_keys=True)
+
+
+def group_by_geometry(params_list: Sequence[SolveParams]) -> list[list[int]]:
+    """Indices of ``params_list`` grouped by :func:`geometry_key` (first-seen order)."""
+    groups: dict[str, list[int]] = {}
+    for i, p in enumerate(params_list):
+        groups.setdefault(geometry_key(p), []).append(i)
+    return list(groups.values())
+
+
+def _variant(model, p: SolveParams, first_seconds: float, tag: str) -> SolveResult:
+    """Both solves of one sample on a built model; the post-processing of ``solve``."""
+    from .api import _peak_mb, _solve_at
+    from .errors import SolverError
+    from .image import features, mirror_quarter
+
+    t0 = time.perf_counter()
+    before = dict(model.timings)
+    model.set_params(p)
+    inc = p.inclusion
+    try:
+        sol, diag, delta, force = _solve_at(model, inc.E, p)
+        w = model.probe_bottom_w(sol, delta)
+        sol_ref, diag_ref, delta_ref, force_ref = _solve_at(model, p.tissue.E, p)
+        w_ref = model.probe_bottom_w(sol_ref, delta_ref)
+    except SolverError as exc:
+        raise SolverError(f"solve failed for {tag}: {exc}") from exc
+    if p.disc.symmetry == "quarter":
+        w, w_ref = mirror_quarter(w), mirror_quarter(w_ref)
+    if p.disc.interface == "tied" and diag["tension_patch_fraction"] > 0:
+        warnings.warn(
+            f"tied interface carries tension on {100 * diag['tension_patch_fraction']:.2g} % of the "
+            f"footprint patches for {tag}: the probe would lift off there; use interface='contact'",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+    diff = w - w_ref
+    O1, O2, O3 = features(diff, p.image.pixel, p.image.threshold, p.image.supersample)
+    timings = {k: v - before.get(k, 0.0) for k, v in model.timings.items()}
+    return SolveResult(
+        params=p,
+        O1=O1,
+        O2=O2,
+        O3=O3,
+        force=force,
+        force_ref=force_ref,
+        delta=delta,
+        image=diff.astype(np.float32),
+        image_raw=w.astype(np.float32),
+        pixel=p.image.pixel,
+        ndofs=model.ndofs,
+        ncells=model.ncells,
+        newton_iterations=sol.iterations + sol_ref.iterations,
+        seconds=time.perf_counter() - t0 + first_seconds,
+        timings={k: round(v, 4) for k, v in timings.items() if v > 0},
+        peak_memory_mb=_peak_mb(),
+        interface={**diag, "reference_tension_patch_fraction": diag_ref["tension_patch_fraction"]},
+    )
+
+
+def solve_group(
+    params_list: Sequence[SolveParams],
+    on_result: Callable[[int, SolveResult | Exception], None] | None = None,
+    errors: str = "raise",
+) -> list[SolveResult | Exception]:
+    """Every sample of one geometry (:func:`geometry_key` equal for all) on one mesh and model.
+
+    The first result's ``seconds`` and ``timings`` carry the mesh and the model setup.
+    ``errors="return"`` puts the :class:`~elastimap.solver.errors.SolverError` of a failed
+    sample in its place instead of raising (a failed mesh fails every sample of the group)."""
+    from .errors import SolverError
+    from .fem import Model
+    from .geometry import MeshError, build_mesh
+
+    ps = [p.validate() for p in params_list]
+    if len({geometry_key(p) for p in ps}) > 1:
+        raise ValueError("solve_group: the samples do not share one geometry (use solve_batch)")
+    out: list[SolveResult | Exception] = []
+    t0 = time.perf_counter()
+    inc = ps[0].inclusion
+    tag = f"(d={inc.d:g} mm, h={inc.h:g} mm, E={inc.E:g} kPa)"
+    try:
+        raw = build_mesh(ps[0])
+        model = Model(raw, ps[0])
+    except (MeshError, SolverError) as exc:
+        err = SolverError(f"mesh/setup failed for {tag}: {exc}")
+        if errors == "raise":
+            raise err from exc
+        for i in range(len(ps)):
+            out.append(err)
+            if on_result:
+                on_result(i, err)
+        return out
+    setup = time.perf_counter() - t0
+    model.timings["mesh"] = raw.seconds
+    try:
+        for i, p in enumerate(ps):
+            inc = p.inclusion
+            tag = f"(d={inc.d:g} mm, h={inc.h:g} mm, E={inc.E:g} kPa)"
+            try:
+                res: SolveResult | Exception = _variant(model, p, setup if i == 0 else 0.0, tag)
+            except SolverError as exc:
+                if errors == "raise":
+                    raise
+                res = exc
+            if i == 0 and isinstance(res, SolveResult):
+                res.timings = {"mesh": round(raw.seconds, 4), **res.timings}
+                res.timings["setup"] = round(model.timings.get("setup", 0.0), 4)
+            out.append(res)
+            if on_result:
+                on_result(i, res)
+    finally:
+        model.destroy()
+    return out
+
+
+def solve_batch(
+    params_list: Sequence[SolveParams],
+    on_result: Callable[[int, SolveResult | Exception], None] | None = None,
+    errors: str = "raise",
+) -> list[SolveResult | Exception]:
+    """Results of :func:`elastimap.solver.api.solve` for every sample of ``params_list`` (same
+    order), one mesh and one model per geometry (:func:`group_by_geometry`).  ``on_result(i, r)``
+    is called as each lands; ``errors`` as in :func:`solve_group`."""
+    out: list[SolveResult | Exception | None] = [None] * len(params_list)
+    for idx in group_by_geometry(params_list):
+
+        def land(j, r, idx=idx):
+            out[idx[j]] = r
+            if on_result:
+                on_result(idx[j], r)
+
+        solve_group([params_list[i] for i in idx], land, errors)
+    return out  # type: ignore[return-value]
