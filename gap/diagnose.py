@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -83,6 +84,11 @@ class Settings:
     families: tuple = fx.DEFAULT_FAMILIES
     bootstrap: int = 200
     seed: int = 0
+    adaptive: bool = True  # mechanics magnitudes: sensitivity solve + refinement near the fit (else the grid)
+    refine_rounds: int = 4  # at most this many refinement rounds
+    refine_top: int = 3  # refine the best this many candidates ...
+    refine_margin: float = 13.8  # ... and every one within this Δscore of the best (3 x ambiguity_margin)
+    refine_tol: float = 0.03  # a fit within this fraction of the effect's range of a solved magnitude is not re-solved
     inverse: bool = True
     n_train: int = 40
     train_repeats: int = 4
@@ -146,6 +152,9 @@ class Candidate:
     V: dict
     D: np.ndarray | None
     dropped: list = field(default_factory=list)
+    interp_error: dict | None = None  # adaptive: measured interpolation error per view (n, q)
+    adaptive: bool = False  # solved at a few magnitudes (sensitivity + refinement), not the grid
+    refinements: list = field(default_factory=list)  # magnitudes solved near the fit
 
 
 def phantom_params(meas: Measured, mesh: str):
@@ -167,14 +176,25 @@ def _scaled(rec: Record, s: float) -> Record:
     )
 
 
-def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, sensor, settings):
-    """Baseline views and images and every candidate's sweep (solves through the cache)."""
-    p0 = phantom_params(meas, sim.mesh)
+def needs_solves(e: fx.Effect, linear: bool) -> bool:
+    """Whether a magnitude of ``e`` other than the nominal costs forward solves: optics effects
+    are camera-only (the baseline solve through another camera), and a plate-travel offset of a
+    linear model is the baseline scaled."""
+    return e.stage == "mechanics" and not (e.scales_with_delta and linear)
+
+
+def solve_plan(meas: Measured, cands: list[fx.Effect], mesh: str, adaptive: bool):
+    """[(effect, magnitude, params per phantom or None, how)]: "solve", "reuse" (no solve) or
+    "invalid".  Adaptive: one sensitivity magnitude per solved effect (``Effect.sensitivity``),
+    else every grid magnitude."""
+    p0 = phantom_params(meas, mesh)
     linear = not any(p.nonlinear for p in p0)
     plan = []
     for e in cands:
-        for m in e.grid:
-            if e.stage != "mechanics" or e.is_nominal(m) or (e.scales_with_delta and linear):
+        solved = needs_solves(e, linear)
+        ms = [e.nominal, e.sensitivity] if (adaptive and solved) else list(e.grid)
+        for m in ms:
+            if not solved or e.is_nominal(m):
                 plan.append((e, m, None, "reuse"))
                 continue
             try:
@@ -183,6 +203,14 @@ def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, 
                 plan.append((e, m, None, "invalid"))
                 continue
             plan.append((e, m, pl, "solve"))
+    return p0, linear, plan
+
+
+def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, sensor, settings, adaptive=False):
+    """Baseline views and images and every candidate's sweep (solves through the cache).
+    ``adaptive``: solved effects get their nominal and one sensitivity magnitude only
+    (:func:`refine` adds magnitudes near the fit)."""
+    p0, linear, plan = solve_plan(meas, cands, sim.mesh, adaptive)
     flat = list(p0) + [p for _, _, pl, _ in plan if pl is not None for p in pl]
     recs = sim.run(flat)
     base = recs[: meas.n]
@@ -217,6 +245,7 @@ def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, 
             Vs.append(V)
             Ds.append(D)
         order = np.argsort(ms)
+        ad = adaptive and needs_solves(e, linear)
         out.append(
             Candidate(
                 e,
@@ -224,9 +253,30 @@ def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, 
                 {k: np.asarray([Vs[i][k] for i in order]) for k in V0},
                 np.asarray(Ds)[order] if Ds else None,
                 dropped,
+                interp_error={k: np.zeros_like(v) for k, v in V0.items()} if ad else None,
+                adaptive=ad,
             )
         )
     return V0, D0, out
+
+
+def add_points(c: Candidate, ms: list[float], V: list[dict], D: list) -> None:
+    """Insert solved magnitudes into an adaptive candidate.  Its interpolation error becomes the
+    miss of the emulator *before* the insertion at the new magnitudes (per view, phantom and
+    quantity; the largest over the new points): measured, not assumed."""
+    em = {k: Interp(c.grid, c.V[k]) for k in c.V}
+    miss = {k: np.zeros_like(c.V[k][0]) for k in c.V}
+    for m, v in zip(ms, V):
+        for k in c.V:
+            miss[k] = np.maximum(miss[k], np.abs(v[k] - em[k](m)))
+    g = np.r_[c.grid, ms]
+    order = np.argsort(g)
+    c.grid = g[order]
+    c.V = {k: np.concatenate([c.V[k], np.asarray([v[k] for v in V])])[order] for k in c.V}
+    if c.D is not None:
+        c.D = np.concatenate([c.D, np.asarray(D)])[order]
+    c.interp_error = miss
+    c.refinements += [float(m) for m in ms]
 
 
 # ------------------------------------------------------------------ model error
@@ -299,11 +349,79 @@ def richardson_correct(V0: dict, D0, C: list[Candidate], me: dict, st: Settings)
     lo, hi = st.order_range_image
     me["image_sigma"] = me["image_sigma"] / me["kappa_image"] * abs(kap(lo) - kap(hi))
     dD = me["kappa_image"] * me["image_delta"]
+    me["_factor"], me["_dD"] = fac, dD
     for c in C:
         c.V = {k: v * fac[k][None] for k, v in c.V.items()}
         if c.D is not None:
             c.D = c.D - dD[None]
     return {k: v * fac[k] for k, v in V0.items()}, D0 - dD
+
+
+def correct(V: dict, D, me: dict):
+    """The Richardson extrapolation of :func:`richardson_correct` applied to one more prediction
+    (a refinement solve); unchanged when the model error is not extrapolated."""
+    if "_factor" not in me:
+        return V, D
+    return {k: v * me["_factor"][k] for k, v in V.items()}, D - me["_dD"]
+
+
+def refine(meas: Measured, C: list[Candidate], sim: Simulator, sensor, settings, me: dict, st: Settings, evaluate_now):
+    """Adaptive magnitudes: while the ranking's leading candidates (the ``refine_top`` best and
+    every one within ``refine_margin`` of the best score) have a fitted magnitude farther than
+    ``refine_tol`` of the range from every solved magnitude, solve them there (every phantom)
+    and insert the point (:func:`add_points`: the emulator's miss there becomes its
+    interpolation error).  Families refine their members at the family's fit.  Nothing is
+    refined when the gap is not significant (the verdict does not depend on the candidates).
+    Returns (solves, rounds)."""
+    byname = {c.effect.name: c for c in C}
+    p0 = phantom_params(meas, sim.mesh)
+    solves = rounds = 0
+    for _ in range(st.refine_rounds):
+        ev = evaluate_now()
+        if not ev["significant"] or not ev["ranking"]:
+            break
+        rows = ev["ranking"]
+        best = rows[0]["score"]
+        want: dict[str, list[float]] = {}
+        for i, r in enumerate(rows):
+            if i >= st.refine_top and r["score"] - best > st.refine_margin:
+                continue
+            for name, th in zip(r["members"], r["magnitude"]):
+                c = byname.get(name)
+                if c is None or not c.adaptive:
+                    continue
+                tol = st.refine_tol * (c.effect.hi - c.effect.lo)
+                near = list(c.grid) + want.get(name, []) + c.dropped
+                if min(abs(x - th) for x in near) <= tol:
+                    continue
+                want.setdefault(name, []).append(float(th))
+        jobs = []
+        for name, ms in want.items():
+            e = byname[name].effect
+            for m in ms:
+                try:
+                    jobs.append((name, m, [e.apply_params(p, m).validate() for p in p0]))
+                except UserError:
+                    byname[name].dropped.append(m)
+        if not jobs:
+            break
+        recs = sim.run([p for _, _, pl in jobs for p in pl])
+        rounds += 1
+        solves += len(recs)
+        new: dict[str, tuple[list, list, list]] = {}
+        for j, (name, m, _pl) in enumerate(jobs):
+            V, D = sim_views(recs[j * meas.n : (j + 1) * meas.n], sensor, settings)
+            if not np.all(np.isfinite(V["features"])):
+                byname[name].dropped.append(m)
+                continue
+            V, D = correct(V, D, me)
+            a = new.setdefault(name, ([], [], []))
+            a[0].append(m)
+            a[1].append(V)
+            a[2].append(D)
+        for name, (ms, Vs, Ds) in new.items():
+            add_points(byname[name], ms, Vs, Ds)
+    return solves, rounds
 
 
 # ------------------------------------------------------------------ models (fit, predict, interval)
@@ -340,37 +458,67 @@ def with_systematic(mdl, y, S, th, stat: list, sys) -> list[tuple[float, float]]
     return out
 
 
+class Interp:
+    """Shape-preserving (PCHIP) interpolation of Y (K, ...) over the solved magnitudes g (K,),
+    continued linearly (the end secant) beyond them; K = 1: constant."""
+
+    def __init__(self, g: np.ndarray, Y: np.ndarray):
+        self.g, self.Y = np.asarray(g, float), np.asarray(Y, float)
+        self._p = PchipInterpolator(self.g, self.Y, axis=0) if len(self.g) > 1 else None
+
+    def __call__(self, m):
+        m = np.asarray(m, float)
+        if self._p is None:
+            return np.broadcast_to(self.Y[0], m.shape + self.Y.shape[1:]).copy()
+        g, Y = self.g, self.Y
+        out = self._p(np.clip(m, g[0], g[-1]))
+        lo, hi = m < g[0], m > g[-1]
+        if np.any(lo) or np.any(hi):
+            s0 = (Y[1] - Y[0]) / (g[1] - g[0])
+            s1 = (Y[-1] - Y[-2]) / (g[-1] - g[-2])
+            ext = lambda mm, a, gg, sl: a + np.multiply.outer(mm - gg, sl)  # noqa: E731
+            if m.ndim == 0:
+                return ext(m, Y[0], g[0], s0) if lo else (ext(m, Y[-1], g[-1], s1) if hi else out)
+            out[lo] = ext(m[lo], Y[0], g[0], s0)
+            out[hi] = ext(m[hi], Y[-1], g[-1], s1)
+        return out
+
+
 class Single:
-    """One effect, one magnitude."""
+    """One effect, one magnitude, over the effect's whole range [lo, hi]: interpolated between
+    the solved magnitudes (the full grid, or the adaptive points), extrapolated linearly beyond."""
 
     def __init__(self, c: Candidate, names):
         self.c, self.name, self.k, self.names = c, c.effect.name, 1, list(names)
         self.effect, self.stage, self.unit = c.effect, c.effect.stage, c.effect.unit
         self.grid = c.grid
+        # adaptive: the effect's whole range; a full sweep: its valid magnitudes
+        self.lo = float(min(c.effect.lo, self.grid.min()) if c.adaptive else self.grid.min())
+        self.hi = float(max(c.effect.hi, self.grid.max()) if c.adaptive else self.grid.max())
         self.Y = cat(c.V, self.names)  # (K, n, Q)
-        if len(self.grid) > 1:
-            self.dense = np.linspace(self.grid.min(), self.grid.max(), NDENSE)
-            self._pchip = PchipInterpolator(self.grid, self.Y, axis=0)
+        self._pchip = Interp(self.grid, self.Y)
+        if self.hi > self.lo and len(self.grid) > 1:
+            self.dense = np.linspace(self.lo, self.hi, NDENSE)
             self.dense_Y = self._pchip(self.dense)
         else:
-            self.dense, self.dense_Y, self._pchip = self.grid.copy(), self.Y.copy(), None
-        self.interp = _interp_error(self.grid, self.Y)
+            self.dense, self.dense_Y = self.grid.copy(), self.Y.copy()
+        self.interp = cat(c.interp_error, self.names) if c.interp_error is not None else _interp_error(self.grid, self.Y)
+
+    def span(self):
+        return np.array([self.lo, self.hi]) if len(self.grid) > 1 else np.array([self.grid[0], self.grid[0]])
 
     @property
     def labels(self):
         return [self.name]
 
     def grid_of(self, l):
-        return self.grid
+        return self.span()
 
     def predict(self, th, names=None) -> np.ndarray:
-        m = float(np.atleast_1d(th)[0])
+        m = float(np.clip(float(np.atleast_1d(th)[0]), *self.span()))
         if names is None or list(names) == self.names:
-            return self._pchip(np.clip(m, self.grid.min(), self.grid.max())) if self._pchip else self.Y[0]
-        Y = cat(self.c.V, names)
-        if len(self.grid) == 1:
-            return Y[0]
-        return PchipInterpolator(self.grid, Y, axis=0)(np.clip(m, self.grid.min(), self.grid.max()))
+            return self._pchip(m)
+        return Interp(self.grid, cat(self.c.V, names))(m)
 
     def image(self, th):
         D, g = self.c.D, self.grid
@@ -386,7 +534,7 @@ class Single:
     def tie(self) -> np.ndarray:
         """A negligible preference for the nominal magnitude, so that a flat χ² (an effect these
         phantoms do not see) fits the nominal, not a grid end."""
-        span = max(float(self.grid.max() - self.grid.min()), 1e-300)
+        span = max(float(self.hi - self.lo), 1e-300)
         return 1e-9 * ((self.dense - self.effect.nominal) / span) ** 2
 
     def _chi(self, m, y, S, idx) -> float:
@@ -404,7 +552,7 @@ class Single:
             lambda m: self._chi(m, y, S, idx),
             bounds=(lo, hi),
             method="bounded",
-            options={"xatol": 1e-7 * (self.grid.max() - self.grid.min())},
+            options={"xatol": 1e-7 * (self.hi - self.lo)},
         )
         m = float(r.x) if r.fun < tot[k] else float(self.dense[k])
         return np.array([m])
@@ -425,18 +573,18 @@ class Single:
             a = self.dense[left[-1]]
             out.append(float(brentq(g, a, m0)) if g(a) > 0 > g(m0) else float(a))
         else:
-            out.append(float(self.grid.min()))
+            out.append(float(self.span()[0]))
         right = np.flatnonzero((self.dense > m0) & (tot > 0))
         if len(right):
             b = self.dense[right[0]]
             out.append(float(brentq(g, m0, b)) if g(b) > 0 > g(m0) else float(b))
         else:
-            out.append(float(self.grid.max()))
+            out.append(float(self.span()[1]))
         return [(out[0], out[1])]
 
     def at_edge(self, th) -> bool:
         m = float(th[0])
-        return bool(len(self.grid) > 1 and (abs(m - self.grid.min()) < 1e-9 or abs(m - self.grid.max()) < 1e-9))
+        return bool(len(self.grid) > 1 and (abs(m - self.lo) < 1e-9 or abs(m - self.hi) < 1e-9))
 
     def params_at(self, p, th):
         return self.effect.apply_params(p, float(th[0]))
@@ -467,7 +615,7 @@ class Composed:
         return [m.name for m in self.members]
 
     def grid_of(self, l):
-        return self.members[l].grid
+        return self.members[l].span()
 
     def predict(self, th, names=None) -> np.ndarray:
         base = self.y0 if names is None or list(names) == self.names else cat(self.V0, names)
@@ -492,12 +640,12 @@ class Composed:
                 parts[l] = m.predict(th[l]) - self.y0
         for _ in range(2):  # refine each parameter between its neighbouring dense points
             for l, m in enumerate(self.members):
-                step = (m.grid.max() - m.grid.min()) / (NDENSE - 1)
+                step = (m.hi - m.lo) / (NDENSE - 1)
                 if step <= 0:
                     continue
                 rest = self.y0 + sum(p for j, p in enumerate(parts) if j != l)
                 fun = lambda t, rest=rest, m=m: float(chi2(y[idx], (rest + m.predict(t) - self.y0)[idx], S[idx]).sum())
-                lo, hi = max(m.grid.min(), th[l] - step), min(m.grid.max(), th[l] + step)
+                lo, hi = max(m.lo, th[l] - step), min(m.hi, th[l] + step)
                 r = minimize_scalar(fun, bounds=(lo, hi), method="bounded", options={"xatol": 1e-7 * step * NDENSE})
                 if r.fun < fun(th[l]):
                     th[l] = float(r.x)
@@ -506,7 +654,7 @@ class Composed:
 
     def interval(self, y, S, th) -> list[tuple[float, float]]:
         th = np.asarray(th, float)
-        spans = np.array([m.grid.max() - m.grid.min() for m in self.members])
+        spans = np.array([m.hi - m.lo for m in self.members])
         h = 0.01 * spans
 
         def F(t):
@@ -530,7 +678,7 @@ class Composed:
         except np.linalg.LinAlgError:
             sd = spans  # not identifiable from these phantoms: the whole grid
         return [
-            (float(max(m.grid.min(), t - 1.96 * s)), float(min(m.grid.max(), t + 1.96 * s)))
+            (float(max(m.lo, t - 1.96 * s)), float(min(m.hi, t + 1.96 * s)))
             for m, t, s in zip(self.members, th, sd)
         ]
 
@@ -1034,15 +1182,17 @@ def diagnose(
 ) -> dict:
     """The whole diagnosis.  ``sim_fine``: the simulator of the next finer mesh level for the
     measured model error (None: the assumed floor ``model_floor``)."""
-    import time
-
     t0 = time.perf_counter()
     st = st or Settings()
     if not cands:
         raise UserError("effects", "no candidate effects to test")
     sensor, settings = meas.sensor_model(), meas.settings()
     solved0 = sim.stats["solved"]
-    V0, D0, C = simulate_candidates(meas, cands, sim, sensor, settings)
+    timing = {}
+    tt = time.perf_counter()
+    V0, D0, C = simulate_candidates(meas, cands, sim, sensor, settings, adaptive=st.adaptive)
+    timing["candidates"] = time.perf_counter() - tt
+    tt = time.perf_counter()
     me = model_error(meas, sim, sim_fine, sensor, settings, V0, D0, st)
     if st.richardson and me["kind"] == "measured":
         V0, D0 = richardson_correct(V0, D0, C, me, st)
@@ -1050,6 +1200,7 @@ def diagnose(
             "; predictions extrapolated by it, σ = the spread of that extrapolation over orders "
             f"p in {list(st.order_range_image)} (image), {list(st.order_range_force)} (force)"
         )
+    timing["model_error"] = time.perf_counter() - tt
     mv = measured_views(meas, sensor, settings)
     names = decision_views(mv)
     sl = slices(V0, names)
@@ -1058,8 +1209,22 @@ def diagnose(
     y0 = cat(V0, names)
     S0 = np.sqrt(se**2 + cat(me["sigma"], names) ** 2)
     S0 = np.maximum(S0, 1e-12 * np.maximum(np.abs(y0), 1e-300))
-    models = build_models(C, names, V0, st)
-    ev = evaluate(y, S0, y0, models, meas.n, st, sl, cat(me["sigma"], names))
+
+    def evaluate_now():
+        return evaluate(y, S0, y0, build_models(C, names, V0, st), meas.n, st, sl, cat(me["sigma"], names))
+
+    tt = time.perf_counter()
+    ref_solves, ref_rounds = refine(meas, C, sim, sensor, settings, me, st, evaluate_now) if st.adaptive else (0, 0)
+    timing["refine"] = time.perf_counter() - tt
+    tt = time.perf_counter()
+    ev = evaluate_now()
+    timing["evaluate"] = time.perf_counter() - tt
+    tt = time.perf_counter()
+    for r in ev["ranking"]:
+        cs = [c for c in C if c.effect.name in r["members"]]
+        r["adaptive"] = any(c.adaptive for c in cs)
+        r["solved_magnitudes"] = {c.effect.name: [float(x) for x in c.grid] for c in cs if c.adaptive}
+        r["refined"] = all(len(c.refinements) > 0 for c in cs if c.adaptive) if r["adaptive"] else None
     ev["views"] = names
     ev["by_view"] = view_baselines(mv, V0, me, st)
     wh = where(meas, mv, V0, D0, me, st)
@@ -1085,7 +1250,17 @@ def diagnose(
         if Dw is not None:
             wh["image_after"] = image_residual(meas, Dw, me, sensor)
             wh["image_after"]["effect"] = best["effect"]
+    timing["rest"] = time.perf_counter() - tt
+    lin = not any(p.nonlinear for p in phantom_params(meas, sim.mesh))
+    solves_by_effect = {
+        c.effect.name: meas.n * sum(1 for m in c.grid if not c.effect.is_nominal(m))
+        for c in C
+        if needs_solves(c.effect, lin)
+    }
     return {
+        "solves_by_effect": solves_by_effect,
+        "timing": timing,
+        "refinement": {"solves": ref_solves, "rounds": ref_rounds, "adaptive": st.adaptive},
         "measured": {
             "source": meas.source,
             "n": meas.n,

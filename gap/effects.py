@@ -72,6 +72,14 @@ class Effect:
     def hi(self) -> float:
         return max(self.grid)
 
+    @property
+    def sensitivity(self) -> float:
+        """The one magnitude an adaptive diagnosis solves before it has a fit: the grid end
+        farther from the nominal (relative to the nominal's size; the upper end on a tie)."""
+        scale = max(abs(self.nominal), 1e-300) if self.nominal != 0 else 1.0
+        lo, hi = abs(self.lo - self.nominal) / scale, abs(self.hi - self.nominal) / scale
+        return self.hi if hi >= lo else self.lo
+
     def is_nominal(self, m: float) -> bool:
         return abs(float(m) - self.nominal) <= 1e-12 * max(1.0, abs(self.nominal))
 

@@ -81,6 +81,29 @@ def _solve_one(args) -> tuple[str, SolveResult | None, str, float]:
         return key, None, str(exc), time.perf_counter() - t0
 
 
+def _solve_group(args) -> list[tuple[str, SolveResult | None, str, float]]:
+    """One geometry's samples on one mesh and model (:func:`elastimap.solver.batch.solve_group`)."""
+    from elastimap.solver.batch import solve_group
+
+    keys, pdicts = args
+    ps = [SolveParams.from_dict(d) for d in pdicts]
+    out = []
+    t = [time.perf_counter()]
+
+    def land(i, r):
+        now = time.perf_counter()
+        sec, t[0] = now - t[0], now
+        if isinstance(r, Exception):
+            out.append((keys[i], None, str(r), sec))
+        else:
+            out.append((keys[i], r, "", sec))
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        solve_group(ps, land, errors="return")
+    return out
+
+
 def _record(key: str, res: SolveResult, seconds: float) -> Record:
     return Record(
         key,
@@ -115,12 +138,32 @@ class Simulator:
             raise UserError("mesh", f"must be tiny, coarse, default or fine (got {mesh!r})")
         self.mesh, self.backend, self.jobs = mesh, backend, max(1, int(jobs))
         self.solve = solver or (synthetic.solve if backend == "toy" else fem_solve)
+        # FEM samples that share a geometry run on one mesh and model (solver.batch)
+        self.batched = solver is None and backend == "fem"
         self.label = solver_label(self.solve)
         self.store = SolveStore(cache_dir, solver=self.label) if cache_dir else None
         self.dir = self.store.path if self.store is not None else None
         self.mem: dict[str, Record] = {}
         self.stats = {"solved": 0, "hits": 0, "solve_seconds": 0.0}
         self.progress = progress
+
+    def pool(self):
+        """The worker processes (started once, kept for the simulator's life: each start costs
+        the imports of DOLFINx in every worker)."""
+        if getattr(self, "_pool", None) is None:
+            import atexit
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            self._pool = ProcessPoolExecutor(self.jobs, mp_context=mp.get_context("spawn"))
+            atexit.register(self.close)
+        return self._pool
+
+    def close(self) -> None:
+        """Stop the worker processes (a later ``run`` starts new ones)."""
+        if getattr(self, "_pool", None) is not None:
+            self._pool.shutdown(cancel_futures=True)
+            self._pool = None
 
     def run(self, plist: list[SolveParams]) -> list[Record]:
         """Records for every params in ``plist`` (same order), solving the missing ones."""
@@ -173,7 +216,28 @@ class Simulator:
                     flush()
 
             try:
-                if self.jobs > 1 and self.label == "fem" and len(args) > 1:
+                if self.batched:
+                    from elastimap.solver.batch import group_by_geometry
+
+                    items = list(todo.items())
+                    groups = group_by_geometry([p for _, p in items])
+                    groups.sort(key=len, reverse=True)  # largest first: better balance over workers
+                    gargs = [
+                        ([items[i][0] for i in g], [items[i][1].to_dict() for i in g]) for g in groups
+                    ]
+                    self.stats["geometries"] = self.stats.get("geometries", 0) + len(groups)
+                    if self.jobs > 1 and len(gargs) > 1:
+                        from concurrent.futures import as_completed
+
+                        futs = [self.pool().submit(_solve_group, a) for a in gargs]
+                        for f in as_completed(futs):
+                            for r in f.result():
+                                land(*r)
+                    else:
+                        for a in gargs:
+                            for r in _solve_group(a):
+                                land(*r)
+                elif self.jobs > 1 and self.label == "fem" and len(args) > 1:
                     import multiprocessing as mp
                     from concurrent.futures import ProcessPoolExecutor, as_completed
 
