@@ -347,6 +347,41 @@ def selftest_cmd(
     return 0
 
 
+@main_group.command("bench", context_settings=CONTEXT_SETTINGS)
+@click.option("--n", "n", type=int, default=12, show_default=True, help="phantoms")
+@mesh_option(default="coarse", help="the diagnosis's mesh level")
+@jobs_option(default=2, help="worker processes for the solves")
+@click.option("--effect", default="background_E=6.5", show_default=True, help="effect in the SYNTHETIC data ('' = none)")
+@click.option("--data-mesh", default="default", show_default=True, help="mesh level of the SYNTHETIC data")
+@click.option("--data-interface", type=click.Choice(["tied", "contact", "bonded"]), default="contact", show_default=True)
+@click.option("--data-cache", default=None, help="solve cache of the data (default: the gap cache); the diagnosis uses none")
+@click.option("--inverse", is_flag=True, help="include the inverse retraining step")
+@click.option("--full-grid", is_flag=True, help="solve every grid magnitude (the method before adaptive refinement)")
+@click.option("--json", "as_json", type=click.Path(dir_okay=False), default=None, help="also write the figures here")
+def bench_cmd(n, mesh, jobs, effect, data_mesh, data_interface, data_cache, inverse, full_grid, as_json):
+    """Time a first diagnosis (no solve cache) of SYNTHETIC data: solves, seconds, where the time goes."""
+    from . import bench
+
+    if n < 4:
+        raise UserError("n", f"need at least 4 phantoms (got {n})")
+    if jobs < 1:
+        raise UserError("jobs", f"must be >= 1 (got {jobs})")
+    if effect:
+        fx.parse_spec(effect)
+    if as_json:
+        from elastimap.outputs import check_out_file
+
+        check_out_file(as_json, "json")
+    res = bench.run(
+        n, mesh, jobs, effect, data_mesh, data_interface, data_cache or default_cache(), inverse, not full_grid
+    )
+    if as_json:
+        from .report import _jsonable
+
+        Path(as_json).write_text(json.dumps(_jsonable(res), indent=2) + "\n")
+    return 0
+
+
 def main(argv=None):
     run_cli(main_group, argv, prog_name="gap")
 

@@ -85,9 +85,9 @@ class Settings:
     bootstrap: int = 200
     seed: int = 0
     adaptive: bool = True  # mechanics magnitudes: sensitivity solve + refinement near the fit (else the grid)
-    refine_rounds: int = 4  # at most this many refinement rounds
-    refine_top: int = 3  # refine the best this many candidates ...
-    refine_margin: float = 13.8  # ... and every one within this Δscore of the best (3 x ambiguity_margin)
+    refine_rounds: int = 3  # at most this many refinement rounds
+    refine_top: int = 2  # refine the best this many candidates ...
+    refine_margin: float = 9.2  # ... and every one within this Δscore of the best (2 x ambiguity_margin)
     refine_tol: float = 0.03  # a fit within this fraction of the effect's range of a solved magnitude is not re-solved
     inverse: bool = True
     n_train: int = 40
