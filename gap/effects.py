@@ -20,6 +20,7 @@ magnitudes for the fitting sweep and a "blind" range the self-test draws true ma
 | probe_t1, probe_t2, probe_t3 | mechanics | ``Probe.layers[i]`` thickness | layer thickness (mm) | 2, 3, 5 |
 | slab_thickness | mechanics | ``Tissue.thickness`` | slab thickness (mm) | 20 |
 | tissue_nu | mechanics | ``Tissue.nu`` | tissue Poisson ratio (-) | 0.49 |
+| tilt | mechanics | ``Loading.tilt`` (full model, ~10x cost) | plate angle (deg) | 0 |
 | indentation | mechanics | ``Loading.delta`` = 3 mm + offset | plate-travel offset (mm) | 0 |
 | saturation | optics | ``SensorModel.w_sat`` | saturation deflection (mm) | 0.5 |
 | vignetting | optics | ``SensorModel.vignetting`` | corner fall-off (-) | 0.15 |
@@ -33,9 +34,10 @@ parameters: ``probe_layers_E`` (the three layer moduli, k = 3) and ``probe_layer
 layer thicknesses, k = 3).  Their prediction is composed from the members' sweeps to first order,
 f(m_1, m_2, m_3) = y_0 + sum_l (f_l(m_l) - y_0), and model selection charges k parameters.
 
-``offaxis`` is in the library but not in the default candidate list (a full-model solve costs
-about ten quarter-model solves); pass it explicitly with ``--effects``.  Probe tilt is not in the
-library (it needs a full model with an inclined plate, not implemented in the solver).
+``offaxis`` and ``tilt`` are in the library but not in the default candidate list (they break
+the quarter symmetry: a full-model solve costs about ten quarter-model solves); pass them
+explicitly with ``--effects``.  ``tilt`` rotates the rigid plate about the y axis by the angle
+(degrees): the plate travel is δ + θ·x across the probe top (``Loading.tilt`` = θ in rad).
 
 ``indentation`` is exactly linear for the linear tied model: its sweep is then the baseline solve
 scaled by (3 + offset)/3 (no extra solves; ``scales_with_delta``).
@@ -44,6 +46,7 @@ scaled by (3 + offset)/3 (no extra solves; ``scales_with_delta``).
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 from elastimap.errors import UserError
@@ -113,6 +116,10 @@ class Effect:
             return p.replace(tissue=r(p.tissue, thickness=m))
         if self.name == "tissue_nu":
             return p.replace(tissue=r(p.tissue, nu=m))
+        if self.name == "tilt":
+            return p.replace(
+                loading=r(p.loading, tilt=math.radians(m)), disc=r(p.disc, symmetry="full")
+            )
         if self.name == "indentation":
             return p.replace(loading=r(p.loading, delta=p.loading.delta + m))
         raise AssertionError(self.name)
@@ -282,6 +289,17 @@ EFFECTS: dict[str, Effect] = {
             "tissue Poisson ratio (compressibility)",
         ),
         Effect(
+            "tilt",
+            "mechanics",
+            "deg",
+            0.0,
+            (0.0, 0.25, 0.5, 1.0, 1.5),
+            (0.5, 1.5),
+            "probe tilt: the plate rotated about the y axis, travel -(delta + tan(angle) x) across "
+            "the probe top (full model)",
+            cost=10.0,
+        ),
+        Effect(
             "indentation",
             "mechanics",
             "mm",
@@ -374,7 +392,8 @@ FAMILIES: dict[str, Family] = {
     )
 }
 
-DEFAULT_CANDIDATES = tuple(n for n in EFFECTS if n != "offaxis")
+#: every effect but those that need the full model (about ten quarter-model solves each)
+DEFAULT_CANDIDATES = tuple(n for n in EFFECTS if n not in ("offaxis", "tilt"))
 DEFAULT_FAMILIES = tuple(FAMILIES)
 
 

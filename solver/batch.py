@@ -4,7 +4,7 @@ A sample (:func:`elastimap.solver.api.solve`) spends part of its time on things 
 geometry decides: the gmsh mesh, the DOLFINx mesh and space, the node sets, the interface pairs,
 the image sampler, the compiled forms and the sparsity pattern.  Samples that differ only in
 the **moduli** (tissue E, skin E, inclusion E, the probe layers' E), the **Poisson ratios** (ν of
-tissue, inclusion, probe) and the **plate travel** (δ or force) share all of that.  The stiffness
+tissue, inclusion, probe) and the **plate travel** (δ or force, the plate's tilt) share all of that.  The stiffness
 form a(u, v) = ∫ σ(u) : ε(v) dx reads E and ν from cell-wise (DG0) functions, so a new
 material only refills those functions before the next assembly
 (:meth:`elastimap.solver.fem.Model.set_params`); the sparsity pattern, the reduction P and the
@@ -32,7 +32,7 @@ MATERIAL_FIELDS = {
     "tissue": ("E", "nu", "skin_E"),
     "inclusion": ("E", "nu"),
     "probe": ("nu",),
-    "loading": ("delta", "force"),
+    "loading": ("delta", "force", "tilt"),
 }
 
 

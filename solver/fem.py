@@ -74,6 +74,7 @@ class Model:
         self.interface = Interface(space)
         bonded = p.disc.interface == "bonded"
         self.reduction = Reduction(space, self.interface, (0, 1, 2) if bonded else (2,))
+        self.reduction.tilt = float(p.loading.tilt)
         kt = 0.0 if bonded else float(p.disc.friction_kt)
         self.friction = Friction(self.interface, kt, space.ndofs) if kt > 0 else None
         self.sampler = ImageSampler(space, p)
@@ -87,6 +88,7 @@ class Model:
         and switches (everything but moduli, ν and loading; :mod:`elastimap.solver.batch`)."""
         self.p = p
         self.materials.set_params(p)
+        self.reduction.tilt = float(p.loading.tilt)
 
     def _finite_strain(self) -> Newton:
         """Residual R(u; v) = D_u Ψ[v] and Jacobian of Ψ = ∫ ψ dx (:func:`psi_blended`)."""
@@ -179,9 +181,12 @@ class Model:
         return 4 * f if self.p.disc.symmetry == "quarter" else f
 
     def probe_bottom_w(self, sol: Solution, delta: float) -> np.ndarray:
-        """Deflection of the probe bottom relative to the plate, u_z + δ (mm), on the pixel grid."""
+        """Deflection of the probe bottom relative to the plate, u_z + δ (+ tilt · x for a tilted
+        plate: the compression of the probe under the plate point above the pixel; mm), on the pixel grid."""
         t = time.perf_counter()
         w = self.sampler.deflection(sol.u, delta)
+        if self.reduction.tilt:
+            w = w + self.reduction.tilt * self.sampler.points[:, 0].reshape(w.shape)
         self._tick("image", t)
         return w
 

@@ -53,6 +53,7 @@ PARAMETER_CONSTRAINTS = {
     "inclusion.aspect": [Interval(float, 0.2, 5.0)],
     "probe.nu": [_POISSON],
     "force": [None, Interval(float, 0, None, closed="neither", unit="mN")],
+    "tilt": [Interval(float, -0.1, 0.1, unit="rad")],
     "mesh": [Options(MESH_LEVELS)],
     "degree": [Options((1, 2))],
     "interface": [Options(INTERFACES)],
@@ -126,6 +127,10 @@ class Loading:
 
     delta: float = 3.0
     force: float | None = None
+    # effect switch: probe tilt, a rigid rotation of the plate about the y axis by a small angle
+    # (rad): the plate travel varies across the probe top, u_z = -(delta + tilt * x); breaks
+    # the quarter symmetry (needs symmetry='full'), needs delta (not force)
+    tilt: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -224,6 +229,7 @@ class SolveParams:
             "inclusion.aspect": inc.aspect,
             "probe.nu": p.nu,
             "force": ld.force,
+            "tilt": ld.tilt,
             "mesh": ds.mesh,
             "degree": ds.degree,
             "interface": ds.interface,
@@ -278,6 +284,14 @@ class SolveParams:
             )
         if ld.force is None:
             check_range("delta", ld.delta, 0, delta_limit(self), lo_open=True, unit="mm")
+        if ld.tilt != 0:
+            if ds.symmetry == "quarter":
+                raise UserError("symmetry", "a tilted probe breaks quarter symmetry: use the full model")
+            if ld.force is not None:
+                raise UserError("tilt", "a tilted plate needs the plate travel delta, not force control")
+            reach = ld.delta + abs(ld.tilt) * p.size / 2
+            if reach > delta_limit(self):
+                raise UserError("tilt", f"the plate travels up to {reach:.3g} mm at the probe edge; at most {delta_limit(self):g} mm")
         if ds.symmetry == "quarter" and (inc.offset_x != 0 or inc.offset_y != 0):
             raise UserError("symmetry", "an off-axis inclusion breaks quarter symmetry: use the full model")
         check_range("pixel", im.pixel, 0, p.size / 4, lo_open=True, unit="mm")
@@ -325,6 +339,7 @@ EFFECT_DEFAULTS = {
     ("disc", "friction_kt"): 0.0,
     ("disc", "geometry"): "remesh",
     ("disc", "sizing"): "fixed",
+    ("loading", "tilt"): 0.0,
 }
 
 

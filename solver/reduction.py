@@ -1,6 +1,7 @@
 r"""Constraints by elimination: u = P ū + u_D, the reduced system PᵀAP ū = −PᵀA u_D, MUMPS LU.
 
-Dirichlet conditions (mm): u = 0 on the chest wall z = 0; u = (0, 0, −δ) on the
+Dirichlet conditions (mm): u = 0 on the chest wall z = 0; u = (0, 0, −δ) (a tilted plate:
+(0, 0, −(δ + θ x)), ``Loading.tilt`` θ in rad) on the
 probe top (bonded to the rigid plate, which moves down by δ); u·n = 0 on the
 symmetry planes x = 0, y = 0 of the quarter model.  The interface ties the
 normal component of every active pair (all three components for ``bonded``):
@@ -54,6 +55,7 @@ class Reduction:
 
     def __init__(self, space: Space, interface: Interface, tied_components: tuple[int, ...]):
         self.space, self.interface, self.tied = space, interface, tied_components
+        self.tilt = 0.0  # rad: a tilted plate, u_z = -(δ + tilt · x) on the probe top
         self._P = None
         self._Psp = None
         self._key = None
@@ -68,7 +70,7 @@ class Reduction:
         for comp in range(3):
             fixed[3 * s.bottom + comp] = True
             fixed[3 * s.top + comp] = True
-        uD[3 * s.top + 2] = -delta
+        uD[3 * s.top + 2] = -(delta + self.tilt * s.X[s.top, 0]) if self.tilt else -delta
         fixed[3 * s.sym_x + 0] = True
         fixed[3 * s.sym_y + 1] = True
         master = np.arange(n)
