@@ -76,6 +76,7 @@ def run(
         "solve_seconds_summed": sim.stats["solve_seconds"] + (fine.stats["solve_seconds"] if fine else 0),
         "geometries": sim.stats.get("geometries", 0),
         "solves_by_effect": sbe,
+        "solve_seconds_by_effect": res["solve_seconds_by_effect"],
         "refinement": res["refinement"],
         "timing": res["timing"],
         "outcome": ev["outcome"],
@@ -94,6 +95,8 @@ def run(
         f"  refinement: {res['refinement']['solves']} solves in {res['refinement']['rounds']} rounds",
         "  solves by effect (sensitivity + refinement, x phantoms): "
         + ", ".join(f"{k} {v}" for k, v in sbe.items() if v),
+        "  solve seconds by effect (summed over workers): "
+        + ", ".join(f"{k} {v:.0f}" for k, v in sorted(res["solve_seconds_by_effect"].items(), key=lambda kv: -kv[1])),
         f"  verdict: {ev['outcome']} {ev['ambiguous_set'] or ''} (best {ev['best']})",
         f"  machine: {out['machine']}",
     ]

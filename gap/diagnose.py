@@ -64,6 +64,8 @@ from .measured import FEATURES, Measured
 from .simulate import Record, Simulator, base_params, camera_features_of
 
 NDENSE = 401
+#: solve seconds (summed over workers, store hits count their stored time) by effect, this process
+SOLVE_SECONDS: dict[str, float] = {}
 FINER = {"tiny": "coarse", "coarse": "default", "default": "fine", "fine": None}
 
 
@@ -215,6 +217,7 @@ def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, 
     recs = sim.run(flat)
     base = recs[: meas.n]
     V0, D0 = sim_views(base, sensor, settings)
+    SOLVE_SECONDS["baseline"] = SOLVE_SECONDS.get("baseline", 0.0) + sum(r.seconds for r in base)
     if not np.all(np.isfinite(V0["features"])):
         bad = np.flatnonzero(~np.all(np.isfinite(V0["features"]), axis=1))
         raise UserError("measured", f"the baseline solve failed for phantom(s) {[meas.ids[i] for i in bad]}")
@@ -230,6 +233,7 @@ def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, 
                 continue
             if how == "solve":
                 V, D = sim_views(recs[pos : pos + meas.n], sensor, settings)
+                SOLVE_SECONDS[e.name] = SOLVE_SECONDS.get(e.name, 0.0) + sum(r.seconds for r in recs[pos : pos + meas.n])
                 pos += meas.n
             elif e.is_nominal(m):
                 V, D = V0, D0
@@ -295,6 +299,7 @@ def model_error(
     from elastimap.solver.geometry import LEVELS
 
     recs1 = sim_fine.run(phantom_params(meas, sim_fine.mesh))
+    SOLVE_SECONDS["error_mesh"] = SOLVE_SECONDS.get("error_mesh", 0.0) + sum(r.seconds for r in recs1)
     V1, D1 = sim_views(recs1, sensor, settings)
     r = LEVELS[sim.mesh][0] / LEVELS[sim_fine.mesh][0]
     sig, rel, delta = {}, {}, {}
@@ -411,6 +416,8 @@ def refine(meas: Measured, C: list[Candidate], sim: Simulator, sensor, settings,
         new: dict[str, tuple[list, list, list]] = {}
         for j, (name, m, _pl) in enumerate(jobs):
             V, D = sim_views(recs[j * meas.n : (j + 1) * meas.n], sensor, settings)
+            sec = sum(r.seconds for r in recs[j * meas.n : (j + 1) * meas.n])
+            SOLVE_SECONDS[name] = SOLVE_SECONDS.get(name, 0.0) + sec
             if not np.all(np.isfinite(V["features"])):
                 byname[name].dropped.append(m)
                 continue
@@ -1183,6 +1190,7 @@ def diagnose(
     """The whole diagnosis.  ``sim_fine``: the simulator of the next finer mesh level for the
     measured model error (None: the assumed floor ``model_floor``)."""
     t0 = time.perf_counter()
+    SOLVE_SECONDS.clear()
     st = st or Settings()
     if not cands:
         raise UserError("effects", "no candidate effects to test")
@@ -1259,6 +1267,7 @@ def diagnose(
     }
     return {
         "solves_by_effect": solves_by_effect,
+        "solve_seconds_by_effect": dict(SOLVE_SECONDS),
         "timing": timing,
         "refinement": {"solves": ref_solves, "rounds": ref_rounds, "adaptive": st.adaptive},
         "measured": {
