@@ -53,12 +53,20 @@ def run(
     sim = Simulator(None, mesh, "fem", jobs)
     fine = Simulator(None, FINER[mesh], "fem", jobs) if FINER.get(mesh) else None
     st = Settings(inverse=inverse, adaptive=adaptive, seed=seed)
+    import resource
+
+    def cpu():
+        a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+        return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
+
+    c0 = cpu()
     t0 = time.perf_counter()
     res = diagnose(meas, fx.parse_list(None), sim, st, fine)
     wall = time.perf_counter() - t0
     sim.close()
     if fine is not None:
         fine.close()
+    cpu_s = cpu() - c0  # the workers' CPU time counts once they have exited (closed above)
     ev = res["evaluation"]
     sbe = res["solves_by_effect"]
     out = {
@@ -70,6 +78,7 @@ def run(
         "inverse": inverse,
         "effect_in_data": effect,
         "wall_seconds": wall,
+        "cpu_seconds": cpu_s,
         "solves_total": sim.stats["solved"] + (fine.stats["solved"] if fine else 0),
         "solves_diagnosis_mesh": sim.stats["solved"],
         "solves_error_mesh": fine.stats["solved"] if fine else 0,
@@ -88,7 +97,8 @@ def run(
         f"first diagnosis: {n} phantoms, {len(res['candidates'])} default candidates, mesh {mesh} "
         f"(model error vs {out['error_mesh']}), --jobs {jobs}, no cache, "
         f"{'adaptive magnitudes' if adaptive else 'full grids'}, inverse {'on' if inverse else 'off'}",
-        f"  wall {wall:.0f} s; {out['solves_total']} solves ({out['solves_diagnosis_mesh']} on {mesh} in "
+        f"  wall {wall:.0f} s, CPU {cpu_s:.0f} s (main process and workers; CPU / {jobs} = the wall time "
+        f"{jobs} free cores would need at best: {cpu_s / jobs:.0f} s); {out['solves_total']} solves ({out['solves_diagnosis_mesh']} on {mesh} in "
         f"{out['geometries']} geometries, {out['solves_error_mesh']} on {out['error_mesh']}); "
         f"solve seconds summed over workers {out['solve_seconds_summed']:.0f} s",
         "  seconds by stage: " + ", ".join(f"{k} {v:.0f}" for k, v in res["timing"].items()),

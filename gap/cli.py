@@ -277,8 +277,10 @@ def error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet):
 @click.option("--frames", type=int, default=10, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--inverse", is_flag=True, help="also retrain the inverse in every trial (slow)")
+@click.option("--start", type=int, default=0, show_default=True, help="first trial to run (resume a cut run: same draws)")
 @common
 def selftest_cmd(
+    start,
     trials,
     out,
     mesh,
@@ -302,6 +304,8 @@ def selftest_cmd(
 
     if trials < 1:
         raise UserError("trials", f"must be >= 1 (got {trials})")
+    if not 0 <= start < trials:
+        raise UserError("start", f"must be in [0, trials) (got {start})")
     if n_phantoms < 4:
         raise UserError("n_phantoms", f"need at least 4 phantoms (got {n_phantoms})")
     if frames < 1:
@@ -322,6 +326,20 @@ def selftest_cmd(
     if dm not in FINER:
         raise UserError("data-mesh", "must be tiny, coarse, default or fine")
     sim_data = sim if dm == mesh else _sim(cache or default_cache(), dm, backend, jobs, quiet)
+    def write(res):
+        if not out:
+            return
+        from .report import _jsonable
+
+        Path(out).mkdir(parents=True, exist_ok=True)
+        for name, text in (
+            ("selftest.md", selftest.markdown(res)),
+            ("selftest.json", json.dumps(_jsonable(res), indent=2) + "\n"),
+        ):
+            tmp = Path(out) / f".{name}.tmp"
+            tmp.write_text(text)
+            os.replace(tmp, Path(out) / name)
+
     res = selftest.run(
         trials,
         sim,
@@ -335,15 +353,11 @@ def selftest_cmd(
         Settings(inverse=inverse),
         data_disc={"interface": data_interface} if data_interface != "tied" else None,
         log=None if quiet else lambda s: click.echo(s, err=True),
+        on_trial=write,  # the scores so far after every trial (marked PARTIAL until the last)
+        start=start,
     )
-    md = selftest.markdown(res)
-    if out:
-        Path(out).mkdir(parents=True, exist_ok=True)
-        (Path(out) / "selftest.md").write_text(md)
-        from .report import _jsonable
-
-        (Path(out) / "selftest.json").write_text(json.dumps(_jsonable(res), indent=2) + "\n")
-    click.echo(md)
+    write(res)
+    click.echo(selftest.markdown(res))
     return 0
 
 

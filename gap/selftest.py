@@ -78,9 +78,12 @@ def run(
     st: Settings | None = None,
     data_disc: dict | None = None,
     log=print,
+    on_trial=None,
+    start: int = 0,
 ) -> dict:
     """``sim``: the diagnosis's simulator; ``sim_fine``: its model-error level; ``sim_data`` (with
-    ``data_disc``, e.g. ``{"interface": "contact"}``): what generates the measured data."""
+    ``data_disc``, e.g. ``{"interface": "contact"}``): what generates the measured data.
+    ``start``: run trials start..trials-1 only (the same draws as a whole run: resume a cut run)."""
     st = st or Settings(inverse=False)
     names = {e.name for e in candidates}
     clash = [e.name for e in outside if e.name in names]
@@ -90,6 +93,12 @@ def run(
     dhe = phantom_design(n_phantoms, seed)
     out_trials = []
     t0 = time.perf_counter()
+
+    def summary(done):
+        return _summary(
+            done, trials, sim, sim_data, sim_fine, candidates, outside, n_phantoms, frames, seed, st, data_disc, t0, start
+        )
+
     for t in range(trials):
         kind = KINDS[t % len(KINDS)]
         pool = candidates if kind == "in" else outside
@@ -102,6 +111,8 @@ def run(
             truth = {"kind": kind, "effect": e.name, "magnitude": m}
             effs = [(e, m)]
         sealed = Sealed(truth, salt=f"{seed}-{t}-{rng.integers(1 << 30)}")
+        if t < start:  # resumed run: the draws of the earlier trials are replayed, not their work
+            continue
         meas, _ = synthesize(dhe, effs, sim_data, frames=frames, seed=seed * 1000 + t, disc=data_disc)
         meas.description = "SYNTHETIC selftest trial (label sealed)"
         del effs, truth
@@ -149,7 +160,18 @@ def run(
                 + f" (baseline red.chi2 {ev['reduced_chi2_baseline']:.3g}, best {ev['best']} "
                 f"red.chi2 {rec['best_reduced_chi2_cv']:.3g})  [{time.perf_counter() - t0:.0f} s]"
             )
+        if on_trial is not None:
+            on_trial(summary(out_trials))
+    return summary(out_trials)
+
+
+def _summary(
+    out_trials, trials, sim, sim_data, sim_fine, candidates, outside, n_phantoms, frames, seed, st, data_disc, t0, start
+):
     return score(out_trials, [e.name for e in candidates]) | {
+        "trials_planned": trials - start,
+        "first_trial": start,
+        "partial": len(out_trials) < trials - start,
         "trials": out_trials,
         "n_phantoms": n_phantoms,
         "frames": frames,
@@ -221,6 +243,11 @@ def markdown(res: dict) -> str:
     L = [
         "# SYNTHETIC blind benchmark of the gap diagnosis (model-form error)",
         "",
+        *(
+            [f"**PARTIAL: {res['n_trials']} of {res['trials_planned']} planned trials finished.**", ""]
+            if res.get("partial")
+            else []
+        ),
         f"{res['n_trials']} trials ({res['n_none']} no-effect, {res['n_in']} in-library, {res['n_out']} out-of-library), "
         f"backend `{res['backend']}`; diagnosis mesh `{res['mesh']}`, model error against `{res['error_mesh']}`; "
         f"**data from mesh `{res['data_mesh']}`{', ' + form if form else ''}**; {res['n_phantoms']} phantoms, "
