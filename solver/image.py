@@ -33,18 +33,22 @@ def upsample_bilinear(img: np.ndarray, factor: int) -> np.ndarray:
         c = (np.arange(n * factor) + 0.5) / factor - 0.5  # sub-cell centre in pixel-index units
         return np.clip(c, 0, n - 1)
 
-    cy, cx = coords(ny), coords(nx)
-    y0 = np.minimum(np.floor(cy).astype(int), ny - 2) if ny > 1 else np.zeros_like(cy, dtype=int)
-    x0 = np.minimum(np.floor(cx).astype(int), nx - 2) if nx > 1 else np.zeros_like(cx, dtype=int)
-    ty = (cy - y0)[:, None] if ny > 1 else np.zeros((cy.size, 1))
-    tx = (cx - x0)[None, :] if nx > 1 else np.zeros((1, cx.size))
-    y1 = np.minimum(y0 + 1, ny - 1)
-    x1 = np.minimum(x0 + 1, nx - 1)
-    a = img[np.ix_(y0, x0)]
-    b = img[np.ix_(y0, x1)]
-    c = img[np.ix_(y1, x0)]
-    d = img[np.ix_(y1, x1)]
-    return (1 - ty) * ((1 - tx) * a + tx * b) + ty * ((1 - tx) * c + tx * d)
+    def weights(n):
+        # bilinear interpolation is separable: out = W_y · img · W_xᵀ, each (sparse) row of W
+        # holding the two weights (1 − t, t) of a sub-cell centre between its pixel centres
+        import scipy.sparse as sp
+
+        c = coords(n)
+        rows = np.arange(c.size)
+        if n == 1:
+            return sp.csr_matrix((np.ones(c.size), (rows, np.zeros(c.size, int))), shape=(c.size, 1))
+        i0 = np.minimum(np.floor(c).astype(int), n - 2)
+        t = c - i0
+        return sp.csr_matrix(
+            (np.r_[1 - t, t], (np.r_[rows, rows], np.r_[i0, np.minimum(i0 + 1, n - 1)])), shape=(c.size, n)
+        )
+
+    return np.asarray((weights(nx) @ (weights(ny) @ img).T).T)
 
 
 def features(
