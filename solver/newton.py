@@ -85,14 +85,16 @@ class Newton:
         friction: tuple[sp.csr_matrix, PETSc.Mat] | None = None,
         rtol: float = 1e-9,
         max_iter: int = 30,
+        start: np.ndarray | None = None,
     ) -> Solution:
-        """Converge from the linear ``predictor`` (same P, same active set ``key``).
+        """Converge from the linear ``predictor`` (same P, same active set ``key``), or from
+        ``start`` (a converged neighbour with the same prescribed values: a warm start).
 
         Converged when ‖Pᵀ(R + S u)‖ falls below ``rtol`` times the norm of the
         predictor's reduced |internal force|.  ``iterations`` counts the linear solves
         (the predictor's included)."""
         S, Sm = friction if friction is not None else (None, None)
-        u = predictor.u.copy()
+        u = (predictor.u if start is None else start).copy()
 
         def reduced_res(uu):
             r = self.residual(uu)
