@@ -43,3 +43,45 @@ def test_solve_batch_equals_solve():
             assert np.max(np.abs(x - y)) <= 1e-6 * np.max(np.abs(x))  # float32 images
     # the variants really differ (the materials were switched, not left at the first sample's)
     assert len({round(r.O2, 9) for r in rb}) == len(rb)
+
+
+# ---------------------------------------------------------------- adaptive magnitudes (TOY backend)
+def test_adaptive_magnitudes_solve_less_and_find_the_same_answer():
+    """Sensitivity solve + refinement near the fit vs the full grid, on the TOY backend (not
+    physics: it only exercises the logic).  Same winner, magnitude within the interval, far
+    fewer solves; the refined candidate carries the emulator's measured miss."""
+    from elastimap.gap import effects as fx
+    from elastimap.gap import synth
+    from elastimap.gap.diagnose import Settings, diagnose
+    from elastimap.gap.simulate import Simulator
+
+    dhe = synth.phantom_design(6, 1)
+    cands = fx.parse_list("friction,background_E,tissue_nu,saturation")
+    meas, _ = synth.synthesize(dhe, [(fx.get("background_E"), 6.3)], Simulator(None, "tiny", "toy"), frames=6, seed=4)
+    out = {}
+    for adaptive in (False, True):
+        sim = Simulator(None, "tiny", "toy")
+        res = diagnose(meas, cands, sim, Settings(inverse=False, bootstrap=20, adaptive=adaptive))
+        out[adaptive] = (res, sim.stats["solved"])
+    (full, n_full), (ad, n_ad) = out[False], out[True]
+    assert full["evaluation"]["winner"] == ad["evaluation"]["winner"] == "background_E"
+    top = ad["evaluation"]["ranking"][0]
+    assert top["refined"] and len(top["solved_magnitudes"]["background_E"]) >= 3  # nominal, sensitivity, >= 1 refinement
+    lo, hi = top["magnitude_ci"][0]
+    assert lo <= 6.3 <= hi
+    assert top["magnitude"][0] == pytest.approx(full["evaluation"]["ranking"][0]["magnitude"][0], rel=0.02)
+    assert n_ad < 0.5 * n_full  # 6 baselines + 3 sensitivity x 6 + refinements vs 6 + (8+8+4) x 6
+    assert ad["refinement"]["solves"] > 0 and ad["solves_by_effect"]["background_E"] >= 2 * 6
+
+
+def test_nothing_is_refined_without_a_significant_gap():
+    from elastimap.gap import effects as fx
+    from elastimap.gap import synth
+    from elastimap.gap.diagnose import Settings, diagnose
+    from elastimap.gap.simulate import Simulator
+
+    sim = Simulator(None, "tiny", "toy")
+    meas, _ = synth.synthesize(synth.phantom_design(8, 1), [], sim, frames=6, seed=4)
+    res = diagnose(meas, fx.parse_list("friction,background_E,saturation"), sim, Settings(inverse=False, bootstrap=20))
+    assert res["evaluation"]["outcome"] == "no significant gap"
+    assert res["refinement"]["solves"] == 0
