@@ -15,9 +15,13 @@ candidate c's prediction f_c(θ)_iq (θ its magnitude(s)).
   ``order_force`` for the force; measured on three levels, see docs/gap.md).  The median floor
   keeps a quantity whose two-level difference happens to cross zero from getting no error.
   Without a second level the error is the assumed floor ρ |y0| (``model_floor``; the report
-  says "assumed").  Each candidate adds its magnitude-interpolation error σ_int,c (leave-one-
-  magnitude-out PCHIP miss of its sweep / 4).  Total, per phantom and quantity:
+  says "assumed").  Each candidate adds its magnitude-interpolation error σ_int,c (adaptive
+  mechanics effects: the emulator's measured miss at its last refinement solve; full grids: the
+  leave-one-magnitude-out PCHIP miss of the sweep / 4).  Total, per phantom and quantity:
   S_iq² = se_iq² + σ_disc,iq² + σ_int,c,iq²  (diagonal covariance).
+* **Adaptive magnitudes** (:func:`refine`).  A mechanics effect is solved at its nominal and one
+  sensitivity magnitude; while the gap is significant, the leading candidates are solved again at
+  their fitted magnitude (every phantom) and the emulator's miss there is their interpolation error.
 * **Calibrated tests.**  χ²_c = Σ_iq ((y − f_c)/S)² over N = n · Q terms.  The gap is
   **significant** when the baseline's χ²_0 > χ²_N(1 − α) (α = ``alpha``, 1 %), i.e. beyond
   the noise *and* the model's own tolerance.  A candidate **passes** when its held-out
