@@ -49,9 +49,18 @@ def run(
     t_data = time.perf_counter() - t
     sim_data.close()
     log(f"data: {n} phantoms, {effect or 'no effect'}, mesh {data_mesh} {data_interface}: "
-        f"{sim_data.stats['solved']} solved, {sim_data.stats['hits']} from the data cache, {t_data:.0f} s")
-    sim = Simulator(None, mesh, "fem", jobs)
-    fine = Simulator(None, FINER[mesh], "fem", jobs) if FINER.get(mesh) else None
+        f"{sim_data.stats['solved']} solved, {sim_data.stats['hits']} from the data cache, {t_data:.0f} s", flush=True)
+    def progress(level):
+        t_start = time.perf_counter()
+
+        def prog(i, k):
+            if log and (i == k or i % 12 == 0):
+                log(f"  [{time.perf_counter() - t_start:.0f} s] {level}: solves {i}/{k}", flush=True)
+
+        return prog
+
+    sim = Simulator(None, mesh, "fem", jobs, progress=progress(mesh))
+    fine = Simulator(None, FINER[mesh], "fem", jobs, progress=progress(FINER[mesh])) if FINER.get(mesh) else None
     st = Settings(inverse=inverse, adaptive=adaptive, seed=seed)
     import resource
 

@@ -192,6 +192,9 @@ def markdown(res: dict, figs: list[str]) -> str:
     ]
     for k, r in enumerate(ev["ranking"], 1):
         edge = " (grid edge)" if r["at_grid_edge"] else ""
+        if r.get("adaptive"):  # solved at a few magnitudes: say whether its fit was solved too
+            sm = "; ".join(f"{n} {', '.join(f'{x:.4g}' for x in v)}" for n, v in r["solved_magnitudes"].items())
+            edge += f" (solved at {sm}{'' if r['refined'] else '; emulated, not refined'})"
         byv = ", ".join(f"{a} {b:.3g}" for a, b in r["chi2_cv_by_view"].items())
         L.append(
             f"| {k} | {r['effect']} | {r['n_params']} | {_mag(r)}{edge} | {r['ssr_cv']:.4g} | {r['reduced_chi2_cv']:.3g} | "
