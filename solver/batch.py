@@ -20,10 +20,7 @@ from __future__ import annotations
 
 import json
 import time
-import warnings
 from collections.abc import Callable, Sequence
-
-import numpy as np
 
 from .params import SolveParams, SolveResult
 
@@ -55,56 +52,6 @@ def group_by_geometry(params_list: Sequence[SolveParams]) -> list[list[int]]:
     return list(groups.values())
 
 
-def _variant(model, p: SolveParams, first_seconds: float, tag: str) -> SolveResult:
-    """Both solves of one sample on a built model; the post-processing of ``solve``."""
-    from .api import _peak_mb, _solve_at
-    from .errors import SolverError
-    from .image import features, mirror_quarter
-
-    t0 = time.perf_counter()
-    before = dict(model.timings)
-    model.set_params(p)
-    inc = p.inclusion
-    try:
-        sol, diag, delta, force = _solve_at(model, inc.E, p)
-        w = model.probe_bottom_w(sol, delta)
-        sol_ref, diag_ref, delta_ref, force_ref = _solve_at(model, p.tissue.E, p)
-        w_ref = model.probe_bottom_w(sol_ref, delta_ref)
-    except SolverError as exc:
-        raise SolverError(f"solve failed for {tag}: {exc}") from exc
-    if p.disc.symmetry == "quarter":
-        w, w_ref = mirror_quarter(w), mirror_quarter(w_ref)
-    if p.disc.interface == "tied" and diag["tension_patch_fraction"] > 0:
-        warnings.warn(
-            f"tied interface carries tension on {100 * diag['tension_patch_fraction']:.2g} % of the "
-            f"footprint patches for {tag}: the probe would lift off there; use interface='contact'",
-            RuntimeWarning,
-            stacklevel=3,
-        )
-    diff = w - w_ref
-    O1, O2, O3 = features(diff, p.image.pixel, p.image.threshold, p.image.supersample)
-    timings = {k: v - before.get(k, 0.0) for k, v in model.timings.items()}
-    return SolveResult(
-        params=p,
-        O1=O1,
-        O2=O2,
-        O3=O3,
-        force=force,
-        force_ref=force_ref,
-        delta=delta,
-        image=diff.astype(np.float32),
-        image_raw=w.astype(np.float32),
-        pixel=p.image.pixel,
-        ndofs=model.ndofs,
-        ncells=model.ncells,
-        newton_iterations=sol.iterations + sol_ref.iterations,
-        seconds=time.perf_counter() - t0 + first_seconds,
-        timings={k: round(v, 4) for k, v in timings.items() if v > 0},
-        peak_memory_mb=_peak_mb(),
-        interface={**diag, "reference_tension_patch_fraction": diag_ref["tension_patch_fraction"]},
-    )
-
-
 def solve_group(
     params_list: Sequence[SolveParams],
     on_result: Callable[[int, SolveResult | Exception], None] | None = None,
@@ -115,6 +62,7 @@ def solve_group(
     The first result's ``seconds`` and ``timings`` carry the mesh and the model setup.
     ``errors="return"`` puts the :class:`~elastimap.solver.errors.SolverError` of a failed
     sample in its place instead of raising (a failed mesh fails every sample of the group)."""
+    from .api import run_sample, sample_tag, solve
     from .errors import SolverError
     from .fem import Model
     from .geometry import MeshError, build_mesh
@@ -123,39 +71,47 @@ def solve_group(
     if len({geometry_key(p) for p in ps}) > 1:
         raise ValueError("solve_group: the samples do not share one geometry (use solve_batch)")
     out: list[SolveResult | Exception] = []
+
+    def land(i, r):
+        out.append(r)
+        if on_result:
+            on_result(i, r)
+
+    if ps[0].disc.geometry != "remesh":  # a morphed mesh has its own reuse (solver.morph): sample by sample
+        for i, p in enumerate(ps):
+            try:
+                land(i, solve(p))
+            except SolverError as exc:
+                if errors == "raise":
+                    raise
+                land(i, exc)
+        return out
     t0 = time.perf_counter()
-    inc = ps[0].inclusion
-    tag = f"(d={inc.d:g} mm, h={inc.h:g} mm, E={inc.E:g} kPa)"
     try:
         raw = build_mesh(ps[0])
         model = Model(raw, ps[0])
     except (MeshError, SolverError) as exc:
-        err = SolverError(f"mesh/setup failed for {tag}: {exc}")
+        err = SolverError(f"mesh/setup failed for {sample_tag(ps[0])}: {exc}")
         if errors == "raise":
             raise err from exc
         for i in range(len(ps)):
-            out.append(err)
-            if on_result:
-                on_result(i, err)
+            land(i, err)
         return out
-    setup = time.perf_counter() - t0
-    model.timings["mesh"] = raw.seconds
     try:
         for i, p in enumerate(ps):
-            inc = p.inclusion
-            tag = f"(d={inc.d:g} mm, h={inc.h:g} mm, E={inc.E:g} kPa)"
             try:
-                res: SolveResult | Exception = _variant(model, p, setup if i == 0 else 0.0, tag)
+                model.set_params(p)
+                # the first variant carries the mesh and the model setup (its t0 is the group's)
+                res: SolveResult | Exception = run_sample(
+                    model, p, t0 if i == 0 else time.perf_counter(), {"mesh": raw.seconds} if i == 0 else {}
+                )[0]
+                if i > 0:
+                    res.timings.pop("setup", None)
             except SolverError as exc:
                 if errors == "raise":
                     raise
                 res = exc
-            if i == 0 and isinstance(res, SolveResult):
-                res.timings = {"mesh": round(raw.seconds, 4), **res.timings}
-                res.timings["setup"] = round(model.timings.get("setup", 0.0), 4)
-            out.append(res)
-            if on_result:
-                on_result(i, res)
+            land(i, res)
     finally:
         model.destroy()
     return out
