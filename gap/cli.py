@@ -382,6 +382,8 @@ def bench_cmd(n, mesh, jobs, effect, data_mesh, data_interface, data_cache, inve
         raise UserError("jobs", f"must be >= 1 (got {jobs})")
     if effect:
         fx.parse_spec(effect)
+    if data_mesh not in ("tiny", "coarse", "default", "fine"):
+        raise UserError("data-mesh", f"must be tiny, coarse, default or fine (got {data_mesh!r})")
     if as_json:
         from elastimap.outputs import check_out_file
 
