@@ -48,8 +48,12 @@ def run(
     )
     t_data = time.perf_counter() - t
     sim_data.close()
-    log(f"data: {n} phantoms, {effect or 'no effect'}, mesh {data_mesh} {data_interface}: "
-        f"{sim_data.stats['solved']} solved, {sim_data.stats['hits']} from the data cache, {t_data:.0f} s", flush=True)
+    log(
+        f"data: {n} phantoms, {effect or 'no effect'}, mesh {data_mesh} {data_interface}: "
+        f"{sim_data.stats['solved']} solved, {sim_data.stats['hits']} from the data cache, {t_data:.0f} s",
+        flush=True,
+    )
+
     def progress(level):
         t_start = time.perf_counter()
 

@@ -277,7 +277,9 @@ def error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet):
 @click.option("--frames", type=int, default=10, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--inverse", is_flag=True, help="also retrain the inverse in every trial (slow)")
-@click.option("--start", type=int, default=0, show_default=True, help="first trial to run (resume a cut run: same draws)")
+@click.option(
+    "--start", type=int, default=0, show_default=True, help="first trial to run (resume a cut run: same draws)"
+)
 @common
 def selftest_cmd(
     start,
@@ -326,6 +328,7 @@ def selftest_cmd(
     if dm not in FINER:
         raise UserError("data-mesh", "must be tiny, coarse, default or fine")
     sim_data = sim if dm == mesh else _sim(cache or default_cache(), dm, backend, jobs, quiet)
+
     def write(res):
         if not out:
             return
@@ -365,10 +368,16 @@ def selftest_cmd(
 @click.option("--n", "n", type=int, default=12, show_default=True, help="phantoms")
 @mesh_option(default="coarse", help="the diagnosis's mesh level")
 @jobs_option(default=2, help="worker processes for the solves")
-@click.option("--effect", default="background_E=6.5", show_default=True, help="effect in the SYNTHETIC data ('' = none)")
+@click.option(
+    "--effect", default="background_E=6.5", show_default=True, help="effect in the SYNTHETIC data ('' = none)"
+)
 @click.option("--data-mesh", default="default", show_default=True, help="mesh level of the SYNTHETIC data")
-@click.option("--data-interface", type=click.Choice(["tied", "contact", "bonded"]), default="contact", show_default=True)
-@click.option("--data-cache", default=None, help="solve cache of the data (default: the gap cache); the diagnosis uses none")
+@click.option(
+    "--data-interface", type=click.Choice(["tied", "contact", "bonded"]), default="contact", show_default=True
+)
+@click.option(
+    "--data-cache", default=None, help="solve cache of the data (default: the gap cache); the diagnosis uses none"
+)
 @click.option("--inverse", is_flag=True, help="include the inverse retraining step")
 @click.option("--full-grid", is_flag=True, help="solve every grid magnitude (the method before adaptive refinement)")
 @click.option("--json", "as_json", type=click.Path(dir_okay=False), default=None, help="also write the figures here")

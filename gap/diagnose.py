@@ -237,7 +237,9 @@ def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, 
                 continue
             if how == "solve":
                 V, D = sim_views(recs[pos : pos + meas.n], sensor, settings)
-                SOLVE_SECONDS[e.name] = SOLVE_SECONDS.get(e.name, 0.0) + sum(r.seconds for r in recs[pos : pos + meas.n])
+                SOLVE_SECONDS[e.name] = SOLVE_SECONDS.get(e.name, 0.0) + sum(
+                    r.seconds for r in recs[pos : pos + meas.n]
+                )
                 pos += meas.n
             elif e.is_nominal(m):
                 V, D = V0, D0
@@ -513,7 +515,9 @@ class Single:
             self.dense_Y = self._pchip(self.dense)
         else:
             self.dense, self.dense_Y = self.grid.copy(), self.Y.copy()
-        self.interp = cat(c.interp_error, self.names) if c.interp_error is not None else _interp_error(self.grid, self.Y)
+        self.interp = (
+            cat(c.interp_error, self.names) if c.interp_error is not None else _interp_error(self.grid, self.Y)
+        )
 
     def span(self):
         return np.array([self.lo, self.hi]) if len(self.grid) > 1 else np.array([self.grid[0], self.grid[0]])
@@ -689,8 +693,7 @@ class Composed:
         except np.linalg.LinAlgError:
             sd = spans  # not identifiable from these phantoms: the whole grid
         return [
-            (float(max(m.lo, t - 1.96 * s)), float(min(m.hi, t + 1.96 * s)))
-            for m, t, s in zip(self.members, th, sd)
+            (float(max(m.lo, t - 1.96 * s)), float(min(m.hi, t + 1.96 * s))) for m, t, s in zip(self.members, th, sd)
         ]
 
     def at_edge(self, th) -> bool:

@@ -117,9 +117,7 @@ class Effect:
         if self.name == "tissue_nu":
             return p.replace(tissue=r(p.tissue, nu=m))
         if self.name == "tilt":
-            return p.replace(
-                loading=r(p.loading, tilt=math.radians(m)), disc=r(p.disc, symmetry="full")
-            )
+            return p.replace(loading=r(p.loading, tilt=math.radians(m)), disc=r(p.disc, symmetry="full"))
         if self.name == "indentation":
             return p.replace(loading=r(p.loading, delta=p.loading.delta + m))
         raise AssertionError(self.name)

@@ -96,7 +96,20 @@ def run(
 
     def summary(done):
         return _summary(
-            done, trials, sim, sim_data, sim_fine, candidates, outside, n_phantoms, frames, seed, st, data_disc, t0, start
+            done,
+            trials,
+            sim,
+            sim_data,
+            sim_fine,
+            candidates,
+            outside,
+            n_phantoms,
+            frames,
+            seed,
+            st,
+            data_disc,
+            t0,
+            start,
         )
 
     for t in range(trials):

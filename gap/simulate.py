@@ -222,9 +222,7 @@ class Simulator:
                     items = list(todo.items())
                     groups = group_by_geometry([p for _, p in items])
                     groups.sort(key=len, reverse=True)  # largest first: better balance over workers
-                    gargs = [
-                        ([items[i][0] for i in g], [items[i][1].to_dict() for i in g]) for g in groups
-                    ]
+                    gargs = [([items[i][0] for i in g], [items[i][1].to_dict() for i in g]) for g in groups]
                     self.stats["geometries"] = self.stats.get("geometries", 0) + len(groups)
                     if self.jobs > 1 and len(gargs) > 1:
                         from concurrent.futures import as_completed

@@ -291,7 +291,10 @@ class SolveParams:
                 raise UserError("tilt", "a tilted plate needs the plate travel delta, not force control")
             reach = ld.delta + abs(ld.tilt) * p.size / 2
             if reach > delta_limit(self):
-                raise UserError("tilt", f"the plate travels up to {reach:.3g} mm at the probe edge; at most {delta_limit(self):g} mm")
+                raise UserError(
+                    "tilt",
+                    f"the plate travels up to {reach:.3g} mm at the probe edge; at most {delta_limit(self):g} mm",
+                )
         if ds.symmetry == "quarter" and (inc.offset_x != 0 or inc.offset_y != 0):
             raise UserError("symmetry", "an off-axis inclusion breaks quarter symmetry: use the full model")
         check_range("pixel", im.pixel, 0, p.size / 4, lo_open=True, unit="mm")

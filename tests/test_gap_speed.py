@@ -66,7 +66,9 @@ def test_adaptive_magnitudes_solve_less_and_find_the_same_answer():
     (full, n_full), (ad, n_ad) = out[False], out[True]
     assert full["evaluation"]["winner"] == ad["evaluation"]["winner"] == "background_E"
     top = ad["evaluation"]["ranking"][0]
-    assert top["refined"] and len(top["solved_magnitudes"]["background_E"]) >= 3  # nominal, sensitivity, >= 1 refinement
+    assert (
+        top["refined"] and len(top["solved_magnitudes"]["background_E"]) >= 3
+    )  # nominal, sensitivity, >= 1 refinement
     lo, hi = top["magnitude_ci"][0]
     assert lo <= 6.3 <= hi
     assert top["magnitude"][0] == pytest.approx(full["evaluation"]["ranking"][0]["magnitude"][0], rel=0.02)
@@ -85,3 +87,36 @@ def test_nothing_is_refined_without_a_significant_gap():
     res = diagnose(meas, fx.parse_list("friction,background_E,saturation"), sim, Settings(inverse=False, bootstrap=20))
     assert res["evaluation"]["outcome"] == "no significant gap"
     assert res["refinement"]["solves"] == 0
+
+
+def test_selftest_resume_replays_the_same_draws():
+    """--start K runs trials K.. with the draws of a whole run (TOY backend, tiny)."""
+    from elastimap.gap import effects as fx
+    from elastimap.gap import selftest
+    from elastimap.gap.diagnose import Settings
+    from elastimap.gap.simulate import Simulator
+
+    cands = fx.parse_list("background_E,saturation")
+    outside = fx.parse_list("stray_light")
+    kw = dict(n_phantoms=6, frames=4, seed=3, st=Settings(inverse=False, bootstrap=10, propose_solves=False), log=None)
+    seen = []
+    whole = selftest.run(3, Simulator(None, "tiny", "toy"), Simulator(None, "tiny", "toy"), cands, outside, **kw)
+    part = selftest.run(
+        3,
+        Simulator(None, "tiny", "toy"),
+        Simulator(None, "tiny", "toy"),
+        cands,
+        outside,
+        start=2,
+        on_trial=seen.append,
+        **kw,
+    )
+    assert [r["trial"] for r in part["trials"]] == [2] and not part["partial"] and part["first_trial"] == 2
+    a, b = whole["trials"][2], part["trials"][0]
+    assert (a["true_effect"], a["true_magnitude"], a["commitment"]) == (
+        b["true_effect"],
+        b["true_magnitude"],
+        b["commitment"],
+    )
+    assert len(seen) == 1 and "PARTIAL" not in selftest.markdown(part)
+    assert "PARTIAL: 1 of 3" in selftest.markdown(whole | {"partial": True, "n_trials": 1, "trials_planned": 3})
