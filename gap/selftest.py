@@ -27,6 +27,8 @@ import time
 
 import numpy as np
 
+from elastimap.errors import UserError
+
 from . import effects as fx
 from .diagnose import Settings, diagnose
 from .simulate import Simulator
@@ -92,6 +94,7 @@ def run(
     rng = np.random.default_rng(seed)
     dhe = phantom_design(n_phantoms, seed)
     out_trials = []
+    void: list[dict] = []
     t0 = time.perf_counter()
 
     def summary(done):
@@ -110,7 +113,7 @@ def run(
             data_disc,
             t0,
             start,
-        )
+        ) | {"void_trials": list(void)}
 
     for t in range(trials):
         kind = KINDS[t % len(KINDS)]
@@ -126,7 +129,16 @@ def run(
         sealed = Sealed(truth, salt=f"{seed}-{t}-{rng.integers(1 << 30)}")
         if t < start:  # resumed run: the draws of the earlier trials are replayed, not their work
             continue
-        meas, _ = synthesize(dhe, effs, sim_data, frames=frames, seed=seed * 1000 + t, disc=data_disc)
+        try:
+            meas, _ = synthesize(dhe, effs, sim_data, frames=frames, seed=seed * 1000 + t, disc=data_disc)
+        except UserError as exc:  # the data could not be made: the trial is void (not scored), the run goes on
+            opened = sealed.open(prediction_recorded=True)
+            void.append({"trial": t, **opened, "error": str(exc)})
+            if log:
+                log(f"trial {t + 1}/{trials} VOID: {opened['effect']}={opened['magnitude']} data failed: {exc}")
+            if on_trial is not None:
+                on_trial(summary(out_trials))
+            continue
         meas.description = "SYNTHETIC selftest trial (label sealed)"
         del effs, truth
         ts = time.perf_counter()
@@ -281,6 +293,8 @@ def markdown(res: dict) -> str:
         "## Confusion matrix (rows: truth; columns: answer)",
         "",
     ]
+    for v in res.get("void_trials", []):
+        L.insert(-2, f"Trial {v['trial']} is VOID (not scored): its data could not be made ({v['error']}).")
     conf = res["confusion"]
     cols = list(next(iter(conf.values())).keys()) if conf else []
     L += ["| truth \\ answer | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]

@@ -120,3 +120,34 @@ def test_selftest_resume_replays_the_same_draws():
     )
     assert len(seen) == 1 and "PARTIAL" not in selftest.markdown(part)
     assert "PARTIAL: 1 of 3" in selftest.markdown(whole | {"partial": True, "n_trials": 1, "trials_planned": 3})
+
+
+def test_selftest_trial_with_failed_data_is_void_and_the_run_goes_on(monkeypatch):
+    from elastimap.errors import UserError
+    from elastimap.gap import effects as fx
+    from elastimap.gap import selftest
+    from elastimap.gap.diagnose import Settings
+    from elastimap.gap.simulate import Simulator
+
+    real = selftest.synthesize
+
+    def flaky(dhe, effs, *a, seed=0, **k):
+        if seed == 1:  # trial 1
+            raise UserError("synth", "the forward solve failed for phantom(s) [0] with these effects")
+        return real(dhe, effs, *a, seed=seed, **k)
+
+    monkeypatch.setattr(selftest, "synthesize", flaky)
+    res = selftest.run(
+        3,
+        Simulator(None, "tiny", "toy"),
+        Simulator(None, "tiny", "toy"),
+        fx.parse_list("background_E,saturation"),
+        fx.parse_list("stray_light"),
+        n_phantoms=6,
+        frames=4,
+        seed=0,
+        st=Settings(inverse=False, bootstrap=10, propose_solves=False),
+        log=None,
+    )
+    assert [r["trial"] for r in res["trials"]] == [0, 2] and [v["trial"] for v in res["void_trials"]] == [1]
+    assert res["partial"] and "VOID" in selftest.markdown(res)
