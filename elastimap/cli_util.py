@@ -68,6 +68,28 @@ def mesh_option(
     return click.option("--mesh", type=MeshLevel(), default=default, show_default=default is not None, help=help, **kw)
 
 
+def geometry_option(
+    default: str = "remesh",
+    help: str = "remesh = a gmsh mesh for every (d, h); morph = a reference mesh moved to (d, h) (smooth in d, h).",
+    **kw,
+):
+    """``--geometry``: how the mesh follows the inclusion (:mod:`elastimap.solver.morph`)."""
+    from elastimap.solver.params import GEOMETRIES
+
+    return click.option("--geometry", type=Choice(GEOMETRIES), default=default, show_default=True, help=help, **kw)
+
+
+def sizing_option(
+    default: str = "fixed",
+    help: str = "Element size near the inclusion: fixed = the first sweeps' rule; by_d = scaled with d (converged).",
+    **kw,
+):
+    """``--sizing``: the element-size rule near the inclusion (:mod:`elastimap.solver.geometry`)."""
+    from elastimap.solver.params import SIZINGS
+
+    return click.option("--sizing", type=Choice(SIZINGS), default=default, show_default=True, help=help, **kw)
+
+
 def out_option(help: str = "Output directory.", default: str | None = None, required: bool = False, **kw):
     """``--out``: where results go (each command checks it before any work starts)."""
     return click.option(

@@ -7,12 +7,10 @@ import sys
 
 import click
 
-from elastimap.cli_util import CONTEXT_SETTINGS, Choice, mesh_option, param_flags, run
+from elastimap.cli_util import CONTEXT_SETTINGS, Choice, geometry_option, mesh_option, param_flags, run, sizing_option
 
 from .params import (
-    GEOMETRIES,
     INTERFACES,
-    SIZINGS,
     THICKNESS,
     Discretisation,
     ImageSpec,
@@ -76,20 +74,8 @@ def _check_outputs(image_png: str | None, image_npy: str | None, vtx: str | None
     help="Probe-tissue interface: tied = frictionless closed (normal tied, tangentially free); "
     "contact = frictionless unilateral contact (active set); bonded = glued (comparison only).",
 )
-@click.option(
-    "--geometry",
-    type=Choice(GEOMETRIES),
-    default="remesh",
-    show_default=True,
-    help="remesh = gmsh mesh for this (d, h); morph = a reference mesh moved to (d, h) (smooth in d, h).",
-)
-@click.option(
-    "--sizing",
-    type=Choice(SIZINGS),
-    default="fixed",
-    show_default=True,
-    help="Element size near the inclusion: fixed = the first sweeps' rule; by_d = scaled with d (converged).",
-)
+@geometry_option()
+@sizing_option()
 @click.option("--full", is_flag=True, help="Full model instead of the quarter-symmetry model.")
 @click.option("--delta", type=float, default=3.0, show_default=True, help="Plate indentation (mm).")
 @click.option("--force", type=float, default=None, help="Prescribe the total plate force (mN) instead of --delta.")

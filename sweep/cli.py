@@ -14,9 +14,19 @@ import sys
 
 import click
 
-from elastimap.cli_util import CONTEXT_SETTINGS, Choice, jobs_option, mesh_option, options, out_option, param_flags
+from elastimap.cli_util import (
+    CONTEXT_SETTINGS,
+    Choice,
+    geometry_option,
+    jobs_option,
+    mesh_option,
+    options,
+    out_option,
+    param_flags,
+    sizing_option,
+)
 from elastimap.cli_util import run as run_cli
-from elastimap.solver.params import GEOMETRIES, INTERFACES, SIZINGS
+from elastimap.solver.params import INTERFACES
 
 from . import design as dsg
 
@@ -66,20 +76,8 @@ _common = options(
 @_common
 @jobs_option(default=2, help="local worker processes (one solve each)")
 @out_option(help="dataset directory (default sweeps/<mesh>-<interface>-<design><n>-s<seed>)")
-@click.option(
-    "--geometry",
-    type=Choice(GEOMETRIES),
-    default="remesh",
-    show_default=True,
-    help="mesh every sample with gmsh, or morph a few reference meshes to each (d, h) (smooth in d, h)",
-)
-@click.option(
-    "--sizing",
-    type=Choice(SIZINGS),
-    default="fixed",
-    show_default=True,
-    help="element size near the inclusion: fixed (the first sweeps' rule) or by_d (scaled with d, converged)",
-)
+@geometry_option()
+@sizing_option()
 @click.option("--retry-failed", is_flag=True, help="run samples that landed as failed again")
 @click.option(
     "--scheduler",

@@ -13,9 +13,8 @@ differences on the morphed map with its reference pinned at the point; ``remesh`
 import click
 import numpy as np
 
-from elastimap.cli_util import CONTEXT_SETTINGS, Choice, run
+from elastimap.cli_util import CONTEXT_SETTINGS, geometry_option, run
 from elastimap.identify.local import NoiseSpec, fd_jacobian_solves, fd_relstd, stack
-from elastimap.solver.params import GEOMETRIES
 
 POINTS = ((8.0, 8.0, 30.0), (8.0, 8.0, 120.0))
 NOISE = NoiseSpec(feature=0.01, image=0.01, force=0.001)
@@ -28,11 +27,8 @@ def fd_crb(points=POINTS, noise: NoiseSpec = NOISE, geometry: str = "morph") -> 
 
 
 @click.command(context_settings=CONTEXT_SETTINGS)
-@click.option(
-    "--geometry",
-    type=Choice(GEOMETRIES),
+@geometry_option(
     default="morph",
-    show_default=True,
     help="morph: the smooth morphed map, reference pinned per point; remesh: gmsh per solve.",
 )
 def main(geometry):

@@ -19,9 +19,8 @@ import time
 import click
 import numpy as np
 
-from elastimap.cli_util import CONTEXT_SETTINGS, Choice, mesh_option, run
+from elastimap.cli_util import CONTEXT_SETTINGS, geometry_option, mesh_option, run
 from elastimap.dataset.schema import THICKNESS
-from elastimap.solver.params import GEOMETRIES
 
 FD_D = (4.0, 7.0, 10.0, 13.0)
 FD_U = (0.25, 0.75)
@@ -64,11 +63,8 @@ def compute(out: str, mesh: str = "default", progress: bool = True, geometry: st
 
 @click.command(context_settings=CONTEXT_SETTINGS)
 @mesh_option()
-@click.option(
-    "--geometry",
-    type=Choice(GEOMETRIES),
+@geometry_option(
     default="morph",
-    show_default=True,
     help="morph: the smooth morphed map, reference pinned per point; remesh: gmsh per solve.",
 )
 @click.option("--out", default="data/identify/fdgrid.npz", show_default=True)
