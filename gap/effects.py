@@ -51,6 +51,8 @@ from dataclasses import dataclass
 
 from elastimap.errors import UserError
 
+#: effects that change the geometry (or switch to the full model), so each magnitude has its own mesh
+REMESHING = frozenset({"skin", "aspect", "offaxis", "probe_t1", "probe_t2", "probe_t3", "slab_thickness", "tilt"})
 SKIN_THICKNESS = 1.0  # mm, thickness of the skin layer switched on by the ``skin`` effect
 
 
@@ -82,6 +84,14 @@ class Effect:
         scale = max(abs(self.nominal), 1e-300) if self.nominal != 0 else 1.0
         lo, hi = abs(self.lo - self.nominal) / scale, abs(self.hi - self.nominal) / scale
         return self.hi if hi >= lo else self.lo
+
+    @property
+    def remeshes(self) -> bool:
+        """Whether a magnitude other than the nominal solves on another mesh than the baseline
+        (a geometry change, or the full model): the baseline's discretisation error does not carry
+        over to it, so the diagnosis measures the model error at such an effect's refined
+        magnitudes (:func:`elastimap.gap.diagnose.refine`)."""
+        return self.stage == "mechanics" and self.name in REMESHING
 
     def is_nominal(self, m: float) -> bool:
         return abs(float(m) - self.nominal) <= 1e-12 * max(1.0, abs(self.nominal))
