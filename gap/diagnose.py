@@ -370,6 +370,13 @@ def richardson_correct(V0: dict, D0, C: list[Candidate], me: dict, st: Settings)
         lo, hi = st.order_range_force if k == "force" else st.order_range_image
         me["sigma"][k] = me["sigma"][k] / me["kappa"][k] * abs(kap(lo) - kap(hi))
         me["relative_median"][k] = np.median(me["sigma"][k] / np.maximum(np.abs(v), 1e-300), axis=0).tolist()
+    me["_spread"] = {
+        k: abs(
+            kap((st.order_range_force if k == "force" else st.order_range_image)[0])
+            - kap((st.order_range_force if k == "force" else st.order_range_image)[1])
+        )
+        for k in V0
+    }
     lo, hi = st.order_range_image
     me["image_sigma"] = me["image_sigma"] / me["kappa_image"] * abs(kap(lo) - kap(hi))
     me["_factor"], me["_dD"] = fac, me["kappa_image"] * me["image_delta"]
@@ -397,9 +404,15 @@ def correct(V: dict, D, me: dict):
 
 def correct_own(V: dict, D, V1: dict, D1, me: dict):
     """Richardson extrapolation of a prediction with its own second mesh level (V1, D1 on the
-    error mesh at the same magnitude): y − κ_q (y − y1), D − κ (D − D1)."""
+    error mesh at the same magnitude): y − κ_q (y − y1), D − κ (D − D1).  Also returns the part of
+    its own model error σ_own = spread_q · |y − y1| (as in :func:`richardson_correct`) beyond the
+    baseline's σ, sqrt(max(σ_own² − σ_0², 0)) per phantom and quantity."""
     out = {k: v - me["kappa"][k] * (v - V1[k]) for k, v in V.items()}
-    return out, (None if D is None else D - me["kappa_image"] * (D - D1))
+    extra = {
+        k: np.sqrt(np.maximum((me["_spread"][k] * np.abs(v - V1[k])) ** 2 - me["sigma"][k] ** 2, 0.0))
+        for k, v in V.items()
+    }
+    return out, (None if D is None else D - me["kappa_image"] * (D - D1)), extra
 
 
 def refine(
@@ -477,17 +490,23 @@ def refine(
                 byname[name].dropped.append(m)
                 continue
             V1, D1 = sim_views(fine[j], sensor, settings) if j in fine else (None, None)
+            extra = None
             if V1 is not None and np.all(np.isfinite(V1["features"])):
-                V, D = correct_own(V, D, V1, D1, me)
+                V, D, extra = correct_own(V, D, V1, D1, me)
                 byname[name].own_error.append(float(m))
             else:
                 V, D = correct(V, D, me)
-            a = new.setdefault(name, ([], [], []))
+            a = new.setdefault(name, ([], [], [], []))
             a[0].append(m)
             a[1].append(V)
             a[2].append(D)
-        for name, (ms, Vs, Ds) in new.items():
-            add_points(byname[name], ms, Vs, Ds)
+            a[3].append(extra)
+        for name, (ms, Vs, Ds, extras) in new.items():
+            c = byname[name]
+            add_points(c, ms, Vs, Ds)
+            for extra in extras:  # a remeshing effect's own model error beyond the baseline's
+                if extra is not None:
+                    c.interp_error = {k: np.hypot(c.interp_error[k], extra[k]) for k in c.interp_error}
     return solves, rounds
 
 

@@ -327,6 +327,68 @@ def test_tiny_blind_benchmark_with_model_form_error(dhe):
         selftest.run(1, MeshToy("tiny"), MeshToy("default"), cands, cands[:1], log=None)
 
 
+class RemeshToy(MeshToy):
+    """MeshToy whose discretisation error also depends on the geometry (tests only, not physics):
+    a skin layer (another mesh) makes it 1 + ``geom`` times larger, so the baseline's error does
+    not carry over to the skin candidate -- as on the FEM's coarse mesh between slab thicknesses."""
+
+    def __init__(self, mesh, a=0.002, geom=3.0):
+        super().__init__(mesh, a=a)
+        self.a, self.geom = a, geom
+
+    def run(self, plist):
+        out = []
+        for p in plist:
+            self.f = 1 + self.a * self.H0[self.mesh] ** 3 * (1 + (self.geom if p.tissue.skin_thickness > 0 else 0.0))
+            out += super().run([p])
+        return out
+
+
+def test_remeshing_effect_gets_its_own_model_error(dhe, monkeypatch):
+    """A remeshing candidate is extrapolated with its own two mesh levels at its refined
+    magnitudes: the right effect, near the truth.  Carrying the baseline's error over to it
+    instead (the effect marked as not remeshing) leaves it unexplained at the grid's end.
+    (Its interval here misses the truth by 1-2 widths: the emulator between the nominal and the
+    one refined magnitude, 5 and ~47 kPa, is not measured at 40; docs/gap.md.)"""
+    data = RemeshToy("default")
+    meas, _ = synth.synthesize(dhe, [(fx.get("skin"), 40.0)], data, frames=6, seed=7)
+    cands = fx.parse_list("skin,friction,saturation")
+    st = Settings(inverse=False, bootstrap=20)
+    ev = diagnose(meas, cands, RemeshToy("tiny"), st, RemeshToy("coarse"))["evaluation"]
+    top = {r["effect"]: r for r in ev["ranking"]}["skin"]
+    assert ev["outcome"] == "explained" and ev["winner"] == "skin", ev["outcome"]
+    assert top["own_model_error_at"]["skin"], top["own_model_error_at"]
+    assert abs(top["magnitude"][0] - 40.0) < 0.2 * (40.0 - 5.0), top["magnitude"]
+    monkeypatch.setattr(fx, "REMESHING", frozenset())
+    ev = diagnose(meas, cands, RemeshToy("tiny"), st, RemeshToy("coarse"))["evaluation"]
+    top = {r["effect"]: r for r in ev["ranking"]}["skin"]
+    assert not top["own_model_error_at"]
+    assert ev["outcome"] != "explained" and top["at_grid_edge"], (ev["outcome"], top["magnitude"])
+
+
+def test_profile_correction_stays_bounded_where_an_annulus_crosses_zero():
+    """The Richardson correction of a candidate's profile is the baseline's scaled by the
+    candidate's size (per phantom), exact for an effect that scales the image; a per-annulus
+    ratio would blow up at the annulus where the baseline crosses zero."""
+    from elastimap.gap.diagnose import correct, profile_scale
+
+    y0 = np.array([[1.0, 0.6, 0.2, 1e-6], [2.0, 1.0, 0.1, -1e-7]])
+    delta = np.array([[0.01, 0.008, 0.004, 0.002], [0.02, 0.01, 0.002, 0.001]])
+    me = {
+        "_factor": {"features": np.ones((2, 3))},
+        "_dprofile": 2.0 * delta,
+        "_profile0": y0,
+        "_dD": np.zeros((2, 4, 4)),
+    }
+    assert np.allclose(profile_scale(0.8 * y0, y0), 0.8)
+    V = {"features": np.ones((2, 3)), "profile": 0.8 * y0}
+    out, D = correct(V, np.zeros((2, 4, 4)), me)
+    assert np.allclose(out["profile"], 0.8 * (y0 - 2.0 * delta))  # exact for a uniform scaling
+    K = {"features": np.ones((3, 2, 3)), "profile": np.stack([0.5 * y0, y0, 1.5 * y0])}  # a sweep (K, n, q)
+    out, _ = correct(K, None, me)
+    assert np.allclose(out["profile"][2], 1.5 * (y0 - 2.0 * delta))
+
+
 # ---------------------------------------------------------------- real FEM solves (tiny mesh)
 def test_fem_backend_small_diagnosis(tmp_path):
     """4 phantoms, a 2-point friction sweep and an optics candidate, real tiny-mesh solves."""
