@@ -239,6 +239,27 @@ class MeshMotion:
 
 
 # ---------------------------------------------------------------------------- the forward map
+_RECORDING = []
+
+
+def _recording_model_class():
+    """:class:`~elastimap.solver.fem.Model` that keeps its last solution (``last_solution``: the
+    displacement the tangent of a solve differentiates)."""
+    if not _RECORDING:
+        from .fem import Model
+
+        class RecordingModel(Model):
+            last_solution = None
+
+            def solve(self, E_inclusion, delta, max_iter=30):
+                sol, diag = super().solve(E_inclusion, delta, max_iter)
+                self.last_solution = (float(E_inclusion), float(delta), sol)
+                return sol, diag
+
+        _RECORDING.append(RecordingModel)
+    return _RECORDING[0]
+
+
 class _Entry:
     """One reference: its raw mesh, motion and DOLFINx Model, and where the Model's mesh is now."""
 
@@ -249,10 +270,12 @@ class _Entry:
         p0 = template.with_inclusion(d=ref.d0, h=ref.h0).validate()
         self.raw = build_mesh(p0)
         self.motion = MeshMotion(self.raw, p0)
-        self.model = Model(self.raw, p0)
+        self.model = _recording_model_class()(self.raw, p0)
         self.igi = np.asarray(self.model.mesh.geometry.input_global_indices, dtype=np.int64)
         self.at = (ref.d0, ref.h0)
         self.reference_solve = None  # (d, h, tuple) of the last reference solve
+        self.reference_tangent = None  # (d, h, {"d": dw/dd, "h": dw/dh}) of that reference press
+        self._action = None  # (u_fun, compiled form a(u_fun, v)) for the tangent
         self.build_seconds = self.raw.seconds + self.motion.seconds + self.model.timings["setup"]
 
     def move_to(self, x: np.ndarray, d: float, h: float) -> None:
@@ -262,6 +285,79 @@ class _Entry:
         self.model.space.X = self.model.V.tabulate_dof_coordinates()
         self.at = (d, h)
         self.reference_solve = None
+        self.reference_tangent = None
+
+    def tangent(self, u: np.ndarray, E_inc: float, delta: float, d: float, h: float, which) -> dict:
+        r"""Derivatives of the probe-bottom image of the solution ``u`` (mm, all nodal values) that the
+        model just computed at inclusion modulus ``E_inc`` on this mesh (its LU still holds K).
+
+        The reduced system K(θ) ū = −Pᵀ A(θ) u_D (:mod:`elastimap.solver.reduction`) is linear in u,
+        and P, u_D and the pixel sampler do not depend on θ = (d, h, E) (the probe does not move).
+        Differentiating,
+
+        $$
+        K \, \frac{\partial \bar u}{\partial \theta} = -P^{T} \frac{\partial A}{\partial \theta} u,
+        \qquad \frac{\partial u}{\partial \theta} = P \frac{\partial \bar u}{\partial \theta},
+        $$
+
+        one back-solve with the same factorisation per θ.  The vector (∂A/∂θ) u is the derivative of
+        the assembled residual a(u, ·) with u held fixed: for E (kPa) exactly
+        (a(u, ·) is linear in the inclusion's modulus), ((a_{E+η} − a_E)(u, ·)) / η; for d and h (mm) by a
+        central difference of the assembly over the mesh motion x(d, h) (:class:`MeshMotion`,
+        ∂x/∂d = U_s / d₀, ∂x/∂h = −U_h) with a step of 1e-4 mm (assembly is a smooth rational function
+        of the node coordinates).  ``which``: the θ names wanted.  Returns {name: ∂w/∂θ} on the full
+        pixel grid (mm per mm, mm per kPa)."""
+        from dolfinx import fem
+        from petsc4py import PETSc
+
+        from .image import mirror_quarter
+
+        model = self.model
+        if self._action is None:
+            import ufl
+
+            u_fun = fem.Function(model.V)
+            form = fem.form(ufl.action(model.materials.stiffness_form(model.V), u_fun))
+            self._action = (u_fun, form)
+        u_fun, form = self._action
+        u_fun.x.array[: len(u)] = u
+
+        def residual() -> np.ndarray:
+            return np.array(fem.assemble_vector(form).array[: len(u)])
+
+        g = model.mesh.geometry.x
+        x_here = g.copy()
+        ref = self.motion.ref
+        moves = {"d": self.motion.U_s[self.igi] / ref.d0, "h": -self.motion.U_h[self.igi]}
+        Au = {}
+        eps = 1e-4
+        for name in which:
+            if name == "E":
+                eta = 1e-3 * E_inc
+                r0 = residual()
+                model.materials.set_inclusion_modulus(E_inc + eta)
+                Au[name] = (residual() - r0) / eta
+                model.materials.set_inclusion_modulus(E_inc)
+            else:
+                g[:, :] = x_here + eps * moves[name]
+                rp = residual()
+                g[:, :] = x_here - eps * moves[name]
+                rm = residual()
+                g[:, :] = x_here
+                Au[name] = (rp - rm) / (2 * eps)
+        _Pm, Psp, _uD, _new = model.reduction.operator(delta, np.ones(model.interface.npairs, dtype=bool))
+        ksp = model.lu.ksp
+        out = {}
+        for name, v in Au.items():
+            b = PETSc.Vec().createWithArray(-(Psp.T @ v))
+            x = b.duplicate()
+            ksp.solve(b, x)
+            du = Psp @ x.getArray()
+            b.destroy()
+            x.destroy()
+            dw = model.sampler.deflection(du, 0.0)
+            out[name] = mirror_quarter(dw) if model.p.disc.symmetry == "quarter" else dw
+        return out
 
     def destroy(self) -> None:
         self.model.destroy()
@@ -298,11 +394,8 @@ class MorphedForward:
         return e.motion.quality(e.motion.coordinates(d, h))
 
     # -------------------------------------------------------------- solve
-    def solve(self, d: float, h: float, E: float, reference: Reference | None = None) -> SolveResult:
-        """One sample at (d mm, h mm, E kPa) on a morphed reference mesh."""
-        from .api import run_sample
-
-        t0 = time.perf_counter()
+    def _place(self, d: float, h: float, E: float, reference: Reference | None):
+        """Validated params, the entry (reference mesh) serving (d, h) and the morphed coordinates."""
         p = self.template.with_inclusion(d=float(d), h=float(h), E=float(E)).validate()
         d, h = p.inclusion.d, p.inclusion.h
         fallback = 0
@@ -326,7 +419,7 @@ class MorphedForward:
                 f"(volume ratio {q.min_volume_ratio:.3g}, quality ratio {q.min_quality_ratio:.3g}); "
                 "meshing this sample itself",
                 RuntimeWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
             fallback, ref = 2, Reference(d, h)
             e, b2 = self._entry(ref)
@@ -334,12 +427,64 @@ class MorphedForward:
             x = e.motion.coordinates(d, h)
         t1 = time.perf_counter()
         e.move_to(x, d, h)
-        morph_s = time.perf_counter() - t1
+        extra = {"setup": 0.0, "morph": time.perf_counter() - t1, "mesh_setup": built, "morph_fallback": float(fallback)}
+        return p, e, extra
+
+    def solve(self, d: float, h: float, E: float, reference: Reference | None = None) -> SolveResult:
+        """One sample at (d mm, h mm, E kPa) on a morphed reference mesh."""
+        from .api import run_sample
+
+        t0 = time.perf_counter()
+        p, e, extra = self._place(d, h, E, reference)
+        d, h = p.inclusion.d, p.inclusion.h
         cached = e.reference_solve[2] if e.reference_solve and e.reference_solve[:2] == (d, h) else None
-        extra = {"setup": 0.0, "morph": morph_s, "mesh_setup": built, "morph_fallback": float(fallback)}
         res, refsol = run_sample(e.model, p, t0, extra, reference=cached)
         e.reference_solve = (d, h, refsol)
         return res
+
+    @property
+    def has_tangent(self) -> bool:
+        """Whether :meth:`solve_tangent` applies: a linear problem (no contact, no finite strain)
+        under a prescribed plate travel."""
+        return not self.template.nonlinear and self.template.loading.force is None
+
+    def solve_tangent(
+        self, d: float, h: float, E: float, reference: Reference | None = None
+    ) -> tuple[SolveResult, np.ndarray]:
+        """:meth:`solve` and the derivatives of its difference image ``w − w_ref`` with respect to
+        d (mm, at fixed h), h (mm, at fixed d) and E (kPa): ``(result, J)``, ``J`` of shape
+        ``(3, ny, nx)`` (mm/mm, mm/mm, mm/kPa), the exact derivative of this discrete map on the
+        reference mesh used (:meth:`_Entry.tangent`; the reference press w_ref depends on d and h
+        through the mesh only, not on E).  Cost: the solve, plus about ten vector assemblies and
+        five back-solves with the factorisations the solves made."""
+        from .api import _solve_at, run_sample
+
+        if not self.has_tangent:
+            raise UserError("geometry", "the tangent needs a linear problem (tied or bonded interface, no "
+                            "nonlinearity) under a prescribed plate travel")
+        t0 = time.perf_counter()
+        p, e, extra = self._place(d, h, E, reference)
+        d, h = p.inclusion.d, p.inclusion.h
+        model = e.model
+        tan_s = 0.0
+        here = (d, h)
+        if e.reference_solve and e.reference_solve[:2] == here and e.reference_tangent:
+            cached, ref_tan = e.reference_solve[2], e.reference_tangent[2]
+        else:  # the reference press first, so that its factorisation serves its tangent
+            sol_r, diag_r, delta_r, force_r = _solve_at(model, p.tissue.E, p)
+            cached = (sol_r, diag_r, delta_r, force_r, model.probe_bottom_w(sol_r, delta_r))
+            t1 = time.perf_counter()
+            ref_tan = e.tangent(sol_r.u, p.tissue.E, delta_r, d, h, ("d", "h"))
+            tan_s += time.perf_counter() - t1
+            e.reference_tangent = (d, h, ref_tan)
+        res, refsol = run_sample(model, p, t0, extra, reference=cached)
+        e.reference_solve = (d, h, refsol)
+        _E, delta, sol = model.last_solution
+        t1 = time.perf_counter()
+        tan = e.tangent(sol.u, p.inclusion.E, delta, d, h, ("d", "h", "E"))
+        tan_s += time.perf_counter() - t1
+        res.timings["tangent"] = round(tan_s, 4)
+        return res, np.stack([tan["d"] - ref_tan["d"], tan["h"] - ref_tan["h"], tan["E"]])
 
     def close(self) -> None:
         while self._entries:
