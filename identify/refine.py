@@ -434,6 +434,7 @@ def fit_image(
     max_nfev: int = 12,
     max_passes: int = 2,
     e_scan: int = 5,
+    tangent: bool | None = None,
 ) -> FitResult:
     """Maximum-likelihood (d, h, E) of ``image`` (mm, ``(ny, nx)`` or flat) with per-pixel standard
     errors ``sigma`` (mm, scalar or like ``image``), starting from ``theta0`` (d mm, h mm, E kPa).
@@ -445,7 +446,10 @@ def fit_image(
     model error is taken as zero (say so when reporting).  ``max_nfev`` bounds the trial points
     per pass, ``max_passes`` the passes (each from a fresh central-difference Jacobian); ``e_scan``
     values of ln E spread over the box are tried at the start's (d, h) first, and the fit starts
-    from the best of them and ``theta0`` (0 or 1: no scan).  See the module docstring."""
+    from the best of them and ``theta0`` (0 or 1: no scan).  ``tangent``: use the map's exact
+    derivative (maps with ``has_tangent`` and ``tangent(d, h, E) -> (result, J)``, see
+    :class:`ForwardMap`) instead of central differences and Broyden updates; None: where the map has
+    one.  See the module docstring."""
     from scipy.optimize import least_squares
 
     t0 = time.perf_counter()
@@ -466,8 +470,13 @@ def fit_image(
     x0 = np.clip(to_x(th0, thickness), lb + pad, ub - pad)
 
     maps: dict = {}
+    jacs: dict = {}  # the map's exact derivative (d, h, E) at the points in maps, where it has one
     alts: dict = {}
     cur = {"f": forward, "a": forward_alt}
+    if tangent is None:
+        tangent = bool(getattr(forward, "has_tangent", False))
+    elif tangent and not getattr(forward, "has_tangent", False):
+        raise UserError("tangent", "this forward map has no exact derivative (use central differences)")
 
     def pin(x):
         """Pin the maps' reference meshes at ``x`` (maps with a ``pin(d, h)``), so that one pass
@@ -483,7 +492,12 @@ def fit_image(
     def m(x):
         k = key(x, cur["f"])
         if k not in maps:
-            v = image_of(cur["f"](*to_theta(x, thickness))).ravel()
+            if tangent:
+                out, jt = cur["f"].tangent(*to_theta(x, thickness))
+                jacs[k] = np.asarray(jt, dtype=float).reshape(3, -1).T
+            else:
+                out = cur["f"](*to_theta(x, thickness))
+            v = image_of(out).ravel()
             if v.shape != I.shape:
                 raise RuntimeError(f"the forward map returned {v.size} pixels, the image has {I.size}")
             maps[k] = v
@@ -505,8 +519,17 @@ def fit_image(
         lo, hi = h_range(x[0], thickness)
         return np.array([fd[0], fd[1] / (hi - lo), fd[2]])
 
+    def exact_jac(x, s):
+        """The map's derivative in x units, whitened by ``s``: ∂m/∂x = [∂m/∂d, ∂m/∂h, E ∂m/∂E] ∂(d, h, ln E)/∂x."""
+        m(x)
+        jt = jacs[key(x, cur["f"])] * np.array([1.0, 1.0, math.exp(float(x[2]))])
+        return (jt @ _dtheta_dx(x, thickness)) / s[:, None]
+
     def fd_jac(x, s):
-        """Central differences (one-sided at the box), in x units, whitened by ``s``."""
+        """Central differences (one-sided at the box), in x units, whitened by ``s``; the exact
+        derivative where the map has one."""
+        if tangent:
+            return exact_jac(x, s)
         J = np.empty((I.size, 3))
         st = steps_at(x)
         for j in (2, 0, 1):  # E first: a map may reuse its reference solve while (d, h) stay
@@ -529,6 +552,8 @@ def fit_image(
 
         def jac(x):
             x = np.asarray(x, float)
+            if tangent:
+                return exact_jac(x, s)
             if state["J"] is None:
                 J = J0
             else:  # Broyden's rank-one update from the last accepted point
@@ -586,7 +611,7 @@ def fit_image(
     else:
         msg.append(f"still moving after {max_passes} passes")
     s_tot, s_mod = sigma_at(x)
-    if J is None or moved:
+    if tangent or J is None or moved:
         J = fd_jac(x, s_tot)
     r = (m(x) - I) / s_tot
     dof = max(I.size - 3, 1)
@@ -669,17 +694,33 @@ def default_geometry() -> str:
 class ForwardMap:
     """``(d, h, E) -> SolveResult`` on morphed meshes; ``pin(d, h)`` gives the same map on the
     reference mesh of (d, h) for every call (one smooth map over a fit's pass, see
-    :mod:`elastimap.solver.morph`); ``key`` names the pinned reference (None: each call's own bin)."""
+    :mod:`elastimap.solver.morph`), with the reference press (E_inc = E_tissue) taken to first order
+    in (d, h) about the pinned point where the problem is linear (``linearise_at``: one linear solve
+    per evaluation instead of two when d or h move; equal to the unpinned map at that point);
+    ``key`` names the pinned reference and centre (None: each call's own bin, reference press
+    re-solved).  ``tangent(d, h, E)`` also returns the image's exact derivative."""
 
-    def __init__(self, morphed, reference=None):
-        self.morphed, self.reference = morphed, reference
-        self.key = None if reference is None else (reference.d0, reference.h0)
+    def __init__(self, morphed, reference=None, centre: tuple[float, float] | None = None):
+        self.morphed, self.reference, self.centre = morphed, reference, centre
+        self.key = None if reference is None else (reference.d0, reference.h0, centre)
 
     def __call__(self, d, h, E):
-        return self.morphed.solve(float(d), float(h), float(E), reference=self.reference)
+        return self.morphed.solve(float(d), float(h), float(E), reference=self.reference, linearise_at=self.centre)
+
+    @property
+    def has_tangent(self) -> bool:
+        return bool(getattr(self.morphed, "has_tangent", False))
+
+    def tangent(self, d, h, E):
+        """``(result, J)``: the solve and its image's exact derivative, ``J`` ``(3, ny, nx)`` =
+        ∂image/∂(d mm, h mm, E kPa) (:meth:`elastimap.solver.morph.MorphedForward.solve_tangent`)."""
+        return self.morphed.solve_tangent(
+            float(d), float(h), float(E), reference=self.reference, linearise_at=self.centre
+        )
 
     def pin(self, d: float, h: float) -> ForwardMap:
-        return ForwardMap(self.morphed, self.morphed.reference_for(float(d), float(h)))
+        d, h = float(d), float(h)
+        return ForwardMap(self.morphed, self.morphed.reference_for(d, h), (d, h) if self.has_tangent else None)
 
 
 def forward_map(mesh: str = "coarse", geometry: str | None = None, template=None) -> Callable:

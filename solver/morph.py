@@ -275,6 +275,7 @@ class _Entry:
         self.at = (ref.d0, ref.h0)
         self.reference_solve = None  # (d, h, tuple) of the last reference solve
         self.reference_tangent = None  # (d, h, {"d": dw/dd, "h": dw/dh}) of that reference press
+        self.expansions: OrderedDict = OrderedDict()  # (d_s, h_s) -> (reference tuple, its tangent)
         self._action = None  # (u_fun, compiled form a(u_fun, v)) for the tangent
         self.build_seconds = self.raw.seconds + self.motion.seconds + self.model.timings["setup"]
 
@@ -305,12 +306,10 @@ class _Entry:
         (a(u, ·) is linear in the inclusion's modulus), ((a_{E+η} − a_E)(u, ·)) / η; for d and h (mm) by a
         central difference of the assembly over the mesh motion x(d, h) (:class:`MeshMotion`,
         ∂x/∂d = U_s / d₀, ∂x/∂h = −U_h) with a step of 1e-4 mm (assembly is a smooth rational function
-        of the node coordinates).  ``which``: the θ names wanted.  Returns {name: ∂w/∂θ} on the full
-        pixel grid (mm per mm, mm per kPa)."""
+        of the node coordinates).  ``which``: the θ names wanted.  Returns {name: ∂w/∂θ} on the
+        model's pixel grid (the quadrant for the quarter model; mm per mm, mm per kPa)."""
         from dolfinx import fem
         from petsc4py import PETSc
-
-        from .image import mirror_quarter
 
         model = self.model
         if self._action is None:
@@ -356,7 +355,7 @@ class _Entry:
             b.destroy()
             x.destroy()
             dw = model.sampler.deflection(du, 0.0)
-            out[name] = mirror_quarter(dw) if model.p.disc.symmetry == "quarter" else dw
+            out[name] = dw
         return out
 
     def destroy(self) -> None:
@@ -430,61 +429,119 @@ class MorphedForward:
         extra = {"setup": 0.0, "morph": time.perf_counter() - t1, "mesh_setup": built, "morph_fallback": float(fallback)}
         return p, e, extra
 
-    def solve(self, d: float, h: float, E: float, reference: Reference | None = None) -> SolveResult:
-        """One sample at (d mm, h mm, E kPa) on a morphed reference mesh."""
-        from .api import run_sample
+    def _reference_press(self, e: _Entry, p: SolveParams, with_tangent: bool):
+        """The reference press (E_inc = E_tissue) on the entry's mesh where it is now: the tuple
+        :func:`~elastimap.solver.api.run_sample` takes and, with ``with_tangent``, its image's
+        derivatives in d and h (:meth:`_Entry.tangent`); kept while the mesh stays."""
+        from .api import _solve_at
 
-        t0 = time.perf_counter()
-        p, e, extra = self._place(d, h, E, reference)
-        d, h = p.inclusion.d, p.inclusion.h
-        cached = e.reference_solve[2] if e.reference_solve and e.reference_solve[:2] == (d, h) else None
-        res, refsol = run_sample(e.model, p, t0, extra, reference=cached)
-        e.reference_solve = (d, h, refsol)
-        return res
+        here = e.at
+        have = e.reference_solve and e.reference_solve[:2] == here
+        if have and (not with_tangent or (e.reference_tangent and e.reference_tangent[:2] == here)):
+            return e.reference_solve[2], (e.reference_tangent[2] if with_tangent else None)
+        model = e.model
+        sol_r, diag_r, delta_r, force_r = _solve_at(model, p.tissue.E, p)
+        ref = (sol_r, diag_r, delta_r, force_r, model.probe_bottom_w(sol_r, delta_r))
+        e.reference_solve = (*here, ref)
+        tan = None
+        if with_tangent:  # now, while the factorisation is the reference press's
+            tan = e.tangent(sol_r.u, p.tissue.E, delta_r, *here, ("d", "h"))
+            e.reference_tangent = (*here, tan)
+        return ref, tan
 
-    @property
-    def has_tangent(self) -> bool:
-        """Whether :meth:`solve_tangent` applies: a linear problem (no contact, no finite strain)
-        under a prescribed plate travel."""
-        return not self.template.nonlinear and self.template.loading.force is None
+    def _linearised_reference(self, e: _Entry, p: SolveParams, d: float, h: float, centre: tuple[float, float]):
+        r"""The reference press at (d, h) to first order about ``centre`` = (d_s, h_s) on the same
+        reference mesh,
+
+        $$ w_{\rm ref}(d, h) \approx w_{\rm ref}(d_s, h_s) + (d - d_s)\, \partial_d w_{\rm ref} + (h - h_s)\, \partial_h w_{\rm ref}, $$
+
+        (mm) with the derivatives of :meth:`_Entry.tangent` at the centre; the force and
+        diagnostics are the centre's.  Returns (the tuple for ``run_sample``, ∂w_ref/∂(d, h))."""
+        key = (float(centre[0]), float(centre[1]))
+        if key not in e.expansions:
+            x_here, at = e.motion.coordinates(d, h), e.at
+            e.move_to(e.motion.coordinates(*key), *key)
+            e.expansions[key] = self._reference_press(e, p, with_tangent=True)
+            while len(e.expansions) > 4:
+                e.expansions.popitem(last=False)
+            e.move_to(x_here, *at)
+        e.expansions.move_to_end(key)
+        ref, tan = e.expansions[key]
+        w = ref[4] + (d - key[0]) * tan["d"] + (h - key[1]) * tan["h"]
+        return (*ref[:4], w), tan
+
+    def solve(
+        self,
+        d: float,
+        h: float,
+        E: float,
+        reference: Reference | None = None,
+        linearise_at: tuple[float, float] | None = None,
+    ) -> SolveResult:
+        """One sample at (d mm, h mm, E kPa) on a morphed reference mesh.
+
+        ``linearise_at`` = (d_s, h_s): take the reference press to first order about that point on
+        the same reference mesh (:meth:`_linearised_reference`; one linear solve per sample instead
+        of two when d or h move) instead of solving it on the morphed mesh; equal at (d_s, h_s)."""
+        return self._solve(d, h, E, reference, linearise_at, tangent=False)[0]
 
     def solve_tangent(
-        self, d: float, h: float, E: float, reference: Reference | None = None
+        self,
+        d: float,
+        h: float,
+        E: float,
+        reference: Reference | None = None,
+        linearise_at: tuple[float, float] | None = None,
     ) -> tuple[SolveResult, np.ndarray]:
         """:meth:`solve` and the derivatives of its difference image ``w − w_ref`` with respect to
         d (mm, at fixed h), h (mm, at fixed d) and E (kPa): ``(result, J)``, ``J`` of shape
         ``(3, ny, nx)`` (mm/mm, mm/mm, mm/kPa), the exact derivative of this discrete map on the
-        reference mesh used (:meth:`_Entry.tangent`; the reference press w_ref depends on d and h
-        through the mesh only, not on E).  Cost: the solve, plus about ten vector assemblies and
-        five back-solves with the factorisations the solves made."""
-        from .api import _solve_at, run_sample
+        reference mesh used (:meth:`_Entry.tangent`; w_ref depends on d and h through the mesh only,
+        not on E; with ``linearise_at`` its derivative is the constant of the expansion).  Cost: the
+        solve, plus a few vector assemblies and one back-solve per parameter with the solves'
+        factorisations (about 8 % of a solve on the coarse mesh)."""
+        return self._solve(d, h, E, reference, linearise_at, tangent=True)
 
-        if not self.has_tangent:
-            raise UserError("geometry", "the tangent needs a linear problem (tied or bonded interface, no "
-                            "nonlinearity) under a prescribed plate travel")
+    @property
+    def has_tangent(self) -> bool:
+        """Whether :meth:`solve_tangent` and ``linearise_at`` apply: a linear problem (no contact,
+        no finite strain) under a prescribed plate travel."""
+        return not self.template.nonlinear and self.template.loading.force is None
+
+    def _solve(self, d, h, E, reference, linearise_at, tangent: bool):
+        from .api import run_sample
+        from .image import mirror_quarter
+
+        if (tangent or linearise_at is not None) and not self.has_tangent:
+            raise UserError(
+                "geometry",
+                "the tangent and the linearised reference press need a linear problem (tied or bonded "
+                "interface, no nonlinearity) under a prescribed plate travel",
+            )
         t0 = time.perf_counter()
         p, e, extra = self._place(d, h, E, reference)
         d, h = p.inclusion.d, p.inclusion.h
         model = e.model
-        tan_s = 0.0
-        here = (d, h)
-        if e.reference_solve and e.reference_solve[:2] == here and e.reference_tangent:
-            cached, ref_tan = e.reference_solve[2], e.reference_tangent[2]
+        model.timings = {"setup": model.timings.get("setup", 0.0)}
+        if linearise_at is not None and extra["morph_fallback"] == 0:
+            ref, ref_tan = self._linearised_reference(e, p, d, h, linearise_at)
         else:  # the reference press first, so that its factorisation serves its tangent
-            sol_r, diag_r, delta_r, force_r = _solve_at(model, p.tissue.E, p)
-            cached = (sol_r, diag_r, delta_r, force_r, model.probe_bottom_w(sol_r, delta_r))
-            t1 = time.perf_counter()
-            ref_tan = e.tangent(sol_r.u, p.tissue.E, delta_r, d, h, ("d", "h"))
-            tan_s += time.perf_counter() - t1
-            e.reference_tangent = (d, h, ref_tan)
-        res, refsol = run_sample(model, p, t0, extra, reference=cached)
-        e.reference_solve = (d, h, refsol)
+            ref, ref_tan = self._reference_press(e, p, tangent)
+        ref_timings = dict(model.timings)  # run_sample restarts the model's clock
+        res, _ = run_sample(model, p, t0, extra, reference=ref)
+        for k, v in ref_timings.items():
+            if k != "setup":
+                res.timings[k] = round(res.timings.get(k, 0.0) + v, 4)
+        if not tangent:
+            return res, None
         _E, delta, sol = model.last_solution
         t1 = time.perf_counter()
         tan = e.tangent(sol.u, p.inclusion.E, delta, d, h, ("d", "h", "E"))
-        tan_s += time.perf_counter() - t1
-        res.timings["tangent"] = round(tan_s, 4)
-        return res, np.stack([tan["d"] - ref_tan["d"], tan["h"] - ref_tan["h"], tan["E"]])
+        res.timings["tangent"] = round(time.perf_counter() - t1, 4)
+        J = [tan["d"] - ref_tan["d"], tan["h"] - ref_tan["h"], tan["E"]]
+        if p.disc.symmetry == "quarter":
+            J = [mirror_quarter(j) for j in J]
+        return res, np.stack(J)
 
     def close(self) -> None:
         while self._entries:

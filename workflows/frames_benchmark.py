@@ -147,16 +147,23 @@ class _Timed:
     def __init__(self, fn, acc: dict, name: str):
         self.fn, self.acc, self.name = fn, acc, name
         self.key = getattr(fn, "key", None)
+        self.has_tangent = bool(getattr(fn, "has_tangent", False))
         if hasattr(fn, "pin"):
             self.pin = lambda d, h: _Timed(fn.pin(d, h), acc, name)
 
-    def __call__(self, *a):
+    def _count(self, f, *a):
         t = time.perf_counter()
         try:
-            return self.fn(*a)
+            return f(*a)
         finally:
             self.acc[self.name] = self.acc.get(self.name, 0.0) + time.perf_counter() - t
             self.acc[self.name + "_n"] = self.acc.get(self.name + "_n", 0) + 1
+
+    def __call__(self, *a):
+        return self._count(self.fn, *a)
+
+    def tangent(self, *a):
+        return self._count(self.fn.tangent, *a)
 
 
 @main.command("run")
@@ -232,6 +239,7 @@ def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, geometry, frames, shard, l
             "seconds_camera_and_network": t_net,
             "seconds_fit": float(fit.fit.seconds) if fit.fit is not None else 0.0,
             "cpu_seconds_fit": cpu_fit,
+            "fit_message": fit.fit.message if fit.fit is not None else "",
             "seconds_fit_level_solves": spent.get("fit_level", 0.0),
             "n_fit_level_solves": spent.get("fit_level_n", 0),
             "seconds_alt_level_solves": spent.get("alt_level", 0.0),
