@@ -31,13 +31,21 @@ Start: ``θ₀`` and, at its (d, h), five values of E spread log-evenly over the
 evaluations); the best of them.  Minimiser: :func:`scipy.optimize.least_squares` (trust-region
 reflective, bounds).  Each pass pins
 the morphed map's reference mesh where it starts (one smooth map per pass), re-measures the model
-error there and starts from a central-difference Jacobian (steps :data:`FD_STEPS`: 0.15 mm in d
-and h, 3 % in E; the E step first, so the map reuses its reference solve); within a pass the
-Jacobian is carried by Broyden's rank-one update (``J ← J + ((r₊ − r) − J Δx) Δxᵀ / |Δx|²``), one
-map evaluation per step.  A step that lowers ½χ² by less than 0.05 ends a pass; a pass that moves
-no parameter by more than 0.2 of its standard deviation ends the fit (at most two passes).
+error there and takes the Jacobian from the map's exact derivative where it has one
+(:meth:`ForwardMap.tangent`: ``∂m/∂θ`` by one back-solve per parameter with the solve's own
+factorisation, :meth:`elastimap.solver.morph.MorphedForward.solve_tangent`), at every evaluated
+point.  A pinned morphed map also takes its reference press (the no-inclusion solve it subtracts)
+to first order in (d, h) about the pin (exact there; one linear solve per evaluation instead of two;
+the difference is second order in the move; measured against the map's own discretisation error
+in docs/camera.md 4c).  A map without a derivative gets central differences at the start of each
+pass (steps :data:`FD_STEPS`: 0.15 mm in d and h, 3 % in E; the E step first, so the map reuses its
+reference solve), carried within the pass by Broyden's rank-one update
+(``J ← J + ((r₊ − r) − J Δx) Δxᵀ / |Δx|²``), one map evaluation per step.  A step that lowers ½χ²
+by less than 0.05 ends a pass; a pass that moves no parameter by more than 0.2 of its standard
+deviation ends the fit (at most two passes).
 
-Uncertainty: Gauss–Newton covariance at ``θ̂`` from the pass's central-difference Jacobian,
+Uncertainty: Gauss–Newton covariance at ``θ̂`` from the Jacobian at ``θ̂`` (the exact one; for a
+map without a derivative, the pass's central-difference Jacobian),
 ``C_x = (JᵀJ)⁻¹ max(1, χ²_red) + b bᵀ`` (the Birge factor widens it when the misfit exceeds
 the stated errors, never narrows it), mapped to (d, h, ln E) by the delta method.  The 95 %
 interval is ``q ± 1.96 sd`` for d and h and ``E exp(±1.96 sd_ln E)``, clipped to the design box.

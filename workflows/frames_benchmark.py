@@ -27,6 +27,12 @@ the identifiable lesions whose frames show a signal (``no_signal`` lesions repor
 coverage is over all lesions.
 
     .venv/bin/python workflows/frames_benchmark.py report --out runs/frames-bench
+
+Stage ``press`` (a check of the fit's map, writes nothing): at the first lesions, how far the pinned
+map's first-order reference press is from the re-solved one, against the map's own discretisation
+error (docs/camera.md 4c).
+
+    OMP_NUM_THREADS=1 .venv/bin/python workflows/frames_benchmark.py press --n 5
 """
 
 from __future__ import annotations
@@ -427,6 +433,51 @@ def report_cmd(out, fits_name):
         json.dump({"synthetic": True, "summary": sm, "lesions": recs}, fh, indent=1)
     plot(recs, os.path.join(out, "benchmark.png"))
     click.echo(md)
+
+
+PRESS_MOVES = ((0.3, 0.0), (0.0, 0.3), (-0.8, 0.5), (1.0, -1.0))  # (Δd, Δh) mm from the pin
+
+
+@main.command("press")
+@click.option("--n", "n", default=5, show_default=True, type=int, help="Lesions (the first n of the design) to pin at.")
+@click.option("--seed", default=TRUTH_SEED, show_default=True, type=int, help="Seed of the lesion design.")
+@click.option("--fit-mesh", default="coarse", show_default=True, help="Mesh level of the fit's forward map.")
+def press_cmd(n, seed, fit_mesh):
+    """How far the pinned map's first-order reference press is from the re-solved one.
+
+    At each of the first N lesions (pinned there) and (d, h) moved by PRESS_MOVES, the max |Δ| over
+    the image (mm) of: the linearised-press image minus the re-solved one, against the map's own
+    discretisation error (this level minus the neighbouring level, both re-solved).  Prints a table;
+    writes nothing."""
+    from elastimap.errors import UserError
+    from elastimap.identify.refine import forward_map, neighbour_level
+    from elastimap.solver.params import depth_range
+
+    if n < 1:
+        raise UserError("--n", f"must be >= 1 (got {n})")
+    f = forward_map(fit_mesh, "morph").morphed
+    g = forward_map(neighbour_level(fit_mesh), "morph").morphed
+    click.echo("| pin d/h/E | at d/h | peak (mm) | linearised − re-solved | model error (level difference) | ratio | CPU s re-solved / linearised |")
+    click.echo("|---|---|---|---|---|---|---|")
+    for d0, h0, E in draw_lesions(max(n, 1), seed)[:n]:
+        ref, ref_g = f.reference_for(d0, h0), g.reference_for(d0, h0)
+        f.solve(d0, h0, E, reference=ref, linearise_at=(d0, h0))  # the expansion, once per pin
+        for dd, dh in PRESS_MOVES:
+            d, h = d0 + dd, h0 + dh
+            lo, hi = depth_range(d)
+            if not (2.0 <= d <= 15.0 and lo <= h <= hi):
+                continue
+            c = time.process_time()
+            a = f.solve(d, h, E, reference=ref).image.astype(float)
+            c1 = time.process_time()
+            b = f.solve(d, h, E, reference=ref, linearise_at=(d0, h0)).image.astype(float)
+            c2 = time.process_time()
+            m = g.solve(d, h, E, reference=ref_g).image.astype(float)
+            lin, err = np.abs(b - a).max(), np.abs(a - m).max()
+            click.echo(
+                f"| {d0:.2f}/{h0:.2f}/{E:.0f} | {d:.2f}/{h:.2f} | {np.abs(a).max():.2e} | {lin:.1e} | {err:.1e} | "
+                f"{lin / err:.3f} | {c1 - c:.2f} / {c2 - c1:.2f} |"
+            )
 
 
 if __name__ == "__main__":
