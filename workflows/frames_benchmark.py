@@ -440,9 +440,10 @@ PRESS_MOVES = ((0.3, 0.0), (0.0, 0.3), (-0.8, 0.5), (1.0, -1.0))  # (Δd, Δh) m
 
 @main.command("press")
 @click.option("--n", "n", default=5, show_default=True, type=int, help="Lesions (the first n of the design) to pin at.")
+@click.option("--design-n", default=120, show_default=True, type=int, help="Lesions in the design (as in 'lesions').")
 @click.option("--seed", default=TRUTH_SEED, show_default=True, type=int, help="Seed of the lesion design.")
 @click.option("--fit-mesh", default="coarse", show_default=True, help="Mesh level of the fit's forward map.")
-def press_cmd(n, seed, fit_mesh):
+def press_cmd(n, design_n, seed, fit_mesh):
     """How far the pinned map's first-order reference press is from the re-solved one.
 
     At each of the first N lesions (pinned there) and (d, h) moved by PRESS_MOVES, the max |Δ| over
@@ -453,13 +454,13 @@ def press_cmd(n, seed, fit_mesh):
     from elastimap.identify.refine import forward_map, neighbour_level
     from elastimap.solver.params import depth_range
 
-    if n < 1:
-        raise UserError("--n", f"must be >= 1 (got {n})")
+    if not 1 <= n <= design_n:
+        raise UserError("--n", f"must be in [1, --design-n = {design_n}] (got {n})")
     f = forward_map(fit_mesh, "morph").morphed
     g = forward_map(neighbour_level(fit_mesh), "morph").morphed
     click.echo("| pin d/h/E | at d/h | peak (mm) | linearised − re-solved | model error (level difference) | ratio | CPU s re-solved / linearised |")
     click.echo("|---|---|---|---|---|---|---|")
-    for d0, h0, E in draw_lesions(max(n, 1), seed)[:n]:
+    for d0, h0, E in draw_lesions(design_n, seed)[:n]:
         ref, ref_g = f.reference_for(d0, h0), g.reference_for(d0, h0)
         f.solve(d0, h0, E, reference=ref, linearise_at=(d0, h0))  # the expansion, once per pin
         for dd, dh in PRESS_MOVES:
