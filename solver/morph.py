@@ -264,7 +264,6 @@ class _Entry:
     """One reference: its raw mesh, motion and DOLFINx Model, and where the Model's mesh is now."""
 
     def __init__(self, template: SolveParams, ref: Reference):
-        from .fem import Model
         from .geometry import build_mesh
 
         p0 = template.with_inclusion(d=ref.d0, h=ref.h0).validate()
@@ -426,7 +425,12 @@ class MorphedForward:
             x = e.motion.coordinates(d, h)
         t1 = time.perf_counter()
         e.move_to(x, d, h)
-        extra = {"setup": 0.0, "morph": time.perf_counter() - t1, "mesh_setup": built, "morph_fallback": float(fallback)}
+        extra = {
+            "setup": 0.0,
+            "morph": time.perf_counter() - t1,
+            "mesh_setup": built,
+            "morph_fallback": float(fallback),
+        }
         return p, e, extra
 
     def _reference_press(self, e: _Entry, p: SolveParams, with_tangent: bool):

@@ -458,7 +458,9 @@ def press_cmd(n, design_n, seed, fit_mesh):
         raise UserError("--n", f"must be in [1, --design-n = {design_n}] (got {n})")
     f = forward_map(fit_mesh, "morph").morphed
     g = forward_map(neighbour_level(fit_mesh), "morph").morphed
-    click.echo("| pin d/h/E | at d/h | peak (mm) | linearised − re-solved | model error (level difference) | ratio | CPU s re-solved / linearised |")
+    click.echo(
+        "| pin d/h/E | at d/h | peak (mm) | linearised − re-solved | model error (level difference) | ratio | CPU s re-solved / linearised |"
+    )
     click.echo("|---|---|---|---|---|---|---|")
     for d0, h0, E in draw_lesions(design_n, seed)[:n]:
         ref, ref_g = f.reference_for(d0, h0), g.reference_for(d0, h0)
