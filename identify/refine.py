@@ -602,8 +602,8 @@ def fit_image(
         s_tot, _ = sigma_at(x0)
     x, msg, J = x0, [], None
     for k in range(max_passes):
-        # each pass starts from a fresh central-difference Jacobian, the model error measured and
-        # the reference meshes pinned where it starts; the fit is accepted when a pass moves no
+        # each pass starts from a fresh Jacobian (exact, or central differences), the model error
+        # measured and the reference meshes pinned where it starts; the fit is accepted when a pass moves no
         # parameter by more than 0.2 of its standard deviation (from that Jacobian)
         if k:
             pin(x)
