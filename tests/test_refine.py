@@ -90,6 +90,10 @@ def test_bad_input_is_a_user_error():
 
     with pytest.raises(UserError, match="method"):
         fit(I, 1e-3, [8, 7, 60], bump, method="newton")
+    from elastimap.identify.refine import fit_image
+
+    with pytest.raises(UserError, match="tangent"):  # a plain function has no exact derivative
+        fit_image(I, 1e-3, [8, 7, 60], lambda d, h, E: bump([d, h, E]), tangent=True)
 
 
 def test_fem_refinement_on_the_tiny_mesh(tmp_path):
