@@ -37,7 +37,8 @@ factorisation, :meth:`elastimap.solver.morph.MorphedForward.solve_tangent`), at 
 point.  A pinned morphed map also takes its reference press (the no-inclusion solve it subtracts)
 to first order in (d, h) about the pin (exact there; one linear solve per evaluation instead of two;
 the difference is second order in the move; measured against the map's own discretisation error
-in docs/camera.md 4c).  A map without a derivative gets central differences at the start of each
+in docs/camera.md 4c).  The neighbouring level re-solves its press (:meth:`ForwardMap.pin_exact`),
+so the measured model error ``δ`` holds the linearisation's error as well.  A map without a derivative gets central differences at the start of each
 pass (steps :data:`FD_STEPS`: 0.15 mm in d and h, 3 % in E; the E step first, so the map reuses its
 reference solve), carried within the pass by Broyden's rank-one update
 (``J ← J + ((r₊ − r) − J Δx) Δxᵀ / |Δx|²``), one map evaluation per step.  A step that lowers ½χ²
@@ -450,7 +451,9 @@ def fit_image(
     ``forward(d, h, E)`` and ``forward_alt(d, h, E)`` return the difference image (see
     :func:`image_of`) of the map and of its neighbouring mesh level (maps with a ``pin(d, h)``
     method returning a map with a hashable ``key`` are pinned at the start of every pass, see
-    :class:`ForwardMap`); without ``forward_alt`` the
+    :class:`ForwardMap`; ``forward_alt`` by its ``pin_exact`` where it has one, so that the measured
+    model error also holds the error of the fit map's linearised reference press); without
+    ``forward_alt`` the
     model error is taken as zero (say so when reporting).  ``max_nfev`` bounds the trial points
     per pass, ``max_passes`` the passes (each from a fresh central-difference Jacobian); ``e_scan``
     values of ln E spread over the box are tried at the start's (d, h) first, and the fit starts
@@ -491,8 +494,9 @@ def fit_image(
         sees one smooth map."""
         d, h, _ = to_theta(x, thickness)
         cur["f"] = forward.pin(d, h) if hasattr(forward, "pin") else forward
-        if forward_alt is not None:
-            cur["a"] = forward_alt.pin(d, h) if hasattr(forward_alt, "pin") else forward_alt
+        if forward_alt is not None:  # exact where it can be: the model error then measures the linearisation too
+            pin_alt = getattr(forward_alt, "pin_exact", None) or getattr(forward_alt, "pin", None)
+            cur["a"] = pin_alt(d, h) if pin_alt is not None else forward_alt
 
     def key(x, f):
         return (getattr(f, "key", None), *np.round(np.asarray(x, float), 10))
@@ -729,6 +733,12 @@ class ForwardMap:
     def pin(self, d: float, h: float) -> ForwardMap:
         d, h = float(d), float(h)
         return ForwardMap(self.morphed, self.morphed.reference_for(d, h), (d, h) if self.has_tangent else None)
+
+    def pin_exact(self, d: float, h: float) -> ForwardMap:
+        """:meth:`pin` with the reference press re-solved at every (d, h) (no linearisation): the
+        map a model error is measured against, so that the measured difference contains the
+        linearisation's error too."""
+        return ForwardMap(self.morphed, self.morphed.reference_for(float(d), float(h)))
 
 
 def forward_map(mesh: str = "coarse", geometry: str | None = None, template=None) -> Callable:

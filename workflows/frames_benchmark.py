@@ -156,6 +156,8 @@ class _Timed:
         self.has_tangent = bool(getattr(fn, "has_tangent", False))
         if hasattr(fn, "pin"):
             self.pin = lambda d, h: _Timed(fn.pin(d, h), acc, name)
+        if hasattr(fn, "pin_exact"):
+            self.pin_exact = lambda d, h: _Timed(fn.pin_exact(d, h), acc, name)
 
     def _count(self, f, *a):
         t = time.perf_counter()
