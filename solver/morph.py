@@ -62,6 +62,12 @@ object's life.
   (``result.params.disc.geometry == "morph"``).  ``reference`` (a :class:`Reference`)
   pins the reference mesh; None picks :meth:`MorphedForward.reference_for`. The reference
   solve does not depend on E and is reused when only E changes (one linear solve then).
+  ``linearise_at=(d_s, h_s)`` takes the reference solve to first order in (d, h) about that
+  point of the same reference mesh instead (one linear solve per sample; exact at the point).
+* ``fwd.solve_tangent(d, h, E, reference=None, linearise_at=None) -> (SolveResult, J)`` — the
+  same sample and ``J`` ``(3, ny, nx)``, the exact derivative of its difference image in d, h
+  (mm) and E (kPa) on the reference mesh used (one back-solve per parameter with the solves'
+  factorisations; linear problems under a prescribed plate travel, ``fwd.has_tangent``).
 * ``fwd.reference_for(d, h) -> Reference`` — the bin's reference (frozen dataclass
   ``d0``, ``h0``; hashable).
 * ``fwd.quality(d, h, reference=None) -> MorphQuality`` — min volume ratio and min
