@@ -443,14 +443,18 @@ class MorphedForward:
         """The reference press (E_inc = E_tissue) on the entry's mesh where it is now: the tuple
         :func:`~elastimap.solver.api.run_sample` takes and, with ``with_tangent``, its image's
         derivatives in d and h (:meth:`_Entry.tangent`); kept while the mesh stays."""
-        from .api import _solve_at
+        from .api import _solve_at, sample_tag
+        from .errors import SolverError
 
         here = e.at
         have = e.reference_solve and e.reference_solve[:2] == here
         if have and (not with_tangent or (e.reference_tangent and e.reference_tangent[:2] == here)):
             return e.reference_solve[2], (e.reference_tangent[2] if with_tangent else None)
         model = e.model
-        sol_r, diag_r, delta_r, force_r = _solve_at(model, p.tissue.E, p)
+        try:
+            sol_r, diag_r, delta_r, force_r = _solve_at(model, p.tissue.E, p)
+        except SolverError as exc:
+            raise SolverError(f"solve failed for {sample_tag(p)} (reference press): {exc}") from exc
         ref = (sol_r, diag_r, delta_r, force_r, model.probe_bottom_w(sol_r, delta_r))
         e.reference_solve = (*here, ref)
         tan = None
