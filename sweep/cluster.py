@@ -101,12 +101,23 @@ def connect(address: str, timeout: float):
         raise UserError("scheduler", f"cannot connect to {address} ({type(exc).__name__}: {exc})") from None
 
 
-def count_workers(client) -> int | None:
-    """Workers the scheduler knows now; ``None`` when the scheduler does not answer."""
+def count_workers(client, timeout: float | None = None) -> int | None:
+    """Workers the scheduler knows now; ``None`` when the scheduler does not answer (within
+    ``timeout`` s; ``None``: no limit, a scheduler that hangs without closing the connection then
+    blocks the caller)."""
     try:
-        return len(client.nthreads())
+        return len(client.nthreads(callback_timeout=timeout))
     except Exception:
         return None
+
+
+def close_client(client, timeout: float) -> None:
+    """Close ``client`` within ``timeout`` s (dask's default waits up to twice the connect
+    timeout for a scheduler that may be gone); a close that fails or runs late is logged, not raised."""
+    try:
+        client.close(timeout=timeout)
+    except Exception as exc:
+        log.warning("closing the dask client: %s: %s", type(exc).__name__, exc)
 
 
 class WarmUpWorkers(WorkerPlugin):

@@ -53,6 +53,7 @@ from . import design as dsg
 from . import jobs
 
 MAX_JOBS = 256
+CLOSE_TIMEOUT = 10.0  # s to close the client of an external scheduler (one that may be gone)
 
 
 @dataclass
@@ -378,6 +379,12 @@ def _start_client(cfg: SweepConfig):
     return Client(cluster), cluster
 
 
+def _close_remote(client) -> None:
+    from .cluster import close_client
+
+    close_client(client, CLOSE_TIMEOUT)
+
+
 def _clear_markers(out: Path) -> None:
     """Per-run job markers (attempt counts, timeouts) in the dataset directory."""
     for pattern in (".timeout-*", ".attempts-*"):
@@ -397,7 +404,7 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
         lock = io.acquire_lock(out)
     except BaseException:
         if remote is not None:
-            remote[0].close()
+            _close_remote(remote[0])
         raise
     summary = {
         "out": str(out),
@@ -494,7 +501,7 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
             lock.unlink(missing_ok=True)
             restore()
             if remote is not None:
-                remote[0].close()
+                _close_remote(remote[0])
     return summary
 
 
@@ -589,16 +596,26 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
         pending = as_completed(list(by_future))
         watch = _WorkerWatch(client, cfg, cluster is not None)
         while not pending.is_empty():
+            # every turn, not only when idle: nothing below may keep the driver from the watch
+            watch.check()  # raises ClusterLost after --worker-wait s with no worker
             ready = pending.next_batch(block=False) if pending.has_ready() else []
             if not ready:
-                watch.check()  # raises ClusterLost after --worker-wait s with no worker
                 time.sleep(0.05)
                 continue
             for fut in ready:
                 s = by_future.pop(fut)
                 try:
-                    r = fut.result()
+                    # bounded: a result held by a worker that is gone before it is read makes an
+                    # unbounded result() wait for a recompute that, with no worker left, never comes
+                    r = fut.result(timeout=watch.call_timeout)
                 except Exception as exc:  # KilledWorker (its worker died on every attempt) or a bug in the job
+                    if _not_failed(fut, exc):
+                        # not the task's error: its result was lost with its worker (dask runs it
+                        # again when a worker joins), or fetching it took too long; wait for it
+                        # again, with the watch in between
+                        by_future[fut] = s
+                        pending.add(fut)
+                        continue
                     name = type(exc).__name__
                     sid = s["sample_id"]
                     n_started = jobs.attempts(out, sid)
@@ -651,7 +668,10 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
         if fan_wall > 0 and summary["ok"]:
             summary["worker_utilisation"] = solve_seconds / (fan_wall * max(summary["workers"], 1))
     except ClusterLost:
-        client.cancel(list(by_future))  # nothing of this run stays queued on the scheduler
+        # nothing of this run stays queued on the scheduler: release() only posts a message,
+        # where cancel() would wait for the answer of a scheduler that may be what is gone
+        for fut in by_future:
+            fut.release()
         raise
     finally:
         summary["errors"] = errors
@@ -662,14 +682,27 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                 cluster.close()
 
 
+def _not_failed(fut, exc: BaseException) -> bool:
+    """Whether ``fut.result()`` raised ``exc`` for want of a worker, not because the task failed:
+    the future is ``lost`` or ``pending`` again (its result went with its worker before it was
+    read; dask runs the task again when a worker joins), or it is ``finished`` and the fetch of
+    its result ran past its time limit."""
+    return fut.status in ("lost", "pending") or (fut.status == "finished" and isinstance(exc, TimeoutError))
+
+
 class _WorkerWatch:
     """Counts the cluster's workers every few seconds while the driver waits for results; raises
-    :class:`ClusterLost` once there has been none for ``cfg.worker_wait`` seconds."""
+    :class:`ClusterLost` once there has been none for ``cfg.worker_wait`` seconds.
+
+    Every call of the collect loop that waits on the scheduler or a worker is bounded by
+    ``call_timeout`` (s), so the loop is back at :meth:`check` within about ``worker_wait`` +
+    ``call_timeout`` + ``every`` of the last worker's going, whatever it was waiting on."""
 
     def __init__(self, client, cfg: SweepConfig, local: bool):
         self.client, self.wait = client, cfg.worker_wait
         self.where = "in the local cluster" if local else f"at {cfg.scheduler}"
         self.every = min(2.0, self.wait / 4)
+        self.call_timeout = max(1.0, min(self.wait, 10.0))
         self.last_seen = self.next_check = time.monotonic()
 
     def check(self) -> None:
@@ -677,7 +710,7 @@ class _WorkerWatch:
 
         if time.monotonic() < self.next_check:
             return
-        n = count_workers(self.client)
+        n = count_workers(self.client, self.call_timeout)
         now = time.monotonic()
         self.next_check = now + self.every
         if n:

@@ -250,6 +250,66 @@ def test_driver_notices_when_every_worker_is_gone(tmp_path):
     assert 2 <= len(io.landed_status(out)) < 40
 
 
+def test_driver_notices_when_the_last_worker_goes_with_an_unread_result(tmp_path, monkeypatch):
+    """The race behind a rare hang of the test above on a loaded machine: a sample finishes, and its
+    worker, the last one, is gone before the driver reads the result (a busy driver reads late).
+    The result is lost with the worker; dask waits for a recompute that needs a worker, so an
+    unbounded ``result()`` never returns.  Here the worker goes exactly then, every time: the
+    driver, run in this process, must still end the run as a lost cluster within --worker-wait."""
+    import copy
+
+    import dask
+    from distributed import Future, LocalCluster
+
+    from elastimap.sweep import jobs
+    from elastimap.sweep.run import SweepConfig
+    from elastimap.sweep.run import run as run_sweep_here
+
+    out = tmp_path / "ds"
+    saved_config = copy.deepcopy(dask.config.config)  # the driver sets dask options for its run
+    real_result = Future.result
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+        seen = {"reads": 0, "gone": None}
+
+        def late_result(self, *args, **kwargs):
+            seen["reads"] += 1
+            if seen["reads"] == 3:  # a finished sample, not read yet: its (only) worker goes first
+                cluster.scale(0)
+                t0 = time.monotonic()
+                while cluster.scheduler.workers and time.monotonic() - t0 < 30:
+                    time.sleep(0.05)
+                assert not cluster.scheduler.workers, "the worker did not go"
+                seen["gone"] = time.monotonic()
+            return real_result(self, *args, **kwargs)
+
+        monkeypatch.setattr(Future, "result", late_result)
+        cfg = SweepConfig(
+            n=40,
+            mesh="tiny",
+            out=str(out),
+            progress=False,
+            scheduler=cluster.scheduler_address,
+            worker_wait=3.0,
+            solver=jobs.resolve_solver("synthetic:seconds=0.3"),
+        )
+        box: dict = {}
+        driver = threading.Thread(target=lambda: box.update(summary=run_sweep_here(cfg)), daemon=True)
+        try:
+            driver.start()
+            driver.join(timeout=60)
+            ended = time.monotonic()
+        finally:
+            dask.config.config.clear()
+            dask.config.config.update(saved_config)
+        assert not driver.is_alive(), "the driver hangs on a result lost with the last worker"
+    assert seen["gone"] is not None, seen
+    summary = box["summary"]
+    assert "no dask worker" in summary.get("aborted", ""), summary
+    assert ended - seen["gone"] < 30, ended - seen["gone"]  # --worker-wait 3 s, + a bounded fetch + exit
+    assert summary["ok"] == 2 and summary["dataset_ok"] >= 2, summary  # the lost one may have landed
+    assert not (out / io.LOCK).exists() and not list(out.glob(".attempts-*"))
+
+
 # ----------------------------------------------------------------------------- SIGTERM, locks
 
 
