@@ -310,6 +310,72 @@ def test_driver_notices_when_the_last_worker_goes_with_an_unread_result(tmp_path
     assert not (out / io.LOCK).exists() and not list(out.glob(".attempts-*"))
 
 
+@pytest.fixture
+def scheduler_process(tmp_path):
+    """A dask scheduler and one one-thread worker in their own processes (so a test can freeze the
+    scheduler with SIGSTOP); yields ``(address, scheduler Popen)``."""
+    sfile = tmp_path / "scheduler.json"
+    logs = open(tmp_path / "dask.log", "w")
+    common = {"cwd": ROOT, "env": _env(), "stdout": logs, "stderr": subprocess.STDOUT}
+    sched = subprocess.Popen(
+        [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0"]
+        + ["--no-dashboard", "--scheduler-file", str(sfile)],
+        **common,
+    )
+    procs = [sched]
+    try:
+        t0 = time.time()
+        while not (sfile.exists() and sfile.stat().st_size) and time.time() - t0 < 60:
+            time.sleep(0.2)
+        address = json.loads(sfile.read_text())["address"]
+        worker = subprocess.Popen(
+            [sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1"]
+            + ["--no-dashboard", "--local-directory", str(tmp_path / "dw")],
+            **common,
+        )
+        procs.append(worker)
+        yield address, sched
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                p.send_signal(signal.SIGCONT)
+                p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        logs.close()
+
+
+def test_driver_notices_a_scheduler_that_stops_answering(tmp_path, scheduler_process):
+    """A scheduler that hangs with its connections open (SIGSTOP here; a frozen node) makes every
+    unbounded call to it wait for ever: the driver must end as a lost cluster within --worker-wait,
+    plus its bounded calls and a bounded client close."""
+    address, sched = scheduler_process
+    out = tmp_path / "ds"
+    proc = _popen(
+        ["run", *_synthetic(seconds=0.3), "--n", "40", "--mesh", "tiny", "--out", str(out), "--no-progress"]
+        + ["--scheduler", address, "--worker-wait", "3"],
+    )
+    try:
+        _wait_rows(out, 2, proc)
+        sched.send_signal(signal.SIGSTOP)
+        t_stop = time.time()
+        stdout, stderr = proc.communicate(timeout=90)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    took = time.time() - t_stop
+    assert proc.returncode == 3, stderr
+    assert "no dask worker" in stderr and "scheduler does not answer" in stderr, stderr
+    assert "done this run" in stdout, stdout
+    # --worker-wait 3 s + one bounded call (3 s) + the client close (10 s), plus the exit under load
+    assert took < 45, took
+    assert not (out / io.LOCK).exists()
+
+
 # ----------------------------------------------------------------------------- SIGTERM, locks
 
 
