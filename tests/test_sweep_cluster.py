@@ -334,6 +334,10 @@ def scheduler_process(tmp_path):
             **common,
         )
         procs.append(worker)
+        from distributed import Client
+
+        with Client(address, timeout="60s") as c:  # the worker is there before the driver starts
+            c.wait_for_workers(1, timeout=120)
         yield address, sched
     finally:
         for p in reversed(procs):
