@@ -607,7 +607,7 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                 try:
                     # bounded: a result held by a worker that is gone before it is read makes an
                     # unbounded result() wait for a recompute that, with no worker left, never comes
-                    r = fut.result(timeout=watch.call_timeout)
+                    r = fut.result(timeout=watch.fetch_timeout)
                 except Exception as exc:  # KilledWorker (its worker died on every attempt) or a bug in the job
                     if _not_failed(fut, exc):
                         # not the task's error: its result was lost with its worker (dask runs it
@@ -694,15 +694,21 @@ class _WorkerWatch:
     """Counts the cluster's workers every few seconds while the driver waits for results; raises
     :class:`ClusterLost` once there has been none for ``cfg.worker_wait`` seconds.
 
-    Every call of the collect loop that waits on the scheduler or a worker is bounded by
-    ``call_timeout`` (s), so the loop is back at :meth:`check` within about ``worker_wait`` +
-    ``call_timeout`` + ``every`` of the last worker's going, whatever it was waiting on."""
+    Nothing in the collect loop waits without a bound, so the loop is back at :meth:`check` soon
+    after the last worker goes, whatever it was waiting on: a result's fetch waits at most
+    ``fetch_timeout`` s, the count at most ``count_timeout`` s.  The count's bound is never
+    below the wait (nor 10 s): one slow answer of a busy scheduler is not a lost cluster; a
+    scheduler that does not answer at all ends the run after about ``count_timeout`` + ``every``."""
+
+    COUNT_TIMEOUT = 10.0  # s, at least, for the scheduler to say how many workers it has
+    FETCH_TIMEOUT = 10.0  # s, at most, for one result's fetch (a late one is fetched again)
 
     def __init__(self, client, cfg: SweepConfig, local: bool):
         self.client, self.wait = client, cfg.worker_wait
         self.where = "in the local cluster" if local else f"at {cfg.scheduler}"
         self.every = min(2.0, self.wait / 4)
-        self.call_timeout = max(1.0, min(self.wait, 10.0))
+        self.count_timeout = max(self.wait, self.COUNT_TIMEOUT)
+        self.fetch_timeout = max(1.0, min(self.wait, self.FETCH_TIMEOUT))
         self.last_seen = self.next_check = time.monotonic()
 
     def check(self) -> None:
@@ -710,7 +716,7 @@ class _WorkerWatch:
 
         if time.monotonic() < self.next_check:
             return
-        n = count_workers(self.client, self.call_timeout)
+        n = count_workers(self.client, self.count_timeout)
         now = time.monotonic()
         self.next_check = now + self.every
         if n:

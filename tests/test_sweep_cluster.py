@@ -375,9 +375,68 @@ def test_driver_notices_a_scheduler_that_stops_answering(tmp_path, scheduler_pro
     assert proc.returncode == 3, stderr
     assert "no dask worker" in stderr and "scheduler does not answer" in stderr, stderr
     assert "done this run" in stdout, stdout
-    # --worker-wait 3 s + one bounded call (3 s) + the client close (10 s), plus the exit under load
+    # the count bound (10 s, above --worker-wait 3 s) + the client close (10 s), plus the exit under load
     assert took < 45, took
     assert not (out / io.LOCK).exists()
+
+
+class _FakeScheduler:
+    """A stand-in for ``distributed.Client`` in the worker watch: ``nthreads`` answers ``workers``
+    after ``delay`` s, or, like dask, raises ``TimeoutError`` once ``callback_timeout`` has passed
+    (``delay=None``: it never answers, a frozen scheduler)."""
+
+    def __init__(self, workers: int, delay: float | None):
+        self.workers, self.delay, self.calls = workers, delay, []
+
+    def nthreads(self, callback_timeout=None):
+        self.calls.append(callback_timeout)
+        wait = self.delay if self.delay is not None else float("inf")
+        if callback_timeout is not None and wait > callback_timeout:
+            time.sleep(callback_timeout)
+            raise TimeoutError(f"timed out after {callback_timeout} s")
+        time.sleep(wait)
+        return {f"tcp://w{i}": 1 for i in range(self.workers)}
+
+
+def _watch(client, wait):
+    from elastimap.sweep.run import SweepConfig, _WorkerWatch
+
+    return _WorkerWatch(client, SweepConfig(scheduler="tcp://x:1", worker_wait=wait), local=False)
+
+
+def _watch_until(watch, seconds):
+    """Run ``watch.check()`` like the collect loop for ``seconds``; the ClusterLost and its time, or None."""
+    from elastimap.sweep.run import ClusterLost
+
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        try:
+            watch.check()
+        except ClusterLost as exc:
+            return exc, time.monotonic() - t0
+        time.sleep(0.05)
+    return None
+
+
+def test_worker_watch_a_slow_answer_is_not_a_lost_cluster():
+    """A busy scheduler that answers slower than --worker-wait, with a worker, keeps the run going."""
+    fake = _FakeScheduler(workers=1, delay=1.2)
+    assert _watch_until(_watch(fake, wait=0.5), 4.0) is None
+    assert len(fake.calls) >= 2 and all(t is not None and t >= 1.2 for t in fake.calls), fake.calls
+
+
+def test_worker_watch_ends_on_no_worker_and_on_a_frozen_scheduler(monkeypatch):
+    from elastimap.sweep.run import _WorkerWatch
+
+    lost = _watch_until(_watch(_FakeScheduler(workers=0, delay=0.0), wait=0.5), 10.0)
+    assert lost is not None and "all workers gone" in str(lost[0]) and "0.5 s" in str(lost[0])
+    assert 0.5 <= lost[1] < 3.0, lost[1]
+    monkeypatch.setattr(_WorkerWatch, "COUNT_TIMEOUT", 1.5)
+    frozen = _FakeScheduler(workers=1, delay=None)
+    lost = _watch_until(_watch(frozen, wait=0.5), 10.0)  # without a bound on the count: for ever
+    assert lost is not None and "the scheduler does not answer" in str(lost[0]), lost
+    assert 1.5 <= lost[1] < 4.0, lost[1]
+    assert frozen.calls == [1.5]
 
 
 # ----------------------------------------------------------------------------- SIGTERM, locks
