@@ -356,7 +356,8 @@ def richardson_correct(V0: dict, D0, C: list[Candidate], me: dict, st: Settings)
     crosses zero).  Returns the corrected baseline; candidates are corrected in place.  The model
     error σ (in ``me``, replaced) becomes the uncertainty of this extrapolation: the spread
     |κ(p_lo) − κ(p_hi)| · max(|Δ|, median floor) over the bracketing orders.  An effect that
-    remeshes gets its own correction at its refined magnitudes (:func:`refine`)."""
+    remeshes (or otherwise changes the discretisation error, ``Effect.own_model_error``) gets
+    its own correction at its refined magnitudes (:func:`refine`)."""
     r = me["ratio"]
 
     def kap(p):
@@ -432,7 +433,8 @@ def refine(
     and insert the point (:func:`add_points`: the emulator's miss there becomes its
     interpolation error).  Families refine their members at the family's fit.  Nothing is
     refined when the gap is not significant (the verdict does not depend on the candidates).
-    An effect that remeshes (``Effect.remeshes``) is also solved on the error mesh ``sim_fine``
+    An effect whose discretisation error does not carry over from the baseline
+    (``Effect.own_model_error``: it remeshes, or it is the Poisson ratio) is also solved on the error mesh ``sim_fine``
     at each refined magnitude, and that point is extrapolated with its own two levels
     (:func:`correct_own`): the baseline's discretisation error does not carry over to another
     mesh (on the coarse mesh it moved by up to 1 % of the profile's peak between slab
@@ -470,7 +472,7 @@ def refine(
         if not jobs:
             break
         recs = sim.run([p for _, _, pl in jobs for p in pl])
-        own = [j for j, (name, _, _) in enumerate(jobs) if byname[name].effect.remeshes]
+        own = [j for j, (name, _, _) in enumerate(jobs) if byname[name].effect.own_model_error]
         if sim_fine is None or "_factor" not in me:
             own = []
         fine: dict[int, list] = {}

@@ -53,6 +53,8 @@ from elastimap.errors import UserError
 
 #: effects that change the geometry (or switch to the full model), so each magnitude has its own mesh
 REMESHING = frozenset({"skin", "aspect", "offaxis", "probe_t1", "probe_t2", "probe_t3", "slab_thickness", "tilt"})
+#: effects whose discretisation error does not carry over from the baseline (``Effect.own_model_error``)
+OWN_ERROR = REMESHING | {"tissue_nu"}
 SKIN_THICKNESS = 1.0  # mm, thickness of the skin layer switched on by the ``skin`` effect
 
 
@@ -88,10 +90,16 @@ class Effect:
     @property
     def remeshes(self) -> bool:
         """Whether a magnitude other than the nominal solves on another mesh than the baseline
-        (a geometry change, or the full model): the baseline's discretisation error does not carry
-        over to it, so the diagnosis measures the model error at such an effect's refined
-        magnitudes (:func:`elastimap.gap.diagnose.refine`)."""
+        (a geometry change, or the full model)."""
         return self.stage == "mechanics" and self.name in REMESHING
+
+    @property
+    def own_model_error(self) -> bool:
+        """Whether the baseline's discretisation error does not carry over to this effect's
+        magnitudes, so the diagnosis measures the model error at its refined magnitudes
+        (:func:`elastimap.gap.diagnose.refine`): the effects that remesh, and the tissue's
+        Poisson ratio (the error of nearly incompressible elements grows as ν → 0.5)."""
+        return self.stage == "mechanics" and self.name in OWN_ERROR
 
     def is_nominal(self, m: float) -> bool:
         return abs(float(m) - self.nominal) <= 1e-12 * max(1.0, abs(self.nominal))

@@ -359,7 +359,7 @@ def test_remeshing_effect_gets_its_own_model_error(dhe, monkeypatch):
     assert ev["outcome"] == "explained" and ev["winner"] == "skin", ev["outcome"]
     assert top["own_model_error_at"]["skin"], top["own_model_error_at"]
     assert abs(top["magnitude"][0] - 40.0) < 0.2 * (40.0 - 5.0), top["magnitude"]
-    monkeypatch.setattr(fx, "REMESHING", frozenset())
+    monkeypatch.setattr(fx, "OWN_ERROR", frozenset())
     ev = diagnose(meas, cands, RemeshToy("tiny"), st, RemeshToy("coarse"))["evaluation"]
     top = {r["effect"]: r for r in ev["ranking"]}["skin"]
     assert not top["own_model_error_at"]
