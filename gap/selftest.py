@@ -164,6 +164,9 @@ def run(
             rec["right"] = ev["outcome"] == "no significant gap"
         elif truth["kind"] == "in":
             rec["right"] = truth["effect"] in ev["ambiguous_set"]
+            rec["family_member_right"] = rec["right"] or any(
+                family_isolates(rows[n], truth["effect"]) for n in ev["ambiguous_set"] if n in rows
+            )
             r = rows.get(truth["effect"])
             if r is not None:
                 rec["fitted_magnitude"], rec["fitted_ci"] = r["magnitude"][0], r["magnitude_ci"][0]
@@ -188,6 +191,17 @@ def run(
         if on_trial is not None:
             on_trial(summary(out_trials))
     return summary(out_trials)
+
+
+def family_isolates(row: dict, effect: str) -> bool:
+    """Whether a reported family (a ranking row with several members) names ``effect`` alone:
+    it is a member whose 95 % interval excludes its nominal magnitude while every other member's
+    interval holds its nominal (the family then says "this member is off, the others are not")."""
+    members = row.get("members", [])
+    if len(members) < 2 or effect not in members:
+        return False
+    off = [not (lo <= nom <= hi) for (lo, hi), nom in zip(row["magnitude_ci"], row["nominal"])]
+    return all(o == (m == effect) for o, m in zip(off, members))
 
 
 def _summary(
@@ -233,6 +247,7 @@ def score(trials: list[dict], names: list[str]) -> dict:
         "no_effect_no_gap_rate": _rate([r["right"] for r in none]),
         "in_library_set_holds_truth_rate": _rate([r["right"] for r in inl]),
         "in_library_single_winner_right_rate": _rate([r["answer"] == r["true_effect"] for r in inl]),
+        "in_library_family_member_rate": _rate([r.get("family_member_right", r["right"]) for r in inl]),
         "in_library_interval_coverage": _rate(cov),
         "magnitude_error_rel_effect_median": float(np.median(me)) if me else float("nan"),
         "out_of_library_confident_wrong_rate": _rate([r["confident_wrong"] for r in out]),
@@ -286,6 +301,7 @@ def markdown(res: dict) -> str:
         f'| no-effect sets called "no significant gap" | {_p(res["no_effect_no_gap_rate"])} | ≥ 90 % |',
         f"| in-library: reported set (winner or ambiguity set) holds the truth | {_p(res['in_library_set_holds_truth_rate'])} | ≥ 90 % |",
         f"| in-library: single winner is the truth | {_p(res['in_library_single_winner_right_rate'])} | |",
+        f"| in-library: set holds the truth, or a family in it isolates the true member (only it off nominal) | {_p(res.get('in_library_family_member_rate', float('nan')))} | |",
         f"| in-library: 95 % interval covers the true magnitude | {_p(res['in_library_interval_coverage'])} | 90–98 % |",
         f"| in-library: magnitude error (median, relative to the effect size) | {_p(res['magnitude_error_rel_effect_median'])} | |",
         f"| out-of-library: confident wrong attribution | {_p(res['out_of_library_confident_wrong_rate'])} | ≤ 10 % |",

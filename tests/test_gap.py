@@ -471,3 +471,18 @@ def test_cli_end_to_end_and_errors(tmp_path):
     ):
         r = subprocess.run(py + args, capture_output=True, text=True, cwd=ROOT)
         assert r.returncode == 2 and word in r.stderr and r.stderr.count("\n") == 1, r.stderr
+
+
+def test_family_isolates_a_member_only_when_the_others_hold_their_nominal():
+    from elastimap.gap.selftest import family_isolates
+
+    row = {
+        "members": ["probe_E1", "probe_E2", "probe_E3"],
+        "nominal": [300.0, 150.0, 50.0],
+        "magnitude_ci": [[192.8, 205.3], [145.2, 151.3], [48.7, 50.3]],
+    }
+    assert family_isolates(row, "probe_E1")
+    assert not family_isolates(row, "probe_E2")  # E2's interval holds its nominal
+    row["magnitude_ci"][2] = [45.0, 48.0]  # E3 off too: the family names two members
+    assert not family_isolates(row, "probe_E1")
+    assert not family_isolates({"members": ["friction"], "nominal": [0.0], "magnitude_ci": [[0.5, 0.7]]}, "friction")
