@@ -161,7 +161,7 @@ class Candidate:
     interp_error: dict | None = None  # adaptive: measured interpolation error per view (n, q)
     adaptive: bool = False  # solved at a few magnitudes (sensitivity + refinement), not the grid
     refinements: list = field(default_factory=list)  # magnitudes solved near the fit
-    own_error: list = field(default_factory=list)  # magnitudes with their own model error (remeshing effects)
+    own_error: list = field(default_factory=list)  # magnitudes with their own model error (Effect.own_model_error)
 
 
 def phantom_params(meas: Measured, mesh: str):
@@ -363,21 +363,16 @@ def richardson_correct(V0: dict, D0, C: list[Candidate], me: dict, st: Settings)
     def kap(p):
         return 1.0 / (1.0 - r ** (-p))
 
-    fac = {}
+    fac, spread = {}, {}
     for k, v in V0.items():
         with np.errstate(divide="ignore", invalid="ignore"):
             f = 1.0 - me["kappa"][k] * me["delta"][k] / v
         fac[k] = np.clip(np.where(np.isfinite(f), f, 1.0), 0.5, 1.5)
         lo, hi = st.order_range_force if k == "force" else st.order_range_image
-        me["sigma"][k] = me["sigma"][k] / me["kappa"][k] * abs(kap(lo) - kap(hi))
+        spread[k] = abs(kap(lo) - kap(hi))
+        me["sigma"][k] = me["sigma"][k] / me["kappa"][k] * spread[k]
         me["relative_median"][k] = np.median(me["sigma"][k] / np.maximum(np.abs(v), 1e-300), axis=0).tolist()
-    me["_spread"] = {
-        k: abs(
-            kap((st.order_range_force if k == "force" else st.order_range_image)[0])
-            - kap((st.order_range_force if k == "force" else st.order_range_image)[1])
-        )
-        for k in V0
-    }
+    me["_spread"] = spread
     lo, hi = st.order_range_image
     me["image_sigma"] = me["image_sigma"] / me["kappa_image"] * abs(kap(lo) - kap(hi))
     me["_factor"], me["_dD"] = fac, me["kappa_image"] * me["image_delta"]
@@ -434,8 +429,8 @@ def refine(
     interpolation error).  Families refine their members at the family's fit.  Nothing is
     refined when the gap is not significant (the verdict does not depend on the candidates).
     An effect whose discretisation error does not carry over from the baseline
-    (``Effect.own_model_error``: it remeshes, or it is the Poisson ratio) is also solved on the error mesh ``sim_fine``
-    at each refined magnitude, and that point is extrapolated with its own two levels
+    (``Effect.own_model_error``: it remeshes, or it is the Poisson ratio) is also solved on the
+    error mesh ``sim_fine`` at each refined magnitude, and that point is extrapolated with its own two levels
     (:func:`correct_own`): the baseline's discretisation error does not carry over to another
     mesh (on the coarse mesh it moved by up to 1 % of the profile's peak between slab
     thicknesses of 20 and 23.8 mm).  Returns (solves, rounds)."""
@@ -506,9 +501,11 @@ def refine(
         for name, (ms, Vs, Ds, extras) in new.items():
             c = byname[name]
             add_points(c, ms, Vs, Ds)
-            for extra in extras:  # a remeshing effect's own model error beyond the baseline's
-                if extra is not None:
-                    c.interp_error = {k: np.hypot(c.interp_error[k], extra[k]) for k in c.interp_error}
+            own_extra = [e for e in extras if e is not None]
+            if own_extra:  # its own model error beyond the baseline's, the largest over the new points
+                c.interp_error = {
+                    k: np.hypot(c.interp_error[k], np.max([e[k] for e in own_extra], axis=0)) for k in c.interp_error
+                }
     return solves, rounds
 
 

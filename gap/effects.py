@@ -88,12 +88,6 @@ class Effect:
         return self.hi if hi >= lo else self.lo
 
     @property
-    def remeshes(self) -> bool:
-        """Whether a magnitude other than the nominal solves on another mesh than the baseline
-        (a geometry change, or the full model)."""
-        return self.stage == "mechanics" and self.name in REMESHING
-
-    @property
     def own_model_error(self) -> bool:
         """Whether the baseline's discretisation error does not carry over to this effect's
         magnitudes, so the diagnosis measures the model error at its refined magnitudes
