@@ -275,7 +275,10 @@ def error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet):
 )
 @click.option("--n-phantoms", type=int, default=12, show_default=True)
 @click.option("--frames", type=int, default=10, show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True, help="draws the trials (effects, magnitudes, noise)")
+@click.option(
+    "--phantom-seed", type=int, default=None, help="draws the phantom set (default: --seed); keep it to reuse the cache"
+)
 @click.option("--inverse", is_flag=True, help="also retrain the inverse in every trial (slow)")
 @click.option(
     "--start", type=int, default=0, show_default=True, help="first trial to run (resume a cut run: same draws)"
@@ -294,6 +297,7 @@ def selftest_cmd(
     n_phantoms,
     frames,
     seed,
+    phantom_seed,
     inverse,
     cache,
     backend,
@@ -358,6 +362,7 @@ def selftest_cmd(
         log=None if quiet else lambda s: click.echo(s, err=True),
         on_trial=write,  # the scores so far after every trial (marked PARTIAL until the last)
         start=start,
+        phantom_seed=phantom_seed,
     )
     write(res)
     click.echo(selftest.markdown(res))

@@ -34,7 +34,8 @@ candidate c's prediction f_c(θ)_iq (θ its magnitude(s)).
 * **Selection and ambiguity.**  score_c = held-out χ²_c + k_c ln N.  If the best candidate
   passes, every candidate within ``ambiguity_margin`` (Δscore ≤ 2 ln 10 = 4.6, a likelihood
   ratio below 10) of it is reported with it: one → **explained**, several → **ambiguous**
-  ("cannot be told apart with these phantoms").  Nothing passes → **unexplained**.
+  ("cannot be told apart with these phantoms").  Nothing passes → **unexplained**.  A family
+  in the set whose fit moves one member only is reported as that member (:func:`reported_set`).
 * **What resolves an ambiguity** (:func:`propose`): the predicted separation in noise units
   sqrt(Σ ((f_a − f_b) / S)²) of every pair of the set for (i) the plate force at the same
   phantoms (force gauge error ``force_noise`` relative, plus the force model error), (ii) a
@@ -433,7 +434,10 @@ def refine(
     error mesh ``sim_fine`` at each refined magnitude, and that point is extrapolated with its own two levels
     (:func:`correct_own`): the baseline's discretisation error does not carry over to another
     mesh (on the coarse mesh it moved by up to 1 % of the profile's peak between slab
-    thicknesses of 20 and 23.8 mm).  Returns (solves, rounds)."""
+    thicknesses of 20 and 23.8 mm).  Those error-mesh solves cost several coarse ones, so they
+    are made only for the rows that could be reported this round (within ``ambiguity_margin``
+    of the best score); a candidate refined farther behind keeps the baseline's correction.
+    Returns (solves, rounds)."""
     byname = {c.effect.name: c for c in C}
     p0 = phantom_params(meas, sim.mesh)
     solves = rounds = 0
@@ -444,9 +448,12 @@ def refine(
         rows = ev["ranking"]
         best = rows[0]["score"]
         want: dict[str, list[float]] = {}
+        close: set[str] = set()  # effects of the rows that could be reported (within the ambiguity margin)
         for i, r in enumerate(rows):
             if i >= st.refine_top and r["score"] - best > st.refine_margin:
                 continue
+            if r["score"] - best <= st.ambiguity_margin:
+                close.update(r["members"])
             for name, th in zip(r["members"], r["magnitude"]):
                 c = byname.get(name)
                 if c is None or not c.adaptive:
@@ -467,7 +474,7 @@ def refine(
         if not jobs:
             break
         recs = sim.run([p for _, _, pl in jobs for p in pl])
-        own = [j for j, (name, _, _) in enumerate(jobs) if byname[name].effect.own_model_error]
+        own = [j for j, (name, _, _) in enumerate(jobs) if byname[name].effect.own_model_error and name in close]
         if sim_fine is None or "_factor" not in me:
             own = []
         fine: dict[int, list] = {}
@@ -870,11 +877,12 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None) -> dic
     rows.sort(key=lambda r: r["score"])
     significant = chi0 > thr
     best = rows[0] if rows else None
-    ambiguity = []
+    ambiguity, reported = [], {}
     if not significant:
         outcome = "no significant gap"
     elif best and best["passes"]:
-        ambiguity = [r["effect"] for r in rows if r["score"] - best["score"] <= st.ambiguity_margin]
+        reported = reported_set([r for r in rows if r["score"] - best["score"] <= st.ambiguity_margin])
+        ambiguity = list(reported)
         outcome = "explained" if len(ambiguity) == 1 else "ambiguous"
     else:
         outcome = "unexplained"
@@ -892,9 +900,47 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None) -> dic
         "outcome": outcome,
         "winner": best["effect"] if outcome == "explained" else None,
         "ambiguous_set": ambiguity if outcome in ("explained", "ambiguous") else [],
+        "reported": reported,
         "best": best["effect"] if best else None,
         "runner_up": rows[1]["effect"] if len(rows) > 1 else None,
     }
+
+
+def isolated_member(row: dict) -> str | None:
+    """The member a family's fit names alone: the only member whose 95 % interval excludes its
+    nominal magnitude while every other member's interval holds its nominal (None for a single
+    effect, or when no member or several are off)."""
+    members = row.get("members", [])
+    if len(members) < 2:
+        return None
+    off = [not (lo <= nom <= hi) for (lo, hi), nom in zip(row["magnitude_ci"], row["nominal"])]
+    return members[off.index(True)] if sum(off) == 1 else None
+
+
+def reported_set(rows: list[dict]) -> dict:
+    """The reported effects of the rows that cannot be told apart (best first), by name:
+    magnitude, interval, unit and the ranking row they come from.  A family whose fit isolates
+    one member (:func:`isolated_member`) is reported as that member with the family's fitted
+    magnitude ("via" the family): its other parameters add nothing the data ask for, so the
+    nested single effect is the statement (the family's extra freedom may still fit the
+    model-form error better, which is why it can outscore the member's own fit).  A name
+    reported twice keeps its first (better-scored) entry."""
+    out: dict[str, dict] = {}
+    for r in rows:
+        m = isolated_member(r)
+        i = r["members"].index(m) if m is not None else 0
+        name = m if m is not None else r["effect"]
+        if name in out:
+            continue
+        out[name] = {
+            "magnitude": r["magnitude"] if m is None else [r["magnitude"][i]],
+            "magnitude_ci": r["magnitude_ci"] if m is None else [r["magnitude_ci"][i]],
+            "members": r["members"] if m is None else [m],
+            "units": r["units"] if m is None else [r["units"][i]],
+            "via": r["effect"] if m is not None else None,
+            "_row": r,
+        }
+    return out
 
 
 def view_baselines(mv: dict, V0: dict, me: dict, st: Settings) -> dict:
@@ -1323,7 +1369,7 @@ def diagnose(
     shrink = shrink_features(meas, y, y0, best["_S"], best["_model"], names) if best else None
     prop = None
     if ev["outcome"] == "ambiguous":
-        prop = propose(meas, [rows[n] for n in ev["ambiguous_set"]], V0, me, names, sim, sensor, settings, st)
+        prop = propose(meas, [ev["reported"][n]["_row"] for n in ev["ambiguous_set"]], V0, me, names, sim, sensor, settings, st)
     inv = None
     if st.inverse and best is not None and ev["outcome"] not in ("no significant gap",):
         inv = shrink_inverse(meas, best["_model"], shrink["magnitude"], sim, sensor, settings, st)

@@ -31,10 +31,12 @@ def _jsonable(o):
 
 
 def _mag(r: dict) -> str:
-    return "; ".join(
+    s = "; ".join(
         f"{n} {m:.4g} {u} [{c[0]:.4g}, {c[1]:.4g}]"
         for n, m, u, c in zip(r["members"], r["magnitude"], r["units"], r["magnitude_ci"])
     )
+    via = r.get("via")
+    return s + (f" (fitted by the family {via}, whose other members hold their nominal values)" if via else "")
 
 
 def summary(res: dict) -> dict:
@@ -64,8 +66,9 @@ def summary(res: dict) -> dict:
             explained_fraction_cv=top["explained_fraction"],
             reduced_chi2_cv=top["reduced_chi2_cv"],
         )
+    rep = ev.get("reported", {})
     out["set_magnitudes"] = {
-        n: {"magnitude": rows[n]["magnitude"], "ci": rows[n]["magnitude_ci"], "members": rows[n]["members"]}
+        n: {"magnitude": rep[n]["magnitude"], "ci": rep[n]["magnitude_ci"], "members": rep[n]["members"], "via": rep[n]["via"]}
         for n in ev["ambiguous_set"]
     }
     if res.get("proposal"):
@@ -79,7 +82,7 @@ def summary(res: dict) -> dict:
 
 def verdict_line(res: dict) -> str:
     ev = res["evaluation"]
-    rows = {r["effect"]: r for r in ev["ranking"]}
+    rows = ev.get("reported", {})
     o = ev["outcome"]
     if o == "no significant gap":
         return (
@@ -433,7 +436,7 @@ def _figures(res: dict, out: Path) -> list[str]:
     rows = ev["ranking"]
     fig, ax = plt.subplots(figsize=(7, 0.32 * len(rows) + 1.6))
     names = [r["effect"] for r in rows][::-1]
-    setn = set(ev["ambiguous_set"])
+    setn = {v["_row"]["effect"] for v in ev.get("reported", {}).values()} if ev["ambiguous_set"] else set()
     ax.barh(names, [r["ssr_cv"] for r in rows][::-1], color=["C2" if r["effect"] in setn else "C0" for r in rows][::-1])
     ax.axvline(ev["chi2_threshold"], color="r", ls="--", lw=1, label=f"χ²_N(1−α), α={ev['alpha']:g}")
     ax.axvline(ev["chi2_baseline"], color="k", ls=":", lw=1, label="baseline")

@@ -30,7 +30,7 @@ import numpy as np
 from elastimap.errors import UserError
 
 from . import effects as fx
-from .diagnose import Settings, diagnose
+from .diagnose import Settings, diagnose, isolated_member
 from .simulate import Simulator
 from .synth import phantom_design, synthesize
 
@@ -82,17 +82,25 @@ def run(
     log=print,
     on_trial=None,
     start: int = 0,
+    phantom_seed: int | None = None,
 ) -> dict:
     """``sim``: the diagnosis's simulator; ``sim_fine``: its model-error level; ``sim_data`` (with
     ``data_disc``, e.g. ``{"interface": "contact"}``): what generates the measured data.
-    ``start``: run trials start..trials-1 only (the same draws as a whole run: resume a cut run)."""
+    ``start``: run trials start..trials-1 only (the same draws as a whole run: resume a cut run).
+    ``seed`` draws the trials (effects, magnitudes, frame noise); ``phantom_seed`` (default:
+    ``seed``) the phantom set, which a lab keeps from one diagnosis to the next.  Out-of-library
+    trials take the outside effects in a seeded random order, each in turn, so every one is
+    tried once there are as many out trials as outside effects."""
     st = st or Settings(inverse=False)
     names = {e.name for e in candidates}
     clash = [e.name for e in outside if e.name in names]
     if clash:
         raise ValueError(f"outside effects {clash} are also candidates")
     rng = np.random.default_rng(seed)
-    dhe = phantom_design(n_phantoms, seed)
+    phantom_seed = seed if phantom_seed is None else phantom_seed
+    dhe = phantom_design(n_phantoms, phantom_seed)
+    order = rng.permutation(len(outside))  # the outside effects' turn order
+    n_out = 0
     out_trials = []
     void: list[dict] = []
     t0 = time.perf_counter()
@@ -113,7 +121,7 @@ def run(
             data_disc,
             t0,
             start,
-        ) | {"void_trials": list(void)}
+        ) | {"void_trials": list(void), "phantom_seed": phantom_seed}
 
     for t in range(trials):
         kind = KINDS[t % len(KINDS)]
@@ -122,7 +130,11 @@ def run(
             truth = {"kind": "none", "effect": "none", "magnitude": None}
             effs = []
         else:
-            e = pool[int(rng.integers(len(pool)))]
+            if kind == "out":
+                e = pool[int(order[n_out % len(pool)])]
+                n_out += 1
+            else:
+                e = pool[int(rng.integers(len(pool)))]
             m = _sig(rng.uniform(*e.blind))
             truth = {"kind": kind, "effect": e.name, "magnitude": m}
             effs = [(e, m)]
@@ -164,10 +176,12 @@ def run(
             rec["right"] = ev["outcome"] == "no significant gap"
         elif truth["kind"] == "in":
             rec["right"] = truth["effect"] in ev["ambiguous_set"]
+            rec["via"] = ev["reported"][truth["effect"]]["via"] if rec["right"] else None
             rec["family_member_right"] = rec["right"] or any(
                 family_isolates(rows[n], truth["effect"]) for n in ev["ambiguous_set"] if n in rows
             )
-            r = rows.get(truth["effect"])
+            # the magnitude scored: the reported one (a family's member fit when reported via it)
+            r = ev["reported"][truth["effect"]] if rec["right"] else rows.get(truth["effect"])
             if r is not None:
                 rec["fitted_magnitude"], rec["fitted_ci"] = r["magnitude"][0], r["magnitude_ci"][0]
                 rec["ci_covers_truth"] = bool(r["magnitude_ci"][0][0] <= truth["magnitude"] <= r["magnitude_ci"][0][1])
@@ -194,14 +208,9 @@ def run(
 
 
 def family_isolates(row: dict, effect: str) -> bool:
-    """Whether a reported family (a ranking row with several members) names ``effect`` alone:
-    it is a member whose 95 % interval excludes its nominal magnitude while every other member's
-    interval holds its nominal (the family then says "this member is off, the others are not")."""
-    members = row.get("members", [])
-    if len(members) < 2 or effect not in members:
-        return False
-    off = [not (lo <= nom <= hi) for (lo, hi), nom in zip(row["magnitude_ci"], row["nominal"])]
-    return all(o == (m == effect) for o, m in zip(off, members))
+    """Whether a family (a ranking row with several members) names ``effect`` alone
+    (:func:`elastimap.gap.diagnose.isolated_member`)."""
+    return isolated_member(row) == effect
 
 
 def _summary(
@@ -291,7 +300,7 @@ def markdown(res: dict) -> str:
         f"{res['n_trials']} trials ({res['n_none']} no-effect, {res['n_in']} in-library, {res['n_out']} out-of-library), "
         f"backend `{res['backend']}`; diagnosis mesh `{res['mesh']}`, model error against `{res['error_mesh']}`; "
         f"**data from mesh `{res['data_mesh']}`{', ' + form if form else ''}**; {res['n_phantoms']} phantoms, "
-        f"{res['frames']} frames, seed {res['seed']}; {res['seconds']:.0f} s "
+        f"{res['frames']} frames, seed {res['seed']} (phantoms: seed {res.get('phantom_seed', res['seed'])}); {res['seconds']:.0f} s "
         f"(median {res['median_seconds_per_diagnosis']:.0f} s per diagnosis).",
         "",
         f"Candidates: {', '.join(res['candidates'])}.  Outside the candidates: {', '.join(res['outside'])}.",

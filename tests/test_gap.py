@@ -327,6 +327,20 @@ def test_tiny_blind_benchmark_with_model_form_error(dhe):
         selftest.run(1, MeshToy("tiny"), MeshToy("default"), cands, cands[:1], log=None)
 
 
+def test_blind_benchmark_tries_every_outside_effect_and_keeps_the_phantoms(dhe):
+    """Out-of-library trials take the outside effects in turn (each one tried), and a new trial
+    seed with a fixed phantom seed draws new trials on the same phantoms."""
+    from elastimap.gap import selftest
+
+    cands = fx.parse_list("friction,background_E")
+    outside = fx.parse_list("aspect,stray_light")
+    kw = dict(n_phantoms=6, frames=4, st=Settings(inverse=False, bootstrap=10), log=None)
+    a = selftest.run(7, MeshToy("tiny"), MeshToy("default"), cands, outside, seed=1, phantom_seed=0, **kw)
+    assert sorted(r["true_effect"] for r in a["trials"] if r["kind"] == "out") == ["aspect", "stray_light"]
+    assert a["phantom_seed"] == 0 and a["seed"] == 1
+    assert "phantoms: seed 0" in selftest.markdown(a)
+
+
 class RemeshToy(MeshToy):
     """MeshToy whose discretisation error also depends on the geometry (tests only, not physics):
     a skin layer (another mesh) makes it 1 + ``geom`` times larger, so the baseline's error does
@@ -486,3 +500,34 @@ def test_family_isolates_a_member_only_when_the_others_hold_their_nominal():
     row["magnitude_ci"][2] = [45.0, 48.0]  # E3 off too: the family names two members
     assert not family_isolates(row, "probe_E1")
     assert not family_isolates({"members": ["friction"], "nominal": [0.0], "magnitude_ci": [[0.5, 0.7]]}, "friction")
+
+
+def test_a_family_that_isolates_one_member_is_reported_as_that_member():
+    """The nested-model rule: a family in the reported set whose fit moves one member only is
+    reported as that member, with the family's fitted magnitude; a family with two members off
+    stays itself; a name reached twice keeps its better-scored entry."""
+    from elastimap.gap.diagnose import reported_set
+
+    fam = {
+        "effect": "probe_layers_E",
+        "members": ["probe_E1", "probe_E2", "probe_E3"],
+        "nominal": [300.0, 150.0, 50.0],
+        "units": ["kPa"] * 3,
+        "magnitude": [199.0, 148.0, 49.5],
+        "magnitude_ci": [[192.8, 205.3], [145.2, 151.3], [48.7, 50.3]],
+    }
+    single = {
+        "effect": "probe_E1",
+        "members": ["probe_E1"],
+        "nominal": [300.0],
+        "units": ["kPa"],
+        "magnitude": [203.0],
+        "magnitude_ci": [[190.0, 215.0]],
+    }
+    rep = reported_set([fam, single])
+    assert list(rep) == ["probe_E1"]
+    assert rep["probe_E1"]["via"] == "probe_layers_E" and rep["probe_E1"]["magnitude"] == [199.0]
+    assert rep["probe_E1"]["magnitude_ci"] == [[192.8, 205.3]] and rep["probe_E1"]["_row"] is fam
+    assert list(reported_set([single, fam])) == ["probe_E1"] and reported_set([single, fam])["probe_E1"]["via"] is None
+    fam2 = dict(fam, magnitude_ci=[[192.8, 205.3], [145.2, 151.3], [45.0, 48.0]])
+    assert list(reported_set([fam2, single])) == ["probe_layers_E", "probe_E1"]
