@@ -42,7 +42,6 @@ def _mag(r: dict) -> str:
 def summary(res: dict) -> dict:
     """The small JSON-ready verdict of a diagnosis."""
     ev = res["evaluation"]
-    rows = {r["effect"]: r for r in ev["ranking"]}
     top = ev["ranking"][0] if ev["ranking"] else None
     out = {
         "outcome": ev["outcome"],
