@@ -1369,7 +1369,9 @@ def diagnose(
     shrink = shrink_features(meas, y, y0, best["_S"], best["_model"], names) if best else None
     prop = None
     if ev["outcome"] == "ambiguous":
-        prop = propose(meas, [ev["reported"][n]["_row"] for n in ev["ambiguous_set"]], V0, me, names, sim, sensor, settings, st)
+        prop = propose(
+            meas, [ev["reported"][n]["_row"] for n in ev["ambiguous_set"]], V0, me, names, sim, sensor, settings, st
+        )
     inv = None
     if st.inverse and best is not None and ev["outcome"] not in ("no significant gap",):
         inv = shrink_inverse(meas, best["_model"], shrink["magnitude"], sim, sensor, settings, st)

@@ -67,7 +67,12 @@ def summary(res: dict) -> dict:
         )
     rep = ev.get("reported", {})
     out["set_magnitudes"] = {
-        n: {"magnitude": rep[n]["magnitude"], "ci": rep[n]["magnitude_ci"], "members": rep[n]["members"], "via": rep[n]["via"]}
+        n: {
+            "magnitude": rep[n]["magnitude"],
+            "ci": rep[n]["magnitude_ci"],
+            "members": rep[n]["members"],
+            "via": rep[n]["via"],
+        }
         for n in ev["ambiguous_set"]
     }
     if res.get("proposal"):
