@@ -95,6 +95,7 @@ class Settings:
     refine_rounds: int = 3  # at most this many refinement rounds
     refine_top: int = 2  # refine the best this many candidates ...
     refine_margin: float = 9.2  # ... and every one within this Δscore of the best (2 x ambiguity_margin)
+    refine_extrapolated: int = 2  # ... and the best this many whose fit is extrapolated (beyond the solved magnitudes)
     refine_tol: float = 0.03  # a fit within this fraction of the effect's range of a solved magnitude is not re-solved
     inverse: bool = True
     n_train: int = 40
@@ -412,6 +413,20 @@ def correct_own(V: dict, D, V1: dict, D1, me: dict):
     return out, (None if D is None else D - me["kappa_image"] * (D - D1)), extra
 
 
+def extrapolated(row: dict, byname: dict, tol: float) -> bool:
+    """Whether a ranking row's fit lies, for any adaptive member, beyond its solved magnitudes
+    (outside their hull by more than ``tol`` of the effect's range): there its emulator
+    continues the end secant, an unmeasured guess."""
+    for name, th in zip(row["members"], row["magnitude"]):
+        c = byname.get(name)
+        if c is None or not c.adaptive:
+            continue
+        t = tol * (c.effect.hi - c.effect.lo)
+        if th < min(c.grid) - t or th > max(c.grid) + t:
+            return True
+    return False
+
+
 def refine(
     meas: Measured,
     C: list[Candidate],
@@ -423,8 +438,9 @@ def refine(
     evaluate_now,
     sim_fine: Simulator | None = None,
 ):
-    """Adaptive magnitudes: while the ranking's leading candidates (the ``refine_top`` best and
-    every one within ``refine_margin`` of the best score) have a fitted magnitude farther than
+    """Adaptive magnitudes: while the ranking's leading candidates (the ``refine_top`` best,
+    every one within ``refine_margin`` of the best score, and the ``refine_extrapolated`` best of
+    those whose fit is :func:`extrapolated`) have a fitted magnitude farther than
     ``refine_tol`` of the range from every solved magnitude, solve them there (every phantom)
     and insert the point (:func:`add_points`: the emulator's miss there becomes its
     interpolation error).  Families refine their members at the family's fit.  Nothing is
@@ -449,8 +465,12 @@ def refine(
         best = rows[0]["score"]
         want: dict[str, list[float]] = {}
         close: set[str] = set()  # effects of the rows that could be reported (within the ambiguity margin)
+        # rows whose emulator extrapolates at their fit (beyond every solved magnitude): their
+        # score there is not measured, so the best refine_extrapolated of them are refined too
+        extrap = [i for i, r in enumerate(rows) if extrapolated(r, byname, st.refine_tol)]
+        extra = set(extrap[: st.refine_extrapolated])
         for i, r in enumerate(rows):
-            if i >= st.refine_top and r["score"] - best > st.refine_margin:
+            if i >= st.refine_top and r["score"] - best > st.refine_margin and i not in extra:
                 continue
             if r["score"] - best <= st.ambiguity_margin:
                 close.update(r["members"])
@@ -898,7 +918,7 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None) -> dic
         "significant": significant,
         "ranking": rows,
         "outcome": outcome,
-        "winner": best["effect"] if outcome == "explained" else None,
+        "winner": ambiguity[0] if outcome == "explained" else None,
         "ambiguous_set": ambiguity if outcome in ("explained", "ambiguous") else [],
         "reported": reported,
         "best": best["effect"] if best else None,

@@ -531,3 +531,20 @@ def test_a_family_that_isolates_one_member_is_reported_as_that_member():
     assert list(reported_set([single, fam])) == ["probe_E1"] and reported_set([single, fam])["probe_E1"]["via"] is None
     fam2 = dict(fam, magnitude_ci=[[192.8, 205.3], [145.2, 151.3], [45.0, 48.0]])
     assert list(reported_set([fam2, single])) == ["probe_layers_E", "probe_E1"]
+
+
+def test_a_fit_beyond_the_solved_magnitudes_counts_as_extrapolated():
+    """Refinement also takes the best rows whose fit lies beyond their solved magnitudes (their
+    score there is the end secant's guess): the rule that finds them."""
+    from elastimap.gap.diagnose import Candidate, extrapolated
+
+    e = fx.get("probe_moduli")  # nominal 1, range [0.6, 1.5], solved first at 1 and 1.5
+    c = Candidate(e, np.array([1.0, 1.5]), {}, None, adaptive=True)
+    byname = {"probe_moduli": c}
+    assert extrapolated({"members": ["probe_moduli"], "magnitude": [0.74]}, byname, 0.03)
+    assert not extrapolated({"members": ["probe_moduli"], "magnitude": [1.2]}, byname, 0.03)
+    assert not extrapolated({"members": ["probe_moduli"], "magnitude": [0.98]}, byname, 0.03)  # within tol
+    c.grid = np.array([0.74, 1.0, 1.5])
+    assert not extrapolated({"members": ["probe_moduli"], "magnitude": [0.74]}, byname, 0.03)
+    full = Candidate(fx.get("saturation"), np.array([0.15, 0.5, 0.7]), {}, None, adaptive=False)
+    assert not extrapolated({"members": ["saturation"], "magnitude": [0.2]}, {"saturation": full}, 0.03)
