@@ -61,6 +61,10 @@ SIZED_BY_D = {
     "finer": (22.0, 0.1),
 }
 MIN_H_INC = 0.05  # mm
+#: ``by_d`` below ``BY_D_FULL`` mm: both gradings shrink with the inclusion's size s,
+#: g_inc(s) = g_inc · f(s)^a and g(s) = g · f(s)^b with f(s) = min(1, s / BY_D_FULL), (a, b) below
+BY_D_FULL = 6.0  # mm
+BY_D_EXPONENTS = (0.3, 1.0)  # (a: away from the inclusion, b: away from the footprint)
 
 _gmsh_lock = threading.Lock()
 
@@ -84,13 +88,27 @@ class RawMesh:
     seconds: float
 
 
+def by_d_gradings(mesh: str, size: float) -> tuple[float, float]:
+    """Gradings of ``sizing="by_d"`` for an inclusion of size ``size`` mm (its smallest diameter):
+    (away from the footprint, away from the inclusion), both dimensionless (mm of element size per
+    mm of distance)::
+
+        f(s) = min(1, s / BY_D_FULL),   g(s) = g_level · f(s)^b,   g_inc(s) = g_inc,level · f(s)^a
+
+    continuous in s, equal to the level's values for s ≥ ``BY_D_FULL`` and finer below it."""
+    f = min(1.0, size / BY_D_FULL)
+    a, b = BY_D_EXPONENTS
+    return LEVELS[mesh][2] * f**b, SIZED_BY_D[mesh][1] * f**a
+
+
 def _sizes(p: SolveParams) -> tuple[float, float, float, float, float]:
     """(h0, h_max, grading away from the footprint, h_inc, grading away from the inclusion), mm."""
     h0, hmax, grading, per_d = LEVELS[p.disc.mesh]
     inc = p.inclusion
     size = inc.d * min(1.0, inc.aspect)
     if p.disc.sizing == "by_d":
-        per_d, grading_inc = SIZED_BY_D[p.disc.mesh]
+        per_d = SIZED_BY_D[p.disc.mesh][0]
+        grading, grading_inc = by_d_gradings(p.disc.mesh, size)
         return h0, hmax, grading, min(h0, max(size / per_d, MIN_H_INC)), grading_inc
     h_inc = min(h0, max(size / per_d, 0.25))
     return h0, hmax, grading, h_inc, grading
