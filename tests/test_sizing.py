@@ -29,9 +29,9 @@ def test_small_inclusions_get_finer_gradings_growing_continuously_with_d(mesh):
     full = np.array([LEVELS[mesh][2], SIZED_BY_D[mesh][1]])
     assert np.all(g[small] < full) and np.all(g > 0)
     assert np.all(np.diff(g, axis=0) >= -1e-15)  # never coarser for a smaller inclusion
-    # continuous (Lipschitz): no step anywhere, in particular none at BY_D_FULL
-    ds = s[1] - s[0]
-    assert np.max(np.abs(np.diff(g, axis=0))) < 2 * ds * full.max() / BY_D_FULL
+    # continuous: no step anywhere (in particular none at BY_D_FULL); on this grid (0.0055 mm
+    # apart) a step of 1 % of the level's grading would show
+    assert np.max(np.abs(np.diff(g, axis=0)) / full) < 0.01
 
 
 def test_finer_levels_are_finer_at_every_d():
