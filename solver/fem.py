@@ -53,11 +53,6 @@ from .reduction import LU, Reduction, Solution
 from .sampler import ImageSampler
 from .space import Space
 
-#: cold start of the finite-strain Newton: first converge (loosely) at these fractions of β, each
-#: from the last, then at β.  With β = 1 on the coarse mesh (d = 8, h = 7, E = 50) this took 16
-#: instead of 26 Newton steps (22 s instead of 32 s on one core); the solution is the same.
-CONTINUATION = (0.5,)
-
 __all__ = ["Model", "Solution", "SolverError"]
 
 
@@ -146,9 +141,7 @@ class Model:
     def solve_nonlinear(
         self, E_inclusion: float, delta: float, active: np.ndarray | None = None, rtol: float = 1e-9, max_iter: int = 30
     ) -> Solution:
-        """Finite-strain tissue: Newton (:mod:`elastimap.solver.newton`) from the linear solution,
-        or warm from the last converged state with the same prescribed values; a cold start
-        goes through β·s for s in ``CONTINUATION`` first (continuation in β)."""
+        """Finite-strain tissue: Newton (:mod:`elastimap.solver.newton`) from the linear solution."""
         active = self._all_closed() if active is None else active
         lin = self.solve_linear(E_inclusion, delta, active)
         t = time.perf_counter()
@@ -158,20 +151,7 @@ class Model:
         # reference solve after the inclusion solve: a few Newton steps instead of ~20)
         key = (float(delta), float(self.reduction.tilt), active.tobytes())
         start = self._warm[1] if self._warm is not None and self._warm[0] == key else None
-        beta, pre = self.materials.beta, 0
-        if start is None and beta is not None and CONTINUATION:
-            # cold start: continuation in β (the same prescribed values, so each converged
-            # state starts the next): Newton at β·s for s in CONTINUATION, then at β
-            b = beta.x.array.copy()
-            try:
-                for s in CONTINUATION:
-                    beta.x.array[:] = b * s
-                    part = self.newton.solve(lin, Pm, Psp, key[2], friction, rtol=1e-3, max_iter=max_iter, start=start)
-                    start, pre = part.u, pre + part.iterations - 1
-            finally:
-                beta.x.array[:] = b
         sol = self.newton.solve(lin, Pm, Psp, key[2], friction, rtol=rtol, max_iter=max_iter, start=start)
-        sol.iterations += pre  # the continuation's linear solves count too
         self._warm = (key, sol.u)
         self._tick("newton", t)
         return sol
