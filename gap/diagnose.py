@@ -35,7 +35,8 @@ candidate c's prediction f_c(θ)_iq (θ its magnitude(s)).
   passes, every candidate within ``ambiguity_margin`` (Δscore ≤ 2 ln 10 = 4.6, a likelihood
   ratio below 10) of it is reported with it: one → **explained**, several → **ambiguous**
   ("cannot be told apart with these phantoms").  Nothing passes → **unexplained**.  A family
-  in the set whose fit moves one member only is reported as that member (:func:`reported_set`).
+  in the set whose fit moves one member only is reported as that member, one that moves all
+  members by one factor as its nested common-factor effect (:func:`reported_set`).
 * **What resolves an ambiguity** (:func:`propose`): the predicted separation in noise units
   sqrt(Σ ((f_a − f_b) / S)²) of every pair of the set for (i) the plate force at the same
   phantoms (force gauge error ``force_noise`` relative, plus the force model error), (ii) a
@@ -554,19 +555,59 @@ def chi2(y, f, S) -> np.ndarray:
 
 def with_systematic(mdl, y, S, th, stat: list, sys) -> list[tuple[float, float]]:
     """Widen statistical intervals by the shift a coherent model error causes: refit with the
-    data moved by +σ_sys and by −σ_sys in every quantity at once (the mesh error is one-signed
-    across phantoms), and add the larger shift on each side in quadrature."""
-    if sys is None or not np.any(sys > 0):
+    data moved by +e and by −e in every quantity at once, for each coherent error mode e, and add
+    the largest shift on each side in quadrature.  ``sys``: one mode (an array like ``y``) or a
+    list of modes.  The diagnosis passes two (:func:`systematic_modes`): σ_sys in every quantity
+    (the mesh error is one-signed across phantoms) and the signed shift of the Richardson
+    extrapolation when the convergence order is off."""
+    modes = [m for m in (sys if isinstance(sys, (list, tuple)) else [sys]) if m is not None and np.any(m != 0)]
+    if not modes:
         return stat
     idx = np.arange(y.shape[0])
-    tp, tm = mdl.fit(y + sys, S, idx), mdl.fit(y - sys, S, idx)
+    fits = [mdl.fit(y + sgn * e, S, idx) for e in modes for sgn in (1.0, -1.0)]
     out = []
     for l, (lo, hi) in enumerate(stat):
         t = float(th[l])
-        dlo = max(0.0, t - min(tp[l], tm[l]))
-        dhi = max(0.0, max(tp[l], tm[l]) - t)
+        dlo = max(0.0, t - min(f[l] for f in fits))
+        dhi = max(0.0, max(f[l] for f in fits) - t)
         g = mdl.grid_of(l)
         out.append((float(max(g.min(), t - math.hypot(t - lo, dlo))), float(min(g.max(), t + math.hypot(hi - t, dhi)))))
+    return out
+
+
+def systematic_modes(me: dict, names) -> list[np.ndarray]:
+    """The coherent model-error modes the intervals are widened by (:func:`with_systematic`):
+    σ_sys itself (one sign in every quantity), and, when the predictions were extrapolated
+    (:func:`richardson_correct`), the signed error of that extrapolation if the order p is off
+    by the bracketing range: spread_q · Δ_iq (Δ = coarse − error mesh, per phantom and quantity),
+    the direction every prediction moves when p does."""
+    modes = [cat(me["sigma"], names)]
+    if "_spread" in me and "delta" in me:
+        modes.append(cat({k: me["_spread"][k] * me["delta"][k] for k in names}, names))
+    return modes
+
+
+def jackknife_interval(mdl, th, th_folds: np.ndarray) -> list[tuple[float, float]] | None:
+    r"""The fit's 95 % interval from its spread over the held-out folds (grouped jackknife):
+    with θ̂_(k) fitted without fold k (g folds),
+
+    $$ \widehat{\rm var}(\hat\theta) = \frac{g-1}{g} \sum_k (\hat\theta_{(k)} - \bar\theta)^2,
+       \qquad \hat\theta \pm t_{0.975,\,g-1} \sqrt{\widehat{\rm var}} $$
+
+    (Efron & Tibshirani 1993, ch. 11).  It measures how much the estimate depends on which
+    phantoms it sees, whatever the cause: noise, and a model-form error that differs from
+    phantom to phantom, which the likelihood interval (its error model: noise + the measured
+    discretisation error) does not hold.  None with fewer than 3 folds."""
+    g = len(th_folds)
+    if g < 3:
+        return None
+    th_folds = np.atleast_2d(np.asarray(th_folds, float).reshape(g, -1))
+    var = (g - 1) / g * np.sum((th_folds - th_folds.mean(axis=0)) ** 2, axis=0)
+    hw = float(stats.t.ppf(0.975, g - 1)) * np.sqrt(var)
+    out = []
+    for l, (t, w) in enumerate(zip(np.atleast_1d(th), hw)):
+        span = mdl.grid_of(l)
+        out.append((float(max(span.min(), t - w)), float(min(span.max(), t + w))))
     return out
 
 
@@ -860,13 +901,18 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None) -> dic
     for mdl in models:
         S = np.sqrt(S0**2 + mdl.interp**2)
         pred = np.zeros_like(y)
+        th_folds = []
         for te in F:
             tr = np.setdiff1d(np.arange(n), te)
-            pred[te] = mdl.predict(mdl.fit(y, S, tr))[te]
+            th_k = mdl.fit(y, S, tr)
+            th_folds.append(th_k)
+            pred[te] = mdl.predict(th_k)[te]
         held = ((y - pred) / S) ** 2
         ssr_cv = float(held.sum())
         th = mdl.fit(y, S, np.arange(n))
-        ci = with_systematic(mdl, y, S, th, mdl.interval(y, S, th), sys)
+        ci_lik = with_systematic(mdl, y, S, th, mdl.interval(y, S, th), sys)
+        ci_jk = jackknife_interval(mdl, th, np.array(th_folds))
+        ci = [(min(a[0], b[0]), max(a[1], b[1])) for a, b in zip(ci_lik, ci_jk)] if ci_jk else ci_lik
         f = mdl.predict(th)
         rows.append(
             {
@@ -877,6 +923,8 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None) -> dic
                 "n_params": mdl.k,
                 "magnitude": [float(t) for t in th],
                 "magnitude_ci": [list(c) for c in ci],
+                "magnitude_ci_likelihood": [list(c) for c in ci_lik],
+                "magnitude_ci_jackknife": [list(c) for c in ci_jk] if ci_jk else None,
                 "nominal": mdl.nominal(),
                 "units": mdl.units(),
                 "ssr_cv": ssr_cv,
@@ -901,7 +949,7 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None) -> dic
     if not significant:
         outcome = "no significant gap"
     elif best and best["passes"]:
-        reported = reported_set([r for r in rows if r["score"] - best["score"] <= st.ambiguity_margin])
+        reported = reported_set([r for r in rows if r["score"] - best["score"] <= st.ambiguity_margin], rows)
         ambiguity = list(reported)
         outcome = "explained" if len(ambiguity) == 1 else "ambiguous"
     else:
@@ -937,16 +985,60 @@ def isolated_member(row: dict) -> str | None:
     return members[off.index(True)] if sum(off) == 1 else None
 
 
-def reported_set(rows: list[dict]) -> dict:
+def common_factor(row: dict) -> tuple[str, tuple[float, float]] | None:
+    """The nested single effect a family's fit names when it moves every member by one common
+    factor (``Family.common``, e.g. ``probe_moduli`` in ``probe_layers_E``): the members' 95 %
+    intervals as ratios to their nominal values, [lo_l/m_l, hi_l/m_l], have a common part that
+    excludes 1 (so every member is off, all by a factor the data cannot tell apart).  Returns
+    (that effect, the common part), or None."""
+    fam = fx.FAMILIES.get(row.get("effect"))
+    if fam is None or fam.common is None or list(row.get("members", [])) != list(fam.members):
+        return None
+    if any(nom <= 0 for nom in row["nominal"]):
+        return None
+    lo = max(a / nom for (a, _), nom in zip(row["magnitude_ci"], row["nominal"]))
+    hi = min(b / nom for (_, b), nom in zip(row["magnitude_ci"], row["nominal"]))
+    if lo > hi or lo <= 1.0 <= hi:
+        return None
+    return fam.common, (float(lo), float(hi))
+
+
+def reported_set(rows: list[dict], ranking: list[dict] | None = None) -> dict:
     """The reported effects of the rows that cannot be told apart (best first), by name:
     magnitude, interval, unit and the ranking row they come from.  A family whose fit isolates
     one member (:func:`isolated_member`) is reported as that member with the family's fitted
     magnitude ("via" the family): its other parameters add nothing the data ask for, so the
     nested single effect is the statement (the family's extra freedom may still fit the
     model-form error better, which is why it can outscore the member's own fit).  A name
-    reported twice keeps its first (better-scored) entry."""
+    reported twice keeps its first (better-scored) entry.  Likewise a family whose fit moves
+    all members by one factor (:func:`common_factor`) is reported as its nested common-factor
+    effect, with that effect's own fit from ``ranking`` (all rows) when it was a candidate, else
+    with the members' geometric-mean ratio and the common part of their intervals."""
     out: dict[str, dict] = {}
+    own = {r["effect"]: r for r in (ranking or rows)}
     for r in rows:
+        cf = common_factor(r)
+        if cf is not None and cf[0] not in out:
+            name, (lo, hi) = cf
+            o = own.get(name)
+            if o is not None:
+                mag, ci, units = o["magnitude"], o["magnitude_ci"], o["units"]
+            else:
+                ratios = [t / nom for t, nom in zip(r["magnitude"], r["nominal"])]
+                g = float(np.exp(np.mean(np.log(np.maximum(ratios, 1e-300)))))
+                mag, ci, units = [float(np.clip(g, lo, hi))], [[lo, hi]], [fx.get(name).unit]
+            out[name] = {
+                "magnitude": list(mag),
+                "magnitude_ci": [list(c) for c in ci],
+                "members": [name],
+                "units": list(units),
+                "via": r["effect"],
+                "via_kind": "common factor",
+                "_row": o if o is not None else r,
+            }
+            continue
+        if cf is not None:
+            continue
         m = isolated_member(r)
         i = r["members"].index(m) if m is not None else 0
         name = m if m is not None else r["effect"]
@@ -958,6 +1050,7 @@ def reported_set(rows: list[dict]) -> dict:
             "members": r["members"] if m is None else [m],
             "units": r["units"] if m is None else [r["units"][i]],
             "via": r["effect"] if m is not None else None,
+            "via_kind": "member" if m is not None else None,
             "_row": r,
         }
     return out
@@ -1364,7 +1457,7 @@ def diagnose(
     S0 = np.maximum(S0, 1e-12 * np.maximum(np.abs(y0), 1e-300))
 
     def evaluate_now():
-        return evaluate(y, S0, y0, build_models(C, names, V0, st), meas.n, st, sl, cat(me["sigma"], names))
+        return evaluate(y, S0, y0, build_models(C, names, V0, st), meas.n, st, sl, systematic_modes(me, names))
 
     tt = time.perf_counter()
     ref_solves, ref_rounds = (

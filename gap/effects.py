@@ -33,6 +33,8 @@ Multi-parameter **families** (:data:`FAMILIES`) combine single effects whose phy
 parameters: ``probe_layers_E`` (the three layer moduli, k = 3) and ``probe_layers_t`` (the three
 layer thicknesses, k = 3).  Their prediction is composed from the members' sweeps to first order,
 f(m_1, m_2, m_3) = y_0 + sum_l (f_l(m_l) - y_0), and model selection charges k parameters.
+``probe_moduli`` is nested in ``probe_layers_E`` (all three moduli times one factor:
+``Family.common``).
 
 ``offaxis`` and ``tilt`` are in the library but not in the default candidate list (they break
 the quarter symmetry: a full-model solve costs about ten quarter-model solves); pass them
@@ -384,6 +386,8 @@ class Family:
     name: str
     members: tuple[str, ...]
     description: str
+    #: the single effect that moves every member by one common factor (nested in the family)
+    common: str | None = None
 
     @property
     def n_params(self) -> int:
@@ -397,7 +401,12 @@ class Family:
 FAMILIES: dict[str, Family] = {
     f.name: f
     for f in (
-        Family("probe_layers_E", ("probe_E1", "probe_E2", "probe_E3"), "the three probe layer moduli together"),
+        Family(
+            "probe_layers_E",
+            ("probe_E1", "probe_E2", "probe_E3"),
+            "the three probe layer moduli together",
+            common="probe_moduli",
+        ),
         Family("probe_layers_t", ("probe_t1", "probe_t2", "probe_t3"), "the three probe layer thicknesses together"),
     )
 }

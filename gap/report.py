@@ -36,7 +36,11 @@ def _mag(r: dict) -> str:
         for n, m, u, c in zip(r["members"], r["magnitude"], r["units"], r["magnitude_ci"])
     )
     via = r.get("via")
-    return s + (f" (fitted by the family {via}, whose other members hold their nominal values)" if via else "")
+    if not via:
+        return s
+    if r.get("via_kind") == "common factor":
+        return s + f" (the family {via} fitted every member off by one common factor)"
+    return s + f" (fitted by the family {via}, whose other members hold their nominal values)"
 
 
 def summary(res: dict) -> dict:
@@ -72,6 +76,7 @@ def summary(res: dict) -> dict:
             "ci": rep[n]["magnitude_ci"],
             "members": rep[n]["members"],
             "via": rep[n]["via"],
+            "via_kind": rep[n].get("via_kind"),
         }
         for n in ev["ambiguous_set"]
     }

@@ -30,7 +30,7 @@ import numpy as np
 from elastimap.errors import UserError
 
 from . import effects as fx
-from .diagnose import Settings, diagnose, isolated_member
+from .diagnose import Settings, common_factor, diagnose, isolated_member
 from .simulate import Simulator
 from .synth import phantom_design, synthesize
 
@@ -209,8 +209,9 @@ def run(
 
 def family_isolates(row: dict, effect: str) -> bool:
     """Whether a family (a ranking row with several members) names ``effect`` alone
-    (:func:`elastimap.gap.diagnose.isolated_member`)."""
-    return isolated_member(row) == effect
+    (:func:`elastimap.gap.diagnose.isolated_member`, :func:`elastimap.gap.diagnose.common_factor`)."""
+    cf = common_factor(row)
+    return isolated_member(row) == effect or (cf is not None and cf[0] == effect)
 
 
 def _summary(

@@ -533,6 +533,78 @@ def test_a_family_that_isolates_one_member_is_reported_as_that_member():
     assert list(reported_set([fam2, single])) == ["probe_layers_E", "probe_E1"]
 
 
+def test_a_family_off_by_one_common_factor_is_reported_as_its_nested_effect():
+    """probe_moduli (every layer modulus times one factor) is nested in probe_layers_E: a family
+    fit whose members' intervals, as ratios to their nominals, share a part that excludes 1 is
+    reported as probe_moduli with probe_moduli's own fit; members off by different factors, or
+    a common part that holds 1, stay the family."""
+    from elastimap.gap.diagnose import common_factor, reported_set
+    from elastimap.gap.selftest import family_isolates
+
+    fam = {
+        "effect": "probe_layers_E",
+        "members": ["probe_E1", "probe_E2", "probe_E3"],
+        "nominal": [300.0, 150.0, 50.0],
+        "units": ["kPa"] * 3,
+        "magnitude": [199.0, 101.0, 33.5],
+        # ratios [0.63, 0.70], [0.64, 0.70], [0.62, 0.71]: common part [0.64, 0.70]
+        "magnitude_ci": [[189.0, 210.0], [96.0, 105.0], [31.0, 35.5]],
+    }
+    name, (lo, hi) = common_factor(fam)
+    assert name == "probe_moduli" and lo == pytest.approx(0.64) and hi == pytest.approx(0.70)
+    assert family_isolates(fam, "probe_moduli") and not family_isolates(fam, "probe_E1")
+    own = {
+        "effect": "probe_moduli",
+        "members": ["probe_moduli"],
+        "nominal": [1.0],
+        "units": ["-"],
+        "magnitude": [0.659],
+        "magnitude_ci": [[0.652, 0.666]],
+    }
+    rep = reported_set([fam], [fam, own])
+    assert list(rep) == ["probe_moduli"] and rep["probe_moduli"]["via"] == "probe_layers_E"
+    assert rep["probe_moduli"]["magnitude"] == [0.659] and rep["probe_moduli"]["magnitude_ci"] == [[0.652, 0.666]]
+    assert rep["probe_moduli"]["via_kind"] == "common factor"
+    # without the nested effect among the candidates: the members' geometric-mean ratio
+    rep = reported_set([fam])
+    g = float(np.exp(np.mean(np.log([199.0 / 300, 101.0 / 150, 33.5 / 50]))))
+    assert rep["probe_moduli"]["magnitude"][0] == pytest.approx(g)
+    assert rep["probe_moduli"]["magnitude_ci"] == [[pytest.approx(0.64), pytest.approx(0.70)]]
+    # different factors (E3 at 0.9-0.95): no common part
+    assert common_factor(dict(fam, magnitude_ci=[[189.0, 210.0], [96.0, 105.0], [45.0, 47.5]])) is None
+    # a common part that holds 1: not every member is off
+    assert common_factor(dict(fam, magnitude_ci=[[189.0, 310.0], [96.0, 155.0], [31.0, 52.0]])) is None
+    assert common_factor(dict(fam, effect="probe_layers_t", members=["probe_t1", "probe_t2", "probe_t3"])) is None
+
+
+def test_the_jackknife_interval_matches_a_direct_computation():
+    """The grouped jackknife interval over the held-out fits, against the textbook formula
+    written out here, and clipped to the effect's range."""
+    from scipy import stats as st
+
+    from elastimap.gap.diagnose import jackknife_interval
+
+    class M:
+        def grid_of(self, l):
+            return np.array([0.0, 10.0])
+
+    rng = np.random.default_rng(3)
+    folds = 5.0 + 0.1 * rng.standard_normal((12, 1))
+    g = 12
+    mean = folds[:, 0].mean()
+    se = np.sqrt((g - 1) / g * sum((x - mean) ** 2 for x in folds[:, 0]))
+    ((lo, hi),) = jackknife_interval(M(), np.array([5.02]), folds)
+    assert lo == pytest.approx(5.02 - st.t.ppf(0.975, 11) * se) and hi == pytest.approx(5.02 + st.t.ppf(0.975, 11) * se)
+    assert jackknife_interval(M(), np.array([9.9]), 9.9 + 0.5 * rng.standard_normal((12, 1)))[0][1] == 10.0
+    assert jackknife_interval(M(), np.array([5.0]), folds[:2]) is None
+    fam = jackknife_interval(
+        type("F", (), {"grid_of": lambda self, l: np.array([-100.0, 100.0])})(),
+        np.zeros(2),
+        rng.standard_normal((10, 2)),
+    )
+    assert len(fam) == 2 and all(a < 0 < b for a, b in fam)
+
+
 def test_a_fit_beyond_the_solved_magnitudes_counts_as_extrapolated():
     """Refinement also takes the best rows whose fit lies beyond their solved magnitudes (their
     score there is the end secant's guess): the rule that finds them."""
