@@ -22,6 +22,9 @@ candidate c's prediction f_c(θ)_iq (θ its magnitude(s)).
 * **Adaptive magnitudes** (:func:`refine`).  A mechanics effect is solved at its nominal and one
   sensitivity magnitude; while the gap is significant, the leading candidates are solved again at
   their fitted magnitude (every phantom) and the emulator's miss there is their interpolation error.
+  An effect that costs no solves (optics: the camera alone; a linear model's plate travel: the
+  baseline scaled) is rendered exactly at its fit the same way, so no candidate's fit rests on
+  interpolation where it matters.
 * **Calibrated tests.**  χ²_c = Σ_iq ((y − f_c)/S)² over N = n · Q terms.  The gap is
   **significant** when the baseline's χ²_0 > χ²_N(1 − α) (α = ``alpha``, 1 %), i.e. beyond
   the noise *and* the model's own tolerance.  A candidate **passes** when its held-out
@@ -70,6 +73,8 @@ from .measured import FEATURES, Measured
 from .simulate import Record, Simulator, base_params, camera_features_of
 
 NDENSE = 401
+#: an effect that costs no solves is rendered exactly at a fit farther than this fraction of its range from its points
+RENDER_TOL = 1e-3
 #: solve seconds (summed over workers, store hits count their stored time) by effect, this process
 SOLVE_SECONDS: dict[str, float] = {}
 FINER = {"tiny": "coarse", "coarse": "default", "default": "fine", "fine": None}
@@ -165,6 +170,12 @@ class Candidate:
     adaptive: bool = False  # solved at a few magnitudes (sensitivity + refinement), not the grid
     refinements: list = field(default_factory=list)  # magnitudes solved near the fit
     own_error: list = field(default_factory=list)  # magnitudes with their own model error (Effect.own_model_error)
+    #: an effect that costs no solves (optics, a linear model's plate travel): (magnitude, records
+    #: of the baseline phantoms; default: this mesh's) -> (views, images)
+    render: object = None
+    own_sigma: dict | None = None  # its own model error beyond the baseline's (per view, (n, q))
+    #: its own level difference Δ = this mesh − error mesh at magnitudes [(m, {view: (n, q)})]
+    own_delta: list = field(default_factory=list)
 
 
 def phantom_params(meas: Measured, mesh: str):
@@ -260,6 +271,14 @@ def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, 
             Ds.append(D)
         order = np.argsort(ms)
         ad = adaptive and needs_solves(e, linear)
+
+        def render(m, recs=None, e=e):
+            recs = base if recs is None else recs
+            if e.stage == "optics":
+                return sim_views(recs, e.apply_sensor(sensor, m), settings)
+            s = (p0[0].loading.delta + float(m)) / p0[0].loading.delta
+            return sim_views([_scaled(r, s) for r in recs], sensor, settings)
+
         out.append(
             Candidate(
                 e,
@@ -269,6 +288,7 @@ def simulate_candidates(meas: Measured, cands: list[fx.Effect], sim: Simulator, 
                 dropped,
                 interp_error={k: np.zeros_like(v) for k, v in V0.items()} if ad else None,
                 adaptive=ad,
+                render=None if needs_solves(e, linear) else render,
             )
         )
     return V0, D0, out
@@ -337,6 +357,7 @@ def model_error(
         "ratio": r,
         "relative_median": rel,
         "fine_views": V1,
+        "_fine_records": recs1,
         "note": f"Richardson estimate from meshes {sim.mesh} and {sim_fine.mesh} (h ratio {r:.3g}; "
         f"order {st.order_image:g} for image quantities, {st.order_force:g} for the force)",
     }
@@ -382,8 +403,44 @@ def richardson_correct(V0: dict, D0, C: list[Candidate], me: dict, st: Settings)
     me["_dprofile"] = me["kappa"]["profile"] * me["delta"]["profile"] if "profile" in V0 else None
     me["_profile0"] = V0["profile"] if "profile" in V0 else None
     for c in C:
-        c.V, c.D = correct(c.V, c.D, me)
+        if c.render is not None and me.get("_fine_records") is not None:
+            own_correct_rendered(c, me)
+        else:
+            c.V, c.D = correct(c.V, c.D, me)
     return correct(V0, D0, me)
+
+
+def render_corrected(c: Candidate, m: float, me: dict):
+    """A no-solve effect at magnitude m, extrapolated with its own two levels: the camera (or the
+    plate-travel scaling) applied to the baseline records of both meshes, then :func:`correct_own`.
+    The camera is nonlinear (saturation, gamma), so the baseline's correction, made through the
+    nominal camera, is not the correction through another one.  Returns (views, images, σ beyond
+    the baseline's) or None when the views are not finite; records its own Δ (``own_delta``)."""
+    V, D = c.render(m)
+    V1, D1 = c.render(m, me["_fine_records"])
+    if not (np.all(np.isfinite(V["features"])) and np.all(np.isfinite(V1["features"]))):
+        return None
+    c.own_delta.append((float(m), {k: V[k] - V1[k] for k in V}))
+    return correct_own(V, D, V1, D1, me)
+
+
+def own_correct_rendered(c: Candidate, me: dict) -> None:
+    """Replace a no-solve candidate's sweep by :func:`render_corrected` at every magnitude, and
+    keep the largest own model error beyond the baseline's (``own_sigma``)."""
+    keep, Vs, Ds, extra = [], [], [], []
+    for m in c.grid:
+        r = render_corrected(c, float(m), me)
+        if r is None:
+            c.dropped.append(float(m))
+            continue
+        keep.append(float(m))
+        Vs.append(r[0])
+        Ds.append(r[1])
+        extra.append(r[2])
+    c.grid = np.asarray(keep)
+    c.V = {k: np.asarray([v[k] for v in Vs]) for k in c.V}
+    c.D = np.asarray(Ds) if c.D is not None else None
+    c.own_sigma = {k: np.max([e[k] for e in extra], axis=0) for k in c.V} if extra else None
 
 
 def correct(V: dict, D, me: dict):
@@ -444,7 +501,9 @@ def refine(
     those whose fit is :func:`extrapolated`) have a fitted magnitude farther than
     ``refine_tol`` of the range from every solved magnitude, solve them there (every phantom)
     and insert the point (:func:`add_points`: the emulator's miss there becomes its
-    interpolation error).  Families refine their members at the family's fit.  Nothing is
+    interpolation error).  An effect that costs no solves (``Candidate.render``) is rendered
+    at the fit instead, whenever the fit lies farther than ``RENDER_TOL`` of its range from its
+    points.  Families refine their members at the family's fit.  Nothing is
     refined when the gap is not significant (the verdict does not depend on the candidates).
     An effect whose discretisation error does not carry over from the baseline
     (``Effect.own_model_error``: it remeshes, or it is the Poisson ratio) is also solved on the
@@ -465,6 +524,7 @@ def refine(
         rows = ev["ranking"]
         best = rows[0]["score"]
         want: dict[str, list[float]] = {}
+        rendered: dict[str, list[float]] = {}  # no-solve effects: rendered exactly at the fit
         close: set[str] = set()  # effects of the rows that could be reported (within the ambiguity margin)
         # rows whose emulator extrapolates at their fit (beyond every solved magnitude): their
         # score there is not measured, so the best refine_extrapolated of them are refined too
@@ -477,6 +537,11 @@ def refine(
                 close.update(r["members"])
             for name, th in zip(r["members"], r["magnitude"]):
                 c = byname.get(name)
+                if c is not None and c.render is not None:
+                    tol = RENDER_TOL * (c.effect.hi - c.effect.lo)
+                    if min(abs(x - th) for x in list(c.grid) + rendered.get(name, [])) > tol:
+                        rendered.setdefault(name, []).append(float(th))
+                    continue
                 if c is None or not c.adaptive:
                     continue
                 tol = st.refine_tol * (c.effect.hi - c.effect.lo)
@@ -492,7 +557,27 @@ def refine(
                     jobs.append((name, m, [e.apply_params(p, m).validate() for p in p0]))
                 except UserError:
                     byname[name].dropped.append(m)
+        for name, ms in rendered.items():
+            c = byname[name]
+            ok = []
+            for m in ms:
+                if me.get("_fine_records") is not None and "_factor" in me:
+                    r = render_corrected(c, m, me)
+                    if r is not None and c.own_sigma is not None:
+                        c.own_sigma = {k: np.maximum(c.own_sigma[k], r[2][k]) for k in c.own_sigma}
+                else:
+                    V, D = correct(*c.render(m), me)
+                    r = (V, D, None) if np.all(np.isfinite(V["features"])) else None
+                if r is None:
+                    c.dropped.append(m)
+                else:
+                    ok.append((m, r[0], r[1]))
+            if ok:
+                add_points(c, [m for m, _, _ in ok], [V for _, V, _ in ok], [D for _, _, D in ok])
         if not jobs:
+            if rendered:
+                rounds += 1
+                continue
             break
         recs = sim.run([p for _, _, pl in jobs for p in pl])
         own = [j for j, (name, _, _) in enumerate(jobs) if byname[name].effect.own_model_error and name in close]
@@ -575,16 +660,19 @@ def with_systematic(mdl, y, S, th, stat: list, sys) -> list[tuple[float, float]]
     return out
 
 
-def systematic_modes(me: dict, names) -> list[np.ndarray]:
+def systematic_modes(me: dict, names) -> tuple[list[np.ndarray], np.ndarray | None]:
     """The coherent model-error modes the intervals are widened by (:func:`with_systematic`):
     σ_sys itself (one sign in every quantity), and, when the predictions were extrapolated
     (:func:`richardson_correct`), the signed error of that extrapolation if the order p is off
     by the bracketing range: spread_q · Δ_iq (Δ = coarse − error mesh, per phantom and quantity),
-    the direction every prediction moves when p does."""
+    the direction every prediction moves when p does.  Also returns spread_q per term, with
+    which a candidate that has its own Δ (:meth:`Single.own_delta`) gets its own signed mode."""
     modes = [cat(me["sigma"], names)]
+    spread = None
     if "_spread" in me and "delta" in me:
         modes.append(cat({k: me["_spread"][k] * me["delta"][k] for k in names}, names))
-    return modes
+        spread = cat({k: np.full_like(me["delta"][k], me["_spread"][k]) for k in names}, names)
+    return modes, spread
 
 
 def jackknife_interval(mdl, th, th_folds: np.ndarray) -> list[tuple[float, float]] | None:
@@ -658,6 +746,8 @@ class Single:
         self.interp = (
             cat(c.interp_error, self.names) if c.interp_error is not None else _interp_error(self.grid, self.Y)
         )
+        if c.own_sigma is not None:  # its own model error beyond the baseline's
+            self.interp = np.hypot(self.interp, cat(c.own_sigma, self.names))
 
     def span(self):
         return np.array([self.lo, self.hi]) if len(self.grid) > 1 else np.array([self.grid[0], self.grid[0]])
@@ -684,6 +774,21 @@ class Single:
         if len(g) == 1:
             return D[0]
         t = float(np.clip((m - g[k - 1]) / (g[k] - g[k - 1]), 0, 1))
+        return (1 - t) * D[k - 1] + t * D[k]
+
+    def own_delta(self, th) -> np.ndarray | None:
+        """Its own level difference Δ at magnitude th (linear between the magnitudes it was
+        measured at), or None (the baseline's Δ stands for it)."""
+        pts = sorted(self.c.own_delta, key=lambda x: x[0])
+        if not pts:
+            return None
+        ms = np.array([m for m, _ in pts])
+        D = np.array([cat(d, self.names) for _, d in pts])
+        m = float(np.clip(float(np.atleast_1d(th)[0]), ms[0], ms[-1]))
+        k = int(np.clip(np.searchsorted(ms, m), 1, len(ms) - 1)) if len(ms) > 1 else 0
+        if len(ms) == 1:
+            return D[0]
+        t = (m - ms[k - 1]) / max(ms[k] - ms[k - 1], 1e-300)
         return (1 - t) * D[k - 1] + t * D[k]
 
     def tie(self) -> np.ndarray:
@@ -891,7 +996,7 @@ def slices(V: dict, names) -> dict:
     return out
 
 
-def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None) -> dict:
+def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread=None) -> dict:
     """Calibrated significance, per-candidate held-out fit, ranking, ambiguity set, outcome."""
     N = y.size
     chi0 = float(chi2(y, y0, S0).sum())
@@ -910,7 +1015,9 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None) -> dic
         held = ((y - pred) / S) ** 2
         ssr_cv = float(held.sum())
         th = mdl.fit(y, S, np.arange(n))
-        ci_lik = with_systematic(mdl, y, S, th, mdl.interval(y, S, th), sys)
+        own = mdl.own_delta(th) if (spread is not None and hasattr(mdl, "own_delta")) else None
+        modes = sys if own is None else [sys[0], spread * own]
+        ci_lik = with_systematic(mdl, y, S, th, mdl.interval(y, S, th), modes)
         ci_jk = jackknife_interval(mdl, th, np.array(th_folds))
         ci = [(min(a[0], b[0]), max(a[1], b[1])) for a, b in zip(ci_lik, ci_jk)] if ci_jk else ci_lik
         f = mdl.predict(th)
@@ -1457,7 +1564,8 @@ def diagnose(
     S0 = np.maximum(S0, 1e-12 * np.maximum(np.abs(y0), 1e-300))
 
     def evaluate_now():
-        return evaluate(y, S0, y0, build_models(C, names, V0, st), meas.n, st, sl, systematic_modes(me, names))
+        modes, spread = systematic_modes(me, names)
+        return evaluate(y, S0, y0, build_models(C, names, V0, st), meas.n, st, sl, modes, spread)
 
     tt = time.perf_counter()
     ref_solves, ref_rounds = (

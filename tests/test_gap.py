@@ -380,6 +380,36 @@ def test_remeshing_effect_gets_its_own_model_error(dhe, monkeypatch):
     assert ev["outcome"] != "explained" and top["at_grid_edge"], (ev["outcome"], top["magnitude"])
 
 
+def test_camera_effects_are_extrapolated_through_their_own_camera(dhe, monkeypatch):
+    """An optics candidate costs no solves, so it is rendered from both mesh levels' baseline
+    records through its own camera and extrapolated with its own Δ; the baseline's correction,
+    made through the nominal camera, is not the correction through a saturating one.  Data from
+    a finer TOY level with a strong saturation: the own correction fits better (held-out χ²),
+    the candidate carries its own Δ into its interval, and the interval holds the truth."""
+    from elastimap.gap import diagnose as dg
+
+    data = MeshToy("default", a=0.01)
+    meas, _ = synth.synthesize(dhe, [(fx.get("saturation"), 0.2)], data, frames=6, seed=5)
+    cands = fx.parse_list("saturation,friction,gamma")
+    st = Settings(inverse=False, bootstrap=20)
+    ev = diagnose(meas, cands, MeshToy("tiny", a=0.01), st, MeshToy("coarse", a=0.01))["evaluation"]
+    row = {r["effect"]: r for r in ev["ranking"]}["saturation"]
+    assert ev["winner"] == "saturation", ev["outcome"]
+    assert row["_model"].own_delta(row["_theta"]) is not None
+    lo, hi = row["magnitude_ci"][0]
+    assert lo <= 0.2 <= hi, (row["magnitude"], row["magnitude_ci"])
+
+    def baseline_only(c, me):
+        c.V, c.D = dg.correct(c.V, c.D, me)
+
+    monkeypatch.setattr(dg, "own_correct_rendered", baseline_only)
+    monkeypatch.setattr(dg, "RENDER_TOL", 10.0)  # no exact renders either: the old path
+    ev0 = diagnose(meas, cands, MeshToy("tiny", a=0.01), st, MeshToy("coarse", a=0.01))["evaluation"]
+    row0 = {r["effect"]: r for r in ev0["ranking"]}["saturation"]
+    assert row0["_model"].own_delta(row0["_theta"]) is None
+    assert row["ssr_cv"] < row0["ssr_cv"], (row["ssr_cv"], row0["ssr_cv"])
+
+
 def test_profile_correction_stays_bounded_where_an_annulus_crosses_zero():
     """The Richardson correction of a candidate's profile is the baseline's scaled by the
     candidate's size (per phantom), exact for an effect that scales the image; a per-annulus
