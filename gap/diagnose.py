@@ -173,7 +173,6 @@ class Candidate:
     #: an effect that costs no solves (optics, a linear model's plate travel): (magnitude, records
     #: of the baseline phantoms; default: this mesh's) -> (views, images)
     render: object = None
-    own_sigma: dict | None = None  # its own model error beyond the baseline's (per view, (n, q))
     #: its own level difference Δ = this mesh − error mesh at magnitudes [(m, {view: (n, q)})]
     own_delta: list = field(default_factory=list)
 
@@ -415,7 +414,11 @@ def render_corrected(c: Candidate, m: float, me: dict):
     plate-travel scaling) applied to the baseline records of both meshes, then :func:`correct_own`.
     The camera is nonlinear (saturation, gamma), so the baseline's correction, made through the
     nominal camera, is not the correction through another one.  Returns (views, images, σ beyond
-    the baseline's) or None when the views are not finite; records its own Δ (``own_delta``)."""
+    the baseline's) or None when the views are not finite; records its own Δ (``own_delta``).
+    That σ is not used: σ enters the χ² score, and a σ of the candidate's own (here largest at
+    the strongest magnitudes) would favour the candidate with the larger σ; the candidate keeps
+    the baseline's σ like every effect on the baseline's mesh, and its own order uncertainty
+    enters its interval as its own signed mode (:meth:`Single.own_delta`)."""
     V, D = c.render(m)
     V1, D1 = c.render(m, me["_fine_records"])
     if not (np.all(np.isfinite(V["features"])) and np.all(np.isfinite(V1["features"]))):
@@ -425,9 +428,8 @@ def render_corrected(c: Candidate, m: float, me: dict):
 
 
 def own_correct_rendered(c: Candidate, me: dict) -> None:
-    """Replace a no-solve candidate's sweep by :func:`render_corrected` at every magnitude, and
-    keep the largest own model error beyond the baseline's (``own_sigma``)."""
-    keep, Vs, Ds, extra = [], [], [], []
+    """Replace a no-solve candidate's sweep by :func:`render_corrected` at every magnitude."""
+    keep, Vs, Ds = [], [], []
     for m in c.grid:
         r = render_corrected(c, float(m), me)
         if r is None:
@@ -436,11 +438,9 @@ def own_correct_rendered(c: Candidate, me: dict) -> None:
         keep.append(float(m))
         Vs.append(r[0])
         Ds.append(r[1])
-        extra.append(r[2])
     c.grid = np.asarray(keep)
     c.V = {k: np.asarray([v[k] for v in Vs]) for k in c.V}
     c.D = np.asarray(Ds) if c.D is not None else None
-    c.own_sigma = {k: np.max([e[k] for e in extra], axis=0) for k in c.V} if extra else None
 
 
 def correct(V: dict, D, me: dict):
@@ -563,8 +563,6 @@ def refine(
             for m in ms:
                 if me.get("_fine_records") is not None and "_factor" in me:
                     r = render_corrected(c, m, me)
-                    if r is not None and c.own_sigma is not None:
-                        c.own_sigma = {k: np.maximum(c.own_sigma[k], r[2][k]) for k in c.own_sigma}
                 else:
                     V, D = correct(*c.render(m), me)
                     r = (V, D, None) if np.all(np.isfinite(V["features"])) else None
@@ -746,8 +744,6 @@ class Single:
         self.interp = (
             cat(c.interp_error, self.names) if c.interp_error is not None else _interp_error(self.grid, self.Y)
         )
-        if c.own_sigma is not None:  # its own model error beyond the baseline's
-            self.interp = np.hypot(self.interp, cat(c.own_sigma, self.names))
 
     def span(self):
         return np.array([self.lo, self.hi]) if len(self.grid) > 1 else np.array([self.grid[0], self.grid[0]])
