@@ -249,3 +249,49 @@ def test_crbmap_install_writes_the_map_inference_reads(tmp_path):
     with pytest.raises(UserError, match="--install"):
         check_install_target(str(tmp_path / "missing" / "default.npz"))
     assert check_install_target(None) == DEFAULT_MAP  # the shipped map's folder is writable in a checkout
+
+
+def test_crbmap_surrogate_from_reuses_the_stored_raw_bounds(tmp_path):
+    """``crbmap --surrogate-from``: the raw surrogate bounds of an earlier map file stand in for the GP
+    fit (no sweep read): without FD scaling the new map IS those bounds, the surrogate at a point is
+    their interpolation, and the file records where they came from.  SYNTHETIC bounds."""
+    from elastimap.identify.local import grid
+    from elastimap.workflows.studies.crbmap import SETS, compute, stored_surrogate
+
+    T, (ds, us, Es) = grid()
+    rng = np.random.default_rng(0)
+    raw = {s: np.exp(rng.normal(np.log(0.05), 0.5, T.shape)) for s in SETS}
+    old = tmp_path / "old.npz"
+    np.savez(
+        old,
+        theta=T,
+        d=ds,
+        u=us,
+        E=Es,
+        thickness=20.0,
+        source="GP surrogate (k=16) of SYNTHETIC (9 rows), scaled per output by max(1, ...); noise ...",
+        **{s: 2 * raw[s] for s in SETS},
+        **{f"{s}_surrogate": raw[s] for s in SETS},
+    )
+    smap, origin = stored_surrogate(str(old))
+    assert origin == "GP surrogate (k=16) of SYNTHETIC (9 rows)"
+    r, _ = smap.bound(T[:5], "image")
+    np.testing.assert_allclose(r, raw["image"][:5], rtol=1e-12)
+
+    R = compute("no-such-sweep", str(tmp_path / "out"), fd_scale=False, surrogate_from=str(old), command="CMD")
+    for s in SETS:
+        np.testing.assert_allclose(R[s], raw[s], rtol=1e-12)
+    new = IdentifiabilityMap.load(tmp_path / "out" / "crb_grid.npz")
+    assert new.source.startswith("GP surrogate (k=16) of SYNTHETIC (9 rows) (raw bounds read from")
+    assert new.source.endswith("CMD")
+    z = np.load(tmp_path / "out" / "crb_grid.npz")
+    assert str(z["surrogate_source"]).startswith("GP surrogate (k=16) of SYNTHETIC")
+    # a map made this way can feed the next one: its origin is kept as it was
+    assert stored_surrogate(str(tmp_path / "out" / "crb_grid.npz"))[1] == str(z["surrogate_source"])
+
+    bad = tmp_path / "nosur.npz"
+    _map().save(bad)
+    with pytest.raises(UserError, match="--surrogate-from"):
+        stored_surrogate(str(bad))
+    with pytest.raises(UserError, match="--surrogate-from"):
+        stored_surrogate(str(tmp_path / "missing.npz"))

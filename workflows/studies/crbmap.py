@@ -18,6 +18,13 @@ real-FD / surrogate, never by less than 1, so the map is at least as pessimistic
 bound at nine points in ten.  The unscaled surrogate bounds are kept in the file as
 ``<set>_surrogate``; ``python -m elastimap.workflows.studies.mapcheck`` compares the map with the FD grid.
 
+``--surrogate-from MAP`` skips the sweep and the GP fits: the raw surrogate bounds are read from
+the ``<set>_surrogate`` entries of an earlier map file made by this study on the same grid (e.g. the
+shipped map), and the surrogate's bound at an FD point is that grid interpolated there as inference
+interpolates a map (:meth:`elastimap.identify.region.IdentifiabilityMap.bound`) instead of the GP
+evaluated there.  Use it to re-scale a map with new finite differences when the sweep is not at
+hand; the new file records where its surrogate came from.
+
 ``--install`` also writes the map to the file inference reads when no map is given,
 :data:`elastimap.identify.region.DEFAULT_MAP` (``identify/maps/default.npz`` in the repository),
 through :func:`install_map`: the new file is read back as an
@@ -66,6 +73,12 @@ def fd_interpolate(
     return np.exp(out)
 
 
+def fd_grid_geometry(path: str) -> str:
+    """How the FD grid file's solves were meshed (``morph`` or ``remesh``; older files: ``remesh``)."""
+    z = np.load(path, allow_pickle=False)
+    return str(z["geometry"]) if "geometry" in z.files else "remesh"
+
+
 def install_map(src: str, dest: str | None = None) -> str:
     """Copy the map file ``src`` to ``dest`` (default: the shipped map inference reads) after checking
     that it loads as an identifiability map; the destination is replaced atomically."""
@@ -101,27 +114,81 @@ def check_install_target(dest: str | None = None) -> str:
     return dest
 
 
+def stored_surrogate(path: str):
+    """The raw surrogate bounds of an earlier map file of this study: ``(map, where they came from)``.
+
+    ``map`` is an :class:`~elastimap.identify.region.IdentifiabilityMap` holding the file's
+    ``<set>_surrogate`` entries (every set of :data:`SETS`), on the grid of
+    :func:`elastimap.identify.local.grid`; ``map.bound(theta, set)`` interpolates them."""
+    from elastimap.identify.local import grid
+    from elastimap.identify.region import IdentifiabilityMap
+
+    if not os.path.isfile(path):
+        raise UserError("--surrogate-from", f"{path}: no such map file")
+    base = IdentifiabilityMap.load(path)
+    z = np.load(path, allow_pickle=False)
+    missing = [s for s in SETS if f"{s}_surrogate" not in z.files]
+    if missing:
+        raise UserError(
+            "--surrogate-from", f"{path} keeps no raw surrogate bounds for {', '.join(missing)} (not made by crbmap)"
+        )
+    _T, (ds, us, Es) = grid()
+    if not all(a.shape == b.shape and np.allclose(a, b) for a, b in ((base.d, ds), (base.u, us), (base.E, Es))):
+        raise UserError("--surrogate-from", f"{path} is on another (d, u, E) grid than this study's")
+    shape = (ds.size, us.size, Es.size, 3)
+    rel = {s: np.asarray(z[f"{s}_surrogate"], float).reshape(shape) for s in SETS}
+    if "surrogate_source" in z.files:
+        origin = str(z["surrogate_source"])
+    else:  # files written before the surrogate's origin was kept on its own: the head of the source
+        origin = base.source.split(", scaled per output")[0].split(";")[0]
+    return IdentifiabilityMap(base.d, base.u, base.E, rel, base.thickness, origin), origin
+
+
 def compute(
-    data_path: str, out: str, k: int = 16, fd_scale: bool = True, fd_grid: str | None = None, install: str | None = None
+    data_path: str,
+    out: str,
+    k: int = 16,
+    fd_scale: bool = True,
+    fd_grid: str | None = None,
+    install: str | None = None,
+    surrogate_from: str | None = None,
+    command: str = "python -m elastimap.workflows.studies.crbmap",
 ):
-    """Fit, bound and plot (see the module docstring); with ``install`` (a path) the map is also
-    written there by :func:`install_map`.  Returns ``{set: (n_grid, 3)}`` relative std."""
+    """Fit (or, with ``surrogate_from``, read), bound and plot (see the module docstring); with
+    ``install`` (a path) the map is also written there by :func:`install_map`.  ``command`` is
+    recorded in the map's ``source``.  Returns ``{set: (n_grid, 3)}`` relative std."""
     if install:
         check_install_target(install)
     from elastimap.identify.local import Surrogate, crb_relstd, fisher, grid
-    from elastimap.identify.measure import load
 
     from .fd_check import NOISE as noise
     from .fd_check import POINTS, fd_crb
 
-    data = load(data_path)
-    sur = Surrogate.fit(data, k=k, progress=True)
     T, (ds, us, Es) = grid()
-    F = fisher(sur.jacobians(T), noise)
-    R0 = {s: crb_relstd(F[s], T) for s in SETS}
     P = np.array(POINTS)
-    Fp = fisher(sur.jacobians(P), noise)
-    Rp = {s: crb_relstd(Fp[s], P) for s in SETS}
+    if surrogate_from:
+        smap, sur_src = stored_surrogate(surrogate_from)
+        R0 = {s: smap.relstd[s].reshape(-1, 3) for s in SETS}
+
+        def sur_bounds(th: np.ndarray) -> dict:
+            return {s: smap.bound(th, s)[0] for s in SETS}
+
+        sur_src = f"{sur_src} (raw bounds read from {surrogate_from}, interpolated at the FD points)"
+        click.echo(f"surrogate: {sur_src}")
+    else:
+        from elastimap.identify.measure import load
+
+        data = load(data_path)
+        sur = Surrogate.fit(data, k=k, progress=True)
+        F = fisher(sur.jacobians(T), noise)
+        R0 = {s: crb_relstd(F[s], T) for s in SETS}
+
+        def sur_bounds(th: np.ndarray) -> dict:
+            Fs = fisher(sur.jacobians(th), noise)
+            return {s: crb_relstd(Fs[s], th) for s in SETS}
+
+        sur_src = f"GP surrogate (k={k}) of {data_path} ({data.n} rows)"
+    Rp = sur_bounds(P)
     for s in SETS:
         for th, rr in zip(POINTS, Rp[s] * 100):
             click.echo(
@@ -145,11 +212,12 @@ def compute(
             from .mapcheck import fd_bounds
 
             tg, fdg = fd_bounds(fd_grid)
-            Fg = fisher(sur.jacobians(tg), noise)
+            Rg = sur_bounds(tg)
             for s in SETS:
-                ratios[s].append(fdg[s] / crb_relstd(Fg[s], tg))
+                ratios[s].append(fdg[s] / Rg[s])
             npts += tg.shape[0]
-            click.echo(f"FD grid {fd_grid}: {tg.shape[0]} more points")
+            fd_geometry = fd_grid_geometry(fd_grid)
+            click.echo(f"FD grid {fd_grid} ({fd_geometry}): {tg.shape[0]} more points")
         for s in SETS:
             q = np.concatenate(ratios[s])
             q = q[np.isfinite(q).all(axis=1)]
@@ -165,17 +233,21 @@ def compute(
         R["features"] = fd_interpolate(np.vstack([P, tg]), np.vstack([fd["features"], fdg["features"]]), T)
         click.echo("features: map = real-FD bound interpolated from the FD points (linear in d, u, ln E of ln r)")
     os.makedirs(out, exist_ok=True)
+    fd_how = "real-FD"
+    if fd_scale:
+        geoms = {"morph"} | ({fd_geometry} if use_grid else set())  # fd_check's points: the morphed map
+        fd_how = f"real-FD ({' + '.join(sorted(geoms))} geometry)"
     src = (
-        f"GP surrogate (k={k}) of {data_path} ({data.n} rows)"
+        sur_src
         + (
-            f", scaled per output by max(1, {FD_SCALE_QUANTILE:g}th percentile of real-FD / surrogate over "
+            f", scaled per output by max(1, {FD_SCALE_QUANTILE:g}th percentile of {fd_how} / surrogate over "
             f"{npts} FD points)"
             if fd_scale
             else ""
         )
         + ("; features entry: real-FD bound interpolated from those points" if use_grid else "")
         + "; Cramér–Rao relative std, noise 1 % features, 1 % of the image peak per pixel, 0.1 % force; "
-        "python -m elastimap.workflows.studies.crbmap"
+        + command
     )
     grid_file = os.path.join(out, "crb_grid.npz")
     np.savez(
@@ -186,6 +258,7 @@ def compute(
         E=Es,
         thickness=THICKNESS,
         source=src,
+        surrogate_source=sur_src,
         **{s: R[s] for s in SETS},
         **{f"{s}_surrogate": R0[s] for s in SETS},
         **{f"scale_{s}": scale[s] for s in SETS},
@@ -234,15 +307,36 @@ def compute(
     help="Real-FD Jacobians of python -m elastimap.workflows.studies.fdgrid, used for the scale when the file exists.",
 )
 @click.option(
+    "--surrogate-from",
+    default=None,
+    help="Read the raw surrogate bounds from this earlier crbmap map file (e.g. identify/maps/default.npz) "
+    "instead of fitting the GPs to --data (which is then not read).",
+)
+@click.option(
     "--install",
     is_flag=True,
     help="Also replace the shipped map inference reads (identify/maps/default.npz) with the new one.",
 )
-def main(data_path, out, no_fd_scale, fd_grid, install):
+def main(data_path, out, no_fd_scale, fd_grid, surrogate_from, install):
     """Cramér–Rao identifiability maps (local evidence) and the map inference uses."""
     from elastimap.identify.region import DEFAULT_MAP
 
-    compute(data_path, out, fd_scale=not no_fd_scale, fd_grid=fd_grid, install=DEFAULT_MAP if install else None)
+    cmd = ["elastimap identify crbmap"]
+    if surrogate_from:
+        cmd.append(f"--surrogate-from {surrogate_from}")
+    else:
+        cmd.append(f"--data {data_path}")
+    cmd.append("--no-fd-scale" if no_fd_scale else f"--fd-grid {fd_grid}")
+    cmd.append(f"--out {out}" + (" --install" if install else ""))
+    compute(
+        data_path,
+        out,
+        fd_scale=not no_fd_scale,
+        fd_grid=fd_grid,
+        install=DEFAULT_MAP if install else None,
+        surrogate_from=surrogate_from,
+        command=" ".join(cmd),
+    )
 
 
 if __name__ == "__main__":
