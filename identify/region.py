@@ -20,8 +20,9 @@ point of the box.  Depth fraction ``u = (h - h_lo(d)) / (h_hi(d) - h_lo(d))`` wi
 :func:`elastimap.solver.params.depth_range` (pure Python; no DOLFINx).
 
 Maps come from ``python -m elastimap.workflows.studies.crbmap`` (file ``crb_grid.npz``); the package ships the one
-measured on the default 512-sample sweep (:data:`DEFAULT_MAP`, ``identify/maps/default.npz``), used when none
-is given and written by that study's ``--install``.
+measured on the default 512-sample sweep and scaled with real finite differences on the morphed forward
+map (:data:`DEFAULT_MAP`, ``identify/maps/default.npz``), used when none is given and written by that
+study's ``--install``.
 """
 
 from __future__ import annotations

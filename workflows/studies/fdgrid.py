@@ -5,9 +5,10 @@
 7 forward solves per grid point (centre and central differences in d, h, ln E with
 :data:`elastimap.identify.local.FD_STEP`), on the morphed map with the reference mesh pinned at the
 point (``--geometry morph``, no remeshing jitter) or remeshed per solve (``remesh``); every solve is cached by :mod:`elastimap.identify.solves`, so an
-interrupted run resumes.  The result file holds the grid and the Jacobians; turning them into
-Cramér–Rao maps (:func:`elastimap.identify.local.fisher` / :func:`~elastimap.identify.local.crb_relstd`) is NOT done
-yet (see docs/identifiability.md).
+interrupted run resumes.  The result file holds the grid, the Jacobians and the geometry;
+``python -m elastimap.workflows.studies.crbmap --fd-grid FILE`` scales the identifiability map with
+their Cramér–Rao bounds and ``python -m elastimap.workflows.studies.mapcheck --fdgrid FILE`` checks
+the map against them (docs/identifiability.md).
 """
 
 from __future__ import annotations

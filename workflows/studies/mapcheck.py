@@ -1,6 +1,6 @@
 """Check the identifiability map against Cramér–Rao bounds from REAL finite differences on a grid.
 
-    python -m elastimap.workflows.studies.fdgrid                      # 40 points x 7 cached solves (~13 min, resumable)
+    python -m elastimap.workflows.studies.fdgrid                      # 40 points x 7 cached solves (~20 min, resumable)
     python -m elastimap.workflows.studies.mapcheck [--fdgrid data/identify/fdgrid.npz] [--map default]
 
 At every point of the FD grid (:mod:`elastimap.workflows.studies.fdgrid`: d 4/7/10/13 mm, two depth fractions,
