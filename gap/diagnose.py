@@ -175,6 +175,7 @@ class Candidate:
     render: object = None
     #: its own level difference Δ = this mesh − error mesh at magnitudes [(m, {view: (n, q)})]
     own_delta: list = field(default_factory=list)
+    extended: list = field(default_factory=list)  # magnitudes added beyond the grid (a fit at its end)
 
 
 def phantom_params(meas: Measured, mesh: str):
@@ -471,6 +472,14 @@ def correct_own(V: dict, D, V1: dict, D1, me: dict):
     return out, (None if D is None else D - me["kappa_image"] * (D - D1)), extra
 
 
+def fit_range(c: Candidate) -> tuple[float, float]:
+    """The magnitudes a candidate is fitted over: adaptive, the effect's grid range or beyond it
+    where points were solved; a full sweep (or a rendered effect), its valid points."""
+    if c.adaptive:
+        return float(min(c.effect.lo, c.grid.min())), float(max(c.effect.hi, c.grid.max()))
+    return float(c.grid.min()), float(c.grid.max())
+
+
 def extrapolated(row: dict, byname: dict, tol: float) -> bool:
     """Whether a ranking row's fit lies, for any adaptive member, beyond its solved magnitudes
     (outside their hull by more than ``tol`` of the effect's range): there its emulator
@@ -537,6 +546,13 @@ def refine(
                 close.update(r["members"])
             for name, th in zip(r["members"], r["magnitude"]):
                 c = byname.get(name)
+                # a fit at the end of its range: the range is extended (one step a round) up to
+                # the effect's physical limits, since a real effect need not stay on the grid
+                out = None if c is None or len(c.grid) < 2 else c.effect.beyond(th, *fit_range(c))
+                if out is not None and out not in c.dropped:
+                    (rendered if c.render is not None else want).setdefault(name, []).append(float(out))
+                    c.extended.append(float(out))
+                    continue
                 if c is not None and c.render is not None:
                     tol = RENDER_TOL * (c.effect.hi - c.effect.lo)
                     if min(abs(x - th) for x in list(c.grid) + rendered.get(name, [])) > tol:
@@ -731,9 +747,7 @@ class Single:
         self.c, self.name, self.k, self.names = c, c.effect.name, 1, list(names)
         self.effect, self.stage, self.unit = c.effect, c.effect.stage, c.effect.unit
         self.grid = c.grid
-        # adaptive: the effect's whole range; a full sweep: its valid magnitudes
-        self.lo = float(min(c.effect.lo, self.grid.min()) if c.adaptive else self.grid.min())
-        self.hi = float(max(c.effect.hi, self.grid.max()) if c.adaptive else self.grid.max())
+        self.lo, self.hi = fit_range(c)
         self.Y = cat(c.V, self.names)  # (K, n, Q)
         self._pchip = Interp(self.grid, self.Y)
         if self.hi > self.lo and len(self.grid) > 1:
@@ -1578,6 +1592,7 @@ def diagnose(
         r["solved_magnitudes"] = {c.effect.name: [float(x) for x in c.grid] for c in cs if c.adaptive}
         r["refined"] = all(len(c.refinements) > 0 for c in cs if c.adaptive) if r["adaptive"] else None
         r["own_model_error_at"] = {c.effect.name: list(c.own_error) for c in cs if c.own_error}
+        r["extended_to"] = {c.effect.name: list(c.extended) for c in cs if c.extended}
     ev["views"] = names
     ev["by_view"] = view_baselines(mv, V0, me, st)
     wh = where(meas, mv, V0, D0, me, st)

@@ -72,6 +72,9 @@ class Effect:
     n_params: int = 1
     cost: float = 1.0  # relative solve cost
     scales_with_delta: bool = False  # the effect only changes the plate travel (linear models: scale)
+    #: the physical range (None: unbounded) a diagnosis may extend the grid into when a fit sits
+    #: at the grid's end (:meth:`beyond`); real effects need not respect the grid
+    limits: tuple[float | None, float | None] = (None, None)
 
     @property
     def lo(self) -> float:
@@ -88,6 +91,19 @@ class Effect:
         scale = max(abs(self.nominal), 1e-300) if self.nominal != 0 else 1.0
         lo, hi = abs(self.lo - self.nominal) / scale, abs(self.hi - self.nominal) / scale
         return self.hi if hi >= lo else self.lo
+
+    def beyond(self, m: float, lo: float, hi: float, step: float = 0.5) -> float | None:
+        """The magnitude to try next when a fit ``m`` sits at an end of the range [lo, hi] it was
+        fitted over: that end moved out by ``step`` x the grid's width, held inside ``limits``;
+        None when ``m`` is inside the range or the end is already the physical limit."""
+        tol = 1e-6 * max(hi - lo, 1e-300)
+        w = step * (self.hi - self.lo)
+        a, b = self.limits
+        if m >= hi - tol and (b is None or hi < b - tol):
+            return hi + w if b is None else min(hi + w, b)
+        if m <= lo + tol and (a is None or lo > a + tol):
+            return lo - w if a is None else max(lo - w, a)
+        return None
 
     @property
     def own_model_error(self) -> bool:
@@ -156,7 +172,7 @@ class Effect:
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
-        d["grid"], d["blind"] = list(self.grid), list(self.blind)
+        d["grid"], d["blind"], d["limits"] = list(self.grid), list(self.blind), list(self.limits)
         return d
 
 
@@ -172,6 +188,7 @@ EFFECTS: dict[str, Effect] = {
             (0.3, 1.0),
             "tissue nonlinearity: compressible neo-Hookean finite strain (blend fraction β)",
             cost=5.0,
+            limits=(0.0, 1.0),
         ),
         Effect(
             "friction",
@@ -181,6 +198,7 @@ EFFECTS: dict[str, Effect] = {
             (0.0, 0.025, 0.05, 0.1, 0.15, 0.275, 0.4, 0.7, 1.0),
             (0.1, 1.0),
             "probe-tissue friction: tangential interface stiffness k_t (0 = frictionless, inf = bonded)",
+            limits=(0.0, None),
         ),
         Effect(
             "skin",
@@ -190,6 +208,7 @@ EFFECTS: dict[str, Effect] = {
             (5.0, 7.5, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0, 80.0),
             (15.0, 80.0),
             f"stiffer skin layer ({SKIN_THICKNESS:g} mm) on the tissue surface: its modulus",
+            limits=(1.0, None),
         ),
         Effect(
             "aspect",
@@ -199,6 +218,7 @@ EFFECTS: dict[str, Effect] = {
             (0.6, 0.7, 0.8, 0.9, 1.0, 1.125, 1.25),
             (0.6, 0.8),
             "non-spherical inclusion: ellipsoid, vertical semi-axis = aspect * d/2",
+            limits=(0.3, 2.0),
         ),
         Effect(
             "offaxis",
@@ -209,6 +229,7 @@ EFFECTS: dict[str, Effect] = {
             (1.5, 3.0),
             "inclusion off the probe axis by offset_x (full model)",
             cost=10.0,
+            limits=(0.0, None),
         ),
         Effect(
             "probe_moduli",
@@ -218,6 +239,7 @@ EFFECTS: dict[str, Effect] = {
             (0.6, 0.7, 0.8, 0.9, 1.0, 1.125, 1.25, 1.375, 1.5),
             (0.6, 0.75),
             "probe PDMS moduli x factor (cure / temperature)",
+            limits=(0.3, None),
         ),
         Effect(
             "background_E",
@@ -227,6 +249,7 @@ EFFECTS: dict[str, Effect] = {
             (3.5, 3.875, 4.25, 4.625, 5.0, 5.5, 6.0, 6.5, 7.0),
             (6.0, 7.0),
             "background tissue modulus different from nominal",
+            limits=(1.0, None),
         ),
         Effect(
             "probe_E1",
@@ -236,6 +259,7 @@ EFFECTS: dict[str, Effect] = {
             (180.0, 225.0, 270.0, 300.0, 345.0, 400.0, 450.0),
             (180.0, 230.0),
             "probe layer 1 (tissue side) modulus",
+            limits=(60.0, None),
         ),
         Effect(
             "probe_E2",
@@ -245,6 +269,7 @@ EFFECTS: dict[str, Effect] = {
             (90.0, 112.5, 135.0, 150.0, 172.5, 200.0, 225.0),
             (90.0, 115.0),
             "probe layer 2 (middle) modulus",
+            limits=(30.0, None),
         ),
         Effect(
             "probe_E3",
@@ -254,6 +279,7 @@ EFFECTS: dict[str, Effect] = {
             (30.0, 37.5, 45.0, 50.0, 57.5, 66.0, 75.0),
             (30.0, 38.0),
             "probe layer 3 (glass side) modulus",
+            limits=(10.0, None),
         ),
         Effect(
             "probe_t1",
@@ -263,6 +289,7 @@ EFFECTS: dict[str, Effect] = {
             (1.2, 1.6, 2.0, 2.5, 3.0),
             (1.2, 1.5),
             "probe layer 1 (tissue side) thickness",
+            limits=(0.5, None),
         ),
         Effect(
             "probe_t2",
@@ -272,6 +299,7 @@ EFFECTS: dict[str, Effect] = {
             (2.0, 2.5, 3.0, 3.5, 4.0),
             (3.6, 4.0),
             "probe layer 2 (middle) thickness",
+            limits=(0.5, None),
         ),
         Effect(
             "probe_t3",
@@ -281,6 +309,7 @@ EFFECTS: dict[str, Effect] = {
             (3.5, 4.25, 5.0, 5.75, 6.5),
             (3.5, 4.0),
             "probe layer 3 (glass side) thickness",
+            limits=(1.0, None),
         ),
         Effect(
             "slab_thickness",
@@ -290,6 +319,7 @@ EFFECTS: dict[str, Effect] = {
             (20.0, 21.0, 22.5, 24.0, 26.0),
             (23.0, 26.0),
             "tissue slab thickness (thinner slabs would not hold the deepest design phantoms)",
+            limits=(15.0, None),
         ),
         Effect(
             "tissue_nu",
@@ -299,6 +329,7 @@ EFFECTS: dict[str, Effect] = {
             (0.45, 0.465, 0.48, 0.49, 0.495),
             (0.45, 0.47),
             "tissue Poisson ratio (compressibility)",
+            limits=(0.3, 0.499),
         ),
         Effect(
             "tilt",
@@ -310,6 +341,7 @@ EFFECTS: dict[str, Effect] = {
             "probe tilt: the plate rotated about the y axis, travel -(delta + tan(angle) x) across "
             "the probe top (full model)",
             cost=10.0,
+            limits=(0.0, None),
         ),
         Effect(
             "indentation",
@@ -320,6 +352,7 @@ EFFECTS: dict[str, Effect] = {
             (0.3, 0.6),
             "plate-travel offset: indentation 3 mm + offset (zero point of the stage)",
             scales_with_delta=True,
+            limits=(-2.5, None),
         ),
         Effect(
             "saturation",
@@ -329,6 +362,7 @@ EFFECTS: dict[str, Effect] = {
             (0.15, 0.2, 0.25, 0.3, 0.35, 0.425, 0.5, 0.6, 0.7),
             (0.15, 0.3),
             "optical response: scattering saturates at a different deflection w_sat (gamma/saturation)",
+            limits=(0.05, None),
         ),
         Effect(
             "vignetting",
@@ -338,6 +372,7 @@ EFFECTS: dict[str, Effect] = {
             (0.0, 0.075, 0.15, 0.225, 0.3, 0.375, 0.45, 0.525, 0.6),
             (0.35, 0.6),
             "non-uniform illumination: lens/LED fall-off towards the window corners",
+            limits=(0.0, 0.95),
         ),
         Effect(
             "blur",
@@ -347,6 +382,7 @@ EFFECTS: dict[str, Effect] = {
             (0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.3),
             (0.5, 1.2),
             "optical point-spread: Gaussian blur of the light image, sigma (mm on the probe)",
+            limits=(0.0, None),
         ),
         Effect(
             "gamma",
@@ -356,6 +392,7 @@ EFFECTS: dict[str, Effect] = {
             (0.7, 0.8, 0.9, 1.0, 1.1, 1.25, 1.4),
             (0.7, 0.85),
             "camera response gamma: DN = FS (charge / full well)^gamma",
+            limits=(0.3, None),
         ),
         Effect(
             "led_imbalance",
@@ -365,6 +402,7 @@ EFFECTS: dict[str, Effect] = {
             (0.5, 0.7, 0.85, 1.0, 1.2, 1.5),
             (0.4, 0.6),
             "left LED power x factor (illumination imbalance)",
+            limits=(0.1, None),
         ),
         Effect(
             "stray_light",
@@ -374,6 +412,7 @@ EFFECTS: dict[str, Effect] = {
             (0.0, 0.02, 0.05, 0.1, 0.15),
             (0.08, 0.15),
             "stray light reaching the camera without deformation (fraction of full well)",
+            limits=(0.0, 0.5),
         ),
     )
 }

@@ -203,7 +203,10 @@ def markdown(res: dict, figs: list[str]) -> str:
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for k, r in enumerate(ev["ranking"], 1):
-        edge = " (grid edge)" if r["at_grid_edge"] else ""
+        edge = " (end of its range)" if r["at_grid_edge"] else ""
+        if r.get("extended_to"):  # a fit at the grid's end: the range was extended
+            ex = "; ".join(f"{n} {', '.join(f'{x:.4g}' for x in v)}" for n, v in r["extended_to"].items())
+            edge += f" (range extended to {ex})"
         if r.get("adaptive"):  # solved at a few magnitudes: say whether its fit was solved too
             sm = "; ".join(f"{n} {', '.join(f'{x:.4g}' for x in v)}" for n, v in r["solved_magnitudes"].items())
             edge += f" (solved at {sm}{'' if r['refined'] else '; emulated, not refined'})"

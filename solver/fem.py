@@ -79,7 +79,7 @@ class Model:
         self.friction = Friction(self.interface, kt, space.ndofs) if kt > 0 else None
         self.sampler = ImageSampler(space, p)
         self.A = fpetsc.create_matrix(self.a)
-        self.lu = LU("linear")
+        self.lu = LU("linear", "spd")  # Pᵀ(K + S)P: elastic stiffness, rigid modes constrained
         self.newton = self._finite_strain() if self.materials.beta is not None else None
         self._warm = None  # (prescribed-values key, u) of the last Newton solution
         self.timings = {"setup": time.perf_counter() - t0}

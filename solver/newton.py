@@ -51,7 +51,7 @@ class Newton:
         self.Jmat = fpetsc.create_matrix(J_form)
         self._KJ = None
         self._KJ_key = None
-        self.lu = LU("newton")
+        self.lu = LU("newton", "symmetric")  # the tangent of a stored energy: symmetric
 
     def residual(self, u: np.ndarray) -> np.ndarray:
         """Internal nodal force R(u) (mN, all flat dofs), without the friction spring."""

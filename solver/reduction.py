@@ -161,13 +161,22 @@ class Reduction:
 
 
 class LU:
-    """Direct solve K x = f with MUMPS; the symbolic factorisation is kept while K's pattern is."""
+    """Direct solve K x = f with MUMPS; the symbolic factorisation is kept while K's pattern is.
 
-    def __init__(self, name: str = "lu"):
+    ``symmetry``: "spd" -- K symmetric positive definite (the linear stiffness with the rigid
+    modes constrained): Cholesky L Lᵀ, no pivoting (MUMPS SYM=1); "symmetric" -- symmetric,
+    possibly indefinite (a Newton tangent away from equilibrium): L D Lᵀ with pivoting (SYM=2);
+    "general" -- LU.  The symmetric factorisations read the upper triangle only and take about
+    a quarter less time than LU on the coarse quarter model (same displacements to round-off)."""
+
+    def __init__(self, name: str = "lu", symmetry: str = "general"):
+        if symmetry not in ("spd", "symmetric", "general"):
+            raise ValueError(f"symmetry must be spd, symmetric or general, not {symmetry!r}")
+        self.symmetry = symmetry
         self.ksp = PETSc.KSP().create(MPI.COMM_SELF)
         self.ksp.setType("preonly")
         pc = self.ksp.getPC()
-        pc.setType("lu")
+        pc.setType("lu" if symmetry == "general" else "cholesky")
         pc.setFactorSolverType("mumps")
         prefix = f"elastimap_{id(self)}_{name}_"
         self.ksp.setOptionsPrefix(prefix)
@@ -176,6 +185,10 @@ class LU:
 
     def solve(self, K: PETSc.Mat, f: PETSc.Vec, new_pattern: bool) -> PETSc.Vec:
         ksp = self.ksp
+        if self.symmetry != "general":
+            K.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+            if self.symmetry == "spd":
+                K.setOption(PETSc.Mat.Option.SPD, True)
         if new_pattern:
             ksp.reset()  # new constraint set: new symbolic factorisation
         ksp.setOperators(K)  # same pattern as last time: numeric refactorisation only

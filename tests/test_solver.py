@@ -231,3 +231,33 @@ def test_cli_json_and_png(tmp_path):
     for k in ("O1", "O2", "O3", "force", "ndofs", "seconds"):
         assert k in out
     assert png.stat().st_size > 1000
+
+
+def test_direct_solver_symmetric_factorisations_agree_with_lu():
+    """The linear stiffness is factorised by Cholesky (SPD) and the Newton tangent by L D Lᵀ;
+    both must give LU's solution, on an SPD and on a symmetric indefinite matrix."""
+    import scipy.sparse as sp
+
+    from elastimap.solver.reduction import LU
+    from petsc4py import PETSc
+
+    rng = np.random.default_rng(0)
+    n = 60
+    A = sp.random(n, n, density=0.1, random_state=1, format="csr")
+    spd = (A @ A.T + n * sp.identity(n)).tocsr()
+    indef = (A + A.T + sp.diags(np.where(np.arange(n) % 2, 3.0, -3.0))).tocsr()
+
+    def petsc(M):
+        M = sp.csr_matrix(M)
+        return PETSc.Mat().createAIJ(size=M.shape, csr=(M.indptr, M.indices, M.data), comm=PETSc.COMM_SELF)
+
+    b = rng.normal(size=n)
+    for M, kinds in ((spd, ("spd", "symmetric", "general")), (indef, ("symmetric", "general"))):
+        for kind in kinds:
+            lu = LU(f"t_{kind}", kind)
+            K, f = petsc(M), PETSc.Vec().createWithArray(b.copy(), comm=PETSc.COMM_SELF)
+            x = lu.solve(K, f, True).getArray().copy()
+            assert np.allclose(M @ x, b, rtol=0, atol=1e-9 * np.abs(b).max()), kind
+            lu.destroy()
+    with pytest.raises(ValueError, match="symmetry"):
+        LU("bad", "hermitian")
