@@ -237,9 +237,9 @@ def test_direct_solver_symmetric_factorisations_agree_with_lu():
     """The linear stiffness is factorised by Cholesky (SPD) and the Newton tangent by L D Lᵀ;
     both must give LU's solution, on an SPD and on a symmetric indefinite matrix."""
     import scipy.sparse as sp
+    from petsc4py import PETSc
 
     from elastimap.solver.reduction import LU
-    from petsc4py import PETSc
 
     rng = np.random.default_rng(0)
     n = 60
