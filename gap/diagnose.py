@@ -549,9 +549,12 @@ def refine(
                 # a fit at the end of its range: the range is extended (one step a round) up to
                 # the effect's physical limits, since a real effect need not stay on the grid
                 out = None if c is None or len(c.grid) < 2 else c.effect.beyond(th, *fit_range(c))
-                if out is not None and out not in c.dropped:
-                    (rendered if c.render is not None else want).setdefault(name, []).append(float(out))
-                    c.extended.append(float(out))
+                if out is not None:
+                    # once per effect and magnitude (a family and its member may both ask for it)
+                    todo = (rendered if c.render is not None else want).setdefault(name, [])
+                    if all(abs(out - x) > 1e-9 * (c.effect.hi - c.effect.lo) for x in [*c.grid, *c.dropped, *todo]):
+                        todo.append(float(out))
+                        c.extended.append(float(out))
                     continue
                 if c is not None and c.render is not None:
                     tol = RENDER_TOL * (c.effect.hi - c.effect.lo)
