@@ -568,20 +568,25 @@ def test_family_isolates_a_member_only_when_the_others_hold_their_nominal():
     assert not family_isolates({"members": ["friction"], "nominal": [0.0], "magnitude_ci": [[0.5, 0.7]]}, "friction")
 
 
+def layers_E_row(magnitude, ci) -> dict:
+    """A ranking row of the probe_layers_E family (fabricated: tests the reporting rules only)."""
+    return {
+        "effect": "probe_layers_E",
+        "members": ["probe_E1", "probe_E2", "probe_E3"],
+        "nominal": [300.0, 150.0, 50.0],
+        "units": ["kPa"] * 3,
+        "magnitude": list(magnitude),
+        "magnitude_ci": [list(x) for x in ci],
+    }
+
+
 def test_a_family_that_isolates_one_member_is_reported_as_that_member():
     """The nested-model rule: a family in the reported set whose fit moves one member only is
     reported as that member, with the family's fitted magnitude; a family with two members off
     stays itself; a name reached twice keeps its better-scored entry."""
     from elastimap.gap.diagnose import reported_set
 
-    fam = {
-        "effect": "probe_layers_E",
-        "members": ["probe_E1", "probe_E2", "probe_E3"],
-        "nominal": [300.0, 150.0, 50.0],
-        "units": ["kPa"] * 3,
-        "magnitude": [199.0, 148.0, 49.5],
-        "magnitude_ci": [[192.8, 205.3], [145.2, 151.3], [48.7, 50.3]],
-    }
+    fam = layers_E_row([199.0, 148.0, 49.5], [[192.8, 205.3], [145.2, 151.3], [48.7, 50.3]])
     single = {
         "effect": "probe_E1",
         "members": ["probe_E1"],
@@ -607,15 +612,8 @@ def test_a_family_off_by_one_common_factor_is_reported_as_its_nested_effect():
     from elastimap.gap.diagnose import common_factor, reported_set
     from elastimap.gap.selftest import family_isolates
 
-    fam = {
-        "effect": "probe_layers_E",
-        "members": ["probe_E1", "probe_E2", "probe_E3"],
-        "nominal": [300.0, 150.0, 50.0],
-        "units": ["kPa"] * 3,
-        "magnitude": [199.0, 101.0, 33.5],
-        # ratios [0.63, 0.70], [0.64, 0.70], [0.62, 0.71]: common part [0.64, 0.70]
-        "magnitude_ci": [[189.0, 210.0], [96.0, 105.0], [31.0, 35.5]],
-    }
+    # ratios [0.63, 0.70], [0.64, 0.70], [0.62, 0.71]: common part [0.64, 0.70]
+    fam = layers_E_row([199.0, 101.0, 33.5], [[189.0, 210.0], [96.0, 105.0], [31.0, 35.5]])
     name, (lo, hi) = common_factor(fam)
     assert name == "probe_moduli" and lo == pytest.approx(0.64) and hi == pytest.approx(0.70)
     assert family_isolates(fam, "probe_moduli") and not family_isolates(fam, "probe_E1")
