@@ -72,8 +72,9 @@ class Effect:
     n_params: int = 1
     cost: float = 1.0  # relative solve cost
     scales_with_delta: bool = False  # the effect only changes the plate travel (linear models: scale)
-    #: the physical range (None: unbounded) a diagnosis may extend the grid into when a fit sits
-    #: at the grid's end (:meth:`beyond`); real effects need not respect the grid
+    #: the range (None: unbounded) a diagnosis may extend the grid into when a fit sits at the
+    #: grid's end (:meth:`beyond`): physical where physics gives one (β ≤ 1, ν < 0.5, blur ≥ 0),
+    #: elsewhere a plausibility bound (chosen, not measured); real effects need not respect the grid
     limits: tuple[float | None, float | None] = (None, None)
 
     @property
