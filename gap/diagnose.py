@@ -544,11 +544,14 @@ def refine(
                 continue
             if r["score"] - best <= st.ambiguity_margin:
                 close.update(r["members"])
+            single = len(r["members"]) == 1
             for name, th in zip(r["members"], r["magnitude"]):
                 c = byname.get(name)
-                # a fit at the end of its range: the range is extended (one step a round) up to
-                # the effect's physical limits, since a real effect need not stay on the grid
-                out = None if c is None or len(c.grid) < 2 else c.effect.beyond(th, *fit_range(c))
+                # a single effect's fit at the end of its range: the range is extended (one step a
+                # round) up to the effect's limits, since a real effect need not stay on the grid.
+                # A family's members are not: with several parameters outside their grids a family
+                # mimics effects that are not in the library (seed-4 blind run, aspect ratio)
+                out = None if c is None or len(c.grid) < 2 or not single else c.effect.beyond(th, *fit_range(c))
                 if out is not None:
                     # once per effect and magnitude (a family and its member may both ask for it)
                     todo = (rendered if c.render is not None else want).setdefault(name, [])
@@ -882,13 +885,16 @@ class Composed:
         self.interp = np.sqrt(sum(m.interp**2 for m in members))
         self.grid = members[0].grid
         self.effect = None
+        #: each member is held inside its effect's grid range (an extension of a member's own
+        #: range, made for its single fit, is not the family's)
+        self.bounds = [(max(m.lo, m.effect.lo), min(m.hi, m.effect.hi)) for m in members]
 
     @property
     def labels(self):
         return [m.name for m in self.members]
 
     def grid_of(self, l):
-        return self.members[l].span()
+        return np.array(self.bounds[l]) if len(self.members[l].grid) > 1 else self.members[l].span()
 
     def predict(self, th, names=None) -> np.ndarray:
         base = self.y0 if names is None or list(names) == self.names else cat(self.V0, names)
@@ -907,9 +913,11 @@ class Composed:
         for _ in range(4):
             for l, m in enumerate(self.members):
                 rest = self.y0 + sum(p for j, p in enumerate(parts) if j != l)
-                f = rest[None] + (m.dense_Y - self.y0[None])
+                a, b = self.bounds[l]
+                ok = (m.dense >= a - 1e-12) & (m.dense <= b + 1e-12)
+                f = rest[None] + (m.dense_Y[ok] - self.y0[None])
                 tot = chi2(y[idx], f[:, idx], S[idx]).sum(axis=1)
-                th[l] = m.dense[int(np.argmin(tot + m.tie() * (1 + tot.min())))]
+                th[l] = m.dense[ok][int(np.argmin(tot + m.tie()[ok] * (1 + tot.min())))]
                 parts[l] = m.predict(th[l]) - self.y0
         for _ in range(2):  # refine each parameter between its neighbouring dense points
             for l, m in enumerate(self.members):
@@ -918,7 +926,7 @@ class Composed:
                     continue
                 rest = self.y0 + sum(p for j, p in enumerate(parts) if j != l)
                 fun = lambda t, rest=rest, m=m: float(chi2(y[idx], (rest + m.predict(t) - self.y0)[idx], S[idx]).sum())
-                lo, hi = max(m.lo, th[l] - step), min(m.hi, th[l] + step)
+                lo, hi = max(self.bounds[l][0], th[l] - step), min(self.bounds[l][1], th[l] + step)
                 r = minimize_scalar(fun, bounds=(lo, hi), method="bounded", options={"xatol": 1e-7 * step * NDENSE})
                 if r.fun < fun(th[l]):
                     th[l] = float(r.x)
@@ -950,12 +958,13 @@ class Composed:
                 raise np.linalg.LinAlgError
         except np.linalg.LinAlgError:
             sd = spans  # not identifiable from these phantoms: the whole grid
-        return [
-            (float(max(m.lo, t - 1.96 * s)), float(min(m.hi, t + 1.96 * s))) for m, t, s in zip(self.members, th, sd)
-        ]
+        return [(float(max(a, t - 1.96 * s)), float(min(b, t + 1.96 * s))) for (a, b), t, s in zip(self.bounds, th, sd)]
 
     def at_edge(self, th) -> bool:
-        return any(m.at_edge([t]) for m, t in zip(self.members, th))
+        return any(
+            len(m.grid) > 1 and (abs(t - a) < 1e-9 or abs(t - b) < 1e-9)
+            for m, (a, b), t in zip(self.members, self.bounds, th)
+        )
 
     def params_at(self, p, th):
         for m, t in zip(self.members, th):

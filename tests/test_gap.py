@@ -446,6 +446,39 @@ def test_an_effect_beyond_its_grid_extends_the_range_within_its_physical_limits(
     assert row0["at_grid_edge"] and row0["magnitude"][0] == pytest.approx(0.15), row0["magnitude"]
 
 
+def test_a_family_holds_its_members_inside_their_grids():
+    """A member's range extended for its own single fit is not the family's: with several
+    parameters beyond their grids a family mimics effects outside the library.  Plain arrays:
+    each member's view is linear in its magnitude; the data ask for probe_E1 = 120 kPa (below
+    its grid's 180) and probe_E2 = 160 kPa.  The single fit follows E1 onto the extended point;
+    the family holds E1 at its grid's end 180, says so, and its interval stays inside the grid."""
+    from elastimap.gap.diagnose import Candidate, Composed, Single
+
+    names = ["features"]
+    y0 = np.array([[1.0, 2.0, 3.0]])  # one phantom, three quantities
+    slope = {"probe_E1": np.array([1.0, 0.0, 0.5]), "probe_E2": np.array([0.0, 1.0, -0.5]), "probe_E3": np.zeros(3)}
+
+    def cand(name, extra=()):
+        e = fx.get(name)
+        g = np.array(sorted([*e.grid, *extra]))
+        V = {"features": np.stack([y0 + 0.01 * (m - e.nominal) * slope[name] for m in g])}
+        return Candidate(e, g, V, None, extended=list(extra))
+
+    e1 = cand("probe_E1", extra=(90.0,))  # E1's own range extended to 90 kPa
+    ms = [Single(cand(n) if n != "probe_E1" else e1, names) for n in ("probe_E1", "probe_E2", "probe_E3")]
+    truth = {"probe_E1": 120.0, "probe_E2": 160.0}
+    y = y0 + sum(0.01 * (v - fx.get(n).nominal) * slope[n] for n, v in truth.items())
+    S, idx = np.full_like(y, 1e-3), np.arange(1)  # idx: the phantoms fitted
+    assert ms[0].fit(y - 0.01 * (160.0 - 150.0) * slope["probe_E2"], S, idx)[0] == pytest.approx(120.0, abs=0.5)
+    fam = Composed(fx.FAMILIES["probe_layers_E"], ms, y0, {"features": y0})
+    th = fam.fit(y, S, idx)
+    assert th[0] == pytest.approx(180.0), th  # held at its grid's end, not at the extended 120
+    assert fam.at_edge(th)
+    assert all(
+        a >= fx.get(n).lo - 1e-9 and b <= fx.get(n).hi + 1e-9 for (a, b), n in zip(fam.interval(y, S, th), fam.labels)
+    )
+
+
 def test_profile_correction_stays_bounded_where_an_annulus_crosses_zero():
     """The Richardson correction of a candidate's profile is the baseline's scaled by the
     candidate's size (per phantom), exact for an effect that scales the image; a per-annulus
