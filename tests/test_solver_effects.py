@@ -79,6 +79,27 @@ def test_neo_hookean_changes_the_image_at_3mm(solve, base):
     assert base.force < half.force < nh.force
 
 
+def test_load_stepped_newton_converges_to_the_one_step_solution():
+    """The cold Newton solve is load-stepped (δ/4, δ/2, 3δ/4, δ, quadratic predictor): the same
+    equilibrium as Newton from the linear solution in one step, to the solver's tolerance; its
+    iteration count holds every step's."""
+    from elastimap.solver.fem import Model
+    from elastimap.solver.geometry import build_mesh
+
+    p = tiny().replace(tissue=Tissue(nonlinearity=1.0)).validate()
+    model = Model(build_mesh(p), p)
+    try:
+        one = model.solve_nonlinear(p.inclusion.E, p.loading.delta, load_steps=1)
+        model._warm = None  # a cold start again
+        four = model.solve_nonlinear(p.inclusion.E, p.loading.delta, load_steps=4)
+    finally:
+        model.destroy()
+    scale = np.abs(one.u).max()
+    assert np.abs(four.u - one.u).max() <= 1e-7 * scale
+    assert np.allclose(four.reaction, one.reaction, rtol=1e-6, atol=1e-9 * np.abs(one.reaction).max())
+    assert one.iterations > 2 and four.iterations > 4
+
+
 def test_ellipsoid_quarter_model_meshes_and_scales(solve):
     """Ellipsoidal inclusion (``Inclusion.aspect``) in the quarter model: the mesh builds
     (dilated after the symmetry clip) and a taller inclusion gives a larger image."""
