@@ -201,6 +201,15 @@ class LU:
             raise SolverError(f"linear solve failed (PETSc reason {reason})")
         return x
 
+    def resolve(self, f: PETSc.Vec) -> PETSc.Vec:
+        """Solve with the factorisation of the last :meth:`solve` (its matrix unchanged since)."""
+        x = self.ksp.getOperators()[0].createVecRight()
+        self.ksp.solve(f, x)
+        if self.ksp.getConvergedReason() < 0:
+            x.destroy()
+            raise SolverError(f"linear solve failed (PETSc reason {self.ksp.getConvergedReason()})")
+        return x
+
     def destroy(self) -> None:
         if self.ksp is not None:
             self.ksp.destroy()
