@@ -16,8 +16,11 @@ P^{T} (J + S) P \, \Delta \bar u = -P^{T} \left( R(u) + S u \right),
 \qquad u \leftarrow u + \alpha \, P \Delta \bar u ,
 $$
 
-started from the linear solution, with α halved while the step makes a non-finite
-residual (an inverted element, J = det F ≤ 0) or raises ‖Pᵀ(R + S u)‖.  The
+started from the linear solution (or a warm start: the caller load-steps a cold solve,
+:meth:`elastimap.solver.fem.Model.solve_nonlinear`), with α halved while the step makes a
+non-finite residual (an inverted element, J = det F ≤ 0) or raises ‖Pᵀ(R + S u)‖.  A
+factorised tangent is reused (modified Newton) while a full step with it cuts the residual by
+``reuse_ratio``.  The
 interface pairs are the coincident nodes of the reference configuration (small
 tangential sliding assumed).
 """
