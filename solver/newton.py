@@ -119,7 +119,8 @@ class Newton:
         for _ in range(max_iter):
             if gnorm <= rtol * scale:
                 break
-            if fresh or KJ is None:
+            reused = not (fresh or KJ is None)
+            if not reused:
                 KJ, new_pattern = self._reduced_jacobian(Pm, key, Sm)
                 f = KJ.createVecRight()
                 f.getArray()[:] = -g
@@ -143,6 +144,9 @@ class Newton:
                     break
                 step *= 0.5
             else:
+                if reused:  # the stale tangent's direction: try again with a fresh one
+                    fresh = True
+                    continue
                 raise SolverError("Newton line search failed (finite-strain tissue)")
             # keep the tangent while it still cuts the residual fast with full steps
             fresh = not (step == 1.0 and gn_try <= self.reuse_ratio * gnorm)
