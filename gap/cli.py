@@ -3,6 +3,7 @@
     elastimap gap synth --out M --effect friction=0.3 [--mesh tiny] [--n 12]
     elastimap gap diagnose --measured M --out DIR [--effects a,b] [--no-inverse] [--error-mesh default]
     elastimap gap selftest --trials 30 --out DIR [--mesh tiny] [--data-mesh coarse] [--data-interface contact]
+                           [--data-sizing by_d]
     elastimap gap effects
 
 User errors print one ``error:`` line and exit 2.  Solves are cached under ``--cache``
@@ -266,6 +267,13 @@ def error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet):
     show_default=True,
     help="probe-tissue interface of the measured data (the diagnosis uses tied)",
 )
+@click.option(
+    "--data-sizing",
+    type=click.Choice(["fixed", "by_d"]),
+    default="by_d",
+    show_default=True,
+    help="element sizing of the measured data's mesh (the diagnosis and its error mesh use fixed)",
+)
 @click.option("--effects", default=None, help="candidates (default: all defaults but the outside ones)")
 @click.option(
     "--outside",
@@ -292,6 +300,7 @@ def selftest_cmd(
     error_mesh,
     data_mesh,
     data_interface,
+    data_sizing,
     effects,
     outside,
     n_phantoms,
@@ -358,7 +367,10 @@ def selftest_cmd(
         frames,
         seed,
         Settings(inverse=inverse),
-        data_disc={"interface": data_interface} if data_interface != "tied" else None,
+        data_disc={
+            k: v for k, v in (("interface", data_interface), ("sizing", data_sizing)) if v not in ("tied", "fixed")
+        }
+        or None,
         log=None if quiet else lambda s: click.echo(s, err=True),
         on_trial=write,  # the scores so far after every trial (marked PARTIAL until the last)
         start=start,
