@@ -165,10 +165,16 @@ class Model:
             # (24 iterations at β = 1, coarse mesh; the β ≈ 1 data of the seed-5 blind run
             # failed).  Load stepping δ_k = k δ / K, each step predicted by the quadratic
             # extrapolation of the nonlinear correction u − u_lin ∝ δ², takes full steps.
+            # Without tilt u_D ∝ δ, so the linear solution at δ_k is (δ_k/δ) u_lin (u and A u
+            # scale alike): no solve; a tilted plate's u_D = −(δ + tilt x) is not, and is solved.
             corr, pre = None, 0
             for k in range(1, load_steps):
                 dk = delta * k / load_steps
-                lin_k = self.solve_linear(E_inclusion, dk, active)
+                if self.reduction.tilt:
+                    lin_k = self.solve_linear(E_inclusion, dk, active)
+                else:
+                    s = k / load_steps
+                    lin_k = Solution(u=s * lin.u, reaction=s * lin.reaction, iterations=lin.iterations)
                 Pk, Pks, _uk, _ = self.reduction.operator(dk, active)
                 fk = self.friction.matrices(active, Pks) if self.friction is not None else None
                 st = None if corr is None else lin_k.u + (k / (k - 1)) ** 2 * corr

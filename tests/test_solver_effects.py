@@ -106,6 +106,29 @@ def test_load_stepped_newton_converges_to_the_one_step_solution():
     assert 0 < n_mod < n_plain, (n_mod, n_plain)
 
 
+def test_the_linear_solution_scales_with_the_plate_travel_without_tilt():
+    """The load steps take the linear predictor at δ_k as (δ_k/δ) u_lin (no solve): that holds
+    for the untilted plate (u_D ∝ δ), and not for a tilted one (u_D = −(δ + tilt x)), which is
+    therefore solved."""
+    from elastimap.solver.fem import Model
+    from elastimap.solver.geometry import build_mesh
+
+    p = tiny().validate()
+    model = Model(build_mesh(p), p)
+    try:
+        full = model.solve_linear(p.inclusion.E, p.loading.delta)
+        quarter = model.solve_linear(p.inclusion.E, p.loading.delta / 4)
+        model.reduction.tilt = 0.01
+        tilted_full = model.solve_linear(p.inclusion.E, p.loading.delta)
+        tilted_quarter = model.solve_linear(p.inclusion.E, p.loading.delta / 4)
+    finally:
+        model.destroy()
+    scale = np.abs(full.u).max()
+    assert np.abs(quarter.u - full.u / 4).max() <= 1e-10 * scale
+    assert np.abs(quarter.reaction - full.reaction / 4).max() <= 1e-9 * np.abs(full.reaction).max()
+    assert np.abs(tilted_quarter.u - tilted_full.u / 4).max() > 1e-3 * scale
+
+
 def test_ellipsoid_quarter_model_meshes_and_scales(solve):
     """Ellipsoidal inclusion (``Inclusion.aspect``) in the quarter model: the mesh builds
     (dilated after the symmetry clip) and a taller inclusion gives a larger image."""
