@@ -49,7 +49,7 @@ from .interface import Friction, Interface, active_set
 from .materials import CellMaterials, psi_blended
 from .newton import Newton
 from .params import SolveParams
-from .reduction import LU, Reduction, Solution
+from .reduction import LU, Recycled, Reduction, Solution
 from .sampler import ImageSampler
 from .space import Space
 
@@ -79,7 +79,13 @@ class Model:
         self.friction = Friction(self.interface, kt, space.ndofs) if kt > 0 else None
         self.sampler = ImageSampler(space, p)
         self.A = fpetsc.create_matrix(self.a)
-        self.lu = LU("linear", "spd")  # Pᵀ(K + S)P: elastic stiffness, rigid modes constrained
+        # Pᵀ(K + S)P, the elastic stiffness with the rigid modes constrained, is solved by CG on
+        # the factors of the last variant of the same solve kind (the inclusion's and the
+        # reference's stiffness differ by the inclusion's modulus), with friction (whose K is
+        # rebuilt every solve) by its own factors; each solver is made when first needed
+        self.lu: LU | None = None
+        self.recycled: dict[str, Recycled] = {}
+        self.last_linear: LU | Recycled | None = None  # what the last linear solve used (``resolve``)
         self.newton = self._finite_strain() if self.materials.beta is not None else None
         self._warm = None  # (prescribed-values key, u) of the last Newton solution
         self.timings = {"setup": time.perf_counter() - t0}
@@ -126,7 +132,16 @@ class Model:
         K, f, new_pattern = self.reduction.reduce(self.A, Pm, Psp, uD, new_pattern, friction)
         t = self._tick("ptap", t)
 
-        ubar = self.lu.solve(K, f, new_pattern)
+        if friction is None:
+            kind = "reference" if E_inclusion == self.p.tissue.E else "inclusion"
+            if kind not in self.recycled:
+                self.recycled[kind] = Recycled(kind)
+            self.last_linear = self.recycled[kind]
+            ubar = self.last_linear.solve(K, f, active.tobytes())
+        else:
+            self.lu = self.lu or LU("linear", "spd")
+            self.last_linear = self.lu
+            ubar = self.lu.solve(K, f, new_pattern)
         t = self._tick("factor_solve", t)
 
         u = self.reduction.expand(Pm, ubar, uD)
@@ -229,7 +244,7 @@ class Model:
         return w
 
     def destroy(self) -> None:
-        for part in (self.lu, self.reduction, self.friction, self.newton):
+        for part in (self.lu, *self.recycled.values(), self.reduction, self.friction, self.newton):
             if part is not None:
                 part.destroy()
         if self.A is not None:

@@ -295,7 +295,7 @@ class _Entry:
 
     def tangent(self, u: np.ndarray, E_inc: float, delta: float, d: float, h: float, which) -> dict:
         r"""Derivatives of the probe-bottom image of the solution ``u`` (mm, all nodal values) that the
-        model just computed at inclusion modulus ``E_inc`` on this mesh (its LU still holds K).
+        model just computed at inclusion modulus ``E_inc`` on this mesh (``model.last_linear`` solves with its K).
 
         The reduced system K(θ) ū = −Pᵀ A(θ) u_D (:mod:`elastimap.solver.reduction`) is linear in u,
         and P, u_D and the pixel sampler do not depend on θ = (d, h, E) (the probe does not move).
@@ -350,12 +350,10 @@ class _Entry:
                 g[:, :] = x_here
                 Au[name] = (rp - rm) / (2 * eps)
         _Pm, Psp, _uD, _new = model.reduction.operator(delta, np.ones(model.interface.npairs, dtype=bool))
-        ksp = model.lu.ksp
         out = {}
         for name, v in Au.items():
             b = PETSc.Vec().createWithArray(-(Psp.T @ v))
-            x = b.duplicate()
-            ksp.solve(b, x)
+            x = model.last_linear.resolve(b)  # K of the solve just made
             du = Psp @ x.getArray()
             b.destroy()
             x.destroy()
