@@ -55,6 +55,10 @@ from .space import Space
 
 __all__ = ["Model", "Solution", "SolverError"]
 
+#: a linear solve whose inclusion modulus differs by more than this factor from the one its
+#: factors were made with factorises afresh (:class:`~elastimap.solver.reduction.Recycled`)
+RECYCLE_MAX_RATIO = 2.0
+
 
 class Model:
     """One mesh with its materials, interface, reduction, image sampler and (optionally) Newton.
@@ -85,6 +89,7 @@ class Model:
         # rebuilt every solve) by its own factors; each solver is made when first needed
         self.lu: LU | None = None
         self.recycled: dict[str, Recycled] = {}
+        self._factorised_E: dict[str, float] = {}  # the inclusion modulus of each one's factors
         self.last_linear: LU | Recycled | None = None  # what the last linear solve used (``resolve``)
         self.newton = self._finite_strain() if self.materials.beta is not None else None
         self._warm = None  # (prescribed-values key, u) of the last Newton solution
@@ -136,8 +141,15 @@ class Model:
             kind = "reference" if E_inclusion == self.p.tissue.E else "inclusion"
             if kind not in self.recycled:
                 self.recycled[kind] = Recycled(kind)
-            self.last_linear = self.recycled[kind]
-            ubar = self.last_linear.solve(K, f, active.tobytes())
+            rec = self.last_linear = self.recycled[kind]
+            # an inclusion modulus far from the factorised one: cond(K₀⁻¹K) up to the ratio,
+            # more CG iterations than a factorisation costs (a sweep's E, not a variant's)
+            E0 = self._factorised_E.get(kind, E_inclusion)
+            far = max(E_inclusion / E0, E0 / E_inclusion) > RECYCLE_MAX_RATIO
+            n = rec.factorisations
+            ubar = rec.solve(K, f, active.tobytes(), fresh=far)
+            if rec.factorisations > n:
+                self._factorised_E[kind] = E_inclusion
         else:
             self.lu = self.lu or LU("linear", "spd")
             self.last_linear = self.lu

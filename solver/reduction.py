@@ -18,7 +18,9 @@ $$
 
 A the stiffness matrix of a(u, v) (mN/mm) and S the optional friction spring
 (:class:`elastimap.solver.interface.Friction`).  The reduced matrix keeps A's symmetry
-and is factorised with MUMPS LU; the nodal reaction is r = A u (mN).
+and is factorised with MUMPS (:class:`LU`; Cholesky for this SPD matrix); a variant of the same
+problem on the same mesh (other moduli or ν) is solved by conjugate gradients on the factors of
+the last one (:class:`Recycled`).  The nodal reaction is r = A u (mN).
 """
 
 from __future__ import annotations
@@ -260,11 +262,13 @@ class Recycled:
         self.key = key
         self.factorisations += 1
 
-    def solve(self, K: PETSc.Mat, f: PETSc.Vec, key: bytes) -> PETSc.Vec:
+    def solve(self, K: PETSc.Mat, f: PETSc.Vec, key: bytes, fresh: bool = False) -> PETSc.Vec:
+        """x = K⁻¹ f; ``fresh``: factorise K without trying the old factors (the caller knows
+        it far from K₀, e.g. an inclusion modulus changed several-fold)."""
         K.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         K.setOption(PETSc.Mat.Option.SPD, True)
         x = K.createVecRight()
-        same = self.K0 is not None and key == self.key and self.K0.getSize() == K.getSize()
+        same = not fresh and self.K0 is not None and key == self.key and self.K0.getSize() == K.getSize()
         equal = same and K.equal(self.K0)  # the same matrix again: its factors solve it exactly
         if same and not equal:
             self.ksp.setOperators(K, self.K0)  # K₀ unchanged: its factors are reused
@@ -272,7 +276,7 @@ class Recycled:
             if self.ksp.getConvergedReason() > 0:
                 self.iterations += self.ksp.getIterationNumber()
                 return x
-        if not equal:  # new constraints, or CG did not converge: K's own factors
+        if not equal:  # new constraints, far from K₀, or CG did not converge: K's own factors
             self._factorise(K, key)
         self.ksp.setOperators(K, self.K0)
         self.ksp.setType("preonly")  # its own factors: one back-substitution, as LU.solve
