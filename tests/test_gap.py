@@ -49,6 +49,10 @@ def test_effect_spec_parsing_and_switches():
 
     assert fx.get("saturation").apply_sensor(SensorModel(), 0.2).w_sat == 0.2
     assert "offaxis" not in fx.DEFAULT_CANDIDATES
+    # the sensitivity magnitude lies in the grid's range, away from the nominal
+    for e in fx.EFFECTS.values():
+        assert e.lo <= e.sensitivity <= e.hi and not e.is_nominal(e.sensitivity), e.name
+    assert fx.get("nonlinearity").sensitivity == 0.5 and fx.get("friction").sensitivity == fx.get("friction").hi
 
 
 def test_phantom_design_is_valid_for_every_effect():
