@@ -225,9 +225,10 @@ class Recycled:
 
     The factorisation is most of a solve's time; an iteration costs one back-substitution and
     one product with K.  With M = K₀ the error falls per iteration by (√κ − 1)/(√κ + 1),
-    κ = cond(K₀⁻¹K), which for moduli changed by the factors s_i lies within
-    [min s_i, max s_i] (the Rayleigh quotients of K and K₀ are weighted means of the parts'
-    energies): a 40 % change of one layer's modulus, κ ≤ 1.4, needs about 10 iterations for the
+    κ = cond(K₀⁻¹K): when the parts' stiffnesses (the elastic moduli of a region) change by the
+    factors s_i, the eigenvalues of K₀⁻¹K lie within [min s_i, max s_i] (the ratio of the
+    Rayleigh quotients is a mean of the s_i weighted by the parts' energies), so
+    κ ≤ max s_i / min s_i: a 40 % change of one layer's modulus, κ ≤ 1.4, needs about 10 iterations for the
     relative tolerance ``rtol`` = 1e-12 (Saad 2003, §6.11, §9.2).  When CG has not converged in
     ``max_it`` iterations, or the constraints (``key``: the active set) changed, K is
     factorised afresh (K₀ := K) and solved with its own factors.  K must be symmetric positive
@@ -281,10 +282,11 @@ class Recycled:
         self.ksp.setOperators(K, self.K0)
         self.ksp.setType("preonly")  # its own factors: one back-substitution, as LU.solve
         self.ksp.solve(f, x)
+        reason = self.ksp.getConvergedReason()
         self.ksp.setType("cg")
-        if self.ksp.getConvergedReason() <= 0:
+        if reason <= 0:
             x.destroy()
-            raise SolverError(f"linear solve failed (PETSc reason {self.ksp.getConvergedReason()})")
+            raise SolverError(f"linear solve failed (PETSc reason {reason})")
         return x
 
     def resolve(self, f: PETSc.Vec) -> PETSc.Vec:
