@@ -5,10 +5,11 @@ diagnosis uses: by default the next finer mesh level, sized by the inclusion's d
 (``sizing="by_d"``: a finer zone around it) and with the unilateral ``contact`` interface, rendered
 through the camera with frame noise.  The diagnosis uses the tied interface and the fixed sizing
 on its own mesh and estimates its model error against the next finer tied, fixed-sizing mesh, so
-no level of its own is the data's.  (With the nominal probe the contact never opens: at the
-default mesh ``contact`` and ``tied`` give the same features to every stored digit; the sizing
-is what makes the data's discretisation differ from the error mesh's, by 0.03–0.4 % in the
-features of two bench phantoms.)  Trials cycle through
+no level of its own is the data's.  (For the 12 bench phantoms without an effect the contact
+does not open: at the default mesh ``contact`` and ``tied`` give the same O1, O2, O3 and force
+to every stored digit — checked without effects only; the sizing
+is what makes the data's discretisation differ from the error mesh's, by 0.02–0.4 % in O1, O2,
+O3 and the plate force of two bench phantoms.)  Trials cycle through
 three kinds:
 
 * **none** -- no effect at all: the right answer is "no significant gap";

@@ -89,7 +89,6 @@ class Model:
         # rebuilt every solve) by its own factors; each solver is made when first needed
         self.lu: LU | None = None
         self.recycled: dict[str, Recycled] = {}
-        self._factorised_E: dict[str, float] = {}  # the inclusion modulus of each one's factors
         self.last_linear: LU | Recycled | None = None  # what the last linear solve used (``resolve``)
         self.newton = self._finite_strain() if self.materials.beta is not None else None
         self._warm = None  # (prescribed-values key, u) of the last Newton solution
@@ -142,14 +141,11 @@ class Model:
             if kind not in self.recycled:
                 self.recycled[kind] = Recycled(kind)
             rec = self.last_linear = self.recycled[kind]
-            # an inclusion modulus far from the factorised one: cond(K₀⁻¹K) up to the ratio,
-            # more CG iterations than a factorisation costs (a sweep's E, not a variant's)
-            E0 = self._factorised_E.get(kind, E_inclusion)
+            # an inclusion modulus far from the factorised one (rec.tag): cond(K₀⁻¹K) up to the
+            # ratio, more CG iterations than a factorisation costs (a sweep's E, not a variant's)
+            E0 = E_inclusion if rec.tag is None else rec.tag
             far = max(E_inclusion / E0, E0 / E_inclusion) > RECYCLE_MAX_RATIO
-            n = rec.factorisations
-            ubar = rec.solve(K, f, active.tobytes(), fresh=far)
-            if rec.factorisations > n:
-                self._factorised_E[kind] = E_inclusion
+            ubar = rec.solve(K, f, active.tobytes(), fresh=far, tag=E_inclusion)
         else:
             self.lu = self.lu or LU("linear", "spd")
             self.last_linear = self.lu

@@ -162,6 +162,20 @@ class Reduction:
         self._P = self._K = None
 
 
+def mumps_ksp(prefix: str, ksp_type: str, factor: str) -> PETSc.KSP:
+    """A serial KSP of ``ksp_type`` whose preconditioner is MUMPS's ``factor`` ("lu" or
+    "cholesky") factorisation, with a 80 % workspace margin (ICNTL(14))."""
+    ksp = PETSc.KSP().create(MPI.COMM_SELF)
+    ksp.setType(ksp_type)
+    pc = ksp.getPC()
+    pc.setType(factor)
+    pc.setFactorSolverType("mumps")
+    ksp.setOptionsPrefix(prefix)
+    PETSc.Options()[f"{prefix}mat_mumps_icntl_14"] = 80
+    ksp.setFromOptions()
+    return ksp
+
+
 class LU:
     """Direct solve K x = f with MUMPS; the symbolic factorisation is kept while K's pattern is.
 
@@ -175,15 +189,7 @@ class LU:
         if symmetry not in ("spd", "symmetric", "general"):
             raise ValueError(f"symmetry must be spd, symmetric or general, not {symmetry!r}")
         self.symmetry = symmetry
-        self.ksp = PETSc.KSP().create(MPI.COMM_SELF)
-        self.ksp.setType("preonly")
-        pc = self.ksp.getPC()
-        pc.setType("lu" if symmetry == "general" else "cholesky")
-        pc.setFactorSolverType("mumps")
-        prefix = f"elastimap_{id(self)}_{name}_"
-        self.ksp.setOptionsPrefix(prefix)
-        PETSc.Options()[f"{prefix}mat_mumps_icntl_14"] = 80  # workspace margin (%)
-        self.ksp.setFromOptions()
+        self.ksp = mumps_ksp(f"elastimap_{id(self)}_{name}_", "preonly", "lu" if symmetry == "general" else "cholesky")
 
     def solve(self, K: PETSc.Mat, f: PETSc.Vec, new_pattern: bool) -> PETSc.Vec:
         ksp = self.ksp
@@ -235,22 +241,15 @@ class Recycled:
     definite (the linear stiffness with the rigid modes constrained)."""
 
     def __init__(self, name: str = "recycled", rtol: float = 1e-12, max_it: int = 30):
-        self.ksp = PETSc.KSP().create(MPI.COMM_SELF)
-        self.ksp.setType("cg")
-        pc = self.ksp.getPC()
-        pc.setType("cholesky")
-        pc.setFactorSolverType("mumps")
-        prefix = f"elastimap_{id(self)}_{name}_"
-        self.ksp.setOptionsPrefix(prefix)
-        PETSc.Options()[f"{prefix}mat_mumps_icntl_14"] = 80  # workspace margin (%)
-        self.ksp.setFromOptions()
+        self.ksp = mumps_ksp(f"elastimap_{id(self)}_{name}_", "cg", "cholesky")
         self.ksp.setTolerances(rtol=rtol, atol=0.0, max_it=max_it)
         self.K0: PETSc.Mat | None = None  # the factorised matrix
         self.key: bytes | None = None
+        self.tag = None  # what the caller said of K₀ when it was factorised (``solve(tag=)``)
         self.factorisations = 0
         self.iterations = 0  # CG iterations with another matrix's factors
 
-    def _factorise(self, K: PETSc.Mat, key: bytes) -> None:
+    def _factorise(self, K: PETSc.Mat, key: bytes, tag) -> None:
         if self.K0 is not None and key == self.key and self.K0.getSize() == K.getSize():
             K.copy(self.K0, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
         else:
@@ -260,12 +259,13 @@ class Recycled:
             self.K0 = K.duplicate(copy=True)
         self.K0.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         self.K0.setOption(PETSc.Mat.Option.SPD, True)
-        self.key = key
+        self.key, self.tag = key, tag
         self.factorisations += 1
 
-    def solve(self, K: PETSc.Mat, f: PETSc.Vec, key: bytes, fresh: bool = False) -> PETSc.Vec:
+    def solve(self, K: PETSc.Mat, f: PETSc.Vec, key: bytes, fresh: bool = False, tag=None) -> PETSc.Vec:
         """x = K⁻¹ f; ``fresh``: factorise K without trying the old factors (the caller knows
-        it far from K₀, e.g. an inclusion modulus changed several-fold)."""
+        it far from K₀, e.g. an inclusion modulus changed several-fold, from ``self.tag``);
+        ``tag``: kept as ``self.tag`` when K is factorised."""
         K.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         K.setOption(PETSc.Mat.Option.SPD, True)
         x = K.createVecRight()
@@ -278,7 +278,7 @@ class Recycled:
                 self.iterations += self.ksp.getIterationNumber()
                 return x
         if not equal:  # new constraints, far from K₀, or CG did not converge: K's own factors
-            self._factorise(K, key)
+            self._factorise(K, key, tag)
         self.ksp.setOperators(K, self.K0)
         self.ksp.setType("preonly")  # its own factors: one back-substitution, as LU.solve
         self.ksp.solve(f, x)
@@ -291,7 +291,7 @@ class Recycled:
 
     def resolve(self, f: PETSc.Vec) -> PETSc.Vec:
         """Solve with the matrix of the last :meth:`solve` (its values unchanged since)."""
-        return self.solve(self.ksp.getOperators()[0], f, self.key)
+        return self.solve(self.ksp.getOperators()[0], f, self.key, tag=self.tag)
 
     def destroy(self) -> None:
         for obj in (self.ksp, self.K0):

@@ -301,10 +301,11 @@ def test_recycled_factors_solve_nearby_matrices_like_a_direct_solver():
             M = stiffness(k)
             n_fact = rec.factorisations
             f = PETSc.Vec().createWithArray(b.copy(), comm=PETSc.COMM_SELF)
-            u = rec.solve(petsc(M), f, key).getArray().copy()
+            u = rec.solve(petsc(M), f, key, tag=(scale if np.isscalar(scale) else "far", key)).getArray().copy()
             ref = spla.spsolve(M.tocsc(), b)
             assert np.abs(u - ref).max() <= 1e-9 * np.abs(ref).max(), (scale, key)
             assert (rec.factorisations == n_fact + 1) == fresh, (scale, key, rec.factorisations)
         assert rec.iterations > 0
+        assert rec.tag == (1.0, b"b")  # the tag of the last factorised matrix
     finally:
         rec.destroy()
