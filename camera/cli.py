@@ -384,7 +384,9 @@ def infer(
     """Estimate (d, h, E) with intervals; out-of-range inputs and non-identifiable outputs are flagged.
 
     An output the identifiability map calls non-identifiable at the estimate (Cramér–Rao relative
-    std above --threshold) is printed as its interval, not as a number.
+    std above --threshold) is printed as its interval, not as a number.  From camera frames with an
+    image model the map's camera set is used (the nominal camera's noise, scaled by the frames' own
+    scatter; output column crb_set), otherwise 1 % noise.
     """
     from .calibration import Calibration
     from .frames import expand

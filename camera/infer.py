@@ -79,6 +79,7 @@ class Estimate:
     lo: np.ndarray | None = None  # interval (see the module docstring)
     hi: np.ndarray | None = None
     crb: np.ndarray | None = None  # Cramér–Rao relative std of d, h, E at the estimate
+    crb_set: str = ""  # the identifiability map's measurement set ``crb`` is from
     input: str = "features"  # features | image | frames | ... +fem_refined
     image: np.ndarray | None = None  # the difference image estimated from (mm, FEM grid; image models)
     sigma: np.ndarray | None = None  # its per-pixel standard error (mm; from frames), else None
@@ -127,6 +128,7 @@ class Estimate:
             out["fit_model_error"] = float(self.fit.model_error)
             out["fit_solves"] = int(self.fit.n_solves + self.fit.n_alt)
             out["fit_seconds"] = float(self.fit.seconds)
+        out["crb_set"] = self.crb_set
         out["input"] = self.input
         out["n_members"] = self.n_members
         out["flags"] = ";".join(self.flags)
@@ -192,7 +194,7 @@ def _plausibility(ests: list[Estimate]) -> list[Estimate]:
     return ests
 
 
-def _assess(ests: list[Estimate], ensemble, idmap, mset: str, threshold: float) -> list[Estimate]:
+def _assess(ests: list[Estimate], ensemble, idmap, mset: str, threshold: float, scale: float = 1.0) -> list[Estimate]:
     if idmap is None:
         return _plausibility(ests)
     mean = np.array([e.mean for e in ests])
@@ -203,9 +205,10 @@ def _assess(ests: list[Estimate], ensemble, idmap, mset: str, threshold: float) 
         p10=np.array([e.p10 for e in ests]),
         p90=np.array([e.p90 for e in ests]),
         target_range=getattr(ensemble, "target_range", None),
+        scale=scale,
     )
     for i, e in enumerate(ests):
-        e.lo, e.hi, e.crb = a.lo[i], a.hi[i], a.r[i]
+        e.lo, e.hi, e.crb, e.crb_set = a.lo[i], a.hi[i], a.r[i], mset
         e.flags.extend(a.flags[i])
     return _plausibility(ests)
 
@@ -288,8 +291,10 @@ def estimate_fem_images(
     """(n, ny, nx) (or (n, ny*nx)) FEM difference images (mm) -> list of :class:`Estimate` (image model).
 
     ``cam``/``fem`` of each estimate hold the camera features (NaN for simulated input) and the
-    image's own FEM features O1..O3; ``identifiability`` uses the map's ``image`` set; ``sigma``
-    (like ``images``, mm) their per-pixel standard errors where measured (kept for the refinement)."""
+    image's own FEM features O1..O3; ``sigma`` (like ``images``, mm) their per-pixel standard errors
+    where measured (from frames; kept for the refinement).  ``identifiability``: the map's ``image``
+    set (1 % of the peak per pixel), or, with ``sigma`` and a map that has one, its ``camera`` set
+    scaled by that noise (:meth:`elastimap.identify.region.IdentifiabilityMap.camera_scale`)."""
     from elastimap.solver.image import features as image_features
 
     if not _is_image_model(model):
@@ -346,6 +351,12 @@ def estimate_fem_images(
                 sigma=sg,
             )
         )
+    if sigma is not None and idmap is not None and "camera" in idmap.relstd and idmap.camera_sigma is not None:
+        # measured per-pixel noise (frames): the map's camera set, scaled by this camera's noise
+        if idmap.camera_sigma.size == imgs.shape[1]:
+            for e in ests:
+                _assess([e], model.ensemble, idmap, "camera", threshold, idmap.camera_scale(e.sigma, e.image))
+            return ests
     return _assess(ests, model.ensemble, idmap, "image", threshold)
 
 

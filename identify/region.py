@@ -19,6 +19,14 @@ outside the map's box are flagged ``outside_identifiability_map`` and evaluated 
 point of the box.  Depth fraction ``u = (h - h_lo(d)) / (h_hi(d) - h_lo(d))`` with
 :func:`elastimap.solver.params.depth_range` (pure Python; no DOLFINx).
 
+The sets ``features``, ``image``, ``image+force`` and ``two-depths`` assume 1 % noise (of each
+feature, of the image's peak per pixel).  ``camera`` is the bound from the nominal SYNTHETIC
+camera's frames: per-pixel shot and read noise through the optics (``camera_sigma``, mm per image
+pixel, for ``camera_frames`` lesion and background frames), the same for every lesion, so large
+shallow inclusions are measured far better than 1 % of their peak and small deep ones far worse
+(``python -m elastimap.workflows.studies.cameramap``).  Inference from frames scales it by the
+frames' own noise (:meth:`IdentifiabilityMap.camera_scale`).
+
 Maps come from ``python -m elastimap.workflows.studies.crbmap`` (file ``crb_grid.npz``); the package ships the one
 measured on the default 512-sample sweep and scaled with real finite differences on the morphed forward
 map (:data:`DEFAULT_MAP`, ``identify/maps/default.npz``), used when none is given and written by that
@@ -36,7 +44,9 @@ from elastimap.dataset.schema import TARGETS, THICKNESS
 from elastimap.errors import UserError
 
 DEFAULT_MAP = os.path.join(os.path.dirname(__file__), "maps", "default.npz")
-SETS = ("features", "image", "image+force", "two-depths")
+#: measurement sets; "camera": the nominal SYNTHETIC camera's frames (per-pixel shot and read noise
+#: through the optics, python -m elastimap.workflows.studies.cameramap), the others 1 % noise
+SETS = ("features", "image", "image+force", "two-depths", "camera")
 
 
 @dataclass
@@ -58,6 +68,8 @@ class IdentifiabilityMap:
     relstd: dict  # set -> (nd, nu, nE, 3) Cramér–Rao relative std of d, h, E
     thickness: float = THICKNESS  # mm, tissue slab of the sweep the map was made on
     source: str = ""
+    camera_sigma: np.ndarray | None = None  # (ny, nx) mm: the "camera" set's per-pixel noise
+    camera_frames: int = 0  # frames (lesion and background each) the "camera" set assumes
 
     # ------------------------------------------------------------------ io
     @classmethod
@@ -74,13 +86,20 @@ class IdentifiabilityMap:
             rel = {s: np.asarray(z[s], float).reshape(shape) for s in SETS if s in z.files}
             thickness = float(z["thickness"]) if "thickness" in z.files else THICKNESS
             source = str(z["source"]) if "source" in z.files else p
+            cam_sigma = np.asarray(z["camera_sigma"], float) if "camera_sigma" in z.files else None
+            cam_frames = int(z["camera_frames"]) if "camera_frames" in z.files else 0
         except (KeyError, ValueError, OSError) as exc:
             raise UserError("identifiability", f"{p}: not an identifiability map ({exc})") from None
         if not rel:
             raise UserError("identifiability", f"{p}: holds none of the measurement sets {', '.join(SETS)}")
-        return cls(d, u, E, rel, thickness, source)
+        if "camera" in rel and cam_sigma is None:
+            raise UserError("identifiability", f"{p}: its camera set has no camera_sigma (the noise it assumes)")
+        return cls(d, u, E, rel, thickness, source, cam_sigma, cam_frames)
 
     def save(self, path: str | os.PathLike) -> None:
+        extra = {}
+        if self.camera_sigma is not None:
+            extra = {"camera_sigma": self.camera_sigma, "camera_frames": self.camera_frames}
         np.savez(
             path,
             d=self.d,
@@ -88,8 +107,32 @@ class IdentifiabilityMap:
             E=self.E,
             thickness=self.thickness,
             source=self.source,
+            **extra,
             **{s: v.reshape(-1, 3) for s, v in self.relstd.items()},
         )
+
+    def camera_scale(self, sigma: np.ndarray, image: np.ndarray | None = None) -> float:
+        """How much the "camera" set's bound grows for frames with per-pixel noise ``sigma`` (mm,
+        the map's image shape): the bound scales with the noise (F ∝ σ⁻²), so the factor is the
+        median over the pixels of σ / ``camera_sigma`` -- over the pixels where ``image`` is above
+        10 % of its peak when given (there the information is).  1 for the nominal camera at
+        ``camera_frames`` frames; √(``camera_frames`` / n) for n frames of it."""
+        if self.camera_sigma is None:
+            raise UserError("identifiability", "the map has no camera set")
+        s = np.asarray(sigma, float).ravel()
+        ref = self.camera_sigma.ravel()
+        if s.size != ref.size:
+            raise UserError(
+                "sigma", f"{s.size} pixels; the map's camera set is on {ref.size} ({self.camera_sigma.shape})"
+            )
+        keep = np.isfinite(s) & (s > 0)
+        if image is not None:
+            img = np.abs(np.asarray(image, float).ravel())
+            if img.size == s.size and img.max() > 0:
+                keep &= img >= 0.1 * img.max()
+        if not keep.any():
+            raise UserError("sigma", "no finite positive pixel noise")
+        return float(np.median(s[keep] / ref[keep]))
 
     # ------------------------------------------------------------------ evaluation
     def coords(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -106,8 +149,11 @@ class IdentifiabilityMap:
         inside = np.all((x >= box_lo - tol) & (x <= box_hi + tol), axis=1) & np.all(np.isfinite(theta), axis=1)
         return np.clip(np.nan_to_num(x, nan=0.0), box_lo, box_hi), inside
 
-    def bound(self, theta: np.ndarray, mset: str) -> tuple[np.ndarray, np.ndarray]:
-        """Cramér–Rao relative std (n, 3) at ``theta`` for measurement set ``mset``, and ``inside``."""
+    def bound(self, theta: np.ndarray, mset: str, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """Cramér–Rao relative std (n, 3) at ``theta`` for measurement set ``mset`` (times ``scale``,
+        e.g. :meth:`camera_scale`), and ``inside``."""
+        if not (np.isfinite(scale) and scale > 0):
+            raise UserError("scale", f"must be finite and > 0 (got {scale})")
         from scipy.interpolate import RegularGridInterpolator
 
         if mset not in self.relstd:
@@ -116,7 +162,7 @@ class IdentifiabilityMap:
         R = np.log(np.clip(self.relstd[mset], 1e-12, None))
         axes = (self.d, self.u, np.log(self.E))
         r = np.column_stack([np.exp(RegularGridInterpolator(axes, R[..., j])(x)) for j in range(3)])
-        return r, inside
+        return r * scale, inside
 
     def assess(
         self,
@@ -126,12 +172,14 @@ class IdentifiabilityMap:
         p10: np.ndarray | None = None,
         p90: np.ndarray | None = None,
         target_range: np.ndarray | None = None,
+        scale: float = 1.0,
     ) -> Assessment:
-        """Flags and intervals for estimates ``mean`` (n, 3) (see the module docstring)."""
+        """Flags and intervals for estimates ``mean`` (n, 3) (see the module docstring); ``scale``
+        multiplies the bound (:meth:`bound`)."""
         if not 0 < threshold < 10:
             raise UserError("threshold", f"must be in (0, 10) (got {threshold:g})")
         mean = np.atleast_2d(np.asarray(mean, float))
-        r, inside = self.bound(mean, mset)
+        r, inside = self.bound(mean, mset, scale)
         pos = np.clip(mean, 1e-12, None)
         lo, hi = pos * np.exp(-2.0 * r), pos * np.exp(2.0 * r)
         if p10 is not None:

@@ -74,6 +74,62 @@ def test_map_roundtrip_and_bad_files(tmp_path):
         IdentifiabilityMap.load(tmp_path / "bad.npz")
 
 
+def _camera_map(ny: int = 12) -> IdentifiabilityMap:
+    """SYNTHETIC map with a camera set (4 % everywhere but E, 30 %) and its noise map (ny x ny)."""
+    m = _map()
+    r = np.full(m.relstd["image"].shape, 0.04)
+    r[..., 2] = 0.30
+    m.relstd["camera"] = r
+    m.camera_sigma, m.camera_frames = np.linspace(1e-4, 3e-4, ny * ny).reshape(ny, ny), 30
+    return m
+
+
+def test_camera_bound_of_orthogonal_derivatives_is_the_noise_over_their_norm():
+    """Derivatives on disjoint pixels: F is diagonal, so sqrt(C_kk) = 1 / ||J_k / sigma|| (by hand)."""
+    from elastimap.workflows.studies.cameramap import camera_bound
+
+    sigma = np.full((4, 4), 2e-4)
+    J = np.zeros((3, 4, 4))
+    J[0, 0, :] = 1e-3  # per mm of d
+    J[1, 1, :2] = 5e-3  # per mm of h
+    J[2, 2:, :] = 2e-5  # per kPa of E
+    theta = (8.0, 7.0, 50.0)
+    r = camera_bound(J, sigma, theta)
+    want = [
+        2e-4 / (1e-3 * np.sqrt(4)) / 8.0,
+        2e-4 / (5e-3 * np.sqrt(2)) / 7.0,
+        2e-4 / (50.0 * 2e-5 * np.sqrt(8)),  # ln E: dI/dlnE = E dI/dE
+    ]
+    np.testing.assert_allclose(r, want, rtol=1e-10)
+    # twice the noise, twice the bound (F ~ 1/sigma^2)
+    np.testing.assert_allclose(camera_bound(J, 2 * sigma, theta), 2 * np.array(want), rtol=1e-10)
+
+
+def test_camera_set_scales_with_the_measured_noise_and_round_trips(tmp_path):
+    m = _camera_map()
+    m.save(tmp_path / "m.npz")
+    back = IdentifiabilityMap.load(tmp_path / "m.npz")
+    assert {"features", "image", "camera"} <= set(back.relstd) and back.camera_frames == 30
+    np.testing.assert_allclose(back.camera_sigma, m.camera_sigma)
+    assert back.camera_scale(m.camera_sigma) == pytest.approx(1.0)
+    # the nominal camera with 120 frames instead of 30: half the noise, half the bound
+    assert back.camera_scale(m.camera_sigma * np.sqrt(30 / 120)) == pytest.approx(0.5)
+    th = _theta(8, 0.5, 30.0)
+    np.testing.assert_allclose(back.bound(th, "camera", 2.0)[0], 2 * back.bound(th, "camera")[0])
+    a = back.assess(th, "camera", 0.10, scale=3.0)  # d, h 12 %: not identifiable any more
+    assert a.flags[0] == ["non_identifiable:d", "non_identifiable:h", "non_identifiable:E"]
+    with pytest.raises(UserError, match="pixels"):
+        back.camera_scale(np.ones((5, 5)))
+    with pytest.raises(UserError, match="scale"):
+        back.bound(th, "camera", 0.0)
+    m.camera_sigma = None
+    m.save(tmp_path / "nosigma.npz")
+    with pytest.raises(UserError, match="camera_sigma"):
+        IdentifiabilityMap.load(tmp_path / "nosigma.npz")
+    with pytest.raises(UserError, match="no camera set"):
+        _map().camera_scale(np.ones((12, 12)))
+
+
 def test_shipped_default_map_says_what_the_study_measured():
     """The shipped map (crbmap on the default 512-sample sweep, scaled with real FD on the morphed map):
     E is far better determined by the whole image than by three features; h is identifiable from the
@@ -151,6 +207,16 @@ def test_image_model_inference_from_fem_images(tmp_path):
     np.testing.assert_allclose(np.array([e.mean for e in ests]), model.predict(data.images[:3]).mean(0))
     assert np.isfinite(ests[0].fem).all() and ests[0].fem[0] == pytest.approx(data.images[0].max())
     assert all(e.lo is not None and np.all(e.lo <= e.mean) for e in ests)
+    assert all(e.crb_set == "image" for e in ests)
+    # measured per-pixel noise (frames) and a map with a camera set: that set, scaled by the noise
+    cm = _camera_map()
+    (e,) = estimate_fem_images(
+        data.images[:1].reshape(1, 12, 12), back, identifiability=cm, sigma=2 * cm.camera_sigma[None]
+    )
+    assert e.crb_set == "camera" and e.to_dict()["crb_set"] == "camera"
+    np.testing.assert_allclose(e.crb, 2 * cm.bound(e.mean[None], "camera")[0][0])
+    (e,) = estimate_fem_images(data.images[:1].reshape(1, 12, 12), back, identifiability=cm)
+    assert e.crb_set == "image"  # no measured noise: the 1 % set
     with pytest.raises(UserError, match="image model"):
         estimate([[0.1, 1.0, 5.0]], _Cal(), back)
     with pytest.raises(UserError, match="feature model"):
