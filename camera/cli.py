@@ -385,8 +385,9 @@ def infer(
 
     An output the identifiability map calls non-identifiable at the estimate (Cramér–Rao relative
     std above --threshold) is printed as its interval, not as a number.  From camera frames with an
-    image model the map's camera set is used (the nominal camera's noise, scaled by the frames' own
-    scatter; output column crb_set), otherwise 1 % noise.
+    image model the bound is the larger of the map's camera set (the nominal camera's noise, scaled
+    by the frames' own scatter) and its 1 % image set (output column crb_set: frames), otherwise
+    the 1 % set.
     """
     from .calibration import Calibration
     from .frames import expand

@@ -293,8 +293,10 @@ def estimate_fem_images(
     ``cam``/``fem`` of each estimate hold the camera features (NaN for simulated input) and the
     image's own FEM features O1..O3; ``sigma`` (like ``images``, mm) their per-pixel standard errors
     where measured (from frames; kept for the refinement).  ``identifiability``: the map's ``image``
-    set (1 % of the peak per pixel), or, with ``sigma`` and a map that has one, its ``camera`` set
-    scaled by that noise (:meth:`elastimap.identify.region.IdentifiabilityMap.camera_scale`)."""
+    set (1 % of the peak per pixel), or, with ``sigma`` and a map that has a ``camera`` set, the
+    larger of that set scaled by the frames' noise
+    (:meth:`elastimap.identify.region.IdentifiabilityMap.camera_scale`) and the ``image`` set
+    (``crb_set`` "frames", :data:`elastimap.identify.region.FRAMES`)."""
     from elastimap.solver.image import features as image_features
 
     if not _is_image_model(model):
@@ -351,11 +353,14 @@ def estimate_fem_images(
                 sigma=sg,
             )
         )
+    from elastimap.identify.region import FRAMES
+
     if sigma is not None and idmap is not None and "camera" in idmap.relstd and idmap.camera_sigma is not None:
-        # measured per-pixel noise (frames): the map's camera set, scaled by this camera's noise
+        # measured per-pixel noise (frames): the camera set scaled by this camera's noise, never
+        # below the 1 % image set (the forward model's own error; region.FRAMES)
         if idmap.camera_sigma.size == imgs.shape[1]:
             for e in ests:
-                _assess([e], model.ensemble, idmap, "camera", threshold, idmap.camera_scale(e.sigma, e.image))
+                _assess([e], model.ensemble, idmap, FRAMES, threshold, idmap.camera_scale(e.sigma, e.image))
             return ests
     return _assess(ests, model.ensemble, idmap, "image", threshold)
 

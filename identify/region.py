@@ -47,6 +47,11 @@ DEFAULT_MAP = os.path.join(os.path.dirname(__file__), "maps", "default.npz")
 #: measurement sets; "camera": the nominal SYNTHETIC camera's frames (per-pixel shot and read noise
 #: through the optics, python -m elastimap.workflows.studies.cameramap), the others 1 % noise
 SETS = ("features", "image", "image+force", "two-depths", "camera")
+#: what inference from camera frames uses: per output the larger of the ``camera`` bound (the
+#: frames' noise) and the ``image`` bound (1 % of the peak, about the forward model's own error at
+#: the mesh levels it runs on: 0.1-0.9 % of the peak, docs/identifiability.md (7)) -- an estimate
+#: from frames is no better than either allows
+FRAMES = "frames"
 
 
 @dataclass
@@ -151,9 +156,13 @@ class IdentifiabilityMap:
 
     def bound(self, theta: np.ndarray, mset: str, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Cramér–Rao relative std (n, 3) at ``theta`` for measurement set ``mset`` (times ``scale``,
-        e.g. :meth:`camera_scale`), and ``inside``."""
+        e.g. :meth:`camera_scale`), and ``inside``.  ``mset = "frames"``: the larger of the
+        ``camera`` set times ``scale`` and the ``image`` set (see :data:`FRAMES`)."""
         if not (np.isfinite(scale) and scale > 0):
             raise UserError("scale", f"must be finite and > 0 (got {scale})")
+        if mset == FRAMES:
+            rc, inside = self.bound(theta, "camera", scale)
+            return np.maximum(rc, self.bound(theta, "image")[0]), inside
         from scipy.interpolate import RegularGridInterpolator
 
         if mset not in self.relstd:

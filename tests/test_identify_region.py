@@ -118,6 +118,10 @@ def test_camera_set_scales_with_the_measured_noise_and_round_trips(tmp_path):
     np.testing.assert_allclose(back.bound(th, "camera", 2.0)[0], 2 * back.bound(th, "camera")[0])
     a = back.assess(th, "camera", 0.10, scale=3.0)  # d, h 12 %: not identifiable any more
     assert a.flags[0] == ["non_identifiable:d", "non_identifiable:h", "non_identifiable:E"]
+    # frames: per output the larger of camera x scale and the 1 % image set
+    ri, rc = back.bound(th, "image")[0], back.bound(th, "camera")[0]
+    np.testing.assert_allclose(back.bound(th, "frames", 0.1)[0], np.maximum(0.1 * rc, ri))
+    np.testing.assert_allclose(back.bound(th, "frames", 2.0)[0], np.maximum(2.0 * rc, ri))
     with pytest.raises(UserError, match="pixels"):
         back.camera_scale(np.ones((5, 5)))
     with pytest.raises(UserError, match="scale"):
@@ -213,8 +217,10 @@ def test_image_model_inference_from_fem_images(tmp_path):
     (e,) = estimate_fem_images(
         data.images[:1].reshape(1, 12, 12), back, identifiability=cm, sigma=2 * cm.camera_sigma[None]
     )
-    assert e.crb_set == "camera" and e.to_dict()["crb_set"] == "camera"
-    np.testing.assert_allclose(e.crb, 2 * cm.bound(e.mean[None], "camera")[0][0])
+    assert e.crb_set == "frames" and e.to_dict()["crb_set"] == "frames"
+    want = np.maximum(2 * cm.bound(e.mean[None], "camera")[0][0], cm.bound(e.mean[None], "image")[0][0])
+    np.testing.assert_allclose(e.crb, want)
+    assert e.crb[2] == pytest.approx(0.6)  # E: the camera set (30 % x 2) is the larger
     (e,) = estimate_fem_images(data.images[:1].reshape(1, 12, 12), back, identifiability=cm)
     assert e.crb_set == "image"  # no measured noise: the 1 % set
     with pytest.raises(UserError, match="image model"):
