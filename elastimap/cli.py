@@ -52,6 +52,10 @@ STUDIES = {
         "elastimap.workflows.studies.crbmap:main",
         "Cramér–Rao identifiability maps and the map inference uses.",
     ),
+    "cameramap": (
+        "elastimap.workflows.studies.cameramap:main",
+        "The camera-frames set of the identifiability map (nominal camera's noise).",
+    ),
     "fdgrid": (
         "elastimap.workflows.studies.fdgrid:main",
         "Real finite-difference Jacobians on a grid of design points.",

@@ -150,6 +150,15 @@ def test_shipped_default_map_says_what_the_study_measured():
     assert ok_d[m.d >= 8].mean() > 0.95 and ok_d[m.d <= 5].mean() < ok_d[m.d >= 8].mean()
     assert (m.relstd["features"][..., 2] <= 0.10).mean() < (m.relstd["image"][..., 2] <= 0.10).mean()
     assert "sweep" in m.source and "real-FD" in m.source
+    # the camera set (cameramap, 2026-11-25): the nominal camera at 30 frames sees E of large shallow
+    # inclusions far better than 1 % of the peak, and d of small deep ones far worse
+    assert m.camera_frames == 30 and m.camera_sigma.shape == (50, 50) and "cameramap" in m.source
+    ok_cam = m.relstd["camera"] <= 0.10
+    assert ok_cam[..., 2].mean() > 0.4 > (m.relstd["image"][..., 2] <= 0.10).mean()
+    assert ok_cam[m.d <= 3, -1, :, 0].mean() < 0.2 < ok_d[m.d <= 3, -1, :].mean()
+    r_big, _ = m.bound(_theta(14.0, 0.1, 100.0), "camera")
+    r_deep, _ = m.bound(_theta(2.5, 0.9, 30.0), "camera")
+    assert r_big[0, 2] < 0.05 and r_deep[0, 0] > 0.10
 
 
 # ----------------------------------------------------------------------------- inference
@@ -370,3 +379,45 @@ def test_crbmap_surrogate_from_reuses_the_stored_raw_bounds(tmp_path):
         stored_surrogate(str(bad))
     with pytest.raises(UserError, match="--surrogate-from"):
         stored_surrogate(str(tmp_path / "missing.npz"))
+
+
+def test_cameramap_install_adds_the_camera_set_and_keeps_the_others(tmp_path):
+    """``cameramap install`` on SYNTHETIC column files: every column is needed; the other sets stay."""
+    import shutil
+
+    from click.testing import CliRunner
+
+    from elastimap.identify.local import grid
+    from elastimap.workflows.studies.cameramap import main
+
+    T, (ds, us, Es) = grid()
+    cols = T.reshape(len(ds) * len(us), len(Es), 3)
+    out = tmp_path / "cm"
+    out.mkdir()
+    for c in range(cols.shape[0] - 1):
+        r = np.full((len(Es), 3), 0.03 + 0.001 * c)
+        np.savez(
+            out / f"col-{c:03d}.npz", col=c, r=r, theta=cols[c], sigma=np.full((50, 50), 5e-5), mesh="tiny", frames=30
+        )
+    dest = tmp_path / "map.npz"
+    shutil.copyfile(DEFAULT_MAP, dest)
+    before = IdentifiabilityMap.load(dest)
+    run = CliRunner().invoke(main, ["install", "--out", str(out), "--map", str(dest)], standalone_mode=False)
+    assert isinstance(run.exception, UserError) and "1 of 70 grid columns missing" in run.exception.message
+    c = cols.shape[0] - 1
+    np.savez(
+        out / f"col-{c:03d}.npz",
+        col=c,
+        r=np.full((len(Es), 3), 0.5),
+        theta=cols[c],
+        sigma=np.full((50, 50), 5e-5),
+        mesh="tiny",
+        frames=30,
+    )
+    run = CliRunner().invoke(main, ["install", "--out", str(out), "--map", str(dest)])
+    assert run.exit_code == 0, run.output
+    m = IdentifiabilityMap.load(dest)
+    np.testing.assert_allclose(m.relstd["image"], before.relstd["image"])
+    np.testing.assert_allclose(m.relstd["camera"][0, 0, :, 0], 0.03)
+    np.testing.assert_allclose(m.relstd["camera"][-1, -1, :, 2], 0.5)
+    assert m.camera_frames == 30 and np.allclose(m.camera_sigma, 5e-5) and m.source.count("camera set:") == 1

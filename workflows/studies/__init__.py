@@ -9,6 +9,8 @@ or ``elastimap identify <name>``:
 ``fdgrid``         real finite-difference Jacobians on a coarse grid (cached solves)
 ``crbmap``         Cramér–Rao maps from a GP surrogate, FD-scaled; ``--install`` writes the map
                    inference reads (``identify/maps/default.npz``)
+``cameramap``      the map's ``camera`` set: Cramér–Rao bounds under the nominal camera's noise,
+                   from the morphed map's exact derivative; ``install`` adds it to the shipped map
 ``mapcheck``       the map against the real-FD grid
 ``imagenet``       HOV / LOOCV of the image-based inverse; ``--save-model`` trains the deployed one
 ``region_score``   held-out errors and interval coverage inside / outside the identifiable region

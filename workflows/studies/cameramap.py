@@ -42,6 +42,7 @@ import numpy as np
 
 from elastimap.cli_util import run
 from elastimap.errors import UserError
+from elastimap.solver.params import MESH_LEVELS
 
 
 def camera_bound(J: np.ndarray, sigma: np.ndarray, theta) -> np.ndarray:
@@ -71,7 +72,13 @@ def main():
 
 
 @main.command("compute")
-@click.option("--mesh", default="coarse", show_default=True, help="Mesh level of the morphed forward map.")
+@click.option(
+    "--mesh",
+    type=click.Choice(MESH_LEVELS),
+    default="coarse",
+    show_default=True,
+    help="Mesh level of the morphed forward map.",
+)
 @click.option("--frames", default=30, show_default=True, type=int, help="Lesion (and background) frames.")
 @click.option(
     "--shard", default="0/1", show_default=True, help="K/N: this process takes the (d, depth) columns i % N == K."
