@@ -12,7 +12,7 @@ Every console script and ``python -m`` entry of the project goes through :func:`
 * anything else is a bug and keeps its traceback.
 
 The options several commands share are defined once here (:func:`mesh_option`,
-:func:`out_option`, :func:`data_option`, :func:`jobs_option`), and :class:`LazyGroup`
+:func:`out_option`, :func:`data_option`, :func:`jobs_option`, :func:`shard_option`), and :class:`LazyGroup`
 imports a subcommand's module only when that subcommand runs, so ``elastimap --help``
 or a mistyped flag answers without importing torch, DOLFINx, dask or pandas.
 
@@ -112,6 +112,28 @@ def data_option(
 def jobs_option(default: int = 1, help: str = "Worker processes.", **kw):
     """``--jobs``: parallel worker processes (checked by the library that uses it, named ``jobs``)."""
     return click.option("--jobs", "jobs", type=int, default=default, show_default=True, help=help, **kw)
+
+
+class Shard(click.ParamType):
+    """``K/N`` -> ``(K, N)`` with 0 <= K < N: this process takes the items i with i % N == K."""
+
+    name = "K/N"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        try:
+            k, n = (int(v) for v in str(value).split("/"))
+            if 0 <= k < n:
+                return k, n
+        except ValueError:
+            pass
+        self.fail(f"must be K/N with 0 <= K < N (got {value!r})", param, ctx)
+
+
+def shard_option(help: str = "K/N: this process takes the items i with i % N == K.", **kw):
+    """``--shard K/N``: split a resumable job between processes; the value is ``(K, N)``."""
+    return click.option("--shard", type=Shard(), default="0/1", show_default=True, help=help, **kw)
 
 
 def options(*decorators):

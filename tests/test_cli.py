@@ -382,3 +382,19 @@ def test_train_runs_as_elastimap_train_and_as_train(tmp_path):
     a, b = pd.read_csv(tmp_path / "a" / "results.csv"), pd.read_csv(tmp_path / "b" / "results.csv")
     metrics = [c for c in a.columns if c.startswith(("mse100", "mre", "rmse"))]
     assert metrics and a[metrics].equals(b[metrics])
+
+
+def test_shard_option_parses_k_of_n_and_rejects_the_rest():
+    from elastimap.cli_util import run, shard_option
+
+    @click.command()
+    @shard_option()
+    def cmd(shard):
+        click.echo(f"{shard[0]} of {shard[1]}")
+
+    assert CliRunner().invoke(cmd, ["--shard", "1/3"]).output == "1 of 3\n"
+    assert CliRunner().invoke(cmd, []).output == "0 of 1\n"
+    for bad in ("3/2", "x", "1/0", "-1/2", "1/2/3"):
+        with pytest.raises(SystemExit) as exc:
+            run(cmd, ["--shard", bad])
+        assert exc.value.code == 2, bad

@@ -45,6 +45,7 @@ import time
 import click
 import numpy as np
 
+from elastimap.cli_util import shard_option
 from elastimap.solver.params import MESH_LEVELS
 
 TRUTH_SEED = 2026
@@ -77,23 +78,11 @@ def main():
     """SYNTHETIC camera-frame benchmark of the physics fit (see the module docstring)."""
 
 
-def _shard(shard: str) -> tuple[int, int]:
-    """``"K/N"`` -> (K, N), 0 <= K < N."""
-    from elastimap.errors import UserError
-
-    try:
-        k, nsh = (int(v) for v in shard.split("/"))
-        assert 0 <= k < nsh
-    except (ValueError, AssertionError):
-        raise UserError("--shard", f"must be K/N with 0 <= K < N (got {shard!r})") from None
-    return k, nsh
-
-
 @main.command("lesions")
 @click.option("--n", "n", default=120, show_default=True, type=int, help="Held-out lesions.")
 @click.option("--seed", default=TRUTH_SEED, show_default=True, type=int, help="Seed of the lesion design.")
 @click.option("--truth-mesh", default="default", show_default=True, help="Mesh level of the world's remeshing solver.")
-@click.option("--shard", default="0/1", show_default=True, help="K/N: this process solves items i with i % N == K.")
+@shard_option("K/N: this process solves items i with i % N == K.")
 @click.option(
     "--first", default=0, show_default=True, type=int, help="Only the first K lesions of the design (0: all)."
 )
@@ -105,7 +94,7 @@ def lesions(n, seed, truth_mesh, shard, first, out):
     from elastimap.camera.calibration import load_phantoms
     from elastimap.errors import UserError
 
-    k, nsh = _shard(shard)
+    k, nsh = shard
     if first < 0:
         raise UserError("--first", f"must be >= 0 (got {first})")
     cache = os.path.join(out, "solves")
@@ -211,7 +200,7 @@ class _Timed:
 )
 @click.option("--geometry", default=None, help="Fit's forward map: morph (default where available) or remesh.")
 @click.option("--frames", default=30, show_default=True, type=int, help="Lesion and background frames per lesion.")
-@click.option("--shard", default="0/1", show_default=True, help="K/N: this process fits lesions i with i % N == K.")
+@shard_option("K/N: this process fits lesions i with i % N == K.")
 @click.option("--limit", default=0, type=int, help="Stop after this many new fits (0: all).")
 @click.option("--out", required=True)
 def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, error_mesh, geometry, frames, shard, limit, out):
@@ -224,7 +213,7 @@ def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, error_mesh, geometry, fram
     from elastimap.errors import UserError
     from elastimap.identify.refine import default_geometry, forward_map, neighbour_level
 
-    k, nsh = _shard(shard)
+    k, nsh = shard
     geometry = geometry or default_geometry()
     alt_level = error_mesh or neighbour_level(fit_mesh)
     if alt_level == fit_mesh:

@@ -40,9 +40,8 @@ import time
 import click
 import numpy as np
 
-from elastimap.cli_util import run
+from elastimap.cli_util import mesh_option, run, shard_option
 from elastimap.errors import UserError
-from elastimap.solver.params import MESH_LEVELS
 
 
 def camera_bound(J: np.ndarray, sigma: np.ndarray, theta) -> np.ndarray:
@@ -57,32 +56,15 @@ def camera_bound(J: np.ndarray, sigma: np.ndarray, theta) -> np.ndarray:
     return crb_relstd(F["image"], theta[None])[0]
 
 
-def _shard(shard: str) -> tuple[int, int]:
-    try:
-        k, n = (int(v) for v in shard.split("/"))
-        assert 0 <= k < n
-    except (ValueError, AssertionError):
-        raise UserError("--shard", f"must be K/N with 0 <= K < N (got {shard!r})") from None
-    return k, n
-
-
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def main():
     """The camera-frames set of the identifiability map (see the module docstring)."""
 
 
 @main.command("compute")
-@click.option(
-    "--mesh",
-    type=click.Choice(MESH_LEVELS),
-    default="coarse",
-    show_default=True,
-    help="Mesh level of the morphed forward map.",
-)
+@mesh_option("coarse", "Mesh level of the morphed forward map.")
 @click.option("--frames", default=30, show_default=True, type=int, help="Lesion (and background) frames.")
-@click.option(
-    "--shard", default="0/1", show_default=True, help="K/N: this process takes the (d, depth) columns i % N == K."
-)
+@shard_option("K/N: this process takes the (d, depth) columns i % N == K.")
 @click.option("--out", required=True, help="Folder for the shard files (resumable).")
 def compute_cmd(mesh, frames, shard, out):
     """Bounds at the grid points of this shard (one file per (d, depth) column, resumable)."""
@@ -94,12 +76,12 @@ def compute_cmd(mesh, frames, shard, out):
 
     if frames < 1:
         raise UserError("--frames", f"must be >= 1 (got {frames})")
-    k, n = _shard(shard)
+    k, n = shard
     os.makedirs(out, exist_ok=True)
     T, (ds, us, Es) = grid()
     cols = T.reshape(len(ds) * len(us), len(Es), 3)
     fwd = forward_map(mesh, "morph")
-    for c in tqdm(range(k, cols.shape[0], n), desc=f"camera bound ({mesh} morphed map, shard {shard})"):
+    for c in tqdm(range(k, cols.shape[0], n), desc=f"camera bound ({mesh} morphed map, shard {k}/{n})"):
         path = os.path.join(out, f"col-{c:03d}.npz")
         if os.path.exists(path):
             continue
