@@ -106,7 +106,11 @@ def lesions(n, seed, truth_mesh, shard, first, out):
     t0 = time.perf_counter()
     for d, h, E in tqdm(todo, desc=f"SYNTHETIC world solves ({truth_mesh} mesh, remeshing)"):
         truth_solve(d, h, E, truth_mesh, cache)
-    click.echo(f"{len(todo)} solves ({len(ph)} phantoms + {n} lesions) in {time.perf_counter() - t0:.0f} s", err=True)
+    click.echo(
+        f"{len(todo)} solves (shard {k}/{nsh} of {len(ph)} phantoms + {first or n} lesions) in "
+        f"{time.perf_counter() - t0:.0f} s",
+        err=True,
+    )
 
 
 def _fit_results(forward, phantoms):
