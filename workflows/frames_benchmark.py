@@ -5,7 +5,9 @@ the WHOLE design box (d 2-15 mm, the admissible centre depth, E 10-200 kPa log-u
 not the sweep's points) and the nine calibration phantoms, solved by the "world" forward model --
 the remeshing solver on ``--truth-mesh`` (default ``default``), a different discretisation than the
 fit's forward map -- and kept in the solve store ``OUT/solves``.  Resumable: solved lesions are
-read back.  Everything it makes is SYNTHETIC.
+read back; ``--shard K/N`` splits the solves between processes, ``--first K`` solves only the
+first K lesions of the design (a subset on a costlier world, e.g. ``--truth-mesh fine``).
+Everything it makes is SYNTHETIC.
 
     OMP_NUM_THREADS=1 .venv/bin/python workflows/frames_benchmark.py lesions --n 120 --out runs/frames-bench
 
@@ -14,9 +16,11 @@ FEM side -- reference press, scale, feature lines -- from the fit's forward map)
 30 lesion + 30 background frames from the nominal SYNTHETIC camera (own noise seed per lesion) ->
 the FEM-equivalent difference image and its per-pixel noise (:mod:`elastimap.camera.deflection`) ->
 the image network (``--model``) -> the maximum-likelihood fit on the forward map at ``--fit-mesh``
-(:func:`elastimap.camera.infer.refine_estimates`).  One JSON file per lesion in ``OUT/fits``
+(:func:`elastimap.camera.infer.refine_estimates`), its model error measured against
+``--error-mesh`` (default: the neighbouring coarser level).  One JSON file per lesion in ``OUT/fits``
 (resumable; ``--shard K/N`` splits the lesions between processes; the calibration and the fits
-are kept per forward map, ``OUT/cal-<geometry>-<mesh>.json`` and ``OUT/fits-<geometry>-<mesh>``).
+are kept per forward map, ``OUT/cal-<tag>.json`` and ``OUT/fits-<tag>``, tag ``<geometry>-<mesh>``
+plus ``-err-<level>`` when ``--error-mesh`` is not the default).
 
     OMP_NUM_THREADS=1 .venv/bin/python workflows/frames_benchmark.py run --model M --out runs/frames-bench
 
