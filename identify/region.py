@@ -49,7 +49,7 @@ DEFAULT_MAP = os.path.join(os.path.dirname(__file__), "maps", "default.npz")
 SETS = ("features", "image", "image+force", "two-depths", "camera")
 #: what inference from camera frames uses: per output the larger of the ``camera`` bound (the
 #: frames' noise) and the ``image`` bound (1 % of the peak, about the forward model's own error at
-#: the mesh levels it runs on: 0.1-0.9 % of the peak, docs/identifiability.md (7)) -- an estimate
+#: the mesh levels it runs on: 0.1-1.3 % of the peak, docs/identifiability.md (7)) -- an estimate
 #: from frames is no better than either allows
 FRAMES = "frames"
 

@@ -49,8 +49,7 @@ import time
 import click
 import numpy as np
 
-from elastimap.cli_util import shard_option
-from elastimap.solver.params import MESH_LEVELS
+from elastimap.cli_util import MeshLevel, shard_option
 
 TRUTH_SEED = 2026
 
@@ -203,7 +202,7 @@ class _Timed:
 @click.option(
     "--error-mesh",
     default=None,
-    type=click.Choice(MESH_LEVELS),
+    type=MeshLevel(),
     help="Level the fit's model error is measured against (default: the neighbouring coarser level).",
 )
 @click.option("--geometry", default=None, help="Fit's forward map: morph (default where available) or remesh.")

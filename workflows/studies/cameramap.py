@@ -18,8 +18,7 @@ small deep one far worse.  This study gives the bound for what a camera actually
   frames, linearised at that point's background press
   (:func:`elastimap.camera.optics.deflection_noise_map`);
 * Fisher information F = Jᵀ diag(σ⁻²) J, Cramér–Rao relative std r = (√C_dd / d, √C_hh / h,
-  √C_lnE,lnE), C = F⁻¹ (:func:`elastimap.identify.local.fisher` with the noise map,
-  :func:`elastimap.identify.local.crb_relstd`).
+  √C_lnE,lnE), C = F⁻¹ (:func:`camera_bound`, with :func:`elastimap.identify.local.crb_relstd`).
 
 ``install`` adds the set ``camera`` (and the nominal noise map ``camera_sigma``, mm per pixel, and
 ``camera_frames``) to the shipped map (:data:`elastimap.identify.region.DEFAULT_MAP`) through
@@ -27,7 +26,8 @@ small deep one far worse.  This study gives the bound for what a camera actually
 frames scales the set by the frames' own noise against ``camera_sigma``
 (:meth:`elastimap.identify.region.IdentifiabilityMap.camera_scale`).  ``crbmap --install`` writes
 a map without this set: run ``install`` again after it.  The bound holds for the model's physics
-alone: the forward model's own error is not in it (docs/camera.md 4c).
+alone: the forward model's own error is not in it (docs/identifiability.md (7) measures how far
+that error reaches).
 """
 
 from __future__ import annotations
@@ -48,12 +48,12 @@ def camera_bound(J: np.ndarray, sigma: np.ndarray, theta) -> np.ndarray:
     """Cramér–Rao relative std (d, h, E) at ``theta`` (d mm, h mm, E kPa) from the image's derivative
     ``J`` (3, ny, nx) = ∂I/∂(d mm, h mm, E kPa) (mm per unit) and the per-pixel noise ``sigma`` (mm,
     image-shaped): F = Jᵀ diag(σ⁻²) J in (d, h, ln E)."""
-    from elastimap.identify.local import NoiseSpec, crb_relstd, fisher
+    from elastimap.identify.local import crb_relstd
 
     theta = np.asarray(theta, float)
     Jp = np.asarray(J, float).reshape(3, -1).T * np.array([1.0, 1.0, theta[2]])  # ∂I/∂ln E = E ∂I/∂E
-    F = fisher({"image": Jp[None], "dF": np.zeros((1, 3)), "lnF": np.zeros((1, 3, 3))}, NoiseSpec(sigma_map=sigma))
-    return crb_relstd(F["image"], theta[None])[0]
+    Jw = Jp / np.asarray(sigma, float).reshape(-1, 1)  # whitened: rows / σ_p
+    return crb_relstd((Jw.T @ Jw)[None], theta[None])[0]
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
