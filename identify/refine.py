@@ -435,7 +435,7 @@ def fit_image(
     theta0,
     forward: Callable,
     *,
-    forward_alt: Callable | None = None,
+    forward_alt: Callable | list | None = None,
     d_range=DESIGN_BOX["d"],
     E_range=DESIGN_BOX["E"],
     thickness: float = THICKNESS,
@@ -452,8 +452,9 @@ def fit_image(
     :func:`image_of`) of the map and of its neighbouring mesh level (maps with a ``pin(d, h)``
     method returning a map with a hashable ``key`` are pinned at the start of every pass, see
     :class:`ForwardMap`; ``forward_alt`` by its ``pin_exact`` where it has one, so that the measured
-    model error also holds the error of the fit map's linearised reference press); without
-    ``forward_alt`` the
+    model error also holds the error of the fit map's linearised reference press).  ``forward_alt``
+    may be a list of maps (several levels): each difference enters σ_model² and the systematic
+    covariance as its own term.  Without ``forward_alt`` the
     model error is taken as zero (say so when reporting).  ``max_nfev`` bounds the trial points
     per pass, ``max_passes`` the passes (each from a fresh central-difference Jacobian); ``e_scan``
     values of ln E spread over the box are tried at the start's (d, h) first, and the fit starts
@@ -483,7 +484,10 @@ def fit_image(
     maps: dict = {}
     jacs: dict = {}  # the map's exact derivative (d, h, E) at the points in maps, where it has one
     alts: dict = {}
-    cur = {"f": forward, "a": forward_alt}
+    alt_maps = (
+        [] if forward_alt is None else list(forward_alt) if isinstance(forward_alt, (list, tuple)) else [forward_alt]
+    )
+    cur = {"f": forward, "a": list(alt_maps)}
     if tangent is None:
         tangent = bool(getattr(forward, "has_tangent", False))
     elif tangent and not getattr(forward, "has_tangent", False):
@@ -494,9 +498,9 @@ def fit_image(
         sees one smooth map."""
         d, h, _ = to_theta(x, thickness)
         cur["f"] = forward.pin(d, h) if hasattr(forward, "pin") else forward
-        if forward_alt is not None:  # exact where it can be: the model error then measures the linearisation too
-            pin_alt = getattr(forward_alt, "pin_exact", None) or getattr(forward_alt, "pin", None)
-            cur["a"] = pin_alt(d, h) if pin_alt is not None else forward_alt
+        for i, fa in enumerate(alt_maps):  # exact where it can be: the model error then measures the linearisation too
+            pin_alt = getattr(fa, "pin_exact", None) or getattr(fa, "pin", None)
+            cur["a"][i] = pin_alt(d, h) if pin_alt is not None else fa
 
     def key(x, f):
         return (getattr(f, "key", None), *np.round(np.asarray(x, float), 10))
@@ -515,16 +519,25 @@ def fit_image(
             maps[k] = v
         return maps[k]
 
+    def alt_images(x) -> list:
+        """The other levels' images at ``x`` (cached per pinned map)."""
+        out = []
+        for i, fa in enumerate(cur["a"]):
+            k = (i, *key(x, fa))
+            if k not in alts:
+                a = image_of(fa(*to_theta(x, thickness))).ravel()
+                if a.shape != I.shape:
+                    raise RuntimeError(f"the alternative forward map returned {a.size} pixels, the image has {I.size}")
+                alts[k] = a
+            out.append(alts[k])
+        return out
+
     def sigma_at(x):
-        if forward_alt is None:
+        """Total and model per-pixel σ at ``x``: σ_model² = Σ_k local rms(m − a_k)² over the other
+        levels' images a_k (one level: its difference)."""
+        if not alt_maps:
             return s_meas, np.zeros_like(s_meas)
-        k = key(x, cur["a"])
-        if k not in alts:
-            a = image_of(cur["a"](*to_theta(x, thickness))).ravel()
-            if a.shape != I.shape:
-                raise RuntimeError(f"the alternative forward map returned {a.size} pixels, the image has {I.size}")
-            alts[k] = a
-        sm = _local_rms(m(x) - alts[k], shape)
+        sm = np.sqrt(sum(_local_rms(m(x) - a, shape) ** 2 for a in alt_images(x)))
         return np.hypot(s_meas, sm), sm
 
     def steps_at(x):
@@ -631,10 +644,10 @@ def fit_image(
     G = _dtheta_dx(x, thickness)
     JtJi = np.linalg.pinv(J.T @ J)
     C = G @ JtJi @ G.T * max(1.0, chi2)
-    if forward_alt is not None:
-        # the discretisation error is one image, correlated over the pixels: propagate the level
-        # difference through the estimator as a systematic shift, C_sys = b bᵀ
-        b = G @ JtJi @ J.T @ ((m(x) - alts[key(x, cur["a"])]) / s_tot)
+    for a in alt_images(x) if alt_maps else []:
+        # the discretisation error is one image, correlated over the pixels: propagate each level
+        # difference through the estimator as a systematic shift, C_sys = Σ_k b_k b_kᵀ
+        b = G @ JtJi @ J.T @ ((m(x) - a) / s_tot)
         C = C + np.outer(b, b)
     th = to_theta(x, thickness)
     sd = np.sqrt(np.clip(np.diag(C), 0, None))

@@ -143,3 +143,28 @@ def test_cli_refine_needs_a_fem_image(tmp_path):
         text=True,
     )
     assert r.returncode == 2 and "--refine" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_several_model_error_levels_add_their_variances():
+    """fit_image with two 'other levels' (SYNTHETIC: the bump with d off by ±1 %): each level
+    difference adds its own systematic term, so the interval is at least as wide as with either
+    alone and as with the same level twice it is √2 times one (C_sys = Σ b_k b_kᵀ)."""
+    from elastimap.identify.refine import fit_image
+
+    truth = np.array([8.0, 7.0, 60.0])
+    I = bump(truth)
+    sig = 2e-3 * I.max()
+
+    def level(f):
+        return lambda d, h, E: bump((d * f, h, E))
+
+    lo_, hi_, fit_map = level(0.99), level(1.01), level(1.0)
+    kw = {"e_scan": 0, "tangent": False}
+    one = fit_image(I, sig, truth, fit_map, forward_alt=lo_, **kw)
+    other = fit_image(I, sig, truth, fit_map, forward_alt=hi_, **kw)
+    both = fit_image(I, sig, truth, fit_map, forward_alt=[lo_, hi_], **kw)
+    twice = fit_image(I, sig, truth, fit_map, forward_alt=[lo_, lo_], **kw)
+    np.testing.assert_allclose(both.theta, truth, rtol=1e-3)  # noise-free, the map is right
+    assert np.all(both.relstd >= np.maximum(one.relstd, other.relstd) * (1 - 1e-6))
+    assert both.n_alt == one.n_alt + other.n_alt
+    assert twice.model_error == pytest.approx(np.sqrt(2) * one.model_error, rel=1e-6)

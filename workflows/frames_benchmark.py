@@ -49,7 +49,8 @@ import time
 import click
 import numpy as np
 
-from elastimap.cli_util import MeshLevel, shard_option
+from elastimap.cli_util import shard_option
+from elastimap.solver.params import MESH_LEVELS
 
 TRUTH_SEED = 2026
 
@@ -202,8 +203,8 @@ class _Timed:
 @click.option(
     "--error-mesh",
     default=None,
-    type=MeshLevel(),
-    help="Level the fit's model error is measured against (default: the neighbouring coarser level).",
+    help="Level(s) the fit's model error is measured against, comma-separated (each difference adds "
+    "its own term; default: the neighbouring coarser level).",
 )
 @click.option("--geometry", default=None, help="Fit's forward map: morph (default where available) or remesh.")
 @click.option("--frames", default=30, show_default=True, type=int, help="Lesion and background frames per lesion.")
@@ -222,16 +223,20 @@ def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, error_mesh, geometry, fram
 
     k, nsh = shard
     geometry = geometry or default_geometry()
-    alt_level = error_mesh or neighbour_level(fit_mesh)
-    if alt_level == fit_mesh:
-        raise UserError("--error-mesh", f"must differ from --fit-mesh ({fit_mesh})")
-    tag = f"{geometry}-{fit_mesh}" + ("" if alt_level == neighbour_level(fit_mesh) else f"-err-{alt_level}")
+    levels = [v.strip() for v in (error_mesh or neighbour_level(fit_mesh)).split(",")]
+    if any(v not in MESH_LEVELS or v == fit_mesh for v in levels) or len(set(levels)) != len(levels):
+        raise UserError(
+            "--error-mesh",
+            f"distinct levels of {', '.join(MESH_LEVELS)} other than --fit-mesh {fit_mesh} (got {error_mesh!r})",
+        )
+    alt_level = "+".join(levels)
+    tag = f"{geometry}-{fit_mesh}" + ("" if levels == [neighbour_level(fit_mesh)] else f"-err-{alt_level}")
     fits = os.path.join(out, f"fits-{tag}")
     os.makedirs(fits, exist_ok=True)
     acc: dict = {}
     t = time.perf_counter()
     fwd = _Timed(forward_map(fit_mesh, geometry), acc, "fit_level")
-    fwd_alt = _Timed(forward_map(alt_level, geometry), acc, "alt_level")
+    fwd_alt = [_Timed(forward_map(v, geometry), acc, "alt_level") for v in levels]
     cal = calibrate(out, truth_mesh, fwd, frames, seed, tag)
     setup = time.perf_counter() - t
     model = load_model(model_dir)
