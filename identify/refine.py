@@ -644,7 +644,7 @@ def fit_image(
     G = _dtheta_dx(x, thickness)
     JtJi = np.linalg.pinv(J.T @ J)
     C = G @ JtJi @ G.T * max(1.0, chi2)
-    for a in alt_images(x) if alt_maps else []:
+    for a in alt_images(x):
         # the discretisation error is one image, correlated over the pixels: propagate each level
         # difference through the estimator as a systematic shift, C_sys = Σ_k b_k b_kᵀ
         b = G @ JtJi @ J.T @ ((m(x) - a) / s_tot)

@@ -402,6 +402,8 @@ def test_cameramap_install_adds_the_camera_set_and_keeps_the_others(tmp_path):
     dest = tmp_path / "map.npz"
     shutil.copyfile(DEFAULT_MAP, dest)
     before = IdentifiabilityMap.load(dest)
+    with np.load(dest) as z:
+        entries = {k: z[k] for k in z.files if k != "source" and not k.startswith("camera")}
     run = CliRunner().invoke(main, ["install", "--out", str(out), "--map", str(dest)], standalone_mode=False)
     assert isinstance(run.exception, UserError) and "1 of 70 grid columns missing" in run.exception.message
     c = cols.shape[0] - 1
@@ -421,3 +423,9 @@ def test_cameramap_install_adds_the_camera_set_and_keeps_the_others(tmp_path):
     np.testing.assert_allclose(m.relstd["camera"][0, 0, :, 0], 0.03)
     np.testing.assert_allclose(m.relstd["camera"][-1, -1, :, 2], 0.5)
     assert m.camera_frames == 30 and np.allclose(m.camera_sigma, 5e-5) and m.source.count("camera set:") == 1
+    # every other entry of the file stays, also those IdentifiabilityMap does not read (crbmap's raw
+    # surrogate bounds and FD scales, which crbmap --surrogate-from needs)
+    with np.load(dest) as z:
+        for k, v in entries.items():
+            np.testing.assert_array_equal(z[k], v, err_msg=k)
+    assert any(k.endswith("_surrogate") for k in entries)

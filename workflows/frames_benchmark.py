@@ -441,7 +441,8 @@ def plot(recs: list[dict], path: str, region_set: str = "frames") -> None:
     "image = 1 % of the peak per pixel (earlier tables).",
 )
 def report_cmd(out, fits_name, region_set):
-    """Table (printed and OUT/benchmark.md), OUT/benchmark.json and OUT/benchmark.png."""
+    """Table (printed and OUT/benchmark.md), OUT/benchmark.json and OUT/benchmark.png (``-FITS`` and
+    ``-SET`` added to the names when OUT holds several fits folders or the regions are not ``frames``)."""
     import glob
     import json
 
@@ -474,7 +475,12 @@ def report_cmd(out, fits_name, region_set):
         f"model_mismatch {sm['model_mismatch']}"
     )
     md = head + "\n\n" + table(sm) + "\n\n" + foot + "\n"
-    stem = "benchmark" if region_set == "frames" else f"benchmark-{region_set}"
+    # one fits folder: OUT/benchmark[-SET].*; several: the folder's name too, so that none overwrites another
+    stem = (
+        "benchmark"
+        + ("" if len(names) == 1 else f"-{fits_name}")
+        + ("" if region_set == "frames" else f"-{region_set}")
+    )
     with open(os.path.join(out, f"{stem}.md"), "w") as fh:
         fh.write(md)
     with open(os.path.join(out, f"{stem}.json"), "w") as fh:

@@ -22,7 +22,8 @@ small deep one far worse.  This study gives the bound for what a camera actually
 
 ``install`` adds the set ``camera`` (and the nominal noise map ``camera_sigma``, mm per pixel, and
 ``camera_frames``) to the shipped map (:data:`elastimap.identify.region.DEFAULT_MAP`) through
-:func:`elastimap.workflows.studies.crbmap.install_map`, keeping its other sets.  Inference from
+:func:`elastimap.workflows.studies.crbmap.install_map`, keeping every other entry of the file
+(its sets and crbmap's raw surrogate bounds and FD scales).  Inference from
 frames scales the set by the frames' own noise against ``camera_sigma``
 (:meth:`elastimap.identify.region.IdentifiabilityMap.camera_scale`).  ``crbmap --install`` writes
 a map without this set: run ``install`` again after it.  The bound holds for the model's physics
@@ -121,22 +122,28 @@ def install_cmd(out, map_path):
     theta = np.concatenate([z["theta"] for z in zs])
     if not np.allclose(theta, T):
         raise UserError("--out", f"{out}: the columns are not on this map's grid")
-    r = np.concatenate([z["r"] for z in zs]).reshape(len(ds), len(us), len(Es), 3)
+    r = np.concatenate([z["r"] for z in zs])
+    (mesh,), (nframes,) = meshes, frames
     sigma = np.median(np.stack([z["sigma"] for z in zs]), axis=0)
     dest = map_path or DEFAULT_MAP
     m = IdentifiabilityMap.load(dest)
     if not (np.allclose(m.d, ds) and np.allclose(m.u, us) and np.allclose(m.E, Es)):
         raise UserError("--map", f"{dest}: not on the grid of elastimap.identify.local.grid")
-    m.relstd["camera"] = r
-    m.camera_sigma, m.camera_frames = sigma, frames.pop()
-    m.source = (
-        m.source.split("; camera set:")[0]
-        + f"; camera set: python -m elastimap.workflows.studies.cameramap on the {meshes.pop()} morphed map, "
-        f"nominal SYNTHETIC camera, {m.camera_frames} frames"
+    # every entry of the file stays (crbmap's raw surrogate bounds and FD scales, which
+    # ``crbmap --surrogate-from`` reads, are not part of IdentifiabilityMap); the camera ones are added
+    with np.load(dest, allow_pickle=False) as z:
+        entries = {k: z[k] for k in z.files}
+    entries.update(
+        camera=r,
+        camera_sigma=sigma,
+        camera_frames=nframes,
+        source=m.source.split("; camera set:")[0]
+        + f"; camera set: python -m elastimap.workflows.studies.cameramap on the {mesh} morphed map, "
+        f"nominal SYNTHETIC camera, {nframes} frames",
     )
     with tempfile.TemporaryDirectory() as tmp:
         src = os.path.join(tmp, "map.npz")
-        m.save(src)
+        np.savez(src, **entries)
         install_map(src, dest)
     click.echo(f"camera set ({ncol} columns, {T.shape[0]} points) added to {dest}")
 
