@@ -363,6 +363,16 @@ def calibrate(
     default="coarse",
     help="--refine: mesh level of the forward map (its error is measured against the neighbouring level).",
 )
+@click.option(
+    "--refine-correct",
+    "correct",
+    default=None,
+    metavar="LEVEL",
+    help="--refine: a finer mesh level (e.g. fine) whose solve corrects the forward map's defect at the start "
+    "of each pass after the first; the fit then stands for that level and its error is measured against "
+    "that level's neighbour.  Removes most of the coarse map's bias in d and E (docs/camera.md 4e) at "
+    "one or two solves of that level per lesion (about 10-20 s more on the fine mesh).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also write .csv or .json here.")
 def infer(
@@ -378,6 +388,7 @@ def infer(
     refine,
     image_noise,
     mesh,
+    correct,
     as_json,
     out,
 ):
@@ -413,6 +424,16 @@ def infer(
         raise UserError("--refine", "needs an image (--fem-image, --images or --csv) and an image model, not features")
     if refine and not 0 < image_noise < 1:
         raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
+    if correct is not None:
+        from elastimap.solver.params import MESH_LEVELS
+
+        if not refine:
+            raise UserError("--refine-correct", "only applies with --refine")
+        if correct not in MESH_LEVELS or MESH_LEVELS.index(correct) <= MESH_LEVELS.index(mesh):
+            finer = ", ".join(MESH_LEVELS[MESH_LEVELS.index(mesh) + 1 :])
+            raise UserError(
+                "--refine-correct", f"must be a mesh level finer than --mesh {mesh}: {finer} (got {correct!r})"
+            )
     if fem_image is not None and not os.path.isfile(fem_image):
         raise UserError("--fem-image", f"{fem_image}: no such file")
     if out:
@@ -460,6 +481,7 @@ def infer(
                 None,
                 image_noise=image_noise,
                 mesh=mesh,
+                correct=correct,
                 threshold=threshold,
                 progress=lambda i, n: bar.update(1),
             )

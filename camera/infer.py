@@ -376,6 +376,8 @@ def refine_estimates(
     forward=None,
     forward_alt=None,
     geometry: str | None = None,
+    forward_fine=None,
+    correct: str | None = None,
 ) -> list[Estimate]:
     """Refine image-model estimates by the maximum-likelihood fit of the forward map
     (:func:`elastimap.identify.refine.fit_image`).
@@ -387,7 +389,11 @@ def refine_estimates(
     difference of two mesh levels at the estimate (no assumed floor).  Forward map:
     ``forward``/``forward_alt`` (``(d, h, E) -> image``) or, by default, the solver's map at
     ``mesh`` and its neighbouring level (:func:`elastimap.identify.refine.forward_map`, mesh
-    morphing where available; runs DOLFINx).  ``progress(i, n)`` after each lesion.
+    morphing where available; runs DOLFINx); ``forward_fine``, or by default with ``correct`` (a mesh
+    level finer than ``mesh``) the solver's map at that level: its defect corrects the map at the start
+    of every pass after the first, and the model error is then measured between ``correct`` and its
+    neighbouring level (:func:`elastimap.identify.refine.fit_image`).  ``progress(i, n)`` after each
+    lesion.
 
     Each estimate's mean becomes the fitted (d, h, E), ``sd``/``crb`` the Gauss–Newton standard
     deviation (relative for ``crb``), ``lo``/``hi`` its 95 % interval (no tuned factor);
@@ -404,16 +410,28 @@ def refine_estimates(
         imgs = [np.asarray(e.image, dtype=float) for e in ests]
     else:
         imgs = list(np.asarray(images, dtype=float).reshape(len(ests), -1))
+    if correct is not None:
+        from elastimap.solver.params import MESH_LEVELS
+
+        if (
+            correct not in MESH_LEVELS
+            or mesh not in MESH_LEVELS
+            or MESH_LEVELS.index(correct) <= MESH_LEVELS.index(mesh)
+        ):
+            raise UserError("correct", f"must be a mesh level finer than {mesh!r}: one of {', '.join(MESH_LEVELS)}")
     if forward is None:
         forward = shared_map(mesh, geometry)
-        forward_alt = shared_map(neighbour_level(mesh), geometry) if forward_alt is None else forward_alt
+        top = correct or mesh  # the level the (corrected) map stands for
+        forward_alt = shared_map(neighbour_level(top), geometry) if forward_alt is None else forward_alt
+        if correct is not None and forward_fine is None:
+            forward_fine = shared_map(correct, geometry)
     for i, (e, img) in enumerate(zip(ests, imgs)):
         if "no_signal" not in e.flags:
             n = int(round(math.sqrt(img.size)))
             img2 = img.reshape(n, n) if n * n == img.size else img
             pk = np.abs(img).max()
             sig = np.asarray(e.sigma, float).reshape(img2.shape) if e.sigma is not None else image_noise * pk
-            r = fit_image(img2, sig, e.mean, forward, forward_alt=forward_alt)
+            r = fit_image(img2, sig, e.mean, forward, forward_alt=forward_alt, forward_fine=forward_fine)
             e.mean = r.theta
             e.crb = r.relstd
             e.sd = r.sd

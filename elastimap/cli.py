@@ -56,6 +56,10 @@ STUDIES = {
         "elastimap.workflows.studies.cameramap:main",
         "The camera-frames set of the identifiability map (nominal camera's noise).",
     ),
+    "levelbias": (
+        "elastimap.workflows.studies.levelbias:main",
+        "Each mesh level's image error against a finer world and the (d, h, E) shift it causes.",
+    ),
     "fdgrid": (
         "elastimap.workflows.studies.fdgrid:main",
         "Real finite-difference Jacobians on a grid of design points.",

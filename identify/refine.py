@@ -30,18 +30,32 @@ so the feasible set is the box ``[d_lo, d_hi] x [0, 1] x [ln E_lo, ln E_hi]`` (t
 Start: ``θ₀`` and, at its (d, h), five values of E spread log-evenly over the box (E-only
 evaluations); the best of them.  Minimiser: :func:`scipy.optimize.least_squares` (trust-region
 reflective, bounds).  Each pass pins
-the morphed map's reference mesh where it starts (one smooth map per pass), re-measures the model
-error there and takes the Jacobian from the map's exact derivative where it has one
+the morphed map's reference mesh where it starts (one smooth map per pass), measures the model
+error there (held for the pass and, for the last pass, for the covariance) and takes the Jacobian
+at its start from the map's exact derivative where it has one
 (:meth:`ForwardMap.tangent`: ``∂m/∂θ`` by one back-solve per parameter with the solve's own
-factorisation, :meth:`elastimap.solver.morph.MorphedForward.solve_tangent`), at every evaluated
-point.  A pinned morphed map also takes its reference press (the no-inclusion solve it subtracts)
+factorisation, :meth:`elastimap.solver.morph.MorphedForward.solve_tangent`), else by central
+differences, carried within the pass by Broyden's rank-one update (below); the covariance takes
+the exact derivative at the estimate.  A pinned morphed map also takes its reference press (the no-inclusion solve it subtracts)
 to first order in (d, h) about the pin (exact there; one linear solve per evaluation instead of two;
 the difference is second order in the move; measured against the map's own discretisation error
 in docs/camera.md 4c).  The neighbouring level re-solves its press (:meth:`ForwardMap.pin_exact`),
-so the measured model error ``δ`` holds the linearisation's error as well.  A map without a derivative gets central differences at the start of each
-pass (steps :data:`FD_STEPS`: 0.15 mm in d and h, 3 % in E; the E step first, so the map reuses its
-reference solve), carried within the pass by Broyden's rank-one update
-(``J ← J + ((r₊ − r) − J Δx) Δxᵀ / |Δx|²``), one map evaluation per step.  A step that lowers ½χ²
+so the measured model error ``δ`` holds the linearisation's error as well.  Central differences
+(for a map without a derivative) take steps :data:`FD_STEPS`: 0.15 mm in d and h, 3 % in E (the E
+step first, so the map reuses its reference solve); Broyden's rank-one update is
+``J ← J + ((r₊ − r) − J Δx) Δxᵀ / |Δx|²``, one map evaluation per step.
+
+Defect correction by a finer level (``forward_fine``, :func:`fit_forward` ``correct=``).  The
+coarse map's discretisation error moves the estimate along the d–h–E valley by more than the
+camera's bound (docs/camera.md 4e).  With a finer level ``m_f`` of the same map, pass 0 fits the
+coarse map alone; every later pass fits
+
+    m̃(x) = m(x) + [m_f(x_s) − m(x_s)]      (x_s the pass's start)
+
+which equals the finer map at ``x_s`` and has the coarse map's derivative: the fixed point of the
+passes is the finer map's fit (defect correction; one finer solve per pass, the coarse map's
+derivative and solves everywhere else).  The model error is then the finer map's: measured against
+the finer level's neighbour.  A step that lowers ½χ²
 by less than 0.05 ends a pass; a pass that moves no parameter by more than 0.2 of its standard
 deviation ends the fit (at most two passes).
 
@@ -408,6 +422,7 @@ class FitResult:
     seconds: float
     message: str
     at_bound: list[str] = field(default_factory=list)  # parameters that ended on the design box's edge
+    n_fine: int = 0  # evaluations of the finer level (defect corrections, ``forward_fine``)
 
     @property
     def sd(self) -> np.ndarray:
@@ -419,6 +434,13 @@ def _box(d_range, E_range):
     lb = np.array([d_range[0], 0.0, math.log(E_range[0])])
     ub = np.array([d_range[1], 1.0, math.log(E_range[1])])
     return lb, ub
+
+
+def _pinned_exact(f, d: float, h: float):
+    """``f`` pinned at (d, h) with its reference press re-solved there (``pin_exact``), else
+    ``pin``, else ``f`` itself."""
+    p = getattr(f, "pin_exact", None) or getattr(f, "pin", None)
+    return p(d, h) if p is not None else f
 
 
 def _local_rms(diff: np.ndarray, shape) -> np.ndarray:
@@ -436,6 +458,7 @@ def fit_image(
     forward: Callable,
     *,
     forward_alt: Callable | list | None = None,
+    forward_fine: Callable | None = None,
     d_range=DESIGN_BOX["d"],
     E_range=DESIGN_BOX["E"],
     thickness: float = THICKNESS,
@@ -455,7 +478,11 @@ def fit_image(
     model error also holds the error of the fit map's linearised reference press).  ``forward_alt``
     may be a list of maps (several levels): each difference enters σ_model² and the systematic
     covariance as its own term.  Without ``forward_alt`` the
-    model error is taken as zero (say so when reporting).  ``max_nfev`` bounds the trial points
+    model error is taken as zero (say so when reporting).  ``forward_fine``: a finer level of the
+    same map (pinned by its ``pin_exact``); each pass then fits the defect-corrected map
+    ``m(x) + [m_fine(x_s) − m(x_s)]`` (``x_s`` the pass's start), which equals the finer map at
+    ``x_s`` and has the cheaper map's derivative, and ``forward_alt`` should be the finer map's
+    neighbouring level (its error is what the corrected map carries).  ``max_nfev`` bounds the trial points
     per pass, ``max_passes`` the passes (each from a fresh central-difference Jacobian); ``e_scan``
     values of ln E spread over the box are tried at the start's (d, h) first, and the fit starts
     from the best of them and ``theta0`` (0 or 1: no scan).  ``tangent``: use the map's exact
@@ -487,28 +514,45 @@ def fit_image(
     alt_maps = (
         [] if forward_alt is None else list(forward_alt) if isinstance(forward_alt, (list, tuple)) else [forward_alt]
     )
-    cur = {"f": forward, "a": list(alt_maps)}
+    cur = {"f": forward, "a": list(alt_maps), "corr": 0.0, "delta": []}
+    n_fine, n_eval = [0], [0]
     if tangent is None:
         tangent = bool(getattr(forward, "has_tangent", False))
     elif tangent and not getattr(forward, "has_tangent", False):
         raise UserError("tangent", "this forward map has no exact derivative (use central differences)")
 
-    def pin(x):
+    def pin(x, correct: bool = True, measure: bool = True):
         """Pin the maps' reference meshes at ``x`` (maps with a ``pin(d, h)``), so that one pass
-        sees one smooth map."""
+        sees one smooth map, take (``correct``, with ``forward_fine``) the defect correction
+        ``m_fine(x) − m(x)`` there and (``measure``) the model error, the differences
+        ``m(x) − m_alt,k(x)``, held for the pass (and, for the last, for the covariance)."""
         d, h, _ = to_theta(x, thickness)
         cur["f"] = forward.pin(d, h) if hasattr(forward, "pin") else forward
         for i, fa in enumerate(alt_maps):  # exact where it can be: the model error then measures the linearisation too
-            pin_alt = getattr(fa, "pin_exact", None) or getattr(fa, "pin", None)
-            cur["a"][i] = pin_alt(d, h) if pin_alt is not None else fa
+            cur["a"][i] = _pinned_exact(fa, d, h)
+        cur["corr"] = 0.0
+        if correct and forward_fine is not None:
+            fine = image_of(_pinned_exact(forward_fine, d, h)(*to_theta(x, thickness))).ravel()
+            if fine.shape != I.shape:
+                raise RuntimeError(f"the finer forward map returned {fine.size} pixels, the image has {I.size}")
+            n_fine[0] += 1
+            cur["corr"] = fine - mc(x)
+        cur["delta"] = [m(x) - a for a in alt_images(x)] if measure else []
 
     def key(x, f):
         return (getattr(f, "key", None), *np.round(np.asarray(x, float), 10))
 
     def m(x):
+        """The map the fit sees: the pinned map plus the pass's defect correction (zero without
+        ``forward_fine``)."""
+        return mc(x) + cur["corr"]
+
+    def mc(x, need_j: bool = True):
+        """The pinned map at ``x`` (and, with ``need_j``, its exact derivative where used)."""
         k = key(x, cur["f"])
-        if k not in maps:
-            if tangent:
+        if k not in maps or (tangent and need_j and k not in jacs):
+            n_eval[0] += 1
+            if tangent and need_j:
                 out, jt = cur["f"].tangent(*to_theta(x, thickness))
                 jacs[k] = np.asarray(jt, dtype=float).reshape(3, -1).T
             else:
@@ -532,12 +576,12 @@ def fit_image(
             out.append(alts[k])
         return out
 
-    def sigma_at(x):
-        """Total and model per-pixel σ at ``x``: σ_model² = Σ_k local rms(m − a_k)² over the other
-        levels' images a_k (one level: its difference)."""
-        if not alt_maps:
+    def sigma():
+        """Total and model per-pixel σ: σ_model² = Σ_k local rms(δ_k)² over the level differences
+        δ_k measured where the pass started (:func:`pin`; one level: its difference)."""
+        if not cur["delta"]:
             return s_meas, np.zeros_like(s_meas)
-        sm = np.sqrt(sum(_local_rms(m(x) - a, shape) ** 2 for a in alt_images(x)))
+        sm = np.sqrt(sum(_local_rms(dl, shape) ** 2 for dl in cur["delta"]))
         return np.hypot(s_meas, sm), sm
 
     def steps_at(x):
@@ -546,7 +590,7 @@ def fit_image(
 
     def exact_jac(x, s):
         """The map's derivative in x units, whitened by ``s``: ∂m/∂x = [∂m/∂d, ∂m/∂h, E ∂m/∂E] ∂(d, h, ln E)/∂x."""
-        m(x)
+        mc(x)
         jt = jacs[key(x, cur["f"])] * np.array([1.0, 1.0, math.exp(float(x[2]))])
         return (jt @ _dtheta_dx(x, thickness)) / s[:, None]
 
@@ -573,12 +617,10 @@ def fit_image(
         state = {"x": None, "J": None, "r": None}
 
         def resid(x):
-            return (m(x) - I) / s
+            return (mc(x, need_j=False) + cur["corr"] - I) / s
 
         def jac(x):
             x = np.asarray(x, float)
-            if tangent:
-                return exact_jac(x, s)
             if state["J"] is None:
                 J = J0
             else:  # Broyden's rank-one update from the last accepted point
@@ -604,8 +646,8 @@ def fit_image(
         )
         return np.clip(res.x, lb, ub), res
 
-    pin(x0)
-    s_tot, _ = sigma_at(x0)
+    pin(x0, correct=False, measure=False)  # the start and the E scan: the map alone, σ_meas
+    s_tot = s_meas
     r0 = (m(x0) - I) / s_tot
     if e_scan > 1:
         # a start's E can be far off (the d–E valley is long): scan ln E over the box at the start's
@@ -613,29 +655,31 @@ def fit_image(
         best = float(r0 @ r0)
         for lnE in np.linspace(lb[2] + pad[2], ub[2] - pad[2], e_scan):
             xc = np.array([x0[0], x0[1], lnE])
-            rc = (m(xc) - I) / s_tot
+            rc = (mc(xc, need_j=False) - I) / s_tot
             if float(rc @ rc) < best:
                 best, x0 = float(rc @ rc), xc
-        s_tot, _ = sigma_at(x0)
     x, msg, J = x0, [], None
-    for k in range(max_passes):
-        # each pass starts from a fresh Jacobian (exact, or central differences), the model error
-        # measured and the reference meshes pinned where it starts; the fit is accepted when a pass moves no
-        # parameter by more than 0.2 of its standard deviation (from that Jacobian)
-        if k:
-            pin(x)
-        s_tot, _ = sigma_at(x)
+    first = 1 if forward_fine is not None else 0  # the first corrected pass
+    for k in range(max_passes + first):
+        # each pass starts from a fresh Jacobian (exact, or central differences), the reference
+        # meshes pinned, the model error measured and (from pass ``first`` on) the map corrected
+        # where it starts; the fit is accepted when such a pass moves no parameter by more than 0.2
+        # of its standard deviation (from that Jacobian).  With ``forward_fine`` pass 0 fits the
+        # cheaper map alone (σ_meas), so that the finer map is first evaluated near the answer.
+        pin(x, correct=k >= first, measure=k >= first)
+        s_tot, _ = sigma()
         J = fd_jac(x, s_tot)
         xn, res = one_pass(x, s_tot, J)
         msg.append(str(res.message))
         sd_x = np.sqrt(np.clip(np.diag(np.linalg.pinv(J.T @ J)), 0, None))
         moved = bool(np.any(np.abs(xn - x) > np.maximum(0.2 * sd_x, 1e-9)))
         x = xn
-        if not moved:
+        if not moved and k >= first:
             break
     else:
         msg.append(f"still moving after {max_passes} passes")
-    s_tot, s_mod = sigma_at(x)
+    cur["delta"] = [m(x) - a for a in alt_images(x)]  # the model error at the estimate
+    s_tot, s_mod = sigma()
     if tangent or J is None or moved:
         J = fd_jac(x, s_tot)
     r = (m(x) - I) / s_tot
@@ -644,10 +688,11 @@ def fit_image(
     G = _dtheta_dx(x, thickness)
     JtJi = np.linalg.pinv(J.T @ J)
     C = G @ JtJi @ G.T * max(1.0, chi2)
-    for a in alt_images(x):
+    for dl in cur["delta"]:
         # the discretisation error is one image, correlated over the pixels: propagate each level
-        # difference through the estimator as a systematic shift, C_sys = Σ_k b_k b_kᵀ
-        b = G @ JtJi @ J.T @ ((m(x) - a) / s_tot)
+        # difference (measured where the last pass started) through the estimator as a systematic
+        # shift, C_sys = Σ_k b_k b_kᵀ
+        b = G @ JtJi @ J.T @ (dl / s_tot)
         C = C + np.outer(b, b)
     th = to_theta(x, thickness)
     sd = np.sqrt(np.clip(np.diag(C), 0, None))
@@ -669,11 +714,12 @@ def fit_image(
         chi2,
         float(r0 @ r0) / dof,
         me,
-        len(maps),
+        n_eval[0],
         len(alts),
         time.perf_counter() - t0,
         "; ".join(msg),
         at,
+        n_fine[0],
     )
 
 
@@ -784,15 +830,25 @@ def forward_map(mesh: str = "coarse", geometry: str | None = None, template=None
     return forward
 
 
-def fit_forward(image, sigma, theta0, mesh: str = "coarse", geometry: str | None = None, **kw) -> FitResult:
+def fit_forward(
+    image, sigma, theta0, mesh: str = "coarse", geometry: str | None = None, correct: str | None = None, **kw
+) -> FitResult:
     """:func:`fit_image` on :func:`forward_map` at ``mesh`` with its model error measured against the
-    neighbouring level (:func:`neighbour_level`)."""
+    neighbouring level (:func:`neighbour_level`); with ``correct`` (a finer level) the map is
+    defect-corrected by that level (``forward_fine``) and its error measured against ``correct``'s
+    neighbouring level."""
+    from elastimap.solver.params import MESH_LEVELS
+
+    neighbour_level(mesh)  # checks the level
+    if correct is not None and (correct not in MESH_LEVELS or MESH_LEVELS.index(correct) <= MESH_LEVELS.index(mesh)):
+        raise UserError("correct", f"must be a mesh level finer than {mesh!r}: one of {', '.join(MESH_LEVELS)}")
     return fit_image(
         image,
         sigma,
         theta0,
         shared_map(mesh, geometry),
-        forward_alt=shared_map(neighbour_level(mesh), geometry),
+        forward_alt=shared_map(neighbour_level(correct or mesh), geometry),
+        forward_fine=shared_map(correct, geometry) if correct else None,
         **kw,
     )
 

@@ -89,6 +89,7 @@ class Model:
         # rebuilt every solve) by its own factors; each solver is made when first needed
         self.lu: LU | None = None
         self.recycled: dict[str, Recycled] = {}
+        self.refactor_after: int | None = None  # Recycled's: refactorise after this many CG iterations
         self.last_linear: LU | Recycled | None = None  # what the last linear solve used (``resolve``)
         self.newton = self._finite_strain() if self.materials.beta is not None else None
         self._warm = None  # (prescribed-values key, u) of the last Newton solution
@@ -139,7 +140,7 @@ class Model:
         if friction is None:
             kind = "reference" if E_inclusion == self.p.tissue.E else "inclusion"
             if kind not in self.recycled:
-                self.recycled[kind] = Recycled(kind)
+                self.recycled[kind] = Recycled(kind, refactor_after=self.refactor_after)
             rec = self.last_linear = self.recycled[kind]
             # an inclusion modulus far from the factorised one (rec.tag): cond(K₀⁻¹K) up to the
             # ratio, more CG iterations than a factorisation costs (a sweep's E, not a variant's)

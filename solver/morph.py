@@ -108,6 +108,10 @@ S_ANCHOR = math.log(3.0 / 9.0)
 #: volume, or its shape quality below this fraction of the reference mesh's worst
 MIN_VOLUME_RATIO = 0.2
 MIN_QUALITY_RATIO = 0.3
+#: a morphed model's CG solves on another sample's factors refactorise after this many iterations
+#: (:class:`~elastimap.solver.reduction.Recycled`): on the coarse mesh one iteration costs about
+#: 17 ms and a factorisation about 0.35 s, and a tangent re-uses the factors three times
+REFACTOR_AFTER = 6
 
 
 @dataclass(frozen=True)
@@ -276,6 +280,9 @@ class _Entry:
         self.raw = build_mesh(p0)
         self.motion = MeshMotion(self.raw, p0)
         self.model = _recording_model_class()(self.raw, p0)
+        # a fit moves the mesh away from the factorised one a little per sample: refactorise once CG
+        # needs more iterations than a factorisation costs back-substitutions' worth (measured)
+        self.model.refactor_after = REFACTOR_AFTER
         self.igi = np.asarray(self.model.mesh.geometry.input_global_indices, dtype=np.int64)
         self.at = (ref.d0, ref.h0)
         self.reference_solve = None  # (d, h, tuple) of the last reference solve

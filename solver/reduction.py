@@ -237,15 +237,22 @@ class Recycled:
     κ ≤ max s_i / min s_i: a 40 % change of one layer's modulus, κ ≤ 1.4, needs about 10 iterations for the
     relative tolerance ``rtol`` = 1e-12 (Saad 2003, §6.11, §9.2).  When CG has not converged in
     ``max_it`` iterations, or the constraints (``key``: the active set) changed, K is
-    factorised afresh (K₀ := K) and solved with its own factors.  K must be symmetric positive
-    definite (the linear stiffness with the rigid modes constrained)."""
+    factorised afresh (K₀ := K) and solved with its own factors.  ``refactor_after``: K is also
+    factorised (after its CG solve) when CG needed more than that many iterations, so that the
+    solves that follow with K or a matrix near it (:meth:`resolve`: a tangent's back-solves; the
+    next sample of a fit that drifts away from K₀, e.g. a morphed mesh) cost one back-substitution
+    each instead of a growing number of iterations; None: only when CG fails.  K must be symmetric
+    positive definite (the linear stiffness with the rigid modes constrained)."""
 
-    def __init__(self, name: str = "recycled", rtol: float = 1e-12, max_it: int = 30):
+    def __init__(
+        self, name: str = "recycled", rtol: float = 1e-12, max_it: int = 30, refactor_after: int | None = None
+    ):
         self.ksp = mumps_ksp(f"elastimap_{id(self)}_{name}_", "cg", "cholesky")
         self.ksp.setTolerances(rtol=rtol, atol=0.0, max_it=max_it)
         self.K0: PETSc.Mat | None = None  # the factorised matrix
         self.key: bytes | None = None
         self.tag = None  # what the caller said of K₀ when it was factorised (``solve(tag=)``)
+        self.refactor_after = refactor_after
         self.factorisations = 0
         self.iterations = 0  # CG iterations with another matrix's factors
 
@@ -275,7 +282,10 @@ class Recycled:
             self.ksp.setOperators(K, self.K0)  # K₀ unchanged: its factors are reused
             self.ksp.solve(f, x)
             if self.ksp.getConvergedReason() > 0:
-                self.iterations += self.ksp.getIterationNumber()
+                n = self.ksp.getIterationNumber()
+                self.iterations += n
+                if self.refactor_after is not None and n > self.refactor_after:
+                    self._factorise(K, key, tag)  # K₀ := K, factorised when next solved with
                 return x
         if not equal:  # new constraints, far from K₀, or CG did not converge: K's own factors
             self._factorise(K, key, tag)

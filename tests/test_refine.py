@@ -168,3 +168,66 @@ def test_several_model_error_levels_add_their_variances():
     assert np.all(both.relstd >= np.maximum(one.relstd, other.relstd) * (1 - 1e-6))
     assert both.n_alt == one.n_alt + other.n_alt
     assert twice.model_error == pytest.approx(np.sqrt(2) * one.model_error, rel=1e-6)
+
+
+def test_defect_correction_by_a_finer_level_removes_the_cheaper_maps_bias():
+    """fit_image with ``forward_fine`` (SYNTHETIC: the 'finer level' is the bump itself, the cheaper
+    map the bump with d scaled by 0.97): the cheaper map alone lands ~3 % off in d; corrected at the
+    start of each pass by the finer level's defect, the fit converges to the truth (the fixed point
+    of m(x) + m_fine(x_s) − m(x_s) = I is m_fine(x) = I), with a few finer evaluations."""
+    from elastimap.identify.refine import fit_image
+
+    truth = np.array([8.0, 7.0, 60.0])
+    I = bump(truth)
+    sig = 2e-3 * I.max()
+
+    def cheap(d, h, E):
+        return bump((0.97 * d, h, E))
+
+    kw = {"e_scan": 0, "tangent": False, "max_passes": 4}
+    plain = fit_image(I, sig, truth, cheap, **kw)
+    corrected = fit_image(I, sig, truth, cheap, forward_fine=lambda d, h, E: bump((d, h, E)), **kw)
+    assert abs(plain.theta[0] / truth[0] - 1) > 0.02  # the cheaper map's bias
+    np.testing.assert_allclose(corrected.theta, truth, rtol=2e-3)
+    assert 1 <= corrected.n_fine <= 4 and plain.n_fine == 0
+    assert corrected.chi2_red < 1e-2  # the corrected map reproduces the image (so does the biased one here)
+
+
+@pytest.mark.parametrize(
+    ("extra", "says"),
+    [
+        (["--refine-correct", "fine"], "only applies with --refine"),
+        (["--refine", "--mesh", "default", "--refine-correct", "coarse"], "finer than --mesh default: fine, finer"),
+        (["--refine", "--refine-correct", "huge"], "finer than --mesh coarse"),
+    ],
+)
+def test_cli_refine_correct_names_what_is_allowed(tmp_path, extra, says):
+    import subprocess
+    import sys
+
+    fem = tmp_path / "img.npy"
+    np.save(fem, np.zeros((4, 4)))
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "elastimap.camera.cli",
+            "infer",
+            "--model",
+            str(tmp_path),
+            "--fem-image",
+            str(fem),
+            *extra,
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 2 and "--refine-correct" in r.stderr and says in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_refine_estimates_checks_the_correcting_level():
+    from elastimap.camera.infer import refine_estimates
+
+    with pytest.raises(UserError, match="correct"):
+        refine_estimates([], None, mesh="default", correct="coarse")

@@ -309,3 +309,23 @@ def test_recycled_factors_solve_nearby_matrices_like_a_direct_solver():
         assert rec.tag == (1.0, b"b")  # the tag of the last factorised matrix
     finally:
         rec.destroy()
+
+    # refactor_after: a CG solve that needed more iterations than that factorises its matrix, so the
+    # back-solves that follow with it (a tangent's) are exact in one step
+    rec = Recycled("t_recycled_refactor", refactor_after=0)
+    try:
+        for scale in (1.0, 1.4):
+            M = stiffness(k0 * np.where(mid > 0.5, scale, 1.0))
+            n_fact, n_it = rec.factorisations, rec.iterations
+            f = PETSc.Vec().createWithArray(b.copy(), comm=PETSc.COMM_SELF)
+            K = petsc(M)
+            u = rec.solve(K, f, b"a", tag=scale).getArray().copy()
+            assert np.abs(u - spla.spsolve(M.tocsc(), b)).max() <= 1e-9 * np.abs(u).max()
+        assert rec.iterations > n_it and rec.factorisations == n_fact + 1 and rec.tag == 1.4
+        n_it = rec.iterations
+        g = np.cos(2 * x[1:-1])
+        v = rec.resolve(PETSc.Vec().createWithArray(g.copy(), comm=PETSc.COMM_SELF)).getArray().copy()
+        assert rec.iterations == n_it  # its own factors now: no CG
+        assert np.abs(v - spla.spsolve(M.tocsc(), g)).max() <= 1e-9 * np.abs(v).max()
+    finally:
+        rec.destroy()

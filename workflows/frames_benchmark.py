@@ -17,10 +17,14 @@ FEM side -- reference press, scale, feature lines -- from the fit's forward map)
 the FEM-equivalent difference image and its per-pixel noise (:mod:`elastimap.camera.deflection`) ->
 the image network (``--model``) -> the maximum-likelihood fit on the forward map at ``--fit-mesh``
 (:func:`elastimap.camera.infer.refine_estimates`), its model error measured against
-``--error-mesh`` (default: the neighbouring coarser level).  One JSON file per lesion in ``OUT/fits``
-(resumable; ``--shard K/N`` splits the lesions between processes; the calibration and the fits
-are kept per forward map, ``OUT/cal-<tag>.json`` and ``OUT/fits-<tag>``, tag ``<geometry>-<mesh>``
-plus ``-err-<level>`` when ``--error-mesh`` is not the default).
+``--error-mesh`` (default: the neighbouring coarser level).  ``--correct-mesh LEVEL`` (finer than
+``--fit-mesh``) defect-corrects the fit's map by that level at the start of every pass after the
+first (``fit_image(forward_fine=...)``); the fit then stands for that level (the calibration's
+FEM side is solved on it) and its model error is measured against that level's neighbour.  One
+JSON file per lesion in ``OUT/fits`` (resumable; ``--shard K/N`` splits the lesions between
+processes; the calibration and the fits are kept per forward map, ``OUT/cal-<tag>.json`` and
+``OUT/fits-<tag>``, tag ``<geometry>-<mesh>`` plus ``-corr-<level>`` with ``--correct-mesh`` and
+``-err-<level>`` when ``--error-mesh`` is not the default).
 
     OMP_NUM_THREADS=1 .venv/bin/python workflows/frames_benchmark.py run --model M --out runs/frames-bench
 
@@ -206,12 +210,18 @@ class _Timed:
     help="Level(s) the fit's model error is measured against, comma-separated (each difference adds "
     "its own term; default: the neighbouring coarser level).",
 )
+@click.option(
+    "--correct-mesh",
+    default=None,
+    help="A finer level whose defect corrects the fit's map at the start of each pass (fit_image's "
+    "forward_fine); the model error is then measured against that level's neighbour unless --error-mesh.",
+)
 @click.option("--geometry", default=None, help="Fit's forward map: morph (default where available) or remesh.")
 @click.option("--frames", default=30, show_default=True, type=int, help="Lesion and background frames per lesion.")
 @shard_option("K/N: this process fits lesions i with i % N == K.")
 @click.option("--limit", default=0, type=int, help="Stop after this many new fits (0: all).")
 @click.option("--out", required=True)
-def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, error_mesh, geometry, frames, shard, limit, out):
+def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, error_mesh, correct_mesh, geometry, frames, shard, limit, out):
     """Frames -> network -> physics fit for every held-out lesion (resumable, one JSON per lesion)."""
     import json
 
@@ -223,21 +233,31 @@ def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, error_mesh, geometry, fram
 
     k, nsh = shard
     geometry = geometry or default_geometry()
-    levels = [v.strip() for v in (error_mesh or neighbour_level(fit_mesh)).split(",")]
-    if any(v not in MESH_LEVELS or v == fit_mesh for v in levels) or len(set(levels)) != len(levels):
+    if correct_mesh is not None and (
+        correct_mesh not in MESH_LEVELS or MESH_LEVELS.index(correct_mesh) <= MESH_LEVELS.index(fit_mesh)
+    ):
+        raise UserError(
+            "--correct-mesh", f"must be a level of {', '.join(MESH_LEVELS)} finer than --fit-mesh {fit_mesh}"
+        )
+    top = correct_mesh or fit_mesh  # the level the fit's (corrected) map stands for
+    levels = [v.strip() for v in (error_mesh or neighbour_level(top)).split(",")]
+    if any(v not in MESH_LEVELS or v == top for v in levels) or len(set(levels)) != len(levels):
         raise UserError(
             "--error-mesh",
-            f"distinct levels of {', '.join(MESH_LEVELS)} other than --fit-mesh {fit_mesh} (got {error_mesh!r})",
+            f"distinct levels of {', '.join(MESH_LEVELS)} other than {top} (got {error_mesh!r})",
         )
     alt_level = "+".join(levels)
-    tag = f"{geometry}-{fit_mesh}" + ("" if levels == [neighbour_level(fit_mesh)] else f"-err-{alt_level}")
+    tag = f"{geometry}-{fit_mesh}" + (f"-corr-{correct_mesh}" if correct_mesh else "")
+    tag += "" if levels == [neighbour_level(top)] else f"-err-{alt_level}"
     fits = os.path.join(out, f"fits-{tag}")
     os.makedirs(fits, exist_ok=True)
     acc: dict = {}
     t = time.perf_counter()
     fwd = _Timed(forward_map(fit_mesh, geometry), acc, "fit_level")
     fwd_alt = [_Timed(forward_map(v, geometry), acc, "alt_level") for v in levels]
-    cal = calibrate(out, truth_mesh, fwd, frames, seed, tag)
+    fwd_fine = _Timed(forward_map(correct_mesh, geometry), acc, "fine_level") if correct_mesh else None
+    # the calibration's FEM side: the map the fit stands for (the finer one when it corrects)
+    cal = calibrate(out, truth_mesh, fwd_fine or fwd, frames, seed, tag)
     setup = time.perf_counter() - t
     model = load_model(model_dir)
     idm = load_identifiability("default")
@@ -258,7 +278,7 @@ def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, error_mesh, geometry, fram
         t_net = time.perf_counter() - t1
         before = dict(acc)
         c0 = time.process_time()
-        (fit,) = refine_estimates([copy.deepcopy(net)], None, forward=fwd, forward_alt=fwd_alt)
+        (fit,) = refine_estimates([copy.deepcopy(net)], None, forward=fwd, forward_alt=fwd_alt, forward_fine=fwd_fine)
         cpu_fit = time.process_time() - c0
         spent = {key: acc.get(key, 0) - before.get(key, 0) for key in acc}
         rec = {
@@ -266,7 +286,9 @@ def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, error_mesh, geometry, fram
             "i": i,
             "truth": [float(d), float(h), float(E)],
             "world": f"remeshing solver, {truth_mesh} mesh, tied, quarter",
-            "fit_map": f"{geometry}, {fit_mesh} mesh; model error vs {alt_level}",
+            "fit_map": f"{geometry}, {fit_mesh} mesh"
+            + (f", defect-corrected by {correct_mesh}" if correct_mesh else "")
+            + f"; model error vs {alt_level}",
             "frames": frames,
             "image_peak_mm": float(w["image"].max()),
             "recovered_z_rms": float(np.sqrt(np.mean(((di.image - w["image"]) / di.sigma) ** 2))),
@@ -280,6 +302,8 @@ def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, error_mesh, geometry, fram
             "n_fit_level_solves": spent.get("fit_level_n", 0),
             "seconds_alt_level_solves": spent.get("alt_level", 0.0),
             "n_alt_level_solves": spent.get("alt_level_n", 0),
+            "seconds_fine_level_solves": spent.get("fine_level", 0.0),
+            "n_fine_level_solves": spent.get("fine_level_n", 0),
             "setup_seconds_this_process": setup,
         }
         tmp = path + ".tmp"
@@ -290,7 +314,8 @@ def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, error_mesh, geometry, fram
         click.echo(
             f"lesion {i}: truth {d:.2f}/{h:.2f}/{E:.1f}  net {net.d:.2f}/{net.h:.2f}/{net.E:.1f}  "
             f"fit {f['d']:.2f}/{f['h']:.2f}/{f['E']:.1f}  chi2 {f.get('fit_chi2_red', float('nan')):.2f}  "
-            f"{rec['seconds_fit']:.1f} s ({rec['n_fit_level_solves']}+{rec['n_alt_level_solves']} solves)",
+            f"{rec['seconds_fit']:.1f} s ({rec['n_fit_level_solves']}+{rec['n_alt_level_solves']}"
+            f"+{rec['n_fine_level_solves']} solves)",
             err=True,
         )
         done += 1
@@ -346,6 +371,8 @@ def summarise(recs: list[dict], region_set: str = "frames") -> dict:
     out["seconds_network"] = float(np.mean([r["seconds_camera_and_network"] for r in recs]))
     for key in ("seconds_fit_level_solves", "seconds_alt_level_solves", "n_fit_level_solves", "n_alt_level_solves"):
         out[key] = float(np.mean([r[key] for r in recs]))
+    for key in ("seconds_fine_level_solves", "n_fine_level_solves"):  # fits that correct by a finer level
+        out[key] = float(np.mean([r.get(key, 0.0) for r in recs]))
     out["no_signal"] = int(sum("no_signal" in r["fit"]["flags"] for r in recs))
     out["model_mismatch"] = int(sum("model_mismatch" in r["fit"]["flags"] for r in recs))
     out["chi2_red_median"] = float(np.nanmedian([r["fit"].get("fit_chi2_red", np.nan) for r in recs]))
@@ -469,7 +496,13 @@ def report_cmd(out, fits_name, region_set):
         f"fit CPU time per lesion (one core, process time): mean {sm['cpu_seconds_fit']['mean']:.1f} s, "
         f"median {sm['cpu_seconds_fit']['median']:.1f} s (the table's seconds are wall time on the shared machine); "
         f"fit: {sm['n_fit_level_solves']:.1f} solves at the fit's level ({sm['seconds_fit_level_solves']:.1f} s) + "
-        f"{sm['n_alt_level_solves']:.1f} at the model-error level ({sm['seconds_alt_level_solves']:.1f} s) per lesion "
+        f"{sm['n_alt_level_solves']:.1f} at the model-error level ({sm['seconds_alt_level_solves']:.1f} s) "
+        + (
+            f"+ {sm['n_fine_level_solves']:.1f} at the correcting level ({sm['seconds_fine_level_solves']:.1f} s) "
+            if sm.get("n_fine_level_solves")
+            else ""
+        )
+        + "per lesion "
         f"on average; median reduced chi2 {sm['chi2_red_median']:.2f}; no_signal {sm['no_signal']} (left out of the "
         f"errors, kept in the coverage), "
         f"model_mismatch {sm['model_mismatch']}"
