@@ -20,12 +20,21 @@ DEFAULT_CACHE = "data/identify/solves"
 _STORES: dict = {}
 
 
-def _params(d: float, h: float, E: float, mesh: str, delta: float, nonlinearity: float, geometry: str = "remesh"):
+def _params(
+    d: float,
+    h: float,
+    E: float,
+    mesh: str,
+    delta: float,
+    nonlinearity: float,
+    geometry: str = "remesh",
+    sizing: str = "fixed",
+):
     from elastimap.solver.params import SolveParams
 
     p = SolveParams().with_inclusion(d=float(d), h=float(h), E=float(E))
     return p.replace(
-        disc=dataclasses.replace(p.disc, mesh=mesh, geometry=geometry),
+        disc=dataclasses.replace(p.disc, mesh=mesh, geometry=geometry, sizing=sizing),
         loading=dataclasses.replace(p.loading, delta=float(delta)),
         tissue=dataclasses.replace(p.tissue, nonlinearity=float(nonlinearity)),
     )
@@ -89,17 +98,19 @@ def cached_solve(
     solver: Callable | None = None,
     geometry: str = "remesh",
     reference: tuple[float, float] | None = None,
+    sizing: str = "fixed",
 ) -> dict:
     """One forward solve (tied interface, quarter model) -> dict of image, image_raw, features, force.
 
     ``solver``: the solve function (default the forward model; tests pass the SYNTHETIC stand-in,
     whose solves the store keeps apart).  ``geometry``: ``"remesh"`` (gmsh mesh at (d, h)) or
     ``"morph"`` (:mod:`elastimap.solver.morph`); with ``"morph"``, ``reference=(d0, h0)`` pins the
-    reference mesh (:class:`PinnedMorph`).  Images come as stored (float32 values, as float64 arrays).
+    reference mesh (:class:`PinnedMorph`).  ``sizing``: how the element size near the inclusion is
+    chosen (``"fixed"`` or ``"by_d"``, :class:`elastimap.solver.params.Discretisation`).  Images come as stored (float32 values, as float64 arrays).
     """
     from elastimap.dataset.store import solver_label
 
-    p = _params(d, h, E, mesh, delta, nonlinearity, geometry)
+    p = _params(d, h, E, mesh, delta, nonlinearity, geometry, sizing)
     if reference is not None:
         if geometry != "morph":
             raise ValueError("reference= pins a morphed mesh: it needs geometry='morph'")

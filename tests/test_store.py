@@ -221,6 +221,12 @@ def test_identify_cached_solve_reads_through_the_store(tmp_path):
     for k in a:
         assert np.array_equal(a[k], b[k]), k
     assert a["image"].dtype == np.float64 and a["image"].shape == (50, 50)
+    # another sizing is another discretisation: solved and kept apart, the fixed one still served
+    cached_solve(8.0, 7.0, 60.0, mesh="tiny", cache=str(tmp_path), solver=synthetic.solve, sizing="by_d")
+    assert len(sorted(tmp_path.glob("*.parquet"))) == 2
+    assert _params(8.0, 7.0, 60.0, "tiny", 3.0, 0.0, sizing="by_d").disc.sizing == "by_d"
+    b2 = cached_solve(8.0, 7.0, 60.0, mesh="tiny", cache=str(tmp_path), solver=synthetic.solve)
+    assert np.array_equal(b2["image"], a["image"]) and len(sorted(tmp_path.glob("*.parquet"))) == 2
     p = _params(8.0, 7.0, 60.0, "tiny", 3.0, 0.0)
     assert np.array_equal(SolveStore(tmp_path, solver="synthetic").get(p).image, a["image"].astype(np.float32))
     # the FEM's solves of the per-solve npz cache this store replaced are still read

@@ -75,10 +75,24 @@ def draw_lesions(n: int, seed: int = TRUTH_SEED) -> np.ndarray:
     return np.column_stack([d, h, E])
 
 
-def truth_solve(d, h, E, mesh: str, cache: str) -> dict:
+def truth_solve(d, h, E, mesh: str, cache: str, sizing: str = "fixed") -> dict:
     from elastimap.identify.solves import cached_solve
 
-    return cached_solve(float(d), float(h), float(E), mesh=mesh, cache=cache)
+    return cached_solve(float(d), float(h), float(E), mesh=mesh, cache=cache, sizing=sizing)
+
+
+def world_label(mesh: str, sizing: str) -> str:
+    return f"remeshing solver, {mesh} mesh" + (", by_d sizing" if sizing == "by_d" else "")
+
+
+def sizing_opt(f):
+    return click.option(
+        "--truth-sizing",
+        type=click.Choice(["fixed", "by_d"]),
+        default="fixed",
+        show_default=True,
+        help="Element sizing of the world's mesh near the inclusion (by_d: sized by the inclusion's diameter).",
+    )(f)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -90,12 +104,13 @@ def main():
 @click.option("--n", "n", default=120, show_default=True, type=int, help="Held-out lesions.")
 @click.option("--seed", default=TRUTH_SEED, show_default=True, type=int, help="Seed of the lesion design.")
 @click.option("--truth-mesh", default="default", show_default=True, help="Mesh level of the world's remeshing solver.")
+@sizing_opt
 @shard_option("K/N: this process solves items i with i % N == K.")
 @click.option(
     "--first", default=0, show_default=True, type=int, help="Only the first K lesions of the design (0: all)."
 )
 @click.option("--out", required=True, help="Benchmark folder (solves land in OUT/solves).")
-def lesions(n, seed, truth_mesh, shard, first, out):
+def lesions(n, seed, truth_mesh, truth_sizing, shard, first, out):
     """Solve the phantoms and the held-out lesions with the world's forward model (resumable)."""
     from tqdm import tqdm
 
@@ -112,8 +127,8 @@ def lesions(n, seed, truth_mesh, shard, first, out):
     todo += [tuple(map(float, t)) for t in draw_lesions(n, seed)[: first or n]]
     todo = todo[k::nsh]
     t0 = time.perf_counter()
-    for d, h, E in tqdm(todo, desc=f"SYNTHETIC world solves ({truth_mesh} mesh, remeshing)"):
-        truth_solve(d, h, E, truth_mesh, cache)
+    for d, h, E in tqdm(todo, desc=f"SYNTHETIC world solves ({world_label(truth_mesh, truth_sizing)})"):
+        truth_solve(d, h, E, truth_mesh, cache, truth_sizing)
     click.echo(
         f"{len(todo)} solves (shard {k}/{nsh} of {len(ph)} phantoms + {first or n} lesions) in "
         f"{time.perf_counter() - t0:.0f} s",
@@ -136,7 +151,7 @@ def _fit_results(forward, phantoms):
     return out
 
 
-def calibrate(out: str, truth_mesh: str, forward, frames: int, seed: int, tag: str):
+def calibrate(out: str, truth_mesh: str, forward, frames: int, seed: int, tag: str, truth_sizing: str = "fixed"):
     """The SYNTHETIC calibration: phantom frames from the world, FEM side from the fit's map."""
     from elastimap.camera import calibration as C
     from elastimap.camera.features import FeatureSettings, camera_features
@@ -150,7 +165,7 @@ def calibrate(out: str, truth_mesh: str, forward, frames: int, seed: int, tag: s
     rng = np.random.default_rng([seed, 0])
     pairs, cam = [], []
     for _, r in ph.iterrows():
-        w = truth_solve(r["d"], r["h"], r["E"], truth_mesh, os.path.join(out, "solves"))
+        w = truth_solve(r["d"], r["h"], r["E"], truth_mesh, os.path.join(out, "solves"), truth_sizing)
         F, B = render_pair(sensor, w["image_raw"], w["image"], 0.5, frames, rng)
         pairs.append((F, B))
         cam.append(camera_features(F, B, sensor.full_scale, sensor.window, sensor.pixel_mm, FeatureSettings()).values)
@@ -164,7 +179,7 @@ def calibrate(out: str, truth_mesh: str, forward, frames: int, seed: int, tag: s
         FeatureSettings().to_dict(),
         sensor.to_dict(),
         True,
-        {"world": f"remeshing solver, {truth_mesh} mesh", "fit_map": tag},
+        {"world": world_label(truth_mesh, truth_sizing), "fit_map": tag},
         defl,
     )
     cal.save(path)
@@ -203,6 +218,7 @@ class _Timed:
 @click.option("--n", "n", default=120, show_default=True, type=int, help="Held-out lesions (as in 'lesions').")
 @click.option("--seed", default=TRUTH_SEED, show_default=True, type=int, help="Seed of the lesion design and camera.")
 @click.option("--truth-mesh", default="default", show_default=True)
+@sizing_opt
 @click.option("--fit-mesh", default="coarse", show_default=True, help="Mesh level of the fit's forward map.")
 @click.option(
     "--error-mesh",
@@ -221,7 +237,21 @@ class _Timed:
 @shard_option("K/N: this process fits lesions i with i % N == K.")
 @click.option("--limit", default=0, type=int, help="Stop after this many new fits (0: all).")
 @click.option("--out", required=True)
-def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, error_mesh, correct_mesh, geometry, frames, shard, limit, out):
+def run_cmd(
+    model_dir,
+    n,
+    seed,
+    truth_mesh,
+    truth_sizing,
+    fit_mesh,
+    error_mesh,
+    correct_mesh,
+    geometry,
+    frames,
+    shard,
+    limit,
+    out,
+):
     """Frames -> network -> physics fit for every held-out lesion (resumable, one JSON per lesion)."""
     import json
 
@@ -257,7 +287,7 @@ def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, error_mesh, correct_mesh, 
     fwd_alt = [_Timed(forward_map(v, geometry), acc, "alt_level") for v in levels]
     fwd_fine = _Timed(forward_map(correct_mesh, geometry), acc, "fine_level") if correct_mesh else None
     # the calibration's FEM side: the map the fit stands for (the finer one when it corrects)
-    cal = calibrate(out, truth_mesh, fwd_fine or fwd, frames, seed, tag)
+    cal = calibrate(out, truth_mesh, fwd_fine or fwd, frames, seed, tag, truth_sizing)
     setup = time.perf_counter() - t
     model = load_model(model_dir)
     idm = load_identifiability("default")
@@ -270,7 +300,7 @@ def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, error_mesh, correct_mesh, 
         if os.path.exists(path):
             continue
         d, h, E = truth[i]
-        w = truth_solve(d, h, E, truth_mesh, os.path.join(out, "solves"))
+        w = truth_solve(d, h, E, truth_mesh, os.path.join(out, "solves"), truth_sizing)
         F, B = render_pair(sensor, w["image_raw"], w["image"], 0.5, frames, np.random.default_rng([seed, 1, i]))
         t1 = time.perf_counter()
         di = difference_image(F, B, sensor, ref, pixel, scale=float(cal.deflection["scale"]))
@@ -285,7 +315,7 @@ def run_cmd(model_dir, n, seed, truth_mesh, fit_mesh, error_mesh, correct_mesh, 
             "synthetic": True,
             "i": i,
             "truth": [float(d), float(h), float(E)],
-            "world": f"remeshing solver, {truth_mesh} mesh, tied, quarter",
+            "world": world_label(truth_mesh, truth_sizing) + ", tied, quarter",
             "fit_map": f"{geometry}, {fit_mesh} mesh"
             + (f", defect-corrected by {correct_mesh}" if correct_mesh else "")
             + f"; model error vs {alt_level}",
