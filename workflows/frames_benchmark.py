@@ -497,7 +497,15 @@ def plot(recs: list[dict], path: str, region_set: str = "frames") -> None:
     "uses (the larger of camera and image), camera = the nominal camera's frames alone, "
     "image = 1 % of the peak per pixel (earlier tables).",
 )
-def report_cmd(out, fits_name, region_set):
+@click.option(
+    "--common-with",
+    "common",
+    default=None,
+    type=click.Path(exists=True, file_okay=False),
+    help="Another fits folder (any benchmark folder): score only the lesions both hold, so that two fits "
+    "are compared on the same lesions (files get '-common-<its name>').",
+)
+def report_cmd(out, fits_name, region_set, common):
     """Table (printed and OUT/benchmark.md), OUT/benchmark.json and OUT/benchmark.png (``-FITS`` and
     ``-SET`` added to the names when OUT holds several fits folders or the regions are not ``frames``)."""
     import glob
@@ -513,6 +521,11 @@ def report_cmd(out, fits_name, region_set):
     files = sorted(glob.glob(os.path.join(out, fits_name, "lesion-*.json")))
     if not files:
         raise UserError("--out", f"{os.path.join(out, fits_name)}: no lesion fits yet (run the 'run' stage)")
+    if common is not None:
+        other = {os.path.basename(f) for f in glob.glob(os.path.join(common, "lesion-*.json"))}
+        files = [f for f in files if os.path.basename(f) in other]
+        if not files:
+            raise UserError("--common-with", f"{common} holds none of the lesions of {os.path.join(out, fits_name)}")
     recs = [json.load(open(f)) for f in files]
     sm = summarise(recs, region_set)
     sm["region_set"] = region_set
@@ -543,6 +556,7 @@ def report_cmd(out, fits_name, region_set):
         "benchmark"
         + ("" if len(names) == 1 else f"-{fits_name}")
         + ("" if region_set == "frames" else f"-{region_set}")
+        + ("" if common is None else f"-common-{os.path.basename(os.path.normpath(common))}")
     )
     with open(os.path.join(out, f"{stem}.md"), "w") as fh:
         fh.write(md)
