@@ -126,7 +126,10 @@ def test_tangent_matches_central_differences_of_the_map(fwd):
     theta = np.array([8.3, 7.2, 40.0])
     res, J = fwd.solve_tangent(*theta, reference=ref)
     assert J.shape == (3, *res.image.shape)
-    np.testing.assert_array_equal(res.image, fwd.solve(*theta, reference=ref).image)
+    # the same sample, to the image's float32 precision (CG on older factors or its own factors)
+    np.testing.assert_allclose(
+        res.image, fwd.solve(*theta, reference=ref).image, rtol=0, atol=1e-6 * np.abs(res.image).max()
+    )
     for k, step in enumerate((0.02, 0.02, 0.4)):
         e = np.zeros(3)
         e[k] = step
@@ -147,7 +150,7 @@ def test_linearised_reference_press_is_exact_at_its_centre_and_close_off_it(fwd)
     centre = (8.2, 7.1)
     a = fwd.solve(*centre, 40.0, reference=ref)
     b = fwd.solve(*centre, 40.0, reference=ref, linearise_at=centre)
-    np.testing.assert_array_equal(a.image, b.image)
+    np.testing.assert_allclose(a.image, b.image, rtol=0, atol=1e-6 * np.abs(a.image).max())  # to float32 round-off
     off = (8.5, 7.4, 40.0)
     full = fwd.solve(*off, reference=ref)
     lin = fwd.solve(*off, reference=ref, linearise_at=centre)

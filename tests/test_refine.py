@@ -121,27 +121,18 @@ def test_fem_refinement_on_the_tiny_mesh(tmp_path):
     assert ("non_identifiable:E" in e.flags) == (e.crb[2] > 0.10)
 
 
-def test_cli_refine_needs_a_fem_image(tmp_path):
+def _infer(*args: str):
+    """``elastimap camera infer ARGS`` in a subprocess (what a user's shell gets)."""
     import subprocess
     import sys
 
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "elastimap.camera.cli",
-            "infer",
-            "--model",
-            str(tmp_path),
-            "--features",
-            "1",
-            "2",
-            "3",
-            "--refine",
-        ],
-        capture_output=True,
-        text=True,
+    return subprocess.run(
+        [sys.executable, "-m", "elastimap.camera.cli", "infer", *args], capture_output=True, text=True
     )
+
+
+def test_cli_refine_needs_a_fem_image(tmp_path):
+    r = _infer("--model", str(tmp_path), "--features", "1", "2", "3", "--refine")
     assert r.returncode == 2 and "--refine" in r.stderr and "Traceback" not in r.stderr
 
 
@@ -202,26 +193,9 @@ def test_defect_correction_by_a_finer_level_removes_the_cheaper_maps_bias():
     ],
 )
 def test_cli_refine_correct_names_what_is_allowed(tmp_path, extra, says):
-    import subprocess
-    import sys
-
     fem = tmp_path / "img.npy"
     np.save(fem, np.zeros((4, 4)))
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "elastimap.camera.cli",
-            "infer",
-            "--model",
-            str(tmp_path),
-            "--fem-image",
-            str(fem),
-            *extra,
-        ],
-        capture_output=True,
-        text=True,
-    )
+    r = _infer("--model", str(tmp_path), "--fem-image", str(fem), *extra)
     assert r.returncode == 2 and "--refine-correct" in r.stderr and says in r.stderr, r.stderr
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
