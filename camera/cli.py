@@ -425,15 +425,11 @@ def infer(
     if refine and not 0 < image_noise < 1:
         raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
     if correct is not None:
-        from elastimap.solver.params import MESH_LEVELS
+        from elastimap.identify.refine import check_correct
 
         if not refine:
             raise UserError("--refine-correct", "only applies with --refine")
-        if correct not in MESH_LEVELS or MESH_LEVELS.index(correct) <= MESH_LEVELS.index(mesh):
-            finer = ", ".join(MESH_LEVELS[MESH_LEVELS.index(mesh) + 1 :])
-            raise UserError(
-                "--refine-correct", f"must be a mesh level finer than --mesh {mesh}: {finer} (got {correct!r})"
-            )
+        check_correct(mesh, correct)  # before any work
     if fem_image is not None and not os.path.isfile(fem_image):
         raise UserError("--fem-image", f"{fem_image}: no such file")
     if out:

@@ -400,7 +400,7 @@ def refine_estimates(
     ``non_identifiable:q`` is re-decided from that standard deviation (``> threshold``), and
     ``model_mismatch`` added when the fit leaves a reduced chi² above ``chi2_limit`` (the forward
     model cannot reproduce the image at the stated noise); ``input`` gains ``+fem_refined``."""
-    from elastimap.identify.refine import fit_image, neighbour_level, shared_map
+    from elastimap.identify.refine import check_correct, fit_image, neighbour_level, shared_map
 
     if not 0 < image_noise < 1:
         raise UserError("image_noise", f"must be in (0, 1) (got {image_noise:g})")
@@ -410,15 +410,7 @@ def refine_estimates(
         imgs = [np.asarray(e.image, dtype=float) for e in ests]
     else:
         imgs = list(np.asarray(images, dtype=float).reshape(len(ests), -1))
-    if correct is not None:
-        from elastimap.solver.params import MESH_LEVELS
-
-        if (
-            correct not in MESH_LEVELS
-            or mesh not in MESH_LEVELS
-            or MESH_LEVELS.index(correct) <= MESH_LEVELS.index(mesh)
-        ):
-            raise UserError("correct", f"must be a mesh level finer than {mesh!r}: one of {', '.join(MESH_LEVELS)}")
+    check_correct(mesh, correct)
     if forward is None:
         forward = shared_map(mesh, geometry)
         top = correct or mesh  # the level the (corrected) map stands for

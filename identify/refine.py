@@ -31,7 +31,7 @@ Start: ``θ₀`` and, at its (d, h), five values of E spread log-evenly over the
 evaluations); the best of them.  Minimiser: :func:`scipy.optimize.least_squares` (trust-region
 reflective, bounds).  Each pass pins
 the morphed map's reference mesh where it starts (one smooth map per pass), measures the model
-error there (held for the pass and, for the last pass, for the covariance) and takes the Jacobian
+error there (held for the pass; the covariance re-measures it at the estimate) and takes the Jacobian
 at its start from the map's exact derivative where it has one
 (:meth:`ForwardMap.tangent`: ``∂m/∂θ`` by one back-solve per parameter with the solve's own
 factorisation, :meth:`elastimap.solver.morph.MorphedForward.solve_tangent`), else by central
@@ -43,7 +43,9 @@ in docs/camera.md 4c).  The neighbouring level re-solves its press (:meth:`Forwa
 so the measured model error ``δ`` holds the linearisation's error as well.  Central differences
 (for a map without a derivative) take steps :data:`FD_STEPS`: 0.15 mm in d and h, 3 % in E (the E
 step first, so the map reuses its reference solve); Broyden's rank-one update is
-``J ← J + ((r₊ − r) − J Δx) Δxᵀ / |Δx|²``, one map evaluation per step.
+``J ← J + ((r₊ − r) − J Δx) Δxᵀ / |Δx|²``, one map evaluation per step.  A step that lowers ½χ²
+by less than 0.05 ends a pass; a pass that moves no parameter by more than 0.2 of its standard
+deviation ends the fit (at most two passes, two corrected ones after pass 0 with ``forward_fine``).
 
 Defect correction by a finer level (``forward_fine``, :func:`fit_forward` ``correct=``).  The
 coarse map's discretisation error moves the estimate along the d–h–E valley by more than the
@@ -55,9 +57,8 @@ coarse map alone; every later pass fits
 which equals the finer map at ``x_s`` and has the coarse map's derivative: the fixed point of the
 passes is the finer map's fit (defect correction; one finer solve per pass, the coarse map's
 derivative and solves everywhere else).  The model error is then the finer map's: measured against
-the finer level's neighbour.  A step that lowers ½χ²
-by less than 0.05 ends a pass; a pass that moves no parameter by more than 0.2 of its standard
-deviation ends the fit (at most two passes).
+the finer level's neighbour.  Measured: docs/camera.md 4e (d, h and E far closer to a `fine`
+world; the passes often stop short along a flat, curved d–E valley).
 
 Uncertainty: Gauss–Newton covariance at ``θ̂`` from the Jacobian at ``θ̂`` (the exact one; for a
 map without a derivative, the pass's central-difference Jacobian),
@@ -525,7 +526,7 @@ def fit_image(
         """Pin the maps' reference meshes at ``x`` (maps with a ``pin(d, h)``), so that one pass
         sees one smooth map, take (``correct``, with ``forward_fine``) the defect correction
         ``m_fine(x) − m(x)`` there and (``measure``) the model error, the differences
-        ``m(x) − m_alt,k(x)``, held for the pass (and, for the last, for the covariance)."""
+        ``m(x) − m_alt,k(x)``, held for the pass."""
         d, h, _ = to_theta(x, thickness)
         cur["f"] = forward.pin(d, h) if hasattr(forward, "pin") else forward
         for i, fa in enumerate(alt_maps):  # exact where it can be: the model error then measures the linearisation too
@@ -578,7 +579,7 @@ def fit_image(
 
     def sigma():
         """Total and model per-pixel σ: σ_model² = Σ_k local rms(δ_k)² over the level differences
-        δ_k measured where the pass started (:func:`pin`; one level: its difference)."""
+        δ_k measured where the pass started (:func:`pin`) or, at the end, at the estimate."""
         if not cur["delta"]:
             return s_meas, np.zeros_like(s_meas)
         sm = np.sqrt(sum(_local_rms(dl, shape) ** 2 for dl in cur["delta"]))
@@ -690,8 +691,8 @@ def fit_image(
     C = G @ JtJi @ G.T * max(1.0, chi2)
     for dl in cur["delta"]:
         # the discretisation error is one image, correlated over the pixels: propagate each level
-        # difference (measured where the last pass started) through the estimator as a systematic
-        # shift, C_sys = Σ_k b_k b_kᵀ
+        # difference (measured at the estimate) through the estimator as a systematic shift,
+        # C_sys = Σ_k b_k b_kᵀ
         b = G @ JtJi @ J.T @ (dl / s_tot)
         C = C + np.outer(b, b)
     th = to_theta(x, thickness)
@@ -830,6 +831,17 @@ def forward_map(mesh: str = "coarse", geometry: str | None = None, template=None
     return forward
 
 
+def check_correct(mesh: str, correct: str | None) -> None:
+    """``correct`` (the level a fit's map is defect-corrected by) must be None or a level finer than
+    ``mesh``; raises :class:`~elastimap.errors.UserError` naming ``correct`` otherwise."""
+    from elastimap.solver.params import MESH_LEVELS
+
+    neighbour_level(mesh)  # checks the level
+    if correct is not None and (correct not in MESH_LEVELS or MESH_LEVELS.index(correct) <= MESH_LEVELS.index(mesh)):
+        finer = ", ".join(MESH_LEVELS[MESH_LEVELS.index(mesh) + 1 :]) or "none"
+        raise UserError("correct", f"must be a mesh level finer than {mesh}: {finer} (got {correct!r})")
+
+
 def fit_forward(
     image, sigma, theta0, mesh: str = "coarse", geometry: str | None = None, correct: str | None = None, **kw
 ) -> FitResult:
@@ -837,11 +849,7 @@ def fit_forward(
     neighbouring level (:func:`neighbour_level`); with ``correct`` (a finer level) the map is
     defect-corrected by that level (``forward_fine``) and its error measured against ``correct``'s
     neighbouring level."""
-    from elastimap.solver.params import MESH_LEVELS
-
-    neighbour_level(mesh)  # checks the level
-    if correct is not None and (correct not in MESH_LEVELS or MESH_LEVELS.index(correct) <= MESH_LEVELS.index(mesh)):
-        raise UserError("correct", f"must be a mesh level finer than {mesh!r}: one of {', '.join(MESH_LEVELS)}")
+    check_correct(mesh, correct)
     return fit_image(
         image,
         sigma,

@@ -188,8 +188,8 @@ def test_defect_correction_by_a_finer_level_removes_the_cheaper_maps_bias():
     ("extra", "says"),
     [
         (["--refine-correct", "fine"], "only applies with --refine"),
-        (["--refine", "--mesh", "default", "--refine-correct", "coarse"], "finer than --mesh default: fine, finer"),
-        (["--refine", "--refine-correct", "huge"], "finer than --mesh coarse"),
+        (["--refine", "--mesh", "default", "--refine-correct", "coarse"], "finer than default: fine, finer"),
+        (["--refine", "--refine-correct", "huge"], "finer than coarse: default, fine, finer (got 'huge')"),
     ],
 )
 def test_cli_refine_correct_names_what_is_allowed(tmp_path, extra, says):
