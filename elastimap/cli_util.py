@@ -82,12 +82,13 @@ def geometry_option(
 def sizing_option(
     default: str = "fixed",
     help: str = "Element size near the inclusion: fixed = the first sweeps' rule; by_d = scaled with d (converged).",
+    flag: str = "--sizing",
     **kw,
 ):
-    """``--sizing``: the element-size rule near the inclusion (:mod:`elastimap.solver.geometry`)."""
+    """``--sizing`` (or ``flag``): the element-size rule near the inclusion (:mod:`elastimap.solver.geometry`)."""
     from elastimap.solver.params import SIZINGS
 
-    return click.option("--sizing", type=Choice(SIZINGS), default=default, show_default=True, help=help, **kw)
+    return click.option(flag, type=Choice(SIZINGS), default=default, show_default=True, help=help, **kw)
 
 
 def out_option(help: str = "Output directory.", default: str | None = None, required: bool = False, **kw):

@@ -533,9 +533,7 @@ def fit_image(
             cur["a"][i] = _pinned_exact(fa, d, h)
         cur["corr"] = 0.0
         if correct and forward_fine is not None:
-            fine = image_of(_pinned_exact(forward_fine, d, h)(*to_theta(x, thickness))).ravel()
-            if fine.shape != I.shape:
-                raise RuntimeError(f"the finer forward map returned {fine.size} pixels, the image has {I.size}")
+            fine = flat(_pinned_exact(forward_fine, d, h)(*to_theta(x, thickness)), "finer")
             n_fine[0] += 1
             cur["corr"] = fine - mc(x)
         cur["delta"] = [m(x) - a for a in alt_images(x)] if measure else []
@@ -543,10 +541,16 @@ def fit_image(
     def key(x, f):
         return (getattr(f, "key", None), *np.round(np.asarray(x, float), 10))
 
-    def m(x):
+    def flat(out, which: str) -> np.ndarray:
+        v = image_of(out).ravel()
+        if v.shape != I.shape:
+            raise RuntimeError(f"the {which} forward map returned {v.size} pixels, the image has {I.size}")
+        return v
+
+    def m(x, need_j: bool = True):
         """The map the fit sees: the pinned map plus the pass's defect correction (zero without
         ``forward_fine``)."""
-        return mc(x) + cur["corr"]
+        return mc(x, need_j) + cur["corr"]
 
     def mc(x, need_j: bool = True):
         """The pinned map at ``x`` (and, with ``need_j``, its exact derivative where used)."""
@@ -558,10 +562,7 @@ def fit_image(
                 jacs[k] = np.asarray(jt, dtype=float).reshape(3, -1).T
             else:
                 out = cur["f"](*to_theta(x, thickness))
-            v = image_of(out).ravel()
-            if v.shape != I.shape:
-                raise RuntimeError(f"the forward map returned {v.size} pixels, the image has {I.size}")
-            maps[k] = v
+            maps[k] = flat(out, "fit's")
         return maps[k]
 
     def alt_images(x) -> list:
@@ -570,10 +571,7 @@ def fit_image(
         for i, fa in enumerate(cur["a"]):
             k = (i, *key(x, fa))
             if k not in alts:
-                a = image_of(fa(*to_theta(x, thickness))).ravel()
-                if a.shape != I.shape:
-                    raise RuntimeError(f"the alternative forward map returned {a.size} pixels, the image has {I.size}")
-                alts[k] = a
+                alts[k] = flat(fa(*to_theta(x, thickness)), "alternative")
             out.append(alts[k])
         return out
 
@@ -618,7 +616,7 @@ def fit_image(
         state = {"x": None, "J": None, "r": None}
 
         def resid(x):
-            return (mc(x, need_j=False) + cur["corr"] - I) / s
+            return (m(x, need_j=False) - I) / s
 
         def jac(x):
             x = np.asarray(x, float)
@@ -649,14 +647,14 @@ def fit_image(
 
     pin(x0, correct=False, measure=False)  # the start and the E scan: the map alone, σ_meas
     s_tot = s_meas
-    r0 = (m(x0) - I) / s_tot
+    r0 = (m(x0, need_j=False) - I) / s_tot
     if e_scan > 1:
         # a start's E can be far off (the d–E valley is long): scan ln E over the box at the start's
         # (d, h) -- E-only evaluations, the map reuses its reference solve -- and start from the best
         best = float(r0 @ r0)
         for lnE in np.linspace(lb[2] + pad[2], ub[2] - pad[2], e_scan):
             xc = np.array([x0[0], x0[1], lnE])
-            rc = (mc(xc, need_j=False) - I) / s_tot
+            rc = (m(xc, need_j=False) - I) / s_tot
             if float(rc @ rc) < best:
                 best, x0 = float(rc @ rc), xc
     x, msg, J = x0, [], None

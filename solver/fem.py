@@ -89,7 +89,7 @@ class Model:
         # rebuilt every solve) by its own factors; each solver is made when first needed
         self.lu: LU | None = None
         self.recycled: dict[str, Recycled] = {}
-        self.refactor_after: int | None = None  # Recycled's: refactorise after this many CG iterations
+        self.refactor_after: int | None = None  # Recycled's: a resolve after more CG iterations refactorises
         self.last_linear: LU | Recycled | None = None  # what the last linear solve used (``resolve``)
         self.newton = self._finite_strain() if self.materials.beta is not None else None
         self._warm = None  # (prescribed-values key, u) of the last Newton solution

@@ -108,9 +108,11 @@ S_ANCHOR = math.log(3.0 / 9.0)
 #: volume, or its shape quality below this fraction of the reference mesh's worst
 MIN_VOLUME_RATIO = 0.2
 MIN_QUALITY_RATIO = 0.3
-#: a morphed model's CG solves on another sample's factors refactorise after this many iterations
-#: (:class:`~elastimap.solver.reduction.Recycled`): on the coarse mesh one iteration costs about
-#: 17 ms and a factorisation about 0.35 s, and a tangent re-uses the factors three times
+#: a tangent's back-solves on a morphed model refactorise first when the solve before them needed
+#: more than this many CG iterations on another sample's factors
+#: (:class:`~elastimap.solver.reduction.Recycled`): three back-solves of n iterations each cost more
+#: than one factorisation once n > 6 on the coarse mesh (17 ms an iteration, 0.35 s a
+#: factorisation); plain solves (no tangent) keep CG
 REFACTOR_AFTER = 6
 
 
@@ -280,8 +282,7 @@ class _Entry:
         self.raw = build_mesh(p0)
         self.motion = MeshMotion(self.raw, p0)
         self.model = _recording_model_class()(self.raw, p0)
-        # a fit moves the mesh away from the factorised one a little per sample: refactorise once CG
-        # needs more iterations than a factorisation costs back-substitutions' worth (measured)
+        # a fit moves the mesh away from the factorised one a little per sample (REFACTOR_AFTER)
         self.model.refactor_after = REFACTOR_AFTER
         self.igi = np.asarray(self.model.mesh.geometry.input_global_indices, dtype=np.int64)
         self.at = (ref.d0, ref.h0)

@@ -237,11 +237,11 @@ class Recycled:
     κ ≤ max s_i / min s_i: a 40 % change of one layer's modulus, κ ≤ 1.4, needs about 10 iterations for the
     relative tolerance ``rtol`` = 1e-12 (Saad 2003, §6.11, §9.2).  When CG has not converged in
     ``max_it`` iterations, or the constraints (``key``: the active set) changed, K is
-    factorised afresh (K₀ := K) and solved with its own factors.  ``refactor_after``: K is also
-    factorised (after its CG solve) when CG needed more than that many iterations, so that the
-    solves that follow with K or a matrix near it (:meth:`resolve`: a tangent's back-solves; the
-    next sample of a fit that drifts away from K₀, e.g. a morphed mesh) cost one back-substitution
-    each instead of a growing number of iterations; None: only when CG fails.  K must be symmetric
+    factorised afresh (K₀ := K) and solved with its own factors.  ``refactor_after``: when the
+    solve before a :meth:`resolve` (a tangent's back-solves) needed more than that many CG
+    iterations, K is factorised first, so that each back-solve costs one back-substitution instead
+    of as many iterations (and the solves after start from K's factors); plain solves never
+    refactorise early; None: only when CG fails.  K must be symmetric
     positive definite (the linear stiffness with the rigid modes constrained)."""
 
     def __init__(
@@ -253,6 +253,7 @@ class Recycled:
         self.key: bytes | None = None
         self.tag = None  # what the caller said of K₀ when it was factorised (``solve(tag=)``)
         self.refactor_after = refactor_after
+        self.last = (0, None)  # (CG iterations, tag) of the last solve
         self.factorisations = 0
         self.iterations = 0  # CG iterations with another matrix's factors
 
@@ -282,11 +283,10 @@ class Recycled:
             self.ksp.setOperators(K, self.K0)  # K₀ unchanged: its factors are reused
             self.ksp.solve(f, x)
             if self.ksp.getConvergedReason() > 0:
-                n = self.ksp.getIterationNumber()
-                self.iterations += n
-                if self.refactor_after is not None and n > self.refactor_after:
-                    self._factorise(K, key, tag)  # K₀ := K, factorised when next solved with
+                self.last = (self.ksp.getIterationNumber(), tag)
+                self.iterations += self.last[0]
                 return x
+        self.last = (0, tag)
         if not equal:  # new constraints, far from K₀, or CG did not converge: K's own factors
             self._factorise(K, key, tag)
         self.ksp.setOperators(K, self.K0)
@@ -300,8 +300,14 @@ class Recycled:
         return x
 
     def resolve(self, f: PETSc.Vec) -> PETSc.Vec:
-        """Solve with the matrix of the last :meth:`solve` (its values unchanged since)."""
-        return self.solve(self.ksp.getOperators()[0], f, self.key, tag=self.tag)
+        """Solve with the matrix of the last :meth:`solve` (its values unchanged since); factorised
+        first when that solve needed more than ``refactor_after`` CG iterations."""
+        K = self.ksp.getOperators()[0]
+        n, tag = self.last
+        if self.refactor_after is not None and n > self.refactor_after:
+            self._factorise(K, self.key, tag)  # K₀ := K: this and the next back-solves are exact
+            self.last = (0, tag)
+        return self.solve(K, f, self.key, tag=self.tag)
 
     def destroy(self) -> None:
         for obj in (self.ksp, self.K0):

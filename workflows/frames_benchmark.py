@@ -53,7 +53,7 @@ import time
 import click
 import numpy as np
 
-from elastimap.cli_util import shard_option
+from elastimap.cli_util import shard_option, sizing_option
 from elastimap.solver.params import MESH_LEVELS
 
 TRUTH_SEED = 2026
@@ -85,14 +85,10 @@ def world_label(mesh: str, sizing: str) -> str:
     return f"remeshing solver, {mesh} mesh" + (", by_d sizing" if sizing == "by_d" else "")
 
 
-def sizing_opt(f):
-    return click.option(
-        "--truth-sizing",
-        type=click.Choice(["fixed", "by_d"]),
-        default="fixed",
-        show_default=True,
-        help="Element sizing of the world's mesh near the inclusion (by_d: sized by the inclusion's diameter).",
-    )(f)
+TRUTH_SIZING = sizing_option(
+    flag="--truth-sizing",
+    help="Element sizing of the world's mesh near the inclusion (by_d: sized by the inclusion's diameter).",
+)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -104,7 +100,7 @@ def main():
 @click.option("--n", "n", default=120, show_default=True, type=int, help="Held-out lesions.")
 @click.option("--seed", default=TRUTH_SEED, show_default=True, type=int, help="Seed of the lesion design.")
 @click.option("--truth-mesh", default="default", show_default=True, help="Mesh level of the world's remeshing solver.")
-@sizing_opt
+@TRUTH_SIZING
 @shard_option("K/N: this process solves items i with i % N == K.")
 @click.option(
     "--first", default=0, show_default=True, type=int, help="Only the first K lesions of the design (0: all)."
@@ -218,7 +214,7 @@ class _Timed:
 @click.option("--n", "n", default=120, show_default=True, type=int, help="Held-out lesions (as in 'lesions').")
 @click.option("--seed", default=TRUTH_SEED, show_default=True, type=int, help="Seed of the lesion design and camera.")
 @click.option("--truth-mesh", default="default", show_default=True)
-@sizing_opt
+@TRUTH_SIZING
 @click.option("--fit-mesh", default="coarse", show_default=True, help="Mesh level of the fit's forward map.")
 @click.option(
     "--error-mesh",
