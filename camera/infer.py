@@ -378,6 +378,7 @@ def refine_estimates(
     geometry: str | None = None,
     forward_fine=None,
     correct: str | None = None,
+    coords: str = "contrast",
 ) -> list[Estimate]:
     """Refine image-model estimates by the maximum-likelihood fit of the forward map
     (:func:`elastimap.identify.refine.fit_image`).
@@ -392,8 +393,8 @@ def refine_estimates(
     morphing where available; runs DOLFINx); ``forward_fine``, or by default with ``correct`` (a mesh
     level finer than ``mesh``) the solver's map at that level: its defect corrects the map at the start
     of every pass after the first, and the model error is then measured between ``correct`` and its
-    neighbouring level (:func:`elastimap.identify.refine.fit_image`).  ``progress(i, n)`` after each
-    lesion.
+    neighbouring level (:func:`elastimap.identify.refine.fit_image`).  ``coords``: the fit's coordinate
+    of E (:class:`elastimap.identify.refine.FitCoords`).  ``progress(i, n)`` after each lesion.
 
     Each estimate's mean becomes the fitted (d, h, E), ``sd``/``crb`` the Gauss–Newton standard
     deviation (relative for ``crb``), ``lo``/``hi`` its 95 % interval (no tuned factor);
@@ -423,7 +424,7 @@ def refine_estimates(
             img2 = img.reshape(n, n) if n * n == img.size else img
             pk = np.abs(img).max()
             sig = np.asarray(e.sigma, float).reshape(img2.shape) if e.sigma is not None else image_noise * pk
-            r = fit_image(img2, sig, e.mean, forward, forward_alt=forward_alt, forward_fine=forward_fine)
+            r = fit_image(img2, sig, e.mean, forward, forward_alt=forward_alt, forward_fine=forward_fine, coords=coords)
             e.mean = r.theta
             e.crb = r.relstd
             e.sd = r.sd

@@ -25,9 +25,11 @@ The estimate
     θ̂ = argmin_θ  ½ Σ_i ((m_i(θ) − I_i) / σ_i)²
 
 is the maximum-likelihood estimate for Gaussian pixel errors, in the parameters
-``x = (d, u, ln E)``, ``h = lo(d) + u (hi(d) − lo(d))`` (:func:`elastimap.solver.params.depth_range`),
-so the feasible set is the box ``[d_lo, d_hi] x [0, 1] x [ln E_lo, ln E_hi]`` (the design box).
-Start: ``θ₀`` and, at its (d, h), five values of E spread log-evenly over the box (E-only
+``x = (d, u, e)``, ``h = lo(d) + u (hi(d) − lo(d))`` (:func:`elastimap.solver.params.depth_range`)
+and ``e = ln c(E)``, ``c = (E − E_t)/(E + 1.5 E_t)`` (:class:`FitCoords`: Eshelby's contrast of a
+sphere, in which the d–E valley of equal images is nearly straight; ``coords="log"``: ``e = ln E``),
+so the feasible set is the box ``[d_lo, d_hi] x [0, 1] x [e(E_lo), e(E_hi)]`` (the design box).
+Start: ``θ₀`` and, at its (d, h), five values of E spread evenly in ``e`` over the box (E-only
 evaluations); the best of them.  Minimiser: :func:`scipy.optimize.least_squares` (trust-region
 reflective, bounds).  Each pass pins
 the morphed map's reference mesh where it starts (one smooth map per pass), measures the model
@@ -64,7 +66,8 @@ Uncertainty: Gauss–Newton covariance at ``θ̂`` from the Jacobian at ``θ̂``
 map without a derivative, the pass's central-difference Jacobian),
 ``C_x = (JᵀJ)⁻¹ max(1, χ²_red) + b bᵀ`` (the Birge factor widens it when the misfit exceeds
 the stated errors, never narrows it), mapped to (d, h, ln E) by the delta method.  The 95 %
-interval is ``q ± 1.96 sd`` for d and h and ``E exp(±1.96 sd_ln E)``, clipped to the design box.
+interval is ``q ± 1.96 sd`` for d and h and, for E, ``e ± 1.96 sd_e`` mapped back to E (with
+``coords="log"``: ``E exp(±1.96 sd_ln E)``), clipped to the design box.
 No factor is tuned.
 
 The remeshing-era fits (:func:`refine`, :func:`refine_rsm`, :func:`fit`, :data:`INTERVAL_SCALE`)
@@ -123,6 +126,71 @@ def _dtheta_dx(x, thickness: float = THICKNESS) -> np.ndarray:
     lo1, hi1 = h_range(d + eps, thickness)
     dh_dd = ((lo1 + u * (hi1 - lo1)) - (lo0 + u * (hi0 - lo0))) / eps
     return np.array([[1.0, 0.0, 0.0], [dh_dd, hi0 - lo0, 0.0], [0.0, 0.0, 1.0]])
+
+
+COORDS = ("contrast", "log")  # the fit's E coordinate, see FitCoords
+
+
+@dataclass(frozen=True)
+class FitCoords:
+    """The fit's parameters ``x = (d, u, e)``: d (mm); ``u`` = (h − lo(d)) / (hi(d) − lo(d)), the
+    depth inside its admissible range (:func:`h_range`); and ``e``, a coordinate of E (kPa):
+
+    * ``"log"``: ``e = ln E``;
+    * ``"contrast"``: ``e = ln c(E)``, ``c(E) = (E − a) / (E + b)`` with ``a = E_t``, ``b = 1.5 E_t``
+      (``E_t`` the tissue's modulus; ``a`` at most half the box's lowest E).  Up to a constant
+      ``c`` is Eshelby's strain concentration of a small sphere in an incompressible matrix,
+      ``5(μ_i − μ)/(3μ + 2μ_i)`` with ``E = 3μ``: the image's amplitude goes roughly as ``d³ c(E)``,
+      so the long d–E valley of equal images, ``3 ln d + ln c = const``, is close to a straight line
+      in (d, e), whereas in (d, ln E) it bends (c saturates for a stiff inclusion).  A straight
+      valley is what a Gauss–Newton step follows; the 95 % interval of E is taken in ``e`` and
+      mapped back, so a stiff inclusion's upper end reaches the box where the image cannot tell.
+
+    ``box(d_range, E_range)`` is the feasible set in x; ``dtheta(x)`` = ∂(d, h, ln E)/∂x."""
+
+    thickness: float = THICKNESS
+    coord: str = "contrast"
+    E_tissue: float = 5.0  # kPa (solver.params.Tissue)
+    E_lo: float = DESIGN_BOX["E"][0]
+
+    def __post_init__(self):
+        if self.coord not in COORDS:
+            raise UserError("coords", f"must be one of {', '.join(COORDS)} (got {self.coord!r})")
+        if not (math.isfinite(self.E_tissue) and self.E_tissue > 0):
+            raise UserError("E_tissue", f"must be a finite modulus > 0 kPa (got {self.E_tissue})")
+
+    @property
+    def _ab(self) -> tuple[float, float]:
+        return min(self.E_tissue, 0.5 * self.E_lo), 1.5 * self.E_tissue
+
+    def x(self, theta) -> np.ndarray:
+        x = to_x(theta, self.thickness)
+        if self.coord == "contrast":
+            a, b = self._ab
+            E = float(theta[2])
+            x[2] = math.log((E - a) / (E + b))
+        return x
+
+    def theta(self, x) -> np.ndarray:
+        if self.coord == "log":
+            return to_theta(x, self.thickness)
+        a, b = self._ab
+        c = math.exp(float(x[2]))
+        th = to_theta([x[0], x[1], 0.0], self.thickness)
+        th[2] = (a + b * c) / (1.0 - c)
+        return th
+
+    def dtheta(self, x) -> np.ndarray:
+        g = _dtheta_dx(x, self.thickness)
+        if self.coord == "contrast":  # d ln E / d ln c
+            a, b = self._ab
+            E = self.theta(x)[2]
+            g[2, 2] = (E + b) * (E - a) / (E * (a + b))
+        return g
+
+    def box(self, d_range, E_range) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = self.x([d_range[0], 0.0, E_range[0]]), self.x([d_range[0], 0.0, E_range[1]])
+        return np.array([d_range[0], 0.0, lo[2]]), np.array([d_range[1], 1.0, hi[2]])
 
 
 def interval(theta, relstd, scale: float = INTERVAL_SCALE):
@@ -431,12 +499,6 @@ class FitResult:
         return self.relstd * self.theta
 
 
-def _box(d_range, E_range):
-    lb = np.array([d_range[0], 0.0, math.log(E_range[0])])
-    ub = np.array([d_range[1], 1.0, math.log(E_range[1])])
-    return lb, ub
-
-
 def _pinned_exact(f, d: float, h: float):
     """``f`` pinned at (d, h) with its reference press re-solved there (``pin_exact``), else
     ``pin``, else ``f`` itself."""
@@ -468,6 +530,8 @@ def fit_image(
     max_passes: int = 2,
     e_scan: int = 5,
     tangent: bool | None = None,
+    coords: str = "contrast",
+    E_tissue: float | None = None,
 ) -> FitResult:
     """Maximum-likelihood (d, h, E) of ``image`` (mm, ``(ny, nx)`` or flat) with per-pixel standard
     errors ``sigma`` (mm, scalar or like ``image``), starting from ``theta0`` (d mm, h mm, E kPa).
@@ -485,11 +549,13 @@ def fit_image(
     ``x_s`` and has the cheaper map's derivative, and ``forward_alt`` should be the finer map's
     neighbouring level (its error is what the corrected map carries).  ``max_nfev`` bounds the trial points
     per pass, ``max_passes`` the passes (each from a fresh central-difference Jacobian); ``e_scan``
-    values of ln E spread over the box are tried at the start's (d, h) first, and the fit starts
+    values of E spread evenly in the fit's coordinate over the box are tried at the start's (d, h) first, and the fit starts
     from the best of them and ``theta0`` (0 or 1: no scan).  ``tangent``: use the map's exact
     derivative (maps with ``has_tangent`` and ``tangent(d, h, E) -> (result, J)``, see
     :class:`ForwardMap`) instead of central differences and Broyden updates; None: where the map has
-    one.  See the module docstring."""
+    one.  ``coords``: the fit's coordinate of E, ``"contrast"`` or ``"log"`` (:class:`FitCoords`);
+    ``E_tissue`` (kPa) the tissue modulus it uses (None: the map's ``E_tissue`` where it has one,
+    else :class:`elastimap.solver.params.Tissue`'s).  See the module docstring."""
     from scipy.optimize import least_squares
 
     t0 = time.perf_counter()
@@ -504,10 +570,16 @@ def fit_image(
     theta0 = np.asarray(theta0, dtype=float)
     if theta0.shape != (3,) or not np.isfinite(theta0).all() or theta0[2] <= 0:
         raise UserError("theta0", f"need a finite (d, h, E > 0) start (got {theta0})")
-    lb, ub = _box(d_range, E_range)
+    if E_tissue is None:
+        from elastimap.solver.params import Tissue  # pure python, no DOLFINx
+
+        E_tissue = getattr(forward, "E_tissue", None) or Tissue().E
+    X = FitCoords(thickness, coords, float(E_tissue), float(E_range[0]))
+    tt, G = X.theta, X.dtheta
+    lb, ub = X.box(d_range, E_range)
     pad = 1e-3 * (ub - lb)
     th0 = np.clip(theta0, [d_range[0], -np.inf, E_range[0]], [d_range[1], np.inf, E_range[1]])
-    x0 = np.clip(to_x(th0, thickness), lb + pad, ub - pad)
+    x0 = np.clip(X.x(th0), lb + pad, ub - pad)
 
     maps: dict = {}
     jacs: dict = {}  # the map's exact derivative (d, h, E) at the points in maps, where it has one
@@ -527,13 +599,13 @@ def fit_image(
         sees one smooth map, take (``correct``, with ``forward_fine``) the defect correction
         ``m_fine(x) − m(x)`` there and (``measure``) the model error, the differences
         ``m(x) − m_alt,k(x)``, held for the pass."""
-        d, h, _ = to_theta(x, thickness)
+        d, h, _ = tt(x)
         cur["f"] = forward.pin(d, h) if hasattr(forward, "pin") else forward
         for i, fa in enumerate(alt_maps):  # exact where it can be: the model error then measures the linearisation too
             cur["a"][i] = _pinned_exact(fa, d, h)
         cur["corr"] = 0.0
         if correct and forward_fine is not None:
-            fine = flat(_pinned_exact(forward_fine, d, h)(*to_theta(x, thickness)), "finer")
+            fine = flat(_pinned_exact(forward_fine, d, h)(*tt(x)), "finer")
             n_fine[0] += 1
             cur["corr"] = fine - mc(x)
         cur["delta"] = [m(x) - a for a in alt_images(x)] if measure else []
@@ -558,10 +630,10 @@ def fit_image(
         if k not in maps or (tangent and need_j and k not in jacs):
             n_eval[0] += 1
             if tangent and need_j:
-                out, jt = cur["f"].tangent(*to_theta(x, thickness))
+                out, jt = cur["f"].tangent(*tt(x))
                 jacs[k] = np.asarray(jt, dtype=float).reshape(3, -1).T
             else:
-                out = cur["f"](*to_theta(x, thickness))
+                out = cur["f"](*tt(x))
             maps[k] = flat(out, "fit's")
         return maps[k]
 
@@ -571,7 +643,7 @@ def fit_image(
         for i, fa in enumerate(cur["a"]):
             k = (i, *key(x, fa))
             if k not in alts:
-                alts[k] = flat(fa(*to_theta(x, thickness)), "alternative")
+                alts[k] = flat(fa(*tt(x)), "alternative")
             out.append(alts[k])
         return out
 
@@ -585,13 +657,13 @@ def fit_image(
 
     def steps_at(x):
         lo, hi = h_range(x[0], thickness)
-        return np.array([fd[0], fd[1] / (hi - lo), fd[2]])
+        return np.array([fd[0], fd[1] / (hi - lo), fd[2] / G(x)[2, 2]])  # fd[2] in ln E
 
     def exact_jac(x, s):
-        """The map's derivative in x units, whitened by ``s``: ∂m/∂x = [∂m/∂d, ∂m/∂h, E ∂m/∂E] ∂(d, h, ln E)/∂x."""
+        """The map's derivative in x units, whitened by ``s``: ∂m/∂x = [∂m/∂d, ∂m/∂h, E ∂m/∂E] ∂(d, h, ln E)/∂x (:meth:`FitCoords.dtheta`)."""
         mc(x)
-        jt = jacs[key(x, cur["f"])] * np.array([1.0, 1.0, math.exp(float(x[2]))])
-        return (jt @ _dtheta_dx(x, thickness)) / s[:, None]
+        jt = jacs[key(x, cur["f"])] * np.array([1.0, 1.0, tt(x)[2]])
+        return (jt @ G(x)) / s[:, None]
 
     def fd_jac(x, s):
         """Central differences (one-sided at the box), in x units, whitened by ``s``; the exact
@@ -649,11 +721,11 @@ def fit_image(
     s_tot = s_meas
     r0 = (m(x0, need_j=False) - I) / s_tot
     if e_scan > 1:
-        # a start's E can be far off (the d–E valley is long): scan ln E over the box at the start's
+        # a start's E can be far off (the d–E valley is long): scan e over the box at the start's
         # (d, h) -- E-only evaluations, the map reuses its reference solve -- and start from the best
         best = float(r0 @ r0)
-        for lnE in np.linspace(lb[2] + pad[2], ub[2] - pad[2], e_scan):
-            xc = np.array([x0[0], x0[1], lnE])
+        for e in np.linspace(lb[2] + pad[2], ub[2] - pad[2], e_scan):
+            xc = np.array([x0[0], x0[1], e])
             rc = (m(xc, need_j=False) - I) / s_tot
             if float(rc @ rc) < best:
                 best, x0 = float(rc @ rc), xc
@@ -684,21 +756,24 @@ def fit_image(
     r = (m(x) - I) / s_tot
     dof = max(I.size - 3, 1)
     chi2 = float(r @ r) / dof
-    G = _dtheta_dx(x, thickness)
     JtJi = np.linalg.pinv(J.T @ J)
-    C = G @ JtJi @ G.T * max(1.0, chi2)
+    Cx = JtJi * max(1.0, chi2)  # in x units
     for dl in cur["delta"]:
         # the discretisation error is one image, correlated over the pixels: propagate each level
         # difference (measured at the estimate) through the estimator as a systematic shift,
         # C_sys = Σ_k b_k b_kᵀ
-        b = G @ JtJi @ J.T @ (dl / s_tot)
-        C = C + np.outer(b, b)
-    th = to_theta(x, thickness)
+        b = JtJi @ J.T @ (dl / s_tot)
+        Cx = Cx + np.outer(b, b)
+    Gx = G(x)
+    C = Gx @ Cx @ Gx.T  # in (d, h, ln E)
+    th = tt(x)
     sd = np.sqrt(np.clip(np.diag(C), 0, None))
     relstd = np.array([sd[0] / th[0], sd[1] / th[1], sd[2]])
     hlo, hhi = h_range(th[0], thickness)
-    lo = np.array([max(th[0] - Z95 * sd[0], d_range[0]), max(th[1] - Z95 * sd[1], hlo), th[2] * math.exp(-Z95 * sd[2])])
-    hi = np.array([min(th[0] + Z95 * sd[0], d_range[1]), min(th[1] + Z95 * sd[1], hhi), th[2] * math.exp(Z95 * sd[2])])
+    se = Z95 * math.sqrt(max(float(Cx[2, 2]), 0.0))  # E's interval in the fit's own coordinate
+    e_lo, e_hi = tt([x[0], x[1], max(x[2] - se, lb[2])])[2], tt([x[0], x[1], min(x[2] + se, ub[2])])[2]
+    lo = np.array([max(th[0] - Z95 * sd[0], d_range[0]), max(th[1] - Z95 * sd[1], hlo), e_lo])
+    hi = np.array([min(th[0] + Z95 * sd[0], d_range[1]), min(th[1] + Z95 * sd[1], hhi), e_hi])
     lo[2], hi[2] = max(lo[2], E_range[0]), min(hi[2], E_range[1])
     tol = 1e-3 * (ub - lb)
     at = [q for j, q in enumerate(("d", "h", "E")) if x[j] <= lb[j] + tol[j] or x[j] >= ub[j] - tol[j]]
@@ -780,6 +855,11 @@ class ForwardMap:
     @property
     def has_tangent(self) -> bool:
         return bool(getattr(self.morphed, "has_tangent", False))
+
+    @property
+    def E_tissue(self) -> float:
+        """The tissue's modulus (kPa) of the map's template (the fit's E coordinate uses it)."""
+        return float(self.morphed.template.tissue.E)
 
     def tangent(self, d, h, E):
         """``(result, J)``: the solve and its image's exact derivative, ``J`` ``(3, ny, nx)`` =

@@ -54,6 +54,7 @@ import click
 import numpy as np
 
 from elastimap.cli_util import shard_option, sizing_option
+from elastimap.identify.refine import COORDS
 from elastimap.solver.params import MESH_LEVELS
 
 TRUTH_SEED = 2026
@@ -189,6 +190,7 @@ class _Timed:
         self.fn, self.acc, self.name = fn, acc, name
         self.key = getattr(fn, "key", None)
         self.has_tangent = bool(getattr(fn, "has_tangent", False))
+        self.E_tissue = getattr(fn, "E_tissue", None)
         if hasattr(fn, "pin"):
             self.pin = lambda d, h: _Timed(fn.pin(d, h), acc, name)
         if hasattr(fn, "pin_exact"):
@@ -230,6 +232,13 @@ class _Timed:
 )
 @click.option("--geometry", default=None, help="Fit's forward map: morph (default where available) or remesh.")
 @click.option("--frames", default=30, show_default=True, type=int, help="Lesion and background frames per lesion.")
+@click.option(
+    "--coords",
+    type=click.Choice(COORDS),
+    default="contrast",
+    show_default=True,
+    help="The fit's coordinate of E (identify.refine.FitCoords); 'log' (ln E) adds '-log' to the fits' folder.",
+)
 @shard_option("K/N: this process fits lesions i with i % N == K.")
 @click.option("--limit", default=0, type=int, help="Stop after this many new fits (0: all).")
 @click.option("--out", required=True)
@@ -244,6 +253,7 @@ def run_cmd(
     correct_mesh,
     geometry,
     frames,
+    coords,
     shard,
     limit,
     out,
@@ -275,6 +285,8 @@ def run_cmd(
     alt_level = "+".join(levels)
     tag = f"{geometry}-{fit_mesh}" + (f"-corr-{correct_mesh}" if correct_mesh else "")
     tag += "" if levels == [neighbour_level(top)] else f"-err-{alt_level}"
+    cal_tag = tag  # the calibration does not depend on the fit's coordinates
+    tag += "-log" if coords == "log" else ""
     fits = os.path.join(out, f"fits-{tag}")
     os.makedirs(fits, exist_ok=True)
     acc: dict = {}
@@ -283,7 +295,7 @@ def run_cmd(
     fwd_alt = [_Timed(forward_map(v, geometry), acc, "alt_level") for v in levels]
     fwd_fine = _Timed(forward_map(correct_mesh, geometry), acc, "fine_level") if correct_mesh else None
     # the calibration's FEM side: the map the fit stands for (the finer one when it corrects)
-    cal = calibrate(out, truth_mesh, fwd_fine or fwd, frames, seed, tag, truth_sizing)
+    cal = calibrate(out, truth_mesh, fwd_fine or fwd, frames, seed, cal_tag, truth_sizing)
     setup = time.perf_counter() - t
     model = load_model(model_dir)
     idm = load_identifiability("default")
@@ -304,7 +316,9 @@ def run_cmd(
         t_net = time.perf_counter() - t1
         before = dict(acc)
         c0 = time.process_time()
-        (fit,) = refine_estimates([copy.deepcopy(net)], None, forward=fwd, forward_alt=fwd_alt, forward_fine=fwd_fine)
+        (fit,) = refine_estimates(
+            [copy.deepcopy(net)], None, forward=fwd, forward_alt=fwd_alt, forward_fine=fwd_fine, coords=coords
+        )
         cpu_fit = time.process_time() - c0
         spent = {key: acc.get(key, 0) - before.get(key, 0) for key in acc}
         rec = {
@@ -314,7 +328,7 @@ def run_cmd(
             "world": world_label(truth_mesh, truth_sizing) + ", tied, quarter",
             "fit_map": f"{geometry}, {fit_mesh} mesh"
             + (f", defect-corrected by {correct_mesh}" if correct_mesh else "")
-            + f"; model error vs {alt_level}",
+            + f"; model error vs {alt_level}; E coordinate {coords}",
             "frames": frames,
             "image_peak_mm": float(w["image"].max()),
             "recovered_z_rms": float(np.sqrt(np.mean(((di.image - w["image"]) / di.sigma) ** 2))),
