@@ -60,7 +60,8 @@ which equals the finer map at ``x_s`` and has the coarse map's derivative: the f
 passes is the finer map's fit (defect correction; one finer solve per pass, the coarse map's
 derivative and solves everywhere else).  The model error is then the finer map's: measured against
 the finer level's neighbour.  Measured: docs/camera.md 4e (d, h and E far closer to a `fine`
-world; the passes often stop short along a flat, curved d–E valley).
+world; in ln E the passes often stopped short along the flat, curved d–E valley) and 4f (in the
+contrast coordinate: d 2.5 %, h 0.6 %, intervals covering 91–92 %).
 
 Uncertainty: Gauss–Newton covariance at ``θ̂`` from the Jacobian at ``θ̂`` (the exact one; for a
 map without a derivative, the pass's central-difference Jacobian),

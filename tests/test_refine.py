@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from elastimap.errors import UserError
-from elastimap.identify.refine import refine, refine_rsm, to_theta, to_x
+from elastimap.identify.refine import COORDS, FitCoords, refine, refine_rsm, to_theta, to_x
 
 _Y, _X = np.mgrid[0:16, 0:16] * 0.75
 _R2 = _X.ravel() ** 2 + _Y.ravel() ** 2
@@ -29,6 +31,58 @@ def test_parametrisation_roundtrip_keeps_h_inside_the_depth_range():
         np.testing.assert_allclose(to_theta(to_x(th)), th, rtol=1e-12)
     x = to_x([8.0, 8.0, 50.0])
     assert 0 <= x[1] <= 1 and x[2] == pytest.approx(np.log(50.0))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    coord=st.sampled_from(COORDS),
+    d=st.floats(2.0, 15.0),
+    u=st.floats(0.0, 1.0),
+    E=st.floats(10.0, 200.0),
+    Et=st.floats(0.5, 30.0),
+)
+def test_fit_coordinates_roundtrip_and_their_derivative(coord, d, u, E, Et):
+    """FitCoords: theta -> x -> theta is the identity over the design box (also for a tissue stiffer
+    than the box's softest inclusion), and dtheta is the derivative of (d, h, ln E) in x (central
+    differences)."""
+    X = FitCoords(coord=coord, E_tissue=Et)
+    th = to_theta([d, u, np.log(E)])
+    x = X.x(th)
+    np.testing.assert_allclose(X.theta(x), th, rtol=1e-9)
+    lb, ub = X.box((2.0, 15.0), (10.0, 200.0))
+    assert np.all(lb - 1e-12 <= x) and np.all(x <= ub + 1e-12)
+
+    def q(x):
+        t = X.theta(x)
+        return np.array([t[0], t[1], np.log(t[2])])
+
+    eps = 1e-6
+    num = np.column_stack([(q(x + eps * e) - q(x - eps * e)) / (2 * eps) for e in np.eye(3)])
+    np.testing.assert_allclose(X.dtheta(x), num, rtol=1e-5, atol=1e-7)
+
+
+def test_contrast_coordinate_straightens_the_equal_amplitude_valley():
+    """On the curve d³ c(E) = const (equal image amplitude to first order, c Eshelby's contrast) the
+    contrast coordinate e moves linearly with ln d (slope −3), while ln E bends: a stiff inclusion's
+    ln E runs away as c saturates."""
+    X, L = FitCoords(coord="contrast", E_tissue=5.0), FitCoords(coord="log", E_tissue=5.0)
+    a, b = 5.0, 7.5
+    c0 = (20.0 - a) / (20.0 + b) * 8.0**3  # E from about 60 kPa (d 7 mm) to 11 kPa (d 9.5 mm)
+    d = np.linspace(7.0, 9.5, 6)
+    c = c0 / d**3
+    E = (a + b * c) / (1 - c)
+    e = np.array([X.x([di, 8.0, Ei])[2] for di, Ei in zip(d, E)])
+    lnE = np.array([L.x([di, 8.0, Ei])[2] for di, Ei in zip(d, E)])
+    np.testing.assert_allclose(np.diff(e) / np.diff(np.log(d)), -3.0, rtol=1e-9)
+    slopes = np.diff(lnE) / np.diff(np.log(d))
+    assert slopes.max() / slopes.min() < 0.5  # ln E's slope changes by more than a factor of two
+
+
+def test_fit_coordinates_name_a_bad_choice():
+    with pytest.raises(UserError, match="coords"):
+        FitCoords(coord="sqrt")
+    with pytest.raises(UserError, match="E_tissue"):
+        FitCoords(E_tissue=0.0)
 
 
 def test_noise_free_fit_recovers_the_truth_from_a_wrong_start():
