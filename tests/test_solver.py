@@ -310,6 +310,28 @@ def test_recycled_factors_solve_nearby_matrices_like_a_direct_solver():
     finally:
         rec.destroy()
 
+    # block low-rank factors (blr_min: every matrix here): approximate, so a solve with K's own
+    # factors runs CG on them to rtol too -- the same solutions, back-solves included
+    rec = Recycled("t_recycled_blr", blr_min=1, blr_tol=1e-4)
+    try:
+        for scale, key in ((1.0, b"a"), (1.4, b"a"), (1.0, b"b")):
+            M = stiffness(k0 * np.where(mid > 0.5, scale, 1.0))
+            f = PETSc.Vec().createWithArray(b.copy(), comm=PETSc.COMM_SELF)
+            u = rec.solve(petsc(M), f, key, tag=scale).getArray().copy()
+            assert rec.blr
+            assert np.abs(u - spla.spsolve(M.tocsc(), b)).max() <= 1e-9 * np.abs(u).max(), (scale, key)
+        g = np.cos(2 * x[1:-1])
+        v = rec.resolve(PETSc.Vec().createWithArray(g.copy(), comm=PETSc.COMM_SELF)).getArray().copy()
+        assert np.abs(v - spla.spsolve(M.tocsc(), g)).max() <= 1e-9 * np.abs(v).max()
+    finally:
+        rec.destroy()
+    rec = Recycled("t_recycled_small")  # the default blr_min: exact factors for a small matrix
+    try:
+        rec.solve(petsc(stiffness(k0)), PETSc.Vec().createWithArray(b.copy(), comm=PETSc.COMM_SELF), b"a")
+        assert not rec.blr
+    finally:
+        rec.destroy()
+
     # refactor_after: back-solves (resolve) after a CG solve that needed more iterations than that
     # factorise its matrix first, so that they are exact in one step; the solve itself does not
     rec = Recycled("t_recycled_refactor", refactor_after=0)
