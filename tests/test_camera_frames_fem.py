@@ -100,23 +100,12 @@ def test_response_shape_error_is_a_scale_the_phantoms_fit(solves):
     assert err_raw > 0.02 and err_cal < 0.75 * err_raw, (err_raw, err_cal, k)
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="measured 2026-11-24 with the exact-derivative fit: on the tiny mesh the fit's intervals miss (frames "
-    "9.80 [9.50, 10.10] / 6.52 [6.37, 6.67] / 15.8 [14.5, 17.3], noise-free FEM image 8.39 / 6.90 / 33.5, truth "
-    "8 / 7 / 50; the central-difference fit before it: frames 8.70 [8.17, 9.23] / 6.85 [6.58, 7.12] / 23.9 "
-    "[16.7, 34.2], FEM image 9.50 / 6.63 / 17.5): the tiny morphed map's own error (it moves with the reference "
-    "mesh) exceeds its measured difference to the coarse level, and the fit stops at a path-dependent point of "
-    "the flat d-E valley",
-)
-def test_refine_from_frames_on_the_tiny_mesh(solves):
+@pytest.fixture(scope="module")
+def refined(solves):
     """frames -> difference image + per-pixel noise -> the library's fit (morphed tiny map, model
-    error against the coarse level), from a start 10 % off in every parameter, next to the same fit
-    of the noise-free FEM image itself.  The lesion was made by the remeshing solver, not the fit's
-    map.  The camera chain must add little to what the fit does with the true image, and both
-    intervals must hold the truth.  It does not on the tiny mesh (strict xfail with the measured
-    numbers); the coarse-map benchmark is docs/camera.md 4c."""
+    error against the coarse level), from a start 10 % off in every parameter; and the same fit of
+    the noise-free FEM image itself (the frames' σ).  The lesion was made by the remeshing solver,
+    not the fit's map."""
     pytest.importorskip("elastimap.solver.morph")
     from elastimap.camera.infer import Estimate, refine_estimates
 
@@ -139,10 +128,39 @@ def test_refine_from_frames_on_the_tiny_mesh(solves):
             sigma=sigma.ravel(),
         )
 
-    [r, r_fem] = refine_estimates([est(di.image, di.sigma), est(fem, di.sigma)], None, mesh="tiny")
+    r, r_fem = refine_estimates([est(di.image, di.sigma), est(fem, di.sigma)], None, mesh="tiny")
     print("refined from frames", r.mean, r.lo, r.hi, "from the FEM image", r_fem.mean)
+    return r, r_fem
+
+
+@pytest.mark.slow
+def test_refine_from_frames_holds_the_truth_and_moves_by_the_noise_only(refined):
+    """The camera --refine path on the real tiny-mesh FEM: the 95 % intervals hold the truth, and
+    the frames' noise moves the estimate from the noise-free image's fit by no more than 2.5 of
+    the fit's own standard deviations (d, h; ln E) -- the camera chain adds noise, not bias.
+    Measured 2026-11-26 (contrast coordinate): frames 8.65 [7.31, 9.99] / 6.87 [6.35, 7.40] / 24.5
+    [13.7, 128], FEM image 8.16 / 6.95 / 41.5, truth 8 / 7 / 50."""
+    r, r_fem = refined
     assert r.input == "frames+fem_refined"
+    assert np.all(r.lo <= TRUTH) and np.all(np.array(TRUTH) <= r.hi), r.to_dict()
+    sd = np.array([r.sd[0], r.sd[1], r.crb[2]])  # mm, mm, ln E
+    moved = np.abs(np.array([r.d - r_fem.d, r.h - r_fem.h, np.log(r.E / r_fem.E)]))
+    assert np.all(moved <= 2.5 * sd), (moved, sd)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="measured 2026-11-26 (the contrast coordinate): the intervals now hold the truth (frames 8.65 "
+    "[7.31, 9.99] / 6.87 [6.35, 7.40] / 24.5 [13.7, 128]) but d from frames is 8 % off and 6 % from the fit of "
+    "the noise-free FEM image (8.16 / 6.95 / 41.5; truth 8 / 7 / 50): on the tiny map the frames' noise moves "
+    "the estimate along the flat d-E valley by about one of its standard deviations (d sd 0.68 mm)",
+)
+def test_refine_from_frames_on_the_tiny_mesh(refined):
+    """The accuracy asked of the benchmark (docs/camera.md), on the tiny mesh: d and h within 5 %,
+    within 3 % of the noise-free image's fit.  Not met on the tiny map (strict xfail with the
+    measured numbers); the benchmark on `coarse` corrected by `fine` is docs/camera.md 4f-4g."""
+    r, r_fem = refined
     np.testing.assert_allclose(r.mean[:2], r_fem.mean[:2], rtol=0.03, err_msg=f"{r.mean} vs {r_fem.mean}")
     d, h, E = TRUTH
     assert r.d == pytest.approx(d, rel=0.05) and r.h == pytest.approx(h, rel=0.05), r.to_dict()
-    assert np.all(r.lo <= TRUTH) and np.all(np.array(TRUTH) <= r.hi), r.to_dict()
