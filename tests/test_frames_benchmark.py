@@ -1,0 +1,55 @@
+"""The camera-frame benchmark's own pieces (workflows/frames_benchmark.py) on plain records: the
+session camera that drifts from the calibration's, and the scoring where the estimator itself
+reports a quantity.  The benchmark's figures are docs/camera.md 4c-4g."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from elastimap.camera.optics import SensorModel
+from elastimap.workflows import frames_benchmark as fb
+
+
+def test_session_sensor_drifts_only_leds_and_vignetting():
+    nominal = SensorModel(seed=3)
+    cams = [fb.session_sensor(nominal, np.random.default_rng(k)) for k in range(20)]
+    for cam in cams:
+        ratio = np.array(cam.led_power) / np.array(nominal.led_power)
+        assert np.all((0.8 <= ratio) & (ratio <= 1.2)) and 0.05 <= cam.vignetting <= 0.3
+        assert cam.replace(led_power=nominal.led_power, vignetting=nominal.vignetting) == nominal
+        cam.validate()
+    assert len({c.led_power for c in cams}) == 20  # drawn afresh per session
+
+
+def _rec(truth, est, lo, hi, reportable, flags=""):
+    part = {"flags": flags, "fit_chi2_red": 1.0}
+    for j, q in enumerate("dhE"):
+        part.update({q: est[j], f"{q}_lo": lo[j], f"{q}_hi": hi[j], f"{q}_reportable": reportable[j]})
+    return {
+        "truth": list(truth),
+        "network": dict(part),
+        "fit": dict(part),
+        "seconds_fit": 1.0,
+        "cpu_seconds_fit": 1.0,
+        "seconds_camera_and_network": 0.1,
+        **{f"{k}_level_solves": 0.0 for k in ("seconds_fit", "seconds_alt", "n_fit", "n_alt")},
+    }
+
+
+def test_summary_scores_where_the_estimator_reports():
+    """MRE and coverage over the records whose estimate says 'reportable', whatever the map says at
+    the truth; none reported gives None, not 0."""
+    truth = (8.0, 7.0, 50.0)
+    recs = [
+        _rec(truth, (8.8, 7.0, 55.0), (7.0, 6.0, 40.0), (9.0, 8.0, 60.0), (True, True, True)),  # d +10 %, E +10 %
+        _rec(truth, (8.0, 7.7, 100.0), (7.5, 7.5, 20.0), (8.5, 8.0, 200.0), (True, True, False)),  # E not reported
+    ]
+    sm = fb.summarise(recs)
+    fit = sm["fit"]
+    assert fit["E"]["n_reported"] == 1 and fit["E"]["mre_reported"] == pytest.approx(0.10)
+    assert fit["d"]["n_reported"] == 2 and fit["d"]["mre_reported"] == pytest.approx(0.05)
+    assert fit["h"]["coverage_reported"] == pytest.approx(0.5)  # 7.0 outside [7.5, 8.0]
+    recs[0]["fit"]["E_reportable"] = False
+    assert fb.summarise(recs)["fit"]["E"]["mre_reported"] is None
+    assert "reports the quantity as a number" in fb.table(sm)
