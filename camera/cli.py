@@ -366,12 +366,14 @@ def calibrate(
 @click.option(
     "--refine-correct",
     "correct",
-    default=None,
-    metavar="LEVEL",
+    default="auto",
+    show_default=True,
+    metavar="LEVEL|auto|none",
     help="--refine: a finer mesh level (e.g. fine) whose solve corrects the forward map's defect at the start "
     "of each pass after the first; the fit then stands for that level and its error is measured against "
-    "that level's neighbour.  Removes most of the coarse map's bias in d and E (docs/camera.md 4e) at "
-    "one or two solves of that level per lesion (about 10-20 s more on the fine mesh).",
+    "that level's neighbour.  Removes most of the coarse map's bias in d and E (docs/camera.md 4e-4g) at "
+    "one or two solves of that level per lesion.  auto: fine for --mesh coarse (the benchmarked "
+    "configuration), none for the other levels; none: the map alone.",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also write .csv or .json here.")
@@ -424,12 +426,23 @@ def infer(
         raise UserError("--refine", "needs an image (--fem-image, --images or --csv) and an image model, not features")
     if refine and not 0 < image_noise < 1:
         raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
-    if correct is not None:
+    if correct not in ("auto", "none"):
         from elastimap.identify.refine import check_correct
 
         if not refine:
             raise UserError("--refine-correct", "only applies with --refine")
-        check_correct(mesh, correct)  # before any work
+        try:
+            check_correct(mesh, correct)  # before any work
+        except UserError as exc:
+            raise UserError(
+                "--refine-correct", "must be auto, none or " + exc.message.removeprefix("must be ")
+            ) from None
+    elif refine:
+        from elastimap.identify.refine import default_correct
+
+        correct = default_correct(mesh) if correct == "auto" else None
+    else:
+        correct = None
     if fem_image is not None and not os.path.isfile(fem_image):
         raise UserError("--fem-image", f"{fem_image}: no such file")
     if out:

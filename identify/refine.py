@@ -921,6 +921,19 @@ def check_correct(mesh: str, correct: str | None) -> None:
         raise UserError("correct", f"must be a mesh level finer than {mesh}: {finer} (got {correct!r})")
 
 
+#: the level that defect-corrects a fit's map by default (:func:`default_correct`): the benchmarked
+#: configuration, `coarse` corrected by `fine` (docs/camera.md 4f-4g)
+DEFAULT_CORRECT = {"coarse": "fine"}
+
+
+def default_correct(mesh: str) -> str | None:
+    """The level that corrects a fit's map at ``mesh`` unless told otherwise: ``fine`` for ``coarse``
+    (what the camera-frame benchmark measured), none for the other levels (``tiny`` is for tests,
+    ``default`` and finer are themselves the finer maps)."""
+    neighbour_level(mesh)  # checks the level
+    return DEFAULT_CORRECT.get(mesh)
+
+
 def fit_forward(
     image, sigma, theta0, mesh: str = "coarse", geometry: str | None = None, correct: str | None = None, **kw
 ) -> FitResult:

@@ -243,10 +243,15 @@ def test_defect_correction_by_a_finer_level_removes_the_cheaper_maps_bias():
     [
         (["--refine-correct", "fine"], "only applies with --refine"),
         (["--refine", "--mesh", "default", "--refine-correct", "coarse"], "finer than default: fine, finer"),
-        (["--refine", "--refine-correct", "huge"], "finer than coarse: default, fine, finer (got 'huge')"),
+        (
+            ["--refine", "--refine-correct", "huge"],
+            "must be auto, none or a mesh level finer than coarse: default, fine, finer (got 'huge')",
+        ),
     ],
 )
 def test_cli_refine_correct_names_what_is_allowed(tmp_path, extra, says):
+    """``--refine-correct`` takes auto (the default), none or a level finer than --mesh; anything else
+    is one line naming the flag and what it allows."""
     fem = tmp_path / "img.npy"
     np.save(fem, np.zeros((4, 4)))
     r = _infer("--model", str(tmp_path), "--fem-image", str(fem), *extra)
@@ -259,3 +264,16 @@ def test_refine_estimates_checks_the_correcting_level():
 
     with pytest.raises(UserError, match="correct"):
         refine_estimates([], None, mesh="default", correct="coarse")
+
+
+def test_default_correct_is_the_benchmarked_configuration():
+    """``infer --refine`` corrects the coarse map by ``fine`` unless told otherwise (docs/camera.md
+    4f-4g measured that configuration); the other levels fit their map alone."""
+    from elastimap.identify.refine import check_correct, default_correct
+
+    assert default_correct("coarse") == "fine"
+    for mesh in ("tiny", "default", "fine", "finer"):
+        assert default_correct(mesh) is None
+    check_correct("coarse", default_correct("coarse"))
+    with pytest.raises(UserError, match="mesh"):
+        default_correct("huge")
