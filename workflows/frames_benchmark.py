@@ -25,7 +25,8 @@ the image network (``--model``) -> the maximum-likelihood fit on the forward map
 (:func:`elastimap.camera.infer.refine_estimates`), its model error measured against
 ``--error-mesh`` (default: the neighbouring coarser level).  ``--correct-mesh LEVEL`` (finer than
 ``--fit-mesh``) defect-corrects the fit's map by that level at the start of every pass after the
-first (``fit_image(forward_fine=...)``); the fit then stands for that level (the calibration's
+first (``fit_image(forward_fine=...)``); ``--session drift`` takes each lesion's frames with a camera
+whose LED powers and vignetting drift from the calibration's (:func:`session_sensor`); the fit then stands for that level (the calibration's
 FEM side is solved on it) and its model error is measured against that level's neighbour.  One
 JSON file per lesion in ``OUT/fits`` (resumable; ``--shard K/N`` splits the lesions between
 processes; the calibration and the fits are kept per forward map, ``OUT/cal-<tag>.json`` and
@@ -38,7 +39,9 @@ Stage ``report``: the table (printed, ``OUT/benchmark.md``), ``OUT/benchmark.jso
 ``OUT/benchmark.png``.  Regions: the shipped identifiability map (image set, 10 % threshold)
 evaluated at the TRUE lesion says whether d, h and E are identifiable there.  Errors (MRE) are over
 the identifiable lesions whose frames show a signal (``no_signal`` lesions report nothing);
-coverage is over all lesions.
+coverage is over all lesions.  A second table scores each estimator where it itself reports a
+quantity as a number (its own interval within the threshold, decided from the frames alone: what a
+user is told to trust).
 
     .venv/bin/python workflows/frames_benchmark.py report --out runs/frames-bench
 
