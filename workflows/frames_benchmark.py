@@ -25,8 +25,7 @@ the image network (``--model``) -> the maximum-likelihood fit on the forward map
 (:func:`elastimap.camera.infer.refine_estimates`), its model error measured against
 ``--error-mesh`` (default: the neighbouring coarser level).  ``--correct-mesh LEVEL`` (finer than
 ``--fit-mesh``) defect-corrects the fit's map by that level at the start of every pass after the
-first (``fit_image(forward_fine=...)``); ``--session drift`` takes each lesion's frames with a camera
-whose LED powers and vignetting drift from the calibration's (:func:`session_sensor`); the fit then stands for that level (the calibration's
+first (``fit_image(forward_fine=...)``); the fit then stands for that level (the calibration's
 FEM side is solved on it) and its model error is measured against that level's neighbour.  One
 JSON file per lesion in ``OUT/fits`` (resumable; ``--shard K/N`` splits the lesions between
 processes; the calibration and the fits are kept per forward map, ``OUT/cal-<tag>.json`` and
@@ -34,6 +33,9 @@ processes; the calibration and the fits are kept per forward map, ``OUT/cal-<tag
 ``-err-<level>`` when ``--error-mesh`` is not the default).
 
     OMP_NUM_THREADS=1 .venv/bin/python workflows/frames_benchmark.py run --model M --out runs/frames-bench
+
+``--session drift`` takes each lesion's frames with a camera whose LED powers and vignetting drift
+from the calibration's (:func:`session_sensor`); inference keeps the nominal model.
 
 Stage ``report``: the table (printed, ``OUT/benchmark.md``), ``OUT/benchmark.json`` and
 ``OUT/benchmark.png``.  Regions: the shipped identifiability map (image set, 10 % threshold)
