@@ -128,6 +128,7 @@ class Estimate:
             out["fit_model_error"] = float(self.fit.model_error)
             out["fit_solves"] = int(self.fit.n_solves + self.fit.n_alt)
             out["fit_seconds"] = float(self.fit.seconds)
+            out["fit_converged"] = bool(self.fit.converged)
         out["crb_set"] = self.crb_set
         out["input"] = self.input
         out["n_members"] = self.n_members

@@ -461,6 +461,7 @@ def fem_model(mesh: str = "default", cache: str | None = None) -> Callable[[np.n
 
 
 # ============================================================================ the fit inference uses (fit_image)
+STILL_MOVING = "still moving"  # the message of a fit whose passes ran out (FitResult.converged)
 FD_STEPS = (0.15, 0.15, 0.03)  # central-difference steps: d mm, h mm (at fixed d), ln E
 Z95 = 1.959963984540054
 
@@ -498,6 +499,13 @@ class FitResult:
     def sd(self) -> np.ndarray:
         """Absolute standard deviations (for E: first order, E x sd ln E)."""
         return self.relstd * self.theta
+
+    @property
+    def converged(self) -> bool:
+        """Whether the last pass moved no parameter by more than 0.2 of its standard deviation (the
+        fit's stopping rule); False: the passes ran out while it still moved, and the estimate and its
+        interval are those of where it stopped."""
+        return STILL_MOVING not in self.message
 
 
 def _pinned_exact(f, d: float, h: float):
@@ -749,7 +757,7 @@ def fit_image(
         if not moved and k >= first:
             break
     else:
-        msg.append(f"still moving after {max_passes} passes")
+        msg.append(f"{STILL_MOVING} after {max_passes} passes")
     cur["delta"] = [m(x) - a for a in alt_images(x)]  # the model error at the estimate
     s_tot, s_mod = sigma()
     if tangent or J is None or moved:

@@ -53,3 +53,7 @@ def test_summary_scores_where_the_estimator_reports():
     recs[0]["fit"]["E_reportable"] = False
     assert fb.summarise(recs)["fit"]["E"]["mre_reported"] is None
     assert "reports the quantity as a number" in fb.table(sm)
+    recs[1]["fit_message"] = "ftol; still moving after 2 passes"
+    sm = fb.summarise(recs)
+    assert sm["not_converged"] == 1 and sm["fit"]["d"]["n_reported_converged"] == 1
+    assert sm["fit"]["d"]["mre_reported_converged"] == pytest.approx(0.10)  # lesion 0 alone

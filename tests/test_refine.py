@@ -236,6 +236,11 @@ def test_defect_correction_by_a_finer_level_removes_the_cheaper_maps_bias():
     np.testing.assert_allclose(corrected.theta, truth, rtol=2e-3)
     assert 1 <= corrected.n_fine <= 4 and plain.n_fine == 0
     assert corrected.chi2_red < 1e-2  # the corrected map reproduces the image (so does the biased one here)
+    # the stopping rule is reported: with one corrected pass the fit cannot settle after the
+    # correction moved it (~3 % in d), and says so
+    assert corrected.converged
+    short = fit_image(I, sig, truth, cheap, forward_fine=lambda d, h, E: bump((d, h, E)), **{**kw, "max_passes": 1})
+    assert not short.converged and "still moving after 1 passes" in short.message
 
 
 @pytest.mark.parametrize(

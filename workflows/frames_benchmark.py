@@ -65,7 +65,7 @@ import click
 import numpy as np
 
 from elastimap.cli_util import shard_option, sizing_option
-from elastimap.identify.refine import COORDS
+from elastimap.identify.refine import COORDS, STILL_MOVING
 from elastimap.solver.params import MESH_LEVELS
 
 TRUTH_SEED = 2026
@@ -450,6 +450,7 @@ def summarise(recs: list[dict], region_set: str = "frames") -> dict:
     truth = np.array([r["truth"] for r in recs])
     reg = _region(truth, region_set)
     sig = np.array(["no_signal" not in r["network"]["flags"] for r in recs])
+    conv = np.array([STILL_MOVING not in r.get("fit_message", "") for r in recs])
     out = {"n": len(recs), "identifiable": {q: int(reg[:, j].sum()) for j, q in enumerate("dhE")}}
     for name in ("network", "fit"):
         est = np.array([[r[name][q] for q in "dhE"] for r in recs])
@@ -474,11 +475,15 @@ def summarise(recs: list[dict], region_set: str = "frames") -> dict:
             # where the estimator itself prints q as a number (identifiable by its own sd, possible,
             # a signal): what a user is told to trust, decided from the frames, not from the truth
             rep = np.array([bool(r[name].get(f"{q}_reportable", False)) for r in recs])
+            rc = rep & conv if name == "fit" else rep
             row[q].update(
                 mre_reported=float(rel[rep, j].mean()) if rep.any() else None,
                 median_re_reported=float(np.median(rel[rep, j])) if rep.any() else None,
                 coverage_reported=float(cov[rep, j].mean()) if rep.any() else None,
                 n_reported=int(rep.sum()),
+                # the fits among them whose last pass settled (FitResult.converged)
+                mre_reported_converged=float(rel[rc, j].mean()) if rc.any() else None,
+                n_reported_converged=int(rc.sum()),
             )
         out[name] = row
     sec = np.array([r["seconds_fit"] for r in recs])
@@ -490,6 +495,7 @@ def summarise(recs: list[dict], region_set: str = "frames") -> dict:
         out[key] = float(np.mean([r[key] for r in recs]))
     for key in ("seconds_fine_level_solves", "n_fine_level_solves"):  # fits that correct by a finer level
         out[key] = float(np.mean([r.get(key, 0.0) for r in recs]))
+    out["not_converged"] = int((~conv).sum())
     out["no_signal"] = int(sum("no_signal" in r["fit"]["flags"] for r in recs))
     out["model_mismatch"] = int(sum("model_mismatch" in r["fit"]["flags"] for r in recs))
     out["chi2_red_median"] = float(np.nanmedian([r["fit"].get("fit_chi2_red", np.nan) for r in recs]))
@@ -540,6 +546,14 @@ def table(sm: dict) -> str:
             )
             + " |"
         )
+    r = sm["fit"]
+    lines += [
+        "",
+        f"Fits that ended still moving (the passes ran out): {sm['not_converged']} of {sm['n']}.  Among the fit's "
+        "reported quantities, those whose fit converged: "
+        + ", ".join(f"{q} {_pct(r[q]['mre_reported_converged'])} ({r[q]['n_reported_converged']})" for q in "Edh")
+        + ".",
+    ]
     return "\n".join(lines)
 
 
