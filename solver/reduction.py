@@ -255,11 +255,11 @@ class Recycled:
     is factorised by MUMPS's block low-rank Cholesky (ICNTL(35) = 2: the off-diagonal blocks of
     the fronts compressed to rank-revealing products, dropping tolerance CNTL(7) = ``blr_tol``;
     Amestoy et al., SIAM J. Sci. Comput. 37 (2015) A1451).  Such factors are not exact, so a
-    solve with K's own factors is then CG preconditioned by them to ``rtol`` as well (one or two
-    iterations), not one back-substitution: every solve meets ``rtol`` as before.  Measured on
-    the quarter model (docs/forward-model.md): the `fine` level's factorisation (66 851 unknowns)
-    14.0 → 7.9 s, `default` (28 381) 2.4 → 2.1 s, `coarse` (18 191) 0.84 → 0.93 s (slower; below
-    the size).  None: exact factors always."""
+    solve with K's own factors is then CG preconditioned by them to ``rtol`` as well (two
+    iterations on the `fine` level, measured), not one back-substitution: every solve meets
+    ``rtol`` as before.  Measured on the quarter model (docs/forward-model.md): a `fine` sample's
+    two factorisations (66 851 unknowns) 14.0 → 7.9 s, `default` (28 381) 2.4 → 2.1 s, `coarse`
+    (18 191) 0.84 → 0.93 s (slower; below the size).  None: exact factors always."""
 
     def __init__(
         self,

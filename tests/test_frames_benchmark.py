@@ -57,3 +57,25 @@ def test_summary_scores_where_the_estimator_reports():
     sm = fb.summarise(recs)
     assert sm["not_converged"] == 1 and sm["fit"]["d"]["n_reported_converged"] == 1
     assert sm["fit"]["d"]["mre_reported_converged"] == pytest.approx(0.10)  # lesion 0 alone
+
+
+@pytest.mark.parametrize(
+    ("args", "says", "existing"),
+    [
+        (["--sweep", "{tmp}/none"], "--sweep: no such file or directory", False),
+        (["--sweep", "{tmp}", "--repeats", "0"], "--repeats: must be >= 1", False),
+        (["--sweep", "{tmp}"], "image-model exists", True),  # never overwrites a network
+    ],
+)
+def test_network_stage_answers_bad_input_in_one_line(tmp_path, args, says, existing):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    if existing:
+        (tmp_path / "image-model").mkdir()
+    script = Path(fb.__file__).resolve()
+    cmd = [sys.executable, str(script), "network", *[a.format(tmp=tmp_path) for a in args], "--out", str(tmp_path)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1

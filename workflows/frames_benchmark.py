@@ -178,7 +178,10 @@ def network_cmd(sweep_dir, repeats, epochs, seed, out):
     for name, v in (("--repeats", repeats), ("--epochs", epochs)):
         if v < 1:
             raise UserError(name, f"must be >= 1 (got {v})")
-    data = load(sweep_dir, design_only=True)
+    try:
+        data = load(sweep_dir, design_only=True)
+    except UserError as exc:  # the library names its parameter; this command's flag is --sweep
+        raise UserError("--sweep", exc.message) from None
     cfg = TrainConfig(hidden=((12, "tansig"), (6, "tansig")), epochs=epochs)
     model = fit_image_model(data, "scg", repeats, cfg, seed=seed, k=10, image_noise=0.01, log_e=True)
     os.makedirs(out, exist_ok=True)
