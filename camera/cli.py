@@ -361,7 +361,8 @@ def calibrate(
 )
 @mesh_option(
     default="coarse",
-    help="--refine: mesh level of the forward map (its error is measured against the neighbouring level).",
+    help="--refine: mesh level of the forward map; its error is measured against the neighbouring level of "
+    "the level the fit stands for (with --refine-correct, that level's).",
 )
 @click.option(
     "--refine-correct",

@@ -225,8 +225,8 @@ class LU:
 
 
 #: :class:`Recycled` factorises a matrix of at least this many unknowns by MUMPS's block low-rank
-#: Cholesky with this dropping tolerance (the `fine` level: 43 % less time; CG on the factors keeps
-#: every solve at its tolerance)
+#: Cholesky with this dropping tolerance (a `fine` sample's solves: 41 % less time; CG on the factors
+#: keeps every solve at its tolerance)
 BLR_MIN_UNKNOWNS = 25_000
 BLR_TOLERANCE = 1e-8
 
@@ -258,8 +258,9 @@ class Recycled:
     solve with K's own factors is then CG preconditioned by them to ``rtol`` as well (two
     iterations on the `fine` level, measured), not one back-substitution: every solve meets
     ``rtol`` as before.  Measured on the quarter model (docs/forward-model.md): a `fine` sample's
-    two factorisations (66 851 unknowns) 14.0 → 7.9 s, `default` (28 381) 2.4 → 2.1 s, `coarse`
-    (18 191) 0.84 → 0.93 s (slower; below the size).  None: exact factors always."""
+    two factorisations and solves (66 851 unknowns) 14.0 → 8.3 s, `default` (28 381) 2.5 → 2.2 s;
+    `coarse` (18 191) would be slower (0.84 → 0.93 s), so it stays below the size.  None: exact
+    factors always."""
 
     def __init__(
         self,
