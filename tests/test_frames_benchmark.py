@@ -79,3 +79,24 @@ def test_network_stage_answers_bad_input_in_one_line(tmp_path, args, says, exist
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    ("args", "says"),
+    [
+        (["--fit-mesh", "huge"], "--fit-mesh: must be one of tiny, coarse"),
+        (["--correct-mesh", "tiny"], "--correct-mesh: must be a mesh level finer than coarse"),
+    ],
+)
+def test_run_stage_names_a_bad_level_before_any_work(tmp_path, args, says):
+    """The levels are checked by the library's check_correct, its errors named by this command's flags,
+    before anything is written."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = tmp_path / "bench"
+    cmd = [sys.executable, str(Path(fb.__file__).resolve()), "run", "--model", "m", "--out", str(out), *args]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not out.exists()

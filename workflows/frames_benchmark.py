@@ -331,16 +331,14 @@ def run_cmd(
     from elastimap.camera.infer import estimate_fem_images, load_identifiability, load_model, refine_estimates
     from elastimap.camera.optics import SensorModel, render_pair
     from elastimap.errors import UserError
-    from elastimap.identify.refine import default_geometry, forward_map, neighbour_level
+    from elastimap.identify.refine import check_correct, default_geometry, forward_map, neighbour_level
 
     k, nsh = shard
     geometry = geometry or default_geometry()
-    if correct_mesh is not None and (
-        correct_mesh not in MESH_LEVELS or MESH_LEVELS.index(correct_mesh) <= MESH_LEVELS.index(fit_mesh)
-    ):
-        raise UserError(
-            "--correct-mesh", f"must be a level of {', '.join(MESH_LEVELS)} finer than --fit-mesh {fit_mesh}"
-        )
+    try:
+        check_correct(fit_mesh, correct_mesh)  # both levels, the correcting one finer
+    except UserError as exc:
+        raise UserError("--fit-mesh" if exc.param == "mesh" else "--correct-mesh", exc.message) from None
     top = correct_mesh or fit_mesh  # the level the fit's (corrected) map stands for
     levels = [v.strip() for v in (error_mesh or neighbour_level(top)).split(",")]
     if any(v not in MESH_LEVELS or v == top for v in levels) or len(set(levels)) != len(levels):
@@ -478,16 +476,18 @@ def summarise(recs: list[dict], region_set: str = "frames") -> dict:
             # where the estimator itself prints q as a number (identifiable by its own sd, possible,
             # a signal): what a user is told to trust, decided from the frames, not from the truth
             rep = np.array([bool(r[name].get(f"{q}_reportable", False)) for r in recs])
-            rc = rep & conv if name == "fit" else rep
             row[q].update(
                 mre_reported=float(rel[rep, j].mean()) if rep.any() else None,
                 median_re_reported=float(np.median(rel[rep, j])) if rep.any() else None,
                 coverage_reported=float(cov[rep, j].mean()) if rep.any() else None,
                 n_reported=int(rep.sum()),
-                # the fits among them whose last pass settled (FitResult.converged)
-                mre_reported_converged=float(rel[rc, j].mean()) if rc.any() else None,
-                n_reported_converged=int(rc.sum()),
             )
+            if name == "fit":  # the fits among them whose last pass settled (FitResult.converged)
+                rc = rep & conv
+                row[q].update(
+                    mre_reported_converged=float(rel[rc, j].mean()) if rc.any() else None,
+                    n_reported_converged=int(rc.sum()),
+                )
         out[name] = row
     sec = np.array([r["seconds_fit"] for r in recs])
     out["seconds_fit"] = {"mean": float(sec.mean()), "median": float(np.median(sec)), "max": float(sec.max())}
