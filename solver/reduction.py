@@ -283,6 +283,8 @@ class Recycled:
         self.last = (0, None)  # (CG iterations, tag) of the last solve
         self.factorisations = 0
         self.iterations = 0  # CG iterations with another matrix's factors
+        self.borrowed = 0  # solves by another solver's factors (:meth:`borrow`)
+        self._borrowed_K = None  # (K, key) of the last solve when it was borrowed (for ``resolve``)
 
     def _factorise(self, K: PETSc.Mat, key: bytes, tag) -> None:
         if self.K0 is not None and key == self.key and self.K0.getSize() == K.getSize():
@@ -307,6 +309,7 @@ class Recycled:
         ``tag``: kept as ``self.tag`` when K is factorised."""
         K.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         K.setOption(PETSc.Mat.Option.SPD, True)
+        self._borrowed_K = None
         x = K.createVecRight()
         same = not fresh and self.K0 is not None and key == self.key and self.K0.getSize() == K.getSize()
         equal = same and K.equal(self.K0)  # the same matrix again: its factors solve it exactly
@@ -331,9 +334,51 @@ class Recycled:
             raise SolverError(f"linear solve failed (PETSc reason {reason})")
         return x
 
+    def borrow(
+        self, donor: Recycled, K: PETSc.Mat, f: PETSc.Vec, key: bytes, max_it: int, tag=None
+    ) -> PETSc.Vec | None:
+        """x = K⁻¹ f by CG preconditioned with ``donor``'s factors (another solve kind on the same
+        mesh and constraints, e.g. the reference press for the inclusion press: K and K₀ differ by
+        the inclusion's modulus, κ ≤ the ratio of the moduli), so that this solver need not
+        factorise K; None (nothing changed) when the donor has no factors for ``key`` or CG did not
+        reach ``rtol`` in ``max_it`` iterations.  The donor's factors and operators are left as they
+        were; a :meth:`resolve` after a borrowed solve factorises K first (K₀ := K)."""
+        if donor.K0 is None or donor.key != key or donor.K0.getSize() != K.getSize():
+            return None
+        K.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        K.setOption(PETSc.Mat.Option.SPD, True)
+        ksp = donor.ksp
+        before = ksp.getOperators()[0]
+        rtol, atol, dtol, it0 = ksp.getTolerances()
+        x = K.createVecRight()
+        ksp.setTolerances(rtol=self.ksp.getTolerances()[0], atol=0.0, max_it=int(max_it))
+        ksp.setOperators(K, donor.K0)  # the donor's K₀ unchanged: its factors are reused
+        try:
+            ksp.solve(f, x)
+            ok = ksp.getConvergedReason() > 0
+            n = ksp.getIterationNumber()
+        finally:
+            ksp.setTolerances(rtol=rtol, atol=atol, max_it=it0)
+            ksp.setOperators(before, donor.K0)
+        if not ok:
+            x.destroy()
+            return None
+        self.last = (n, tag)
+        self.iterations += n
+        self.borrowed += 1
+        self._borrowed_K = (K, key)
+        return x
+
     def resolve(self, f: PETSc.Vec) -> PETSc.Vec:
         """Solve with the matrix of the last :meth:`solve` (its values unchanged since); factorised
-        first when that solve needed more than ``refactor_after`` CG iterations."""
+        first when that solve needed more than ``refactor_after`` CG iterations (or was borrowed,
+        :meth:`borrow`: this solver holds no factors near K)."""
+        if self._borrowed_K is not None:
+            K, key = self._borrowed_K
+            self._borrowed_K = None
+            self._factorise(K, key, self.last[1])
+            self.last = (0, self.tag)
+            return self.solve(K, f, key, tag=self.tag)
         K = self.ksp.getOperators()[0]
         n, tag = self.last
         if self.refactor_after is not None and n > self.refactor_after:

@@ -22,6 +22,23 @@ def test_session_sensor_drifts_only_leds_and_vignetting():
     assert len({c.led_power for c in cams}) == 20  # drawn afresh per session
 
 
+def test_region_stratified_lesions_lie_where_the_map_allows_and_are_reproducible(monkeypatch):
+    """``draw_lesions(inside="E")``: every lesion is one the shipped map's frames set calls E
+    identifiable at (decided from the truth), the draw is a function of (n, seed) alone, and
+    asking for more such lesions than the overdrawn design holds is a one-line error naming n."""
+    from elastimap.errors import UserError
+
+    a = fb.draw_lesions(12, seed=7, inside="E")
+    assert a.shape == (12, 3) and fb._region(a, "frames")[:, 2].all()
+    assert not fb._region(fb.draw_lesions(200, seed=7), "frames")[:, 2].all()  # the plain design is not
+    np.testing.assert_array_equal(a, fb.draw_lesions(12, seed=7, inside="E"))
+    assert not np.array_equal(a, fb.draw_lesions(12, seed=8, inside="E"))
+    monkeypatch.setattr(fb, "INSIDE_OVERDRAW", 1)  # ~3 % of a design of n points holds fewer than n
+    with pytest.raises(UserError) as exc:
+        fb.draw_lesions(50, seed=7, inside="E")
+    assert exc.value.param == "n"
+
+
 def _rec(truth, est, lo, hi, reportable, flags=""):
     part = {"flags": flags, "fit_chi2_red": 1.0}
     for j, q in enumerate("dhE"):

@@ -220,3 +220,34 @@ def test_sweep_and_verify_reject_bad_switches():
         [sys.executable, "-m", "elastimap.solver.verify_morph", "--steps", "0.1,-1"], capture_output=True, text=True
     )
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "--steps" in r.stderr
+
+
+def test_inclusion_press_on_the_reference_press_factors(monkeypatch):
+    """Large meshes solve an inclusion press whose own factors are missing or far by CG on the
+    reference press's factors (``Model._borrow``).  Forced on the tiny mesh (every size borrows):
+    the image and its tangent (whose back-solves factorise the inclusion's matrix first) equal
+    those of a model that factorises, and the inclusion solver made no factorisation for the image."""
+    import functools
+
+    import elastimap.solver.fem as fem
+    from elastimap.solver.morph import MorphedForward
+    from elastimap.solver.reduction import Recycled
+
+    theta = (8.3, 7.2, 40.0)
+    with MorphedForward(TINY) as f:
+        plain = f.solve(*theta).image.astype(float)
+        plain_J = f.solve_tangent(*theta)[1]
+        assert next(iter(f._entries.values())).model.recycled["inclusion"].borrowed == 0
+    monkeypatch.setattr(fem, "Recycled", functools.partial(Recycled, blr_min=1))
+    with MorphedForward(TINY) as f:
+        img = f.solve(*theta).image.astype(float)
+        rec = next(iter(f._entries.values())).model.recycled["inclusion"]
+        assert rec.borrowed == 1 and rec.factorisations == 0
+        np.testing.assert_allclose(img, plain, rtol=0, atol=1e-6 * np.abs(plain).max())
+        f.solve(theta[0], theta[1], 300.0)  # beyond BORROW_MAX_RATIO of the tissue: its own factors
+        assert rec.borrowed == 1 and rec.factorisations == 1
+    with MorphedForward(TINY) as f:
+        _res, J = f.solve_tangent(*theta)
+        rec = next(iter(f._entries.values())).model.recycled["inclusion"]
+        assert rec.borrowed == 1 and rec.factorisations == 1  # the tangent's back-solves factorised it
+        np.testing.assert_allclose(J, plain_J, rtol=0, atol=1e-6 * np.abs(plain_J).max())

@@ -368,3 +368,55 @@ def test_recycled_factors_solve_nearby_matrices_like_a_direct_solver():
         assert np.abs(v - spla.spsolve(M.tocsc(), g)).max() <= 1e-9 * np.abs(v).max()
     finally:
         rec.destroy()
+
+
+def test_borrowed_factors_solve_another_kind_without_factorising():
+    """``Recycled.borrow``: the inclusion press by CG on the reference press's factors.  A matrix
+    whose coefficients are 20x stiffer in one region is solved to scipy's direct solution without
+    any factorisation by the borrower, the donor's factors and operators stay usable (its resolve
+    still solves its own matrix), a resolve after a borrowed solve factorises the borrower's matrix
+    first, and a budget of iterations CG cannot meet, or another key, returns None."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    from elastimap.solver.reduction import PETSc, Recycled
+
+    n = 400
+    x = np.linspace(0, 1, n + 1)
+    mid = (x[:-1] + x[1:]) / 2
+
+    def stiffness(k):
+        d = (k[:-1] + k[1:]) * n
+        return sp.diags([-k[1:-1] * n, d, -k[1:-1] * n], [-1, 0, 1]).tocsr()
+
+    def petsc(M):
+        M = sp.csr_matrix(M)
+        return PETSc.Mat().createAIJ(size=M.shape, csr=(M.indptr, M.indices, M.data), comm=PETSc.COMM_SELF)
+
+    def vec(a):
+        return PETSc.Vec().createWithArray(a.copy(), comm=PETSc.COMM_SELF)
+
+    b, g = np.sin(3 * x[1:-1]) + 1.0, np.cos(2 * x[1:-1])
+    k0 = 1.0 + mid
+    M0, M1 = stiffness(k0), stiffness(k0 * np.where(np.abs(mid - 0.5) < 0.1, 20.0, 1.0))
+    donor, rec = Recycled("t_donor"), Recycled("t_borrower")
+    try:
+        K0 = petsc(M0)
+        donor.solve(K0, vec(b), b"a", tag=1.0)
+        assert donor.factorisations == 1
+        assert rec.borrow(donor, petsc(M1), vec(b), b"b", 50) is None  # other constraints
+        assert rec.borrow(donor, petsc(M1), vec(b), b"a", 2) is None  # CG cannot meet rtol in 2
+        K1 = petsc(M1)
+        u = rec.borrow(donor, K1, vec(b), b"a", 50, tag=20.0)
+        assert u is not None and rec.borrowed == 1 and rec.factorisations == 0 and donor.factorisations == 1
+        assert rec.last[0] > 2  # really CG on another matrix's factors
+        ref = spla.spsolve(M1.tocsc(), b)
+        assert np.abs(u.getArray() - ref).max() <= 1e-9 * np.abs(ref).max()
+        v0 = donor.resolve(vec(g)).getArray().copy()  # the donor's operators restored
+        assert np.abs(v0 - spla.spsolve(M0.tocsc(), g)).max() <= 1e-9 * np.abs(v0).max()
+        v1 = rec.resolve(vec(g)).getArray().copy()  # the borrower factorises its own K first
+        assert rec.factorisations == 1 and rec.tag == 20.0
+        assert np.abs(v1 - spla.spsolve(M1.tocsc(), g)).max() <= 1e-9 * np.abs(v1).max()
+    finally:
+        rec.destroy()
+        donor.destroy()

@@ -71,8 +71,31 @@ from elastimap.solver.params import MESH_LEVELS
 TRUTH_SEED = 2026
 
 
-def draw_lesions(n: int, seed: int = TRUTH_SEED) -> np.ndarray:
-    """(n, 3) lesions (d mm, h mm, E kPa): Latin hypercube over d, the admissible depth fraction and ln E."""
+#: how many design points per wanted lesion ``draw_lesions(inside=...)`` draws (the region of
+#: E from frames is about 3 % of the design)
+INSIDE_OVERDRAW = 200
+
+
+def draw_lesions(n: int, seed: int = TRUTH_SEED, inside: str | None = None) -> np.ndarray:
+    """(n, 3) lesions (d mm, h mm, E kPa): Latin hypercube over d, the admissible depth fraction and ln E.
+
+    ``inside`` (d, h or E): a region-stratified set instead -- the first n of a Latin hypercube of
+    ``INSIDE_OVERDRAW`` n points at which the shipped map's ``frames`` set calls that quantity
+    identifiable (10 %), decided from the truth before any fit, so that a quantity identifiable
+    over a small part of the design can be scored on enough lesions."""
+    if inside is None:
+        return _lhs_lesions(n, seed)
+    j = "dhE".index(inside)
+    cand = _lhs_lesions(INSIDE_OVERDRAW * n, seed)
+    keep = cand[_region(cand, "frames")[:, j]]
+    if len(keep) < n:
+        from elastimap.errors import UserError
+
+        raise UserError("n", f"at most {len(keep)} lesions with {inside} identifiable at seed {seed} (got {n})")
+    return keep[:n]
+
+
+def _lhs_lesions(n: int, seed: int) -> np.ndarray:
     from scipy.stats import qmc
 
     from elastimap.dataset.schema import DESIGN_BOX
@@ -117,6 +140,16 @@ TRUTH_SIZING = sizing_option(
 )
 
 
+INSIDE = click.option(
+    "--inside",
+    type=click.Choice(tuple("dhE")),
+    default=None,
+    help="A region-stratified lesion set: only design points where the shipped map's frames set calls this "
+    "quantity identifiable (draw_lesions; for scoring E, identifiable over ~3 % of the design). Give the same "
+    "value to lesions, run and report.",
+)
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def main():
     """SYNTHETIC camera-frame benchmark of the physics fit (see the module docstring)."""
@@ -127,12 +160,13 @@ def main():
 @click.option("--seed", default=TRUTH_SEED, show_default=True, type=int, help="Seed of the lesion design.")
 @click.option("--truth-mesh", default="default", show_default=True, help="Mesh level of the world's remeshing solver.")
 @TRUTH_SIZING
+@INSIDE
 @shard_option("K/N: this process solves items i with i % N == K.")
 @click.option(
     "--first", default=0, show_default=True, type=int, help="Only the first K lesions of the design (0: all)."
 )
 @click.option("--out", required=True, help="Benchmark folder (solves land in OUT/solves).")
-def lesions(n, seed, truth_mesh, truth_sizing, shard, first, out):
+def lesions(n, seed, truth_mesh, truth_sizing, inside, shard, first, out):
     """Solve the phantoms and the held-out lesions with the world's forward model (resumable)."""
     from tqdm import tqdm
 
@@ -146,7 +180,7 @@ def lesions(n, seed, truth_mesh, truth_sizing, shard, first, out):
     os.makedirs(cache, exist_ok=True)
     ph = load_phantoms()
     todo = [(float(r["d"]), float(r["h"]), float(r["E"])) for _, r in ph.iterrows()]
-    todo += [tuple(map(float, t)) for t in draw_lesions(n, seed)[: first or n]]
+    todo += [tuple(map(float, t)) for t in draw_lesions(n, seed, inside)[: first or n]]
     todo = todo[k::nsh]
     t0 = time.perf_counter()
     for d, h, E in tqdm(todo, desc=f"SYNTHETIC world solves ({world_label(truth_mesh, truth_sizing)})"):
@@ -273,6 +307,7 @@ class _Timed:
 @click.option("--seed", default=TRUTH_SEED, show_default=True, type=int, help="Seed of the lesion design and camera.")
 @click.option("--truth-mesh", default="default", show_default=True)
 @TRUTH_SIZING
+@INSIDE
 @click.option("--fit-mesh", default="coarse", show_default=True, help="Mesh level of the fit's forward map.")
 @click.option(
     "--error-mesh",
@@ -313,6 +348,7 @@ def run_cmd(
     seed,
     truth_mesh,
     truth_sizing,
+    inside,
     fit_mesh,
     error_mesh,
     correct_mesh,
@@ -366,7 +402,7 @@ def run_cmd(
     idm = load_identifiability("default")
     sensor = SensorModel(seed=seed)
     ref, pixel = cal.reference_image()
-    truth = draw_lesions(n, seed)
+    truth = draw_lesions(n, seed, inside)
     done = 0
     for i in range(k, n, nsh):
         path = os.path.join(fits, f"lesion-{i:04d}.json")
@@ -391,6 +427,7 @@ def run_cmd(
             "synthetic": True,
             "i": i,
             "truth": [float(d), float(h), float(E)],
+            "design": {"n": n, "seed": seed, "inside": inside},
             "world": world_label(truth_mesh, truth_sizing) + ", tied, quarter",
             "fit_map": f"{geometry}, {fit_mesh} mesh"
             + (f", defect-corrected by {correct_mesh}" if correct_mesh else "")
