@@ -37,9 +37,16 @@ processes; the calibration and the fits are kept per forward map, ``OUT/cal-<tag
 ``--session drift`` takes each lesion's frames with a camera whose LED powers and vignetting drift
 from the calibration's (:func:`session_sensor`); inference keeps the nominal model.
 
+``--inside E`` (give it to ``lesions`` and ``run`` alike) replaces the whole-design draw by a
+region-stratified one: the first N lesions of an overdrawn Latin hypercube at which the shipped
+map's ``frames`` set calls E identifiable (:func:`draw_lesions`; about 3 % of the design: large,
+soft, shallow-to-mid inclusions), so that a quantity identifiable over a small part of the design
+is scored on enough lesions.  Its lesions are not a sample of the design: report them apart.
+
 Stage ``report``: the table (printed, ``OUT/benchmark.md``), ``OUT/benchmark.json`` and
-``OUT/benchmark.png``.  Regions: the shipped identifiability map (image set, 10 % threshold)
-evaluated at the TRUE lesion says whether d, h and E are identifiable there.  Errors (MRE) are over
+``OUT/benchmark.png``.  Regions: the shipped identifiability map (``--region-set``, default the
+``frames`` set; 10 % threshold) evaluated at the TRUE lesion says whether d, h and E are
+identifiable there.  Errors (MRE) are over
 the identifiable lesions whose frames show a signal (``no_signal`` lesions report nothing);
 coverage is over all lesions.  A second table scores each estimator where it itself reports a
 quantity as a number (its own interval within the threshold, decided from the frames alone: what a
