@@ -117,3 +117,23 @@ def test_run_stage_names_a_bad_level_before_any_work(tmp_path, args, says):
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert not out.exists()
+
+
+def test_report_refuses_to_mix_lesion_designs(tmp_path):
+    """A fits folder holding lesions of the whole-design draw and of a region-stratified one
+    (``--inside``) is one line naming --out, not a table over both."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    fits = tmp_path / "fits-x"
+    fits.mkdir()
+    for i, inside in enumerate((None, "E")):
+        rec = _rec([8, 7, 50], [8, 7, 50], [7, 6, 40], [9, 8, 60], [True] * 3)
+        rec.update(design={"n": 2, "seed": 1, "inside": inside}, frames=30, world="w", fit_map="f")
+        (fits / f"lesion-{i:04d}.json").write_text(json.dumps(rec))
+    cmd = [sys.executable, str(Path(fb.__file__).resolve()), "report", "--out", str(tmp_path)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "--out" in r.stderr and "mixes lesion designs" in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "benchmark.md").exists()

@@ -694,13 +694,23 @@ def report_cmd(out, fits_name, region_set, common):
         if not files:
             raise UserError("--common-with", f"{common} holds none of the lesions of {os.path.join(out, fits_name)}")
     recs = [json.load(open(f)) for f in files]
+    designs = {json.dumps(r.get("design", {}).get("inside")) for r in recs}
+    if len(designs) != 1:
+        raise UserError("--out", f"{os.path.join(out, fits_name)} mixes lesion designs (--inside {sorted(designs)})")
+    inside = recs[0].get("design", {}).get("inside")
     sm = summarise(recs, region_set)
     sm["region_set"] = region_set
+    sm["inside"] = inside
     r0 = recs[0]
+    drawn = (
+        "over the whole design box"
+        if inside is None
+        else f"drawn where the map's 'frames' set calls {inside} identifiable (region-stratified, not a sample of the design)"
+    )
     head = (
         f"SYNTHETIC camera frames ({r0['frames']} lesion + {r0['frames']} background frames per lesion; camera: "
         f"{'nominal' if r0.get('camera', 'nominal') == 'nominal' else 'LED powers and vignetting drawn per lesion'}), "
-        f"{len(recs)} held-out lesions over the whole design box; world: {r0['world']}; fit: {r0['fit_map']}; "
+        f"{len(recs)} held-out lesions {drawn}; world: {r0['world']}; fit: {r0['fit_map']}; "
         f"regions: the map's {region_set!r} set at the truth (10 %)"
     )
     foot = (
