@@ -646,7 +646,9 @@ def plot(recs: list[dict], path: str, region_set: str = "frames") -> None:
         ax.set_ylabel(f"estimated {q} ({unit})")
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
-    fig.suptitle(f"SYNTHETIC camera frames, {len(recs)} held-out lesions: estimate vs truth (95 % intervals)")
+    inside = recs[0].get("design", {}).get("inside")
+    where = "" if inside is None else f" drawn where the map calls {inside} identifiable"
+    fig.suptitle(f"SYNTHETIC camera frames, {len(recs)} held-out lesions{where}: estimate vs truth (95 % intervals)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
