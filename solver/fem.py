@@ -61,8 +61,9 @@ RECYCLE_MAX_RATIO = 2.0
 #: an inclusion press that would factorise afresh on a large mesh (block low-rank factors,
 #: ``Recycled.blr_min`` unknowns or more) is first tried by CG on the reference press's factors
 #: on the same mesh when the moduli differ by at most this factor (κ ≤ the ratio; measured on
-#: the `fine` quarter model: 13-51 iterations, 1.0-3.9 s, for E/E_tissue 2-40 against a 4 s
-#: factorisation), in at most BORROW_MAX_IT iterations
+#: the `fine` quarter model at d/h 12/10: 13-41 iterations for E/E_tissue 2-20, a sample's two
+#: presses 8.9-10.1 s -> 5.8-7.6 s; docs/forward-model.md "Speed"), in at most BORROW_MAX_IT
+#: iterations
 BORROW_MAX_RATIO = 20.0
 BORROW_MAX_IT = 50
 

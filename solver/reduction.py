@@ -260,7 +260,11 @@ class Recycled:
     ``rtol`` as before.  Measured on the quarter model (docs/forward-model.md): a `fine` sample's
     two factorisations and solves (66 851 unknowns) 14.0 → 8.3 s, `default` (28 381) 2.5 → 2.2 s;
     `coarse` (18 191) would be slower (0.84 → 0.93 s), so it stays below the size.  None: exact
-    factors always."""
+    factors always.
+
+    Another solver's factors (:meth:`borrow`): a solve of another kind on the same mesh and
+    constraints (the inclusion press on the reference press's factors) by CG, without
+    factorising (``fem.Model._borrow`` decides when)."""
 
     def __init__(
         self,
