@@ -33,10 +33,15 @@ never silently extrapolated: every estimate carries ``flags``:
   would cross the surface or the base);
 * ``outside_interval:q`` - the estimate of ``q`` lies outside its own interval ``[lo, hi]``
   (e.g. below the training range to which the interval is clipped);
-* ``saturated`` - camera pixels beyond the response's saturation (frames of an image model).
+* ``saturated`` - camera pixels beyond the response's saturation (frames of an image model);
+* ``at_design_edge:q`` - the physics fit (``--refine``) ended with ``q`` on the design box's edge
+  (d, E at the box's limits, h at the admissible depth range's): the likelihood's maximum is not
+  inside the box, so the estimate is the box's edge and the Gauss–Newton interval, which assumes an
+  interior maximum, holds for none of the coupled parameters.  Then no quantity is reportable.
 
 A ``q`` that is non-identifiable, impossible or outside its interval is not *reportable*
-(``q_reportable`` false): the command line prints its interval (or nothing), never the number.
+(``q_reportable`` false), nor is any after a fit that ended on the design box's edge: the command
+line prints its interval (or nothing), never the number.
 
 Every estimate carries ``lo``/``hi``: the bound's approximate 95 % interval
 widened to the ensemble's 10-90 % range (a bound: real errors can be larger).
@@ -97,9 +102,9 @@ class Estimate:
         return not self.flags
 
     def reportable(self, q: str) -> bool:
-        """``q`` may be printed as a number: a visible inclusion, identifiable, possible and inside its
-        own interval."""
-        if "no_signal" in self.flags:
+        """``q`` may be printed as a number: a visible inclusion, identifiable, possible, inside its
+        own interval, and not from a fit that ended on the design box's edge."""
+        if "no_signal" in self.flags or any(f.startswith("at_design_edge:") for f in self.flags):
             return False
         return not any(f"{k}:{q}" in self.flags for k in ("non_identifiable", "impossible", "outside_interval"))
 
@@ -401,7 +406,9 @@ def refine_estimates(
     deviation (relative for ``crb``), ``lo``/``hi`` its 95 % interval (no tuned factor);
     ``non_identifiable:q`` is re-decided from that standard deviation (``> threshold``), and
     ``model_mismatch`` added when the fit leaves a reduced chi² above ``chi2_limit`` (the forward
-    model cannot reproduce the image at the stated noise); ``input`` gains ``+fem_refined``."""
+    model cannot reproduce the image at the stated noise), ``at_design_edge:q`` for each parameter
+    the fit ended on the design box's edge with (then nothing is reportable); ``input`` gains
+    ``+fem_refined``."""
     from elastimap.identify.refine import check_correct, fit_image, neighbour_level, shared_map
 
     if not 0 < image_noise < 1:
@@ -434,6 +441,8 @@ def refine_estimates(
                 f for f in e.flags if not f.startswith("non_identifiable:") and f != "outside_identifiability_map"
             ]
             e.flags += [f"non_identifiable:{q}" for j, q in enumerate(TARGETS) if not r.relstd[j] <= threshold]
+            e.flags = [f for f in e.flags if not f.startswith("at_design_edge:")]
+            e.flags += [f"at_design_edge:{q}" for q in r.at_bound]
             if r.chi2_red > chi2_limit:
                 e.flags.append("model_mismatch")
             e.input = e.input + "+fem_refined"

@@ -175,6 +175,30 @@ def test_fem_refinement_on_the_tiny_mesh(tmp_path):
     assert ("non_identifiable:E" in e.flags) == (e.crb[2] > 0.10)
 
 
+@pytest.mark.parametrize(("truth", "outside"), [((8.0, 7.0, 60.0), False), ((17.0, 7.0, 60.0), True)])
+def test_a_fit_that_ends_on_the_design_edge_reports_no_number(truth, outside):
+    """SYNTHETIC bump map through refine_estimates: a lesion inside the box is fitted and reported;
+    one larger than the design box allows (d 17 mm > 15) ends on the box's edge (measured: h and E
+    there, compensating for d), is flagged ``at_design_edge:q`` and reports none of d, h, E as a
+    number (the likelihood's maximum is outside the box, so the Gauss–Newton interval holds for
+    none of them)."""
+    from elastimap.camera.infer import Estimate, refine_estimates
+
+    I = bump(np.array(truth))
+    start = np.array([9.0, 7.0, 50.0])
+    nan3 = np.full(3, np.nan)
+    e = Estimate("x", nan3, nan3, start.copy(), nan3, start, start, 1, [], input="image")
+    (e,) = refine_estimates([e], I[None], image_noise=0.01, forward=lambda d, h, E: bump((d, h, E)))
+    edges = [f for f in e.flags if f.startswith("at_design_edge:")]
+    reportable = [e.reportable(q) for q in "dhE"]
+    if not outside:
+        assert edges == [] and all(reportable), e.flags
+        np.testing.assert_allclose(e.mean, truth, rtol=1e-2)
+    else:
+        assert edges and not any(reportable), e.flags
+        assert not any(e.to_dict()[f"{q}_reportable"] for q in "dhE")
+
+
 def _infer(*args: str):
     """``elastimap camera infer ARGS`` in a subprocess (what a user's shell gets)."""
     import subprocess
