@@ -137,3 +137,24 @@ def test_report_refuses_to_mix_lesion_designs(tmp_path):
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "--out" in r.stderr and "mixes lesion designs" in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "benchmark.md").exists()
+
+
+def test_run_stage_refuses_a_folder_of_another_design_before_any_work(tmp_path):
+    """``run`` skips lesions it finds; a fits folder holding a lesion of another design (here another
+    --seed) would be silently mixed into the new one, so it is one line naming --out, and nothing is
+    added (no calibration written)."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    fits = tmp_path / "fits-morph-coarse"
+    fits.mkdir()
+    other = fb.draw_lesions(3, seed=11)
+    (fits / "lesion-0000.json").write_text(json.dumps({"i": 0, "truth": list(map(float, other[0]))}))
+    cmd = [sys.executable, str(Path(fb.__file__).resolve()), "run", "--model", "m", "--n", "3", "--seed", "12"]
+    cmd += ["--geometry", "morph", "--out", str(tmp_path)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "--out" in r.stderr and "another design" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fits-morph-coarse"]

@@ -27,7 +27,8 @@ the image network (``--model``) -> the maximum-likelihood fit on the forward map
 ``--fit-mesh``) defect-corrects the fit's map by that level at the start of every pass after the
 first (``fit_image(forward_fine=...)``); the fit then stands for that level (the calibration's
 FEM side is solved on it) and its model error is measured against that level's neighbour.  One
-JSON file per lesion in ``OUT/fits`` (resumable; ``--shard K/N`` splits the lesions between
+JSON file per lesion in ``OUT/fits`` (resumable; a folder holding lesions of another design --
+another ``--seed``, ``--n`` or ``--inside`` -- is refused; ``--shard K/N`` splits the lesions between
 processes; the calibration and the fits are kept per forward map, ``OUT/cal-<tag>.json`` and
 ``OUT/fits-<tag>``, tag ``<geometry>-<mesh>`` plus ``-corr-<level>`` with ``--correct-mesh`` and
 ``-err-<level>`` when ``--error-mesh`` is not the default).
@@ -100,6 +101,16 @@ def draw_lesions(n: int, seed: int = TRUTH_SEED, inside: str | None = None) -> n
 
         raise UserError("n", f"at most {len(keep)} lesions with {inside} identifiable at seed {seed} (got {n})")
     return keep[:n]
+
+
+def _design(n: int, seed: int, inside: str | None) -> np.ndarray:
+    """:func:`draw_lesions` for the commands: its error names the flag --n."""
+    from elastimap.errors import UserError
+
+    try:
+        return draw_lesions(n, seed, inside)
+    except UserError as exc:
+        raise UserError("--n", exc.message) from None
 
 
 def _lhs_lesions(n: int, seed: int) -> np.ndarray:
@@ -187,7 +198,7 @@ def lesions(n, seed, truth_mesh, truth_sizing, inside, shard, first, out):
     os.makedirs(cache, exist_ok=True)
     ph = load_phantoms()
     todo = [(float(r["d"]), float(r["h"]), float(r["E"])) for _, r in ph.iterrows()]
-    todo += [tuple(map(float, t)) for t in draw_lesions(n, seed, inside)[: first or n]]
+    todo += [tuple(map(float, t)) for t in _design(n, seed, inside)[: first or n]]
     todo = todo[k::nsh]
     t0 = time.perf_counter()
     for d, h, E in tqdm(todo, desc=f"SYNTHETIC world solves ({world_label(truth_mesh, truth_sizing)})"):
@@ -308,6 +319,26 @@ class _Timed:
         return self._count(self.fn.tangent, *a)
 
 
+def _check_same_design(fits: str, truth: np.ndarray) -> None:
+    """A one-line error naming --out when ``fits`` already holds a lesion whose truth is not this
+    design's lesion of the same number (another --seed, --n or --inside): ``run`` skips lesions it
+    finds, so it would otherwise mix two designs in one folder."""
+    import glob
+    import json
+
+    from elastimap.errors import UserError
+
+    for path in sorted(glob.glob(os.path.join(fits, "lesion-*.json"))):
+        with open(path) as fh:
+            rec = json.load(fh)
+        i = int(rec["i"])
+        if i >= len(truth) or not np.allclose(rec["truth"], truth[i], rtol=1e-12, atol=0.0):
+            raise UserError(
+                "--out",
+                f"{fits} holds lesion {i} of another design (--seed, --n or --inside differ); use another --out",
+            )
+
+
 @main.command("run")
 @click.option("--model", "model_dir", required=True, help="Image model (the network that gives the start).")
 @click.option("--n", "n", default=120, show_default=True, type=int, help="Held-out lesions (as in 'lesions').")
@@ -396,6 +427,8 @@ def run_cmd(
     tag += "-log" if coords == "log" else ""
     tag += "-drift" if session == "drift" else ""
     fits = os.path.join(out, f"fits-{tag}")
+    truth = _design(n, seed, inside)
+    _check_same_design(fits, truth)  # before any work: never add lesions of another design
     os.makedirs(fits, exist_ok=True)
     acc: dict = {}
     t = time.perf_counter()
@@ -409,7 +442,6 @@ def run_cmd(
     idm = load_identifiability("default")
     sensor = SensorModel(seed=seed)
     ref, pixel = cal.reference_image()
-    truth = draw_lesions(n, seed, inside)
     done = 0
     for i in range(k, n, nsh):
         path = os.path.join(fits, f"lesion-{i:04d}.json")
@@ -604,7 +636,7 @@ def table(sm: dict) -> str:
     return "\n".join(lines)
 
 
-def plot(recs: list[dict], path: str, region_set: str = "frames") -> None:
+def plot(recs: list[dict], path: str, region_set: str = "frames", inside: str | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -646,7 +678,6 @@ def plot(recs: list[dict], path: str, region_set: str = "frames") -> None:
         ax.set_ylabel(f"estimated {q} ({unit})")
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
-    inside = recs[0].get("design", {}).get("inside")
     where = "" if inside is None else f" drawn where the map calls {inside} identifiable"
     fig.suptitle(f"SYNTHETIC camera frames, {len(recs)} held-out lesions{where}: estimate vs truth (95 % intervals)")
     fig.tight_layout()
@@ -696,10 +727,10 @@ def report_cmd(out, fits_name, region_set, common):
         if not files:
             raise UserError("--common-with", f"{common} holds none of the lesions of {os.path.join(out, fits_name)}")
     recs = [json.load(open(f)) for f in files]
-    designs = {json.dumps(r.get("design", {}).get("inside")) for r in recs}
+    designs = {json.dumps(r.get("design"), sort_keys=True) for r in recs}
     if len(designs) != 1:
-        raise UserError("--out", f"{os.path.join(out, fits_name)} mixes lesion designs (--inside {sorted(designs)})")
-    inside = recs[0].get("design", {}).get("inside")
+        raise UserError("--out", f"{os.path.join(out, fits_name)} mixes lesion designs ({', '.join(sorted(designs))})")
+    inside = (recs[0].get("design") or {}).get("inside")
     sm = summarise(recs, region_set)
     sm["region_set"] = region_set
     sm["inside"] = inside
@@ -742,7 +773,7 @@ def report_cmd(out, fits_name, region_set, common):
         fh.write(md)
     with open(os.path.join(out, f"{stem}.json"), "w") as fh:
         json.dump({"synthetic": True, "summary": sm, "lesions": recs}, fh, indent=1)
-    plot(recs, os.path.join(out, f"{stem}.png"), region_set)
+    plot(recs, os.path.join(out, f"{stem}.png"), region_set, inside)
     click.echo(md)
 
 
