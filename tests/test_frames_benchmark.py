@@ -158,3 +158,27 @@ def test_run_stage_refuses_a_folder_of_another_design_before_any_work(tmp_path):
     assert r.returncode == 2 and "--out" in r.stderr and "another design" in r.stderr, r.stderr
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fits-morph-coarse"]
+
+
+def test_a_kept_calibration_of_another_camera_or_world_is_refused(tmp_path, monkeypatch):
+    """The calibration is kept per forward map in OUT; one made with another camera seed or another
+    world is a one-line error naming --out, not silently reused; this run's own is returned."""
+    from types import SimpleNamespace
+
+    from elastimap.camera import calibration as C
+    from elastimap.errors import UserError
+
+    (tmp_path / "cal-x.json").write_text("{}")
+    world = fb.world_label("fine", "by_d")
+
+    def kept(seed, w):
+        return SimpleNamespace(sensor=SensorModel(seed=seed).to_dict(), meta={"world": w})
+
+    for seed, w, ok in ((5, world, True), (6, world, False), (5, fb.world_label("default", "fixed"), False)):
+        monkeypatch.setattr(C.Calibration, "load", staticmethod(lambda path, s=seed, w=w: kept(s, w)))
+        if ok:
+            assert fb.calibrate(str(tmp_path), "fine", None, 30, 5, "x", "by_d").meta["world"] == world
+        else:
+            with pytest.raises(UserError) as exc:
+                fb.calibrate(str(tmp_path), "fine", None, 30, 5, "x", "by_d")
+            assert exc.value.param == "--out"

@@ -263,9 +263,16 @@ def calibrate(out: str, truth_mesh: str, forward, frames: int, seed: int, tag: s
     from elastimap.camera.optics import SensorModel, render_pair
 
     path = os.path.join(out, f"cal-{tag}.json")
-    if os.path.exists(path):
-        return C.Calibration.load(path)
     sensor = SensorModel(seed=seed)
+    if os.path.exists(path):  # kept per forward map: it must be this run's camera and world
+        cal = C.Calibration.load(path)
+        if SensorModel.from_dict(cal.sensor or {}) != sensor or cal.meta.get("world") != world_label(
+            truth_mesh, truth_sizing
+        ):
+            from elastimap.errors import UserError
+
+            raise UserError("--out", f"{path} was made with another camera seed or world; use another --out")
+        return cal
     ph = C.load_phantoms()
     rng = np.random.default_rng([seed, 0])
     pairs, cam = [], []
