@@ -60,6 +60,10 @@ STUDIES = {
         "elastimap.workflows.studies.levelbias:main",
         "Each mesh level's image error against a finer world and the (d, h, E) shift it causes.",
     ),
+    "valleyfit": (
+        "elastimap.workflows.studies.valleyfit:main",
+        "Re-fit frames-benchmark lesions with one ingredient changed (image, start, sizing, levels).",
+    ),
     "fdgrid": (
         "elastimap.workflows.studies.fdgrid:main",
         "Real finite-difference Jacobians on a grid of design points.",

@@ -182,3 +182,23 @@ def test_a_kept_calibration_of_another_camera_or_world_is_refused(tmp_path, monk
             with pytest.raises(UserError) as exc:
                 fb.calibrate(str(tmp_path), "fine", None, 30, 5, "x", "by_d")
             assert exc.value.param == "--out"
+
+
+@pytest.mark.parametrize(
+    ("args", "says"),
+    [
+        (["--lesions", "120"], "--lesions: comma-separated indices in 0..119"),
+        (["--lesions", "a,b"], "--lesions: comma-separated indices"),
+        (["--lesions", "2"], "cal-morph-coarse-corr-fine.json not found"),
+        (["--lesions", "2", "--maps", "coarse"], "--maps"),
+    ],
+)
+def test_valley_study_answers_bad_input_in_one_line(tmp_path, args, says):
+    """The re-fit study (docs/camera.md 4i) checks its lesions and the benchmark folder before any solve."""
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "elastimap.workflows.studies.valleyfit", "--out", str(tmp_path), "--n", "120"]
+    r = subprocess.run([*cmd, "--seed", "2029", *args], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
