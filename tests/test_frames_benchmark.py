@@ -202,3 +202,22 @@ def test_valley_study_answers_bad_input_in_one_line(tmp_path, args, says):
     r = subprocess.run([*cmd, "--seed", "2029", *args], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_valley_study_refuses_lesions_of_another_design(tmp_path):
+    """A --seed (or --n) that draws other lesions than the folder's records is refused before any solve,
+    so a re-fit never pairs one lesion's truth with another's world solve and camera."""
+    import json
+    import subprocess
+    import sys
+
+    (tmp_path / "cal-morph-coarse-corr-fine.json").write_text("{}")
+    fits = tmp_path / "fits-morph-coarse-corr-fine-drift"
+    fits.mkdir()
+    other = fb.draw_lesions(120, 2030)[2]
+    (fits / "lesion-0002.json").write_text(json.dumps({"truth": [float(v) for v in other]}))
+    cmd = [sys.executable, "-m", "elastimap.workflows.studies.valleyfit", "--out", str(tmp_path), "--n", "120"]
+    r = subprocess.run([*cmd, "--seed", "2029", "--lesions", "2"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "--seed: lesion 2 of" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    r = subprocess.run([*cmd, "--seed", "2029", "--lesions", "3"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "--lesions: lesion 3 has no record" in r.stderr, r.stderr

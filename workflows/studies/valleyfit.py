@@ -6,7 +6,8 @@ benchmark folder with one ingredient changed at a time.
 
 A lesion of the benchmark (``workflows/frames_benchmark.py``; SYNTHETIC: its world solve in
 ``OUT/solves``, its calibration ``OUT/cal-morph-coarse-corr-fine.json``, the start network
-``--model``) is re-fitted by :func:`elastimap.identify.refine.fit_image` with:
+``--model``; ``--n`` and ``--seed`` must be the benchmark's, checked against its records) is
+re-fitted by :func:`elastimap.identify.refine.fit_image` with:
 
 * ``--image frames``: the difference image recovered from the lesion's 30 + 30 drifting-camera frames
   (the benchmark's own, same noise seeds) and its per-pixel noise; ``world``: the world's noise-free
@@ -27,6 +28,7 @@ of seen lesions: it diagnoses, nothing in it is a held-out score.
 
 from __future__ import annotations
 
+import json
 import os
 import time
 
@@ -83,7 +85,18 @@ def main(out, n, seed, lesions, model, image, start, maps, fit):
     if not os.path.exists(cal_path):
         raise UserError("--out", f"{cal_path} not found: run the benchmark's `run` stage first")
     truth = draw_lesions(n, seed)
+    fits = os.path.join(out, "fits-morph-coarse-corr-fine-drift")
+    for i in idx:  # the benchmark's own record of each lesion: same design, world solve present
+        path = os.path.join(fits, f"lesion-{i:04d}.json")
+        if not os.path.exists(path):
+            raise UserError("--lesions", f"lesion {i} has no record in {fits}: run the benchmark's `run` stage first")
+        with open(path) as fh:
+            stored = json.load(fh)["truth"]
+        if not np.allclose(stored, truth[i], rtol=1e-9):
+            raise UserError("--seed", f"lesion {i} of {out} is another lesion than --n {n} --seed {seed} draws")
     cal = C.Calibration.load(cal_path)
+    if SensorModel.from_dict(cal.sensor or {}) != SensorModel(seed=seed):
+        raise UserError("--seed", f"{cal_path} was made with another camera seed")
     net_model, idm = load_model(model), load_identifiability("default")
     sensor = SensorModel(seed=seed)
     ref, pixel = cal.reference_image()
