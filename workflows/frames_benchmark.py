@@ -68,6 +68,7 @@ import copy
 import os
 import sys
 import time
+from dataclasses import dataclass
 
 import click
 import numpy as np
@@ -346,6 +347,53 @@ def _check_same_design(fits: str, truth: np.ndarray) -> None:
             )
 
 
+def run_tags(geometry: str, fit_mesh: str, correct_mesh: str | None, levels: list[str], coords: str, session: str):
+    """(calibration tag, fits tag) of a ``run``: ``OUT/cal-<tag>.json`` and ``OUT/fits-<tag>`` are kept
+    per forward map -- ``<geometry>-<mesh>`` plus ``-corr-<level>``, ``-err-<levels>`` when the model
+    error is not measured against the default neighbour; the fits also ``-log`` and ``-drift``."""
+    from elastimap.identify.refine import neighbour_level
+
+    top = correct_mesh or fit_mesh
+    tag = f"{geometry}-{fit_mesh}" + (f"-corr-{correct_mesh}" if correct_mesh else "")
+    tag += "" if levels == [neighbour_level(top)] else f"-err-{'+'.join(levels)}"
+    cal_tag = tag  # the calibration does not depend on the fit's coordinates
+    tag += "-log" if coords == "log" else ""
+    tag += "-drift" if session == "drift" else ""
+    return cal_tag, tag
+
+
+@dataclass
+class LesionInputs:
+    """One benchmark lesion before its fit (SYNTHETIC): the world's solve, the session's camera, the
+    difference image recovered from its frames (with per-pixel noise), the network's estimate, and
+    the seconds the recovery and the network took."""
+
+    world: dict
+    camera: object
+    recovered: object
+    network: object
+    seconds: float
+
+
+def lesion_inputs(i, theta, seed, sensor, cal, model, idm, out, truth_mesh, truth_sizing, session="drift", frames=30):
+    """Lesion ``i`` (truth ``theta``) of the benchmark in ``out``: its world solve (read from or added
+    to ``OUT/solves``), ``frames`` + ``frames`` frames from the session's camera (own noise seeds per lesion), the
+    FEM-equivalent difference image by the calibration ``cal`` and the start network ``model``."""
+    from elastimap.camera.deflection import difference_image
+    from elastimap.camera.infer import estimate_fem_images
+    from elastimap.camera.optics import render_pair
+
+    d, h, E = (float(v) for v in theta)
+    w = truth_solve(d, h, E, truth_mesh, os.path.join(out, "solves"), truth_sizing)
+    cam = session_sensor(sensor, np.random.default_rng([seed, 2, i])) if session == "drift" else sensor
+    F, B = render_pair(cam, w["image_raw"], w["image"], 0.5, frames, np.random.default_rng([seed, 1, i]))
+    ref, pixel = cal.reference_image()
+    t = time.perf_counter()
+    di = difference_image(F, B, sensor, ref, pixel, scale=float(cal.deflection["scale"]))
+    (net,) = estimate_fem_images(di.image[None], model, [str(i)], idm, sigma=di.sigma[None])
+    return LesionInputs(w, cam, di, net, time.perf_counter() - t)
+
+
 @main.command("run")
 @click.option("--model", "model_dir", required=True, help="Image model (the network that gives the start).")
 @click.option("--n", "n", default=120, show_default=True, type=int, help="Held-out lesions (as in 'lesions').")
@@ -408,9 +456,8 @@ def run_cmd(
     """Frames -> network -> physics fit for every held-out lesion (resumable, one JSON per lesion)."""
     import json
 
-    from elastimap.camera.deflection import difference_image
-    from elastimap.camera.infer import estimate_fem_images, load_identifiability, load_model, refine_estimates
-    from elastimap.camera.optics import SensorModel, render_pair
+    from elastimap.camera.infer import load_identifiability, load_model, refine_estimates
+    from elastimap.camera.optics import SensorModel
     from elastimap.errors import UserError
     from elastimap.identify.refine import check_correct, default_geometry, forward_map, neighbour_level
 
@@ -428,11 +475,7 @@ def run_cmd(
             f"distinct levels of {', '.join(MESH_LEVELS)} other than {top} (got {error_mesh!r})",
         )
     alt_level = "+".join(levels)
-    tag = f"{geometry}-{fit_mesh}" + (f"-corr-{correct_mesh}" if correct_mesh else "")
-    tag += "" if levels == [neighbour_level(top)] else f"-err-{alt_level}"
-    cal_tag = tag  # the calibration does not depend on the fit's coordinates
-    tag += "-log" if coords == "log" else ""
-    tag += "-drift" if session == "drift" else ""
+    cal_tag, tag = run_tags(geometry, fit_mesh, correct_mesh, levels, coords, session)
     fits = os.path.join(out, f"fits-{tag}")
     truth = _design(n, seed, inside)
     _check_same_design(fits, truth)  # before any work: never add lesions of another design
@@ -448,20 +491,14 @@ def run_cmd(
     model = load_model(model_dir)
     idm = load_identifiability("default")
     sensor = SensorModel(seed=seed)
-    ref, pixel = cal.reference_image()
     done = 0
     for i in range(k, n, nsh):
         path = os.path.join(fits, f"lesion-{i:04d}.json")
         if os.path.exists(path):
             continue
         d, h, E = truth[i]
-        w = truth_solve(d, h, E, truth_mesh, os.path.join(out, "solves"), truth_sizing)
-        cam = session_sensor(sensor, np.random.default_rng([seed, 2, i])) if session == "drift" else sensor
-        F, B = render_pair(cam, w["image_raw"], w["image"], 0.5, frames, np.random.default_rng([seed, 1, i]))
-        t1 = time.perf_counter()
-        di = difference_image(F, B, sensor, ref, pixel, scale=float(cal.deflection["scale"]))
-        (net,) = estimate_fem_images(di.image[None], model, [str(i)], idm, sigma=di.sigma[None])
-        t_net = time.perf_counter() - t1
+        one = lesion_inputs(i, truth[i], seed, sensor, cal, model, idm, out, truth_mesh, truth_sizing, session, frames)
+        w, cam, di, net, t_net = one.world, one.camera, one.recovered, one.network, one.seconds
         before = dict(acc)
         c0 = time.process_time()
         (fit,) = refine_estimates(

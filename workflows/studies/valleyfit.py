@@ -9,9 +9,10 @@ A lesion of the benchmark (``workflows/frames_benchmark.py``; SYNTHETIC: its wor
 ``--model``; ``--n`` and ``--seed`` must be the benchmark's, checked against its records) is
 re-fitted by :func:`elastimap.identify.refine.fit_image` with:
 
-* ``--image frames``: the difference image recovered from the lesion's 30 + 30 drifting-camera frames
-  (the benchmark's own, same noise seeds) and its per-pixel noise; ``world``: the world's noise-free
-  difference image with the same per-pixel noise (what the fit would do without camera noise);
+* ``--image frames``: the difference image recovered from the lesion's drifting-camera frames (the
+  benchmark's own, :func:`~elastimap.workflows.frames_benchmark.lesion_inputs`: same noise seeds)
+  and its per-pixel noise; ``world``: the world's noise-free difference image with the same
+  per-pixel noise (what the fit would do without camera noise);
 * ``--start network``: the network's estimate and the E scan (the shipped fit); ``truth``: the true
   (d, h, E), no scan (whether the likelihood's maximum itself is off, or the way to it);
 * ``--maps fixed``: the morphed maps with the fixed element sizing the shipped fit uses; ``by_d``:
@@ -68,12 +69,11 @@ def _maps(sizing: str) -> dict:
 def main(out, n, seed, lesions, model, image, start, maps, fit):
     """Re-fit benchmark lesions with one ingredient changed (SYNTHETIC; seen lesions)."""
     from elastimap.camera import calibration as C
-    from elastimap.camera.deflection import difference_image
-    from elastimap.camera.infer import estimate_fem_images, load_identifiability, load_model
-    from elastimap.camera.optics import SensorModel, render_pair
+    from elastimap.camera.infer import load_identifiability, load_model
+    from elastimap.camera.optics import SensorModel
     from elastimap.errors import UserError
     from elastimap.identify.refine import fit_image
-    from elastimap.workflows.frames_benchmark import draw_lesions, session_sensor, truth_solve
+    from elastimap.workflows.frames_benchmark import draw_lesions, lesion_inputs, run_tags
 
     try:
         idx = [int(v) for v in lesions.split(",") if v.strip()]
@@ -81,25 +81,27 @@ def main(out, n, seed, lesions, model, image, start, maps, fit):
         idx = []
     if not idx or min(idx) < 0 or max(idx) >= n:
         raise UserError("--lesions", f"comma-separated indices in 0..{n - 1} (got {lesions!r})")
-    cal_path = os.path.join(out, "cal-morph-coarse-corr-fine.json")
+    cal_tag, fits_tag = run_tags("morph", "coarse", "fine", ["default"], "contrast", "drift")  # the shipped fit's run
+    cal_path = os.path.join(out, f"cal-{cal_tag}.json")
     if not os.path.exists(cal_path):
         raise UserError("--out", f"{cal_path} not found: run the benchmark's `run` stage first")
     truth = draw_lesions(n, seed)
-    fits = os.path.join(out, "fits-morph-coarse-corr-fine-drift")
+    fits = os.path.join(out, f"fits-{fits_tag}")
+    frames = {}
     for i in idx:  # the benchmark's own record of each lesion: same design, world solve present
         path = os.path.join(fits, f"lesion-{i:04d}.json")
         if not os.path.exists(path):
             raise UserError("--lesions", f"lesion {i} has no record in {fits}: run the benchmark's `run` stage first")
         with open(path) as fh:
-            stored = json.load(fh)["truth"]
-        if not np.allclose(stored, truth[i], rtol=1e-9):
+            rec = json.load(fh)
+        if not np.allclose(rec["truth"], truth[i], rtol=1e-9):
             raise UserError("--seed", f"lesion {i} of {out} is another lesion than --n {n} --seed {seed} draws")
+        frames[i] = int(rec.get("frames", 30))
     cal = C.Calibration.load(cal_path)
     if SensorModel.from_dict(cal.sensor or {}) != SensorModel(seed=seed):
         raise UserError("--seed", f"{cal_path} was made with another camera seed")
     net_model, idm = load_model(model), load_identifiability("default")
     sensor = SensorModel(seed=seed)
-    ref, pixel = cal.reference_image()
     m = _maps(maps)
     if fit == "corrected":
         fwd, kw = m["coarse"], {"forward_alt": [m["default"]], "forward_fine": m["fine"]}
@@ -107,11 +109,8 @@ def main(out, n, seed, lesions, model, image, start, maps, fit):
         fwd, kw = m["fine"], {"forward_alt": [m["default"]]}
     for i in idx:
         d, h, E = (float(v) for v in truth[i])
-        w = truth_solve(d, h, E, "fine", os.path.join(out, "solves"), "by_d")
-        cam = session_sensor(sensor, np.random.default_rng([seed, 2, i]))
-        F, B = render_pair(cam, w["image_raw"], w["image"], 0.5, 30, np.random.default_rng([seed, 1, i]))
-        di = difference_image(F, B, sensor, ref, pixel, scale=float(cal.deflection["scale"]))
-        (net,) = estimate_fem_images(di.image[None], net_model, [str(i)], idm, sigma=di.sigma[None])
+        one = lesion_inputs(i, truth[i], seed, sensor, cal, net_model, idm, out, "fine", "by_d", "drift", frames[i])
+        w, di, net = one.world, one.recovered, one.network
         side = int(round(np.sqrt(di.image.size)))
         img = (np.asarray(w["image"], float) if image == "world" else np.asarray(di.image, float)).reshape(side, side)
         sig = np.asarray(di.sigma, float).reshape(side, side)
