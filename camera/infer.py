@@ -134,6 +134,7 @@ class Estimate:
             out["fit_solves"] = int(self.fit.n_solves + self.fit.n_alt)
             out["fit_seconds"] = float(self.fit.seconds)
             out["fit_converged"] = bool(self.fit.converged)
+            out["fit_moving"] = ";".join(self.fit.moving)
         out["crb_set"] = self.crb_set
         out["input"] = self.input
         out["n_members"] = self.n_members

@@ -494,6 +494,9 @@ class FitResult:
     message: str
     at_bound: list[str] = field(default_factory=list)  # parameters that ended on the design box's edge
     n_fine: int = 0  # evaluations of the finer level (defect corrections, ``forward_fine``)
+    moving: list[str] = field(
+        default_factory=list
+    )  # parameters the last pass still moved by > 0.2 sd (none: converged)
 
     @property
     def sd(self) -> np.ndarray:
@@ -752,7 +755,8 @@ def fit_image(
         xn, res = one_pass(x, s_tot, J)
         msg.append(str(res.message))
         sd_x = np.sqrt(np.clip(np.diag(np.linalg.pinv(J.T @ J)), 0, None))
-        moved = bool(np.any(np.abs(xn - x) > np.maximum(0.2 * sd_x, 1e-9)))
+        moving = [q for j, q in enumerate(("d", "h", "E")) if abs(xn[j] - x[j]) > max(0.2 * sd_x[j], 1e-9)]
+        moved = bool(moving)
         x = xn
         if not moved and k >= first:
             break
@@ -803,6 +807,7 @@ def fit_image(
         "; ".join(msg),
         at,
         n_fine[0],
+        moving if moved else [],
     )
 
 

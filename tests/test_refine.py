@@ -265,6 +265,8 @@ def test_defect_correction_by_a_finer_level_removes_the_cheaper_maps_bias():
     assert corrected.converged
     short = fit_image(I, sig, truth, cheap, forward_fine=lambda d, h, E: bump((d, h, E)), **{**kw, "max_passes": 1})
     assert not short.converged and "still moving after 1 passes" in short.message
+    # and which parameter: the correction moves d (the cheaper map's bias), not h or E by as much
+    assert corrected.moving == [] and "d" in short.moving
 
 
 @pytest.mark.parametrize(

@@ -173,5 +173,6 @@ def test_cli_refine_from_camera_frames(frames_case):
     assert e["input"] == "frames+fem_refined" and e["fit_solves"] >= 8
     assert np.isfinite(e["fit_chi2_red"]) and e["fit_model_error"] > 0
     assert isinstance(e["fit_converged"], bool)
+    assert (e["fit_moving"] == "") == e["fit_converged"]  # which parameters still moved, when it did not settle
     assert "non_identifiable:E" in e["flags"]  # measured: sd(ln E) 0.12 > 0.10
     assert abs(e["d"] / TRUTH[0] - 1) < 0.15 and abs(e["h"] / TRUTH[1] - 1) < 0.1, e
