@@ -494,9 +494,8 @@ class FitResult:
     message: str
     at_bound: list[str] = field(default_factory=list)  # parameters that ended on the design box's edge
     n_fine: int = 0  # evaluations of the finer level (defect corrections, ``forward_fine``)
-    moving: list[str] = field(
-        default_factory=list
-    )  # parameters the last pass still moved by > 0.2 sd (none: converged)
+    #: parameters the last pass still moved by more than 0.2 of their sd (empty when converged)
+    moving: list[str] = field(default_factory=list)
 
     @property
     def sd(self) -> np.ndarray:
@@ -807,7 +806,7 @@ def fit_image(
         "; ".join(msg),
         at,
         n_fine[0],
-        moving if moved else [],
+        moving,  # empty when the fit converged (its last pass moved nothing by 0.2 sd)
     )
 
 

@@ -377,8 +377,9 @@ class LesionInputs:
 
 def lesion_inputs(i, theta, seed, sensor, cal, model, idm, out, truth_mesh, truth_sizing, session="drift", frames=30):
     """Lesion ``i`` (truth ``theta``) of the benchmark in ``out``: its world solve (read from or added
-    to ``OUT/solves``), ``frames`` + ``frames`` frames from the session's camera (own noise seeds per lesion), the
-    FEM-equivalent difference image by the calibration ``cal`` and the start network ``model``."""
+    to ``OUT/solves``), ``frames`` lesion and ``frames`` background frames from the session's camera
+    (own noise seeds per lesion), the FEM-equivalent difference image by the calibration ``cal`` and
+    the start network ``model``."""
     from elastimap.camera.deflection import difference_image
     from elastimap.camera.infer import estimate_fem_images
     from elastimap.camera.optics import render_pair
