@@ -386,6 +386,8 @@ def refine_estimates(
     forward_fine=None,
     correct: str | None = None,
     coords: str = "contrast",
+    max_passes: int = 2,
+    fine: str = "correct",
 ) -> list[Estimate]:
     """Refine image-model estimates by the maximum-likelihood fit of the forward map
     (:func:`elastimap.identify.refine.fit_image`).
@@ -401,7 +403,10 @@ def refine_estimates(
     level finer than ``mesh``) the solver's map at that level: its defect corrects the map at the start
     of every pass after the first, and the model error is then measured between ``correct`` and its
     neighbouring level (:func:`elastimap.identify.refine.fit_image`).  ``coords``: the fit's coordinate
-    of E (:class:`elastimap.identify.refine.FitCoords`).  ``progress(i, n)`` after each lesion.
+    of E (:class:`elastimap.identify.refine.FitCoords`); ``max_passes``: the fit's passes (corrected
+    ones with a finer level; :func:`~elastimap.identify.refine.fit_image`); ``fine``: how those passes
+    use the finer level, ``"correct"`` (defect correction) or ``"direct"`` (they fit it).  ``progress(i, n)`` after
+    each lesion.
 
     Each estimate's mean becomes the fitted (d, h, E), ``sd``/``crb`` the Gauss–Newton standard
     deviation (relative for ``crb``), ``lo``/``hi`` its 95 % interval (no tuned factor);
@@ -433,7 +438,17 @@ def refine_estimates(
             img2 = img.reshape(n, n) if n * n == img.size else img
             pk = np.abs(img).max()
             sig = np.asarray(e.sigma, float).reshape(img2.shape) if e.sigma is not None else image_noise * pk
-            r = fit_image(img2, sig, e.mean, forward, forward_alt=forward_alt, forward_fine=forward_fine, coords=coords)
+            r = fit_image(
+                img2,
+                sig,
+                e.mean,
+                forward,
+                forward_alt=forward_alt,
+                forward_fine=forward_fine,
+                coords=coords,
+                max_passes=max_passes,
+                fine=fine,
+            )
             e.mean = r.theta
             e.crb = r.relstd
             e.sd = r.sd

@@ -74,8 +74,8 @@ import click
 import numpy as np
 
 from elastimap.cli_util import shard_option, sizing_option
-from elastimap.identify.refine import COORDS, STILL_MOVING
-from elastimap.solver.params import MESH_LEVELS
+from elastimap.identify.refine import COORDS, FINE_MODES, STILL_MOVING
+from elastimap.solver.params import MESH_LEVELS, SIZINGS
 
 TRUTH_SEED = 2026
 
@@ -347,14 +347,24 @@ def _check_same_design(fits: str, truth: np.ndarray) -> None:
             )
 
 
-def run_tags(geometry: str, fit_mesh: str, correct_mesh: str | None, levels: list[str], coords: str, session: str):
+def run_tags(
+    geometry: str,
+    fit_mesh: str,
+    correct_mesh: str | None,
+    levels: list[str],
+    coords: str,
+    session: str,
+    correct_sizing: str = "fixed",
+):
     """(calibration tag, fits tag) of a ``run``: ``OUT/cal-<tag>.json`` and ``OUT/fits-<tag>`` are kept
-    per forward map -- ``<geometry>-<mesh>`` plus ``-corr-<level>``, ``-err-<levels>`` when the model
-    error is not measured against the default neighbour; the fits also ``-log`` and ``-drift``."""
+    per forward map -- ``<geometry>-<mesh>`` plus ``-corr-<level>`` (``-corr-<level>-by_d`` when the
+    correcting level is sized by d), ``-err-<levels>`` when the model error is not measured against the
+    default neighbour; the fits also ``-log`` and ``-drift``."""
     from elastimap.identify.refine import neighbour_level
 
     top = correct_mesh or fit_mesh
     tag = f"{geometry}-{fit_mesh}" + (f"-corr-{correct_mesh}" if correct_mesh else "")
+    tag += f"-{correct_sizing}" if correct_mesh and correct_sizing != "fixed" else ""
     tag += "" if levels == [neighbour_level(top)] else f"-err-{'+'.join(levels)}"
     cal_tag = tag  # the calibration does not depend on the fit's coordinates
     tag += "-log" if coords == "log" else ""
@@ -415,6 +425,14 @@ def lesion_inputs(i, theta, seed, sensor, cal, model, idm, out, truth_mesh, trut
     help="A finer level whose defect corrects the fit's map at the start of each pass (fit_image's "
     "forward_fine); the model error is then measured against that level's neighbour unless --error-mesh.",
 )
+@click.option(
+    "--correct-sizing",
+    type=click.Choice(SIZINGS),
+    default="fixed",
+    show_default=True,
+    help="Element sizing of the --correct-mesh level and of the level(s) its model error is measured against "
+    "(by_d adds '-by_d' to the folders' tags).",
+)
 @click.option("--geometry", default=None, help="Fit's forward map: morph (default where available) or remesh.")
 @click.option("--frames", default=30, show_default=True, type=int, help="Lesion and background frames per lesion.")
 @click.option(
@@ -433,6 +451,21 @@ def lesion_inputs(i, theta, seed, sensor, cal, model, idm, out, truth_mesh, trut
     "powers and vignetting drawn afresh per lesion (session_sensor), inverted with the nominal model "
     "(adds '-drift' to the fits' folder).",
 )
+@click.option(
+    "--max-passes",
+    default=2,
+    show_default=True,
+    type=click.IntRange(1, 10),
+    help="The fit's passes (corrected ones with --correct-mesh); other than 2 adds '-p<N>' to the fits' folder.",
+)
+@click.option(
+    "--fine-mode",
+    type=click.Choice(FINE_MODES),
+    default="correct",
+    show_default=True,
+    help="How the passes after the first use --correct-mesh: defect correction of the fit's map, or a fit "
+    "of that level itself ('direct' adds '-direct' to the fits' folder).",
+)
 @shard_option("K/N: this process fits lesions i with i % N == K.")
 @click.option("--limit", default=0, type=int, help="Stop after this many new fits (0: all).")
 @click.option("--out", required=True)
@@ -446,10 +479,13 @@ def run_cmd(
     fit_mesh,
     error_mesh,
     correct_mesh,
+    correct_sizing,
     geometry,
     frames,
     coords,
     session,
+    max_passes,
+    fine_mode,
     shard,
     limit,
     out,
@@ -476,7 +512,9 @@ def run_cmd(
             f"distinct levels of {', '.join(MESH_LEVELS)} other than {top} (got {error_mesh!r})",
         )
     alt_level = "+".join(levels)
-    cal_tag, tag = run_tags(geometry, fit_mesh, correct_mesh, levels, coords, session)
+    cal_tag, tag = run_tags(geometry, fit_mesh, correct_mesh, levels, coords, session, correct_sizing)
+    tag += f"-p{max_passes}" if max_passes != 2 else ""
+    tag += "-direct" if fine_mode == "direct" and correct_mesh else ""
     fits = os.path.join(out, f"fits-{tag}")
     truth = _design(n, seed, inside)
     _check_same_design(fits, truth)  # before any work: never add lesions of another design
@@ -484,8 +522,11 @@ def run_cmd(
     acc: dict = {}
     t = time.perf_counter()
     fwd = _Timed(forward_map(fit_mesh, geometry), acc, "fit_level")
-    fwd_alt = [_Timed(forward_map(v, geometry), acc, "alt_level") for v in levels]
-    fwd_fine = _Timed(forward_map(correct_mesh, geometry), acc, "fine_level") if correct_mesh else None
+    top_sizing = correct_sizing if correct_mesh else "fixed"  # the sizing of the map the fit stands for
+    fwd_alt = [_Timed(forward_map(v, geometry, sizing=top_sizing), acc, "alt_level") for v in levels]
+    fwd_fine = (
+        _Timed(forward_map(correct_mesh, geometry, sizing=correct_sizing), acc, "fine_level") if correct_mesh else None
+    )
     # the calibration's FEM side: the map the fit stands for (the finer one when it corrects)
     cal = calibrate(out, truth_mesh, fwd_fine or fwd, frames, seed, cal_tag, truth_sizing)
     setup = time.perf_counter() - t
@@ -503,7 +544,14 @@ def run_cmd(
         before = dict(acc)
         c0 = time.process_time()
         (fit,) = refine_estimates(
-            [copy.deepcopy(net)], None, forward=fwd, forward_alt=fwd_alt, forward_fine=fwd_fine, coords=coords
+            [copy.deepcopy(net)],
+            None,
+            forward=fwd,
+            forward_alt=fwd_alt,
+            forward_fine=fwd_fine,
+            coords=coords,
+            max_passes=max_passes,
+            fine=fine_mode,
         )
         cpu_fit = time.process_time() - c0
         spent = {key: acc.get(key, 0) - before.get(key, 0) for key in acc}
@@ -514,8 +562,19 @@ def run_cmd(
             "design": {"n": n, "seed": seed, "inside": inside},
             "world": world_label(truth_mesh, truth_sizing) + ", tied, quarter",
             "fit_map": f"{geometry}, {fit_mesh} mesh"
-            + (f", defect-corrected by {correct_mesh}" if correct_mesh else "")
-            + f"; model error vs {alt_level}; E coordinate {coords}",
+            + (
+                (
+                    f", then fitted on {correct_mesh}"
+                    if fine_mode == "direct"
+                    else f", defect-corrected by {correct_mesh}"
+                )
+                if correct_mesh
+                else ""
+            )
+            + (f" sized {correct_sizing}" if correct_mesh and correct_sizing != "fixed" else "")
+            + f"; model error vs {alt_level}"
+            + (f" sized {top_sizing}" if top_sizing != "fixed" else "")
+            + f"; E coordinate {coords}",
             "frames": frames,
             "camera": "nominal"
             if session == "nominal"
@@ -528,6 +587,13 @@ def run_cmd(
             "seconds_fit": float(fit.fit.seconds) if fit.fit is not None else 0.0,
             "cpu_seconds_fit": cpu_fit,
             "fit_message": fit.fit.message if fit.fit is not None else "",
+            # the fit's Gauss–Newton interval (θ̂ ± 1.96 sd clipped to the box) beside the reported one
+            "fit_interval_gauss": {
+                "lo": [float(v) for v in fit.fit.lo_gauss],
+                "hi": [float(v) for v in fit.fit.hi_gauss],
+            }
+            if fit.fit is not None and fit.fit.lo_gauss is not None
+            else None,
             "seconds_fit_level_solves": spent.get("fit_level", 0.0),
             "n_fit_level_solves": spent.get("fit_level_n", 0),
             "seconds_alt_level_solves": spent.get("alt_level", 0.0),
