@@ -685,6 +685,19 @@ def summarise(recs: list[dict], region_set: str = "frames") -> dict:
         out[key] = float(np.mean([r[key] for r in recs]))
     for key in ("seconds_fine_level_solves", "n_fine_level_solves"):  # fits that correct by a finer level
         out[key] = float(np.mean([r.get(key, 0.0) for r in recs]))
+    gauss = [r.get("fit_interval_gauss") for r in recs]
+    if all(
+        g is not None for g in gauss
+    ):  # records since 3bfcd81: the fit's Gauss–Newton interval beside the reported one
+        glo, ghi = np.array([g["lo"] for g in gauss]), np.array([g["hi"] for g in gauss])
+        gcov = (glo <= truth) & (truth <= ghi)
+        out["fit_gauss_coverage"] = {
+            q: {
+                "inside": float(gcov[reg[:, j], j].mean()) if reg[:, j].any() else None,
+                "outside": float(gcov[~reg[:, j], j].mean()) if (~reg[:, j]).any() else None,
+            }
+            for j, q in enumerate("dhE")
+        }
     out["not_converged"] = int((~conv).sum())
     out["no_signal"] = int(sum("no_signal" in r["fit"]["flags"] for r in recs))
     out["model_mismatch"] = int(sum("model_mismatch" in r["fit"]["flags"] for r in recs))
@@ -737,6 +750,17 @@ def table(sm: dict) -> str:
             + " |"
         )
     r = sm["fit"]
+    g = sm.get("fit_gauss_coverage")
+    if g:
+        lines += [
+            "",
+            "The fit's Gauss–Newton interval (θ̂ ± 1.96 sd clipped to the box), beside the reported one: coverage "
+            "inside d / h / E "
+            + " / ".join(_pct(g[q]["inside"]) for q in "dhE")
+            + ", outside "
+            + " / ".join(_pct(g[q]["outside"]) for q in "dhE")
+            + ".",
+        ]
     lines += [
         "",
         f"Fits that ended still moving (the passes ran out): {sm['not_converged']} of {sm['n']}.  Among the fit's "
