@@ -685,10 +685,11 @@ def summarise(recs: list[dict], region_set: str = "frames") -> dict:
         out[key] = float(np.mean([r[key] for r in recs]))
     for key in ("seconds_fine_level_solves", "n_fine_level_solves"):  # fits that correct by a finer level
         out[key] = float(np.mean([r.get(key, 0.0) for r in recs]))
-    gauss = [r.get("fit_interval_gauss") for r in recs]
-    if all(
-        g is not None for g in gauss
-    ):  # records since 3bfcd81: the fit's Gauss–Newton interval beside the reported one
+    if all("fit_interval_gauss" in r for r in recs):  # records since 3bfcd81: the Gauss–Newton interval too
+        # None where no fit ran (no signal): the reported interval, the network's, stands for both
+        gauss = [
+            r["fit_interval_gauss"] or {k: [r["fit"][f"{q}_{k}"] for q in "dhE"] for k in ("lo", "hi")} for r in recs
+        ]
         glo, ghi = np.array([g["lo"] for g in gauss]), np.array([g["hi"] for g in gauss])
         gcov = (glo <= truth) & (truth <= ghi)
         out["fit_gauss_coverage"] = {
