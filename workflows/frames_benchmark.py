@@ -31,7 +31,11 @@ JSON file per lesion in ``OUT/fits`` (resumable; a folder holding lesions of ano
 another ``--seed``, ``--n`` or ``--inside`` -- is refused; ``--shard K/N`` splits the lesions between
 processes; the calibration and the fits are kept per forward map, ``OUT/cal-<tag>.json`` and
 ``OUT/fits-<tag>``, tag ``<geometry>-<mesh>`` plus ``-corr-<level>`` with ``--correct-mesh`` and
-``-err-<level>`` when ``--error-mesh`` is not the default).
+``-err-<level>`` when ``--error-mesh`` is not the default).  Measurement knobs (docs/camera.md 4j),
+each marked in the tag: ``--correct-sizing by_d`` sizes the correcting level and its model-error
+level by d (``-corr-<level>-by_d``); ``--fine-mode direct`` makes the passes after the first fit
+the correcting level itself instead of correcting the fit's map (``-direct``); ``--max-passes N``
+(``-p<N>`` when not 2).  Each record keeps the fit's Gauss–Newton interval beside the reported one.
 
     OMP_NUM_THREADS=1 .venv/bin/python workflows/frames_benchmark.py run --model M --out runs/frames-bench
 
