@@ -67,15 +67,13 @@ Uncertainty: Gauss–Newton covariance at ``θ̂`` from the Jacobian at ``θ̂``
 map without a derivative, the pass's central-difference Jacobian),
 ``C_x = (JᵀJ)⁻¹ max(1, χ²_red) + b bᵀ`` (the Birge factor widens it when the misfit exceeds
 the stated errors, never narrows it), mapped to (d, h, ln E) by the delta method.  The 95 %
-interval (``intervals="posterior"``, default; :func:`posterior_interval`) is the central 95 % of the
-Laplace posterior: the likelihood's Gaussian ``N(x̂, C_x)`` in the fit's coordinates (for a fit on
-the box's edge centred at the Gauss–Newton step beyond it, where its quadratic model peaks) times
-the design's prior -- uniform in d, in the depth fraction u and in ln E over the design box, the
-Latin hypercube the sweeps train on -- by 20 000 draws with a fixed seed.  Where the image tells
-a parameter it is ``q ± 1.96 sd``; where it cannot, the box and the prior bound it instead of a
-Gauss–Newton width that runs off the box.  ``intervals="gauss"``: ``q ± 1.96 sd`` for d and h and,
-for E, ``e ± 1.96 sd_e`` mapped back to E (with ``coords="log"``: ``E exp(±1.96 sd_ln E)``),
-clipped to the design box (kept in :class:`FitResult` ``lo_gauss``/``hi_gauss`` either way).
+interval is ``q ± 1.96 sd`` for d and h and, for E, ``e ± 1.96 sd_e`` mapped back to E (with
+``coords="log"``: ``E exp(±1.96 sd_ln E)``), clipped to the design box.  ``intervals="posterior"``
+(:func:`posterior_interval`, tried 2026-11-27 and not adopted, docs/camera.md 4j): the central
+95 % of the Laplace posterior -- the likelihood's Gaussian ``N(x̂, C_x)`` in the fit's coordinates
+(for a fit on the box's edge centred at the Gauss–Newton step beyond it) times the design's prior,
+uniform in d, in the depth fraction u and in ln E over the box; the Gauss–Newton interval is kept
+in :class:`FitResult` ``lo_gauss``/``hi_gauss`` either way.
 No factor is tuned.
 
 The remeshing-era fits (:func:`refine`, :func:`refine_rsm`, :func:`fit`, :data:`INTERVAL_SCALE`)
@@ -138,7 +136,7 @@ def _dtheta_dx(x, thickness: float = THICKNESS) -> np.ndarray:
 
 COORDS = ("contrast", "log")  # the fit's E coordinate, see FitCoords
 FINE_MODES = ("correct", "direct")  # how fit_image's passes use a finer level (forward_fine)
-INTERVALS = ("posterior", "gauss")  # fit_image's 95 % intervals (posterior_interval, or θ̂ ± 1.96 sd clipped)
+INTERVALS = ("gauss", "posterior")  # fit_image's 95 % intervals (θ̂ ± 1.96 sd clipped, or posterior_interval)
 
 
 @dataclass(frozen=True)
@@ -569,7 +567,7 @@ class FitResult:
     #: parameters the last pass still moved by more than 0.2 of their sd (empty when converged)
     moving: list[str] = field(default_factory=list)
     #: the Gauss–Newton interval θ̂ ± 1.96 sd clipped to the box (E's in the fit's coordinate); ``lo``/``hi``
-    #: are these with ``intervals="gauss"``, the design-prior posterior's (:func:`posterior_interval`) by default
+    #: are these by default, the design-prior posterior's (:func:`posterior_interval`) with ``intervals="posterior"``
     lo_gauss: np.ndarray | None = None
     hi_gauss: np.ndarray | None = None
 
@@ -620,7 +618,7 @@ def fit_image(
     coords: str = "contrast",
     E_tissue: float | None = None,
     fine: str = "correct",
-    intervals: str = "posterior",
+    intervals: str = "gauss",
 ) -> FitResult:
     """Maximum-likelihood (d, h, E) of ``image`` (mm, ``(ny, nx)`` or flat) with per-pixel standard
     errors ``sigma`` (mm, scalar or like ``image``), starting from ``theta0`` (d mm, h mm, E kPa).
@@ -647,9 +645,9 @@ def fit_image(
     else :class:`elastimap.solver.params.Tissue`'s).  ``fine``: how passes after the first use
     ``forward_fine`` -- ``"correct"`` (defect correction, above) or ``"direct"`` (they fit the finer
     map itself, pinned like ``forward`` and with its exact derivative where it has one; ``forward``
-    then only gives the E scan and pass 0).  ``intervals``: ``"posterior"`` (the design prior's
-    Laplace posterior, :func:`posterior_interval`) or ``"gauss"`` (``θ̂ ± 1.96 sd`` clipped to the
-    box).  See the module docstring."""
+    then only gives the E scan and pass 0).  ``intervals``: ``"gauss"`` (``θ̂ ± 1.96 sd`` clipped to the
+    box) or ``"posterior"`` (the design prior's Laplace posterior, :func:`posterior_interval`; not
+    adopted, docs/camera.md 4j).  See the module docstring."""
     from scipy.optimize import least_squares
 
     t0 = time.perf_counter()

@@ -332,6 +332,11 @@ def test_direct_passes_fit_the_finer_level_itself_and_agree_with_the_defect_corr
     np.testing.assert_allclose(direct.theta, truth, rtol=2e-3)
     np.testing.assert_allclose(direct.theta, corrected.theta, rtol=2e-3)
     assert direct.converged and direct.n_fine > corrected.n_fine  # it evaluates the finer map at every step
+    # the reported interval is the Gauss–Newton one unless the posterior is asked for (docs/camera.md 4j)
+    assert np.array_equal(direct.lo, direct.lo_gauss) and np.array_equal(direct.hi, direct.hi_gauss)
+    post = fit_image(I, sig, truth * [1.05, 1.0, 0.8], cheap, forward_fine=finer, intervals="posterior", **kw)
+    np.testing.assert_allclose(post.theta, corrected.theta, rtol=1e-9)
+    assert post.lo[0] <= post.theta[0] <= post.hi[0] and not np.array_equal(post.lo, post.lo_gauss)
     with pytest.raises(UserError, match="fine"):
         fit_image(I, sig, truth, cheap, forward_fine=finer, fine="both", **kw)
 
