@@ -180,13 +180,21 @@ class FitCoords:
         return x
 
     def theta(self, x) -> np.ndarray:
+        return self.thetas(np.asarray(x, dtype=float)[None, :])[0]
+
+    def thetas(self, xs: np.ndarray) -> np.ndarray:
+        """(n, 3) (d mm, h mm, E kPa) of (n, 3) fit coordinates ``xs``."""
+        from elastimap.solver.params import depth_range  # pure python, no DOLFINx
+
+        d, u, e = xs[:, 0], xs[:, 1], xs[:, 2]
+        lo, hi = depth_range(d, self.thickness)
         if self.coord == "log":
-            return to_theta(x, self.thickness)
-        a, b = self._ab
-        c = math.exp(float(x[2]))
-        th = to_theta([x[0], x[1], 0.0], self.thickness)
-        th[2] = (a + b * c) / (1.0 - c)
-        return th
+            E = np.exp(e)
+        else:
+            a, b = self._ab
+            c = np.exp(e)
+            E = (a + b * c) / (1.0 - c)
+        return np.column_stack([d, lo + u * (hi - lo), E])
 
     def dtheta(self, x) -> np.ndarray:
         g = _dtheta_dx(x, self.thickness)
@@ -201,21 +209,6 @@ class FitCoords:
         return np.array([d_range[0], 0.0, lo[2]]), np.array([d_range[1], 1.0, hi[2]])
 
 
-def _thetas(X: FitCoords, xs: np.ndarray) -> np.ndarray:
-    """(n, 3) (d mm, h mm, E kPa) of (n, 3) fit coordinates ``xs`` (:meth:`FitCoords.theta`, vectorised)."""
-    from elastimap.solver.params import depth_range  # pure python, no DOLFINx
-
-    d, u, e = xs[:, 0], xs[:, 1], xs[:, 2]
-    lo, hi = depth_range(d, X.thickness)
-    if X.coord == "log":
-        E = np.exp(e)
-    else:
-        a, b = X._ab
-        c = np.exp(e)
-        E = (a + b * c) / (1.0 - c)
-    return np.column_stack([d, lo + u * (hi - lo), E])
-
-
 def _design_prior(X: FitCoords, xs: np.ndarray) -> np.ndarray:
     """Density in the fit coordinates ``x = (d, u, e)`` of the design's prior -- uniform in d, in the
     depth fraction u and in ln E over the box (the sweeps' and the benchmark's Latin hypercube):
@@ -223,7 +216,7 @@ def _design_prior(X: FitCoords, xs: np.ndarray) -> np.ndarray:
     if X.coord == "log":
         return np.ones(len(xs))
     a, b = X._ab
-    E = _thetas(X, xs)[:, 2]
+    E = X.thetas(xs)[:, 2]
     return (E + b) * (E - a) / (E * (a + b))
 
 
@@ -255,7 +248,7 @@ def posterior_interval(X: FitCoords, centre, Cx, lb, ub, n: int = 20000, seed: i
     w = w * _design_prior(X, xs)
     if not (np.isfinite(w).all() and w.sum() > 0):
         return None
-    th = _thetas(X, xs)
+    th = X.thetas(xs)
     lo, hi = np.empty(3), np.empty(3)
     for j in range(3):
         o = np.argsort(th[:, j])
