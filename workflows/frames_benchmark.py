@@ -531,6 +531,10 @@ def run_cmd(
     fwd_fine = (
         _Timed(forward_map(correct_mesh, geometry, sizing=correct_sizing), acc, "fine_level") if correct_mesh else None
     )
+    sized = {k: "" if v == "fixed" else f" sized {v}" for k, v in (("fine", correct_sizing), ("alt", top_sizing))}
+    how = "then fitted on" if fine_mode == "direct" else "defect-corrected by"
+    fit_label = f"{geometry}, {fit_mesh} mesh" + (f", {how} {correct_mesh}{sized['fine']}" if correct_mesh else "")
+    fit_label += f"; model error vs {alt_level}{sized['alt']}; E coordinate {coords}"
     # the calibration's FEM side: the map the fit stands for (the finer one when it corrects)
     cal = calibrate(out, truth_mesh, fwd_fine or fwd, frames, seed, cal_tag, truth_sizing)
     setup = time.perf_counter() - t
@@ -565,20 +569,7 @@ def run_cmd(
             "truth": [float(d), float(h), float(E)],
             "design": {"n": n, "seed": seed, "inside": inside},
             "world": world_label(truth_mesh, truth_sizing) + ", tied, quarter",
-            "fit_map": f"{geometry}, {fit_mesh} mesh"
-            + (
-                (
-                    f", then fitted on {correct_mesh}"
-                    if fine_mode == "direct"
-                    else f", defect-corrected by {correct_mesh}"
-                )
-                if correct_mesh
-                else ""
-            )
-            + (f" sized {correct_sizing}" if correct_mesh and correct_sizing != "fixed" else "")
-            + f"; model error vs {alt_level}"
-            + (f" sized {top_sizing}" if top_sizing != "fixed" else "")
-            + f"; E coordinate {coords}",
+            "fit_map": fit_label,
             "frames": frames,
             "camera": "nominal"
             if session == "nominal"

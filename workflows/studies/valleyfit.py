@@ -46,14 +46,9 @@ FITS = ("corrected", "fine")
 
 def _maps(sizing: str) -> dict:
     """The morphed maps of the three levels with element sizing ``sizing``."""
-    import dataclasses
-
     from elastimap.identify.refine import forward_map
-    from elastimap.solver.params import SolveParams
 
-    base = SolveParams()
-    tpl = base.replace(disc=dataclasses.replace(base.disc, sizing=sizing))
-    return {v: forward_map(v, "morph", template=tpl) for v in ("coarse", "default", "fine")}
+    return {v: forward_map(v, "morph", sizing=sizing) for v in ("coarse", "default", "fine")}
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
