@@ -373,3 +373,27 @@ def test_posterior_interval_is_the_gauss_newton_one_where_the_image_tells_and_co
         held += (lo <= tt) & (tt <= hi)
         assert 2.0 <= lo[0] <= hi[0] <= 15.0 and 10.0 <= lo[2] <= hi[2] <= 200.0
     assert 0.91 <= held[0] / n <= 0.985 and 0.91 <= held[2] / n <= 0.985, held / n
+
+
+def test_a_fit_map_morphs_from_the_reference_below_never_shrinks_by_more_than_a_rounding():
+    """:func:`reference_below`: the d-bin reference ``d₀ ≤ d < √2 d₀`` (the nearest bin would shrink
+    a mesh by up to 16 %, which costs far more accuracy than growing it, docs/camera.md 4k), also for
+    what ``pin`` and ``pin_exact`` hold (a stub morphed map: no DOLFINx)."""
+    import math
+
+    from elastimap.identify.refine import ForwardMap, reference_below
+    from elastimap.solver.morph import D_RATIO, Reference, reference_for
+
+    class Stub:
+        has_tangent = False
+
+        def reference_for(self, d, h):
+            return reference_for(d, h)
+
+    for d in (2.0, 2.3, 3.0, 7.9, 8.0, 9.2, 9.8, 13.4, 15.0):
+        ref = reference_below(Stub(), d, 8.0)
+        assert ref.d0 <= d * (1 + 1e-9) and d < D_RATIO * ref.d0, (d, ref)
+        assert ForwardMap(Stub()).pin(d, 8.0).reference == ref == ForwardMap(Stub()).pin_exact(d, 8.0).reference
+    assert reference_for(9.8, 8.0).d0 == pytest.approx(8 * math.sqrt(2))  # the nearest bin: above 9.8
+    assert reference_below(Stub(), 9.8, 8.0).d0 == pytest.approx(8.0)
+    assert isinstance(reference_below(Stub(), 9.8, 8.0), Reference)
