@@ -415,7 +415,7 @@ def refine_estimates(
     model cannot reproduce the image at the stated noise), ``at_design_edge:q`` for each parameter
     the fit ended on the design box's edge with (then nothing is reportable); ``input`` gains
     ``+fem_refined``."""
-    from elastimap.identify.refine import check_correct, fit_image, neighbour_level, shared_map
+    from elastimap.identify.refine import BELOW_LEVELS, check_correct, fit_image, neighbour_level, shared_map
 
     if not 0 < image_noise < 1:
         raise UserError("image_noise", f"must be in (0, 1) (got {image_noise:g})")
@@ -427,11 +427,15 @@ def refine_estimates(
         imgs = list(np.asarray(images, dtype=float).reshape(len(ests), -1))
     check_correct(mesh, correct)
     if forward is None:
-        forward = shared_map(mesh, geometry)
+        forward = shared_map(mesh, geometry, below=mesh in BELOW_LEVELS)
         top = correct or mesh  # the level the (corrected) map stands for
-        forward_alt = shared_map(neighbour_level(top), geometry) if forward_alt is None else forward_alt
+        forward_alt = (
+            shared_map(neighbour_level(top), geometry, below=mesh in BELOW_LEVELS)
+            if forward_alt is None
+            else forward_alt
+        )
         if correct is not None and forward_fine is None:
-            forward_fine = shared_map(correct, geometry)
+            forward_fine = shared_map(correct, geometry, below=mesh in BELOW_LEVELS)
     for i, (e, img) in enumerate(zip(ests, imgs)):
         if "no_signal" not in e.flags:
             n = int(round(math.sqrt(img.size)))

@@ -32,7 +32,9 @@ so the feasible set is the box ``[d_lo, d_hi] x [0, 1] x [e(E_lo), e(E_hi)]`` (t
 Start: ``θ₀`` and, at its (d, h), five values of E spread evenly in ``e`` over the box (E-only
 evaluations); the best of them.  Minimiser: :func:`scipy.optimize.least_squares` (trust-region
 reflective, bounds).  Each pass pins
-the morphed map's reference mesh where it starts (one smooth map per pass), measures the model
+the morphed map's reference mesh where it starts (one smooth map per pass; the mesh of the d-bin
+below, :func:`reference_below`: a morph that grows the inclusion's mesh costs far less accuracy
+than one that shrinks it), measures the model
 error there (held for the pass; the covariance re-measures it at the estimate) and takes the Jacobian
 at its start from the map's exact derivative where it has one
 (:meth:`ForwardMap.tangent`: ``∂m/∂θ`` by one back-solve per parameter with the solve's own
@@ -941,10 +943,17 @@ def default_geometry() -> str:
         return "remesh"
 
 
+#: the fit levels whose maps (the fit's, its correcting and its model-error levels) morph from the
+#: d-bin below (:func:`reference_below`): those the camera-frame benchmark measured.  A `tiny` fit
+#: (tests only: 6 elements a diameter) keeps the nearest bin on all its maps: its two frame-fit tests
+#: went from d +13 % to +27 % and lost their coverage with the bin below
+BELOW_LEVELS = ("coarse", "default", "fine")
+
+
 def reference_below(morphed, d: float, h: float):
-    """The reference mesh a fit's map uses at (d, h): the d-bin whose reference diameter is the
-    largest not above d (``d₀ ≤ d < √2 d₀``), its depth bin at (d₀, h) -- not the nearest bin of
-    :meth:`elastimap.solver.morph.MorphedForward.reference_for`.  A morph that shrinks the inclusion
+    """The reference mesh a fit's map uses at (d, h) (:class:`ForwardMap` with ``below``): the d-bin
+    whose reference diameter is the largest not above d (``d₀ ≤ d < √2 d₀``), its depth bin at (d₀, h)
+    -- not the nearest bin of :meth:`elastimap.solver.morph.MorphedForward.reference_for`.  A morph that shrinks the inclusion
     costs far more accuracy than one that grows it: on the `fine` level, against gmsh meshes at the
     sample itself, the images of 5 design points were off by χ² 1231 / 12 / 0.3 (grown by 8-12 %)
     against 315 666 / 193 / 8.9 (shrunk by 21-24 %) in units of 0.1 µm per pixel, and at a benchmark
@@ -964,12 +973,15 @@ class ForwardMap:
     ``key`` names the pinned reference and centre (None: each call's own bin, reference press
     re-solved).  ``tangent(d, h, E)`` also returns the image's exact derivative."""
 
-    def __init__(self, morphed, reference=None, centre: tuple[float, float] | None = None):
-        self.morphed, self.reference, self.centre = morphed, reference, centre
+    def __init__(self, morphed, reference=None, centre: tuple[float, float] | None = None, below: bool = True):
+        self.morphed, self.reference, self.centre, self.below = morphed, reference, centre, below
         self.key = None if reference is None else (reference.d0, reference.h0, centre)
 
     def _reference(self, d, h):
-        return self.reference if self.reference is not None else reference_below(self.morphed, d, h)
+        """The pinned reference, else that of (d, h): the bin below (``below``) or the nearest."""
+        if self.reference is not None:
+            return self.reference
+        return reference_below(self.morphed, d, h) if self.below else self.morphed.reference_for(float(d), float(h))
 
     def __call__(self, d, h, E):
         return self.morphed.solve(
@@ -994,17 +1006,21 @@ class ForwardMap:
 
     def pin(self, d: float, h: float) -> ForwardMap:
         d, h = float(d), float(h)
-        return ForwardMap(self.morphed, reference_below(self.morphed, d, h), (d, h) if self.has_tangent else None)
+        return ForwardMap(self.morphed, self._reference(d, h), (d, h) if self.has_tangent else None, self.below)
 
     def pin_exact(self, d: float, h: float) -> ForwardMap:
         """:meth:`pin` with the reference press re-solved at every (d, h) (no linearisation): the
         map a model error is measured against, so that the measured difference contains the
         linearisation's error too."""
-        return ForwardMap(self.morphed, reference_below(self.morphed, d, h))
+        return ForwardMap(self.morphed, self._reference(float(d), float(h)), below=self.below)
 
 
 def forward_map(
-    mesh: str = "coarse", geometry: str | None = None, template=None, sizing: str | None = None
+    mesh: str = "coarse",
+    geometry: str | None = None,
+    template=None,
+    sizing: str | None = None,
+    below: bool | None = None,
 ) -> Callable:
     """``forward(d, h, E) -> SolveResult`` of the forward model (tied probe, quarter model, default
     loading, or ``template``'s) at mesh level ``mesh`` with element sizing ``sizing`` (``"fixed"`` or
@@ -1012,7 +1028,10 @@ def forward_map(
 
     ``geometry="morph"``: one mesh per level, morphed smoothly to each (d, h)
     (:mod:`elastimap.solver.morph`; built on first use and reused); ``"remesh"``: a new mesh per
-    call (:func:`elastimap.solver.solve`; jitters in d and h, so central differences are unreliable)."""
+    call (:func:`elastimap.solver.solve`; jitters in d and h, so central differences are unreliable).
+    ``below``: a morphed map's reference is the d-bin below (:func:`reference_below`) or the nearest;
+    None: below for the levels of :data:`BELOW_LEVELS` (a fit should pass its fit level's choice to all
+    its maps)."""
     import dataclasses
 
     from elastimap.solver.params import SolveParams
@@ -1030,7 +1049,7 @@ def forward_map(
     if geometry == "morph":
         from elastimap.solver.morph import MorphedForward
 
-        return ForwardMap(MorphedForward(base))
+        return ForwardMap(MorphedForward(base), below=mesh in BELOW_LEVELS if below is None else bool(below))
 
     def forward(d, h, E):
         from elastimap.solver import solve
@@ -1076,9 +1095,9 @@ def fit_forward(
         image,
         sigma,
         theta0,
-        shared_map(mesh, geometry),
-        forward_alt=shared_map(neighbour_level(correct or mesh), geometry),
-        forward_fine=shared_map(correct, geometry) if correct else None,
+        shared_map(mesh, geometry, below=mesh in BELOW_LEVELS),
+        forward_alt=shared_map(neighbour_level(correct or mesh), geometry, below=mesh in BELOW_LEVELS),
+        forward_fine=shared_map(correct, geometry, below=mesh in BELOW_LEVELS) if correct else None,
         **kw,
     )
 
@@ -1086,10 +1105,16 @@ def fit_forward(
 _SHARED_MAPS: dict = {}
 
 
-def shared_map(mesh: str, geometry: str | None = None, sizing: str | None = None) -> Callable:
+def shared_map(
+    mesh: str, geometry: str | None = None, sizing: str | None = None, below: bool | None = None
+) -> Callable:
     """The process's :func:`forward_map` for ``mesh``, ``geometry`` and ``sizing`` (built once: a
     morphed map keeps its reference meshes, compiled forms and factorisation patterns between lesions)."""
+    below = mesh in BELOW_LEVELS if below is None else bool(below)
     k = (mesh, geometry or default_geometry(), sizing or "fixed")
     if k not in _SHARED_MAPS:  # one per process: a morphed map keeps its mesh and forms
         _SHARED_MAPS[k] = forward_map(mesh, geometry, sizing=sizing)
-    return _SHARED_MAPS[k]
+    f = _SHARED_MAPS[k]
+    if isinstance(f, ForwardMap) and f.below != below:  # the same mesh and forms, the other bin rule
+        return ForwardMap(f.morphed, below=below)
+    return f

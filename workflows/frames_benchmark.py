@@ -500,7 +500,7 @@ def run_cmd(
     from elastimap.camera.infer import load_identifiability, load_model, refine_estimates
     from elastimap.camera.optics import SensorModel
     from elastimap.errors import UserError
-    from elastimap.identify.refine import check_correct, default_geometry, forward_map, neighbour_level
+    from elastimap.identify.refine import BELOW_LEVELS, check_correct, default_geometry, forward_map, neighbour_level
 
     k, nsh = shard
     geometry = geometry or default_geometry()
@@ -525,11 +525,14 @@ def run_cmd(
     os.makedirs(fits, exist_ok=True)
     acc: dict = {}
     t = time.perf_counter()
-    fwd = _Timed(forward_map(fit_mesh, geometry), acc, "fit_level")
+    below = fit_mesh in BELOW_LEVELS  # one bin rule for all the fit's maps (identify.refine.reference_below)
+    fwd = _Timed(forward_map(fit_mesh, geometry, below=below), acc, "fit_level")
     top_sizing = correct_sizing if correct_mesh else "fixed"  # the sizing of the map the fit stands for
-    fwd_alt = [_Timed(forward_map(v, geometry, sizing=top_sizing), acc, "alt_level") for v in levels]
+    fwd_alt = [_Timed(forward_map(v, geometry, sizing=top_sizing, below=below), acc, "alt_level") for v in levels]
     fwd_fine = (
-        _Timed(forward_map(correct_mesh, geometry, sizing=correct_sizing), acc, "fine_level") if correct_mesh else None
+        _Timed(forward_map(correct_mesh, geometry, sizing=correct_sizing, below=below), acc, "fine_level")
+        if correct_mesh
+        else None
     )
     sized = {k: "" if v == "fixed" else f" sized {v}" for k, v in (("fine", correct_sizing), ("alt", top_sizing))}
     how = "then fitted on" if fine_mode == "direct" else "defect-corrected by"
