@@ -427,15 +427,12 @@ def refine_estimates(
         imgs = list(np.asarray(images, dtype=float).reshape(len(ests), -1))
     check_correct(mesh, correct)
     if forward is None:
-        forward = shared_map(mesh, geometry, below=mesh in BELOW_LEVELS)
+        below = mesh in BELOW_LEVELS  # one bin rule for all the fit's maps (identify.refine.reference_below)
+        forward = shared_map(mesh, geometry, below=below)
         top = correct or mesh  # the level the (corrected) map stands for
-        forward_alt = (
-            shared_map(neighbour_level(top), geometry, below=mesh in BELOW_LEVELS)
-            if forward_alt is None
-            else forward_alt
-        )
+        forward_alt = shared_map(neighbour_level(top), geometry, below=below) if forward_alt is None else forward_alt
         if correct is not None and forward_fine is None:
-            forward_fine = shared_map(correct, geometry, below=mesh in BELOW_LEVELS)
+            forward_fine = shared_map(correct, geometry, below=below)
     for i, (e, img) in enumerate(zip(ests, imgs)):
         if "no_signal" not in e.flags:
             n = int(round(math.sqrt(img.size)))

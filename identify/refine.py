@@ -966,7 +966,7 @@ def reference_below(morphed, d: float, h: float):
 
 class ForwardMap:
     """``(d, h, E) -> SolveResult`` on morphed meshes, each (d, h) on the reference mesh of
-    :func:`reference_below`; ``pin(d, h)`` gives the same map on the reference mesh of (d, h) for
+    :func:`reference_below` (``below``) or of the nearest bin; ``pin(d, h)`` gives the same map on the reference mesh of (d, h) for
     every call (one smooth map over a fit's pass, see :mod:`elastimap.solver.morph`), with the reference press (E_inc = E_tissue) taken to first order
     in (d, h) about the pinned point where the problem is linear (``linearise_at``: one linear solve
     per evaluation instead of two when d or h move; equal to the unpinned map at that point);
@@ -1091,13 +1091,14 @@ def fit_forward(
     defect-corrected by that level (``forward_fine``) and its error measured against ``correct``'s
     neighbouring level."""
     check_correct(mesh, correct)
+    below = mesh in BELOW_LEVELS  # one bin rule for all the fit's maps
     return fit_image(
         image,
         sigma,
         theta0,
-        shared_map(mesh, geometry, below=mesh in BELOW_LEVELS),
-        forward_alt=shared_map(neighbour_level(correct or mesh), geometry, below=mesh in BELOW_LEVELS),
-        forward_fine=shared_map(correct, geometry, below=mesh in BELOW_LEVELS) if correct else None,
+        shared_map(mesh, geometry, below=below),
+        forward_alt=shared_map(neighbour_level(correct or mesh), geometry, below=below),
+        forward_fine=shared_map(correct, geometry, below=below) if correct else None,
         **kw,
     )
 

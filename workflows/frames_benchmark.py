@@ -538,6 +538,7 @@ def run_cmd(
     how = "then fitted on" if fine_mode == "direct" else "defect-corrected by"
     fit_label = f"{geometry}, {fit_mesh} mesh" + (f", {how} {correct_mesh}{sized['fine']}" if correct_mesh else "")
     fit_label += f"; model error vs {alt_level}{sized['alt']}; E coordinate {coords}"
+    fit_label += "; references: the d-bin below" if below and geometry == "morph" else ""
     # the calibration's FEM side: the map the fit stands for (the finer one when it corrects)
     cal = calibrate(out, truth_mesh, fwd_fine or fwd, frames, seed, cal_tag, truth_sizing)
     setup = time.perf_counter() - t
