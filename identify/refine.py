@@ -953,11 +953,12 @@ BELOW_LEVELS = ("coarse", "default", "fine")
 def reference_below(morphed, d: float, h: float):
     """The reference mesh a fit's map uses at (d, h) (:class:`ForwardMap` with ``below``): the d-bin
     whose reference diameter is the largest not above d (``d₀ ≤ d < √2 d₀``), its depth bin at (d₀, h)
-    -- not the nearest bin of :meth:`elastimap.solver.morph.MorphedForward.reference_for`.  A morph that shrinks the inclusion
-    costs far more accuracy than one that grows it: on the `fine` level, against gmsh meshes at the
-    sample itself, the images of 5 design points were off by χ² 1231 / 12 / 0.3 (grown by 8-12 %)
-    against 315 666 / 193 / 8.9 (shrunk by 21-24 %) in units of 0.1 µm per pixel, and at a benchmark
-    lesion (d 9.2 mm) by 108 grown 15 % against 1074 shrunk 19 % (docs/camera.md 4k)."""
+    -- not the nearest bin of :meth:`elastimap.solver.morph.MorphedForward.reference_for`.  A morph
+    that shrinks the inclusion costs far more accuracy than one that grows it: on the `fine` level,
+    against gmsh meshes at the sample itself, three fresh design points were off by χ² 1 231 / 12 /
+    0.3 grown by 8-12 % against 315 667 / 193 / 8.9 shrunk by 21-24 % (units of 0.1 µm a pixel), and
+    a benchmark lesion (d 9.2 mm) by 108 grown 15 % against 1 074 shrunk 19 %; over 16 samples the
+    bin below won 11, the one above 4 (those within ~10 % of it) (docs/camera.md 4k)."""
     from elastimap.solver.morph import D_ANCHOR, D_RATIO
 
     k = math.floor(math.log(float(d) / D_ANCHOR) / math.log(D_RATIO) + 1e-9)
@@ -966,8 +967,9 @@ def reference_below(morphed, d: float, h: float):
 
 class ForwardMap:
     """``(d, h, E) -> SolveResult`` on morphed meshes, each (d, h) on the reference mesh of
-    :func:`reference_below` (``below``) or of the nearest bin; ``pin(d, h)`` gives the same map on the reference mesh of (d, h) for
-    every call (one smooth map over a fit's pass, see :mod:`elastimap.solver.morph`), with the reference press (E_inc = E_tissue) taken to first order
+    :func:`reference_below` (``below``) or of the nearest bin; ``pin(d, h)`` gives the same map on
+    the reference mesh of (d, h) for every call (one smooth map over a fit's pass, see
+    :mod:`elastimap.solver.morph`), with the reference press (E_inc = E_tissue) taken to first order
     in (d, h) about the pinned point where the problem is linear (``linearise_at``: one linear solve
     per evaluation instead of two when d or h move; equal to the unpinned map at that point);
     ``key`` names the pinned reference and centre (None: each call's own bin, reference press

@@ -378,19 +378,15 @@ def test_posterior_interval_is_the_gauss_newton_one_where_the_image_tells_and_co
 def test_a_fit_map_morphs_from_the_reference_below_never_shrinks_by_more_than_a_rounding():
     """:func:`reference_below`: the d-bin reference ``d₀ ≤ d < √2 d₀`` (the nearest bin would shrink
     a mesh by up to 16 %, which costs far more accuracy than growing it, docs/camera.md 4k), also for
-    what ``pin`` and ``pin_exact`` hold, on the benchmarked levels; `tiny` keeps the nearest bin (a
-    stub morphed map: no DOLFINx)."""
+    what ``pin`` and ``pin_exact`` hold; ``below=False`` (a `tiny` fit's maps) keeps the nearest bin
+    (a stub morphed map: no DOLFINx; this checks the bin algebra, the accuracy is docs/camera.md 4k)."""
     import math
-    from types import SimpleNamespace
 
-    from elastimap.identify.refine import ForwardMap, reference_below
+    from elastimap.identify.refine import BELOW_LEVELS, ForwardMap, reference_below
     from elastimap.solver.morph import D_RATIO, Reference, reference_for
 
     class Stub:
         has_tangent = False
-
-        def __init__(self, mesh: str = "fine"):
-            self.template = SimpleNamespace(disc=SimpleNamespace(mesh=mesh))
 
         def reference_for(self, d, h):
             return reference_for(d, h)
@@ -403,6 +399,4 @@ def test_a_fit_map_morphs_from_the_reference_below_never_shrinks_by_more_than_a_
     assert reference_below(Stub(), 9.8, 8.0).d0 == pytest.approx(8.0)
     assert isinstance(reference_below(Stub(), 9.8, 8.0), Reference)
     assert ForwardMap(Stub(), below=False).pin(9.8, 8.0).reference == reference_for(9.8, 8.0)  # the nearest bin
-    from elastimap.identify.refine import BELOW_LEVELS
-
     assert "tiny" not in BELOW_LEVELS and "coarse" in BELOW_LEVELS and "fine" in BELOW_LEVELS
