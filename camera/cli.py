@@ -348,7 +348,9 @@ def calibrate(
     is_flag=True,
     help="Image models (--fem-image, --images or --csv): refine each estimate by the maximum-likelihood fit of "
     "the forward map (elastimap.identify.refine.fit_image: runs the solver, about 20-30 forward solves per "
-    "lesion); 95 % intervals from the Gauss-Newton covariance.  From frames, every pixel is weighted by "
+    "lesion); 95 % intervals from the Gauss-Newton covariance, for the default --mesh coarse corrected by fine "
+    "scaled per class of each parameter's relative sd as calibrated on SYNTHETIC benchmark lesions "
+    "(elastimap.identify.intervals; docs/camera.md 4l).  From frames, every pixel is weighted by "
     "its own noise, measured from the frames' scatter, plus the forward map's error measured between two "
     "mesh levels.",
 )

@@ -83,7 +83,8 @@ class Estimate:
     flags: list[str] = field(default_factory=list)
     lo: np.ndarray | None = None  # interval (see the module docstring)
     hi: np.ndarray | None = None
-    crb: np.ndarray | None = None  # Cramér–Rao relative std of d, h, E at the estimate
+    #: relative std of d, h (std of ln E): the map's Cramér–Rao bound, or the fit's (refine_estimates)
+    crb: np.ndarray | None = None
     crb_set: str = ""  # the identifiability map's measurement set ``crb`` is from
     input: str = "features"  # features | image | frames | ... +fem_refined
     image: np.ndarray | None = None  # the difference image estimated from (mm, FEM grid; image models)
@@ -388,6 +389,7 @@ def refine_estimates(
     coords: str = "contrast",
     max_passes: int = 2,
     fine: str = "correct",
+    intervals: str | None = None,
 ) -> list[Estimate]:
     """Refine image-model estimates by the maximum-likelihood fit of the forward map
     (:func:`elastimap.identify.refine.fit_image`).
@@ -405,17 +407,28 @@ def refine_estimates(
     neighbouring level (:func:`elastimap.identify.refine.fit_image`).  ``coords``: the fit's coordinate
     of E (:class:`elastimap.identify.refine.FitCoords`); ``max_passes``: the fit's passes (corrected
     ones with a finer level; :func:`~elastimap.identify.refine.fit_image`); ``fine``: how those passes
-    use the finer level, ``"correct"`` (defect correction) or ``"direct"`` (they fit it).  ``progress(i, n)`` after
-    each lesion.
+    use the finer level, ``"correct"`` (defect correction) or ``"direct"`` (they fit it).  ``intervals``:
+    the fit's 95 % intervals (:func:`~elastimap.identify.refine.fit_image`); None: the calibrated ones
+    where the maps are the solver's at the calibrated levels
+    (:func:`~elastimap.identify.refine.default_intervals`), else the Gauss–Newton ones.
+    ``progress(i, n)`` after each lesion.
 
-    Each estimate's mean becomes the fitted (d, h, E), ``sd``/``crb`` the Gauss–Newton standard
-    deviation (relative for ``crb``), ``lo``/``hi`` its 95 % interval (no tuned factor);
-    ``non_identifiable:q`` is re-decided from that standard deviation (``> threshold``), and
+    Each estimate's mean becomes the fitted (d, h, E), ``lo``/``hi`` its 95 % interval and ``sd``/``crb``
+    the standard deviation that interval stands for (relative for ``crb``): the Gauss–Newton one times
+    the interval's scale (:attr:`~elastimap.identify.refine.FitResult.relstd_calibrated`; the scale is 1
+    for the Gauss–Newton interval); ``non_identifiable:q`` is re-decided from it (``> threshold``), and
     ``model_mismatch`` added when the fit leaves a reduced chi² above ``chi2_limit`` (the forward
     model cannot reproduce the image at the stated noise), ``at_design_edge:q`` for each parameter
     the fit ended on the design box's edge with (then nothing is reportable); ``input`` gains
     ``+fem_refined``."""
-    from elastimap.identify.refine import BELOW_LEVELS, check_correct, fit_image, neighbour_level, shared_map
+    from elastimap.identify.refine import (
+        BELOW_LEVELS,
+        check_correct,
+        default_intervals,
+        fit_image,
+        neighbour_level,
+        shared_map,
+    )
 
     if not 0 < image_noise < 1:
         raise UserError("image_noise", f"must be in (0, 1) (got {image_noise:g})")
@@ -426,6 +439,8 @@ def refine_estimates(
     else:
         imgs = list(np.asarray(images, dtype=float).reshape(len(ests), -1))
     check_correct(mesh, correct)
+    if intervals is None:  # calibrated only for the solver's maps at the calibrated levels
+        intervals = default_intervals(mesh, correct) if forward is None else "gauss"
     if forward is None:
         below = mesh in BELOW_LEVELS  # one bin rule for all the fit's maps (identify.refine.reference_below)
         forward = shared_map(mesh, geometry, below=below)
@@ -449,15 +464,16 @@ def refine_estimates(
                 coords=coords,
                 max_passes=max_passes,
                 fine=fine,
+                intervals=intervals,
             )
             e.mean = r.theta
-            e.crb = r.relstd
-            e.sd = r.sd
+            e.crb = r.relstd_calibrated
+            e.sd = r.sd * r.scale
             e.lo, e.hi = r.lo, r.hi
             e.flags = [
                 f for f in e.flags if not f.startswith("non_identifiable:") and f != "outside_identifiability_map"
             ]
-            e.flags += [f"non_identifiable:{q}" for j, q in enumerate(TARGETS) if not r.relstd[j] <= threshold]
+            e.flags += [f"non_identifiable:{q}" for j, q in enumerate(TARGETS) if not e.crb[j] <= threshold]
             e.flags = [f for f in e.flags if not f.startswith("at_design_edge:")]
             e.flags += [f"at_design_edge:{q}" for q in r.at_bound]
             if r.chi2_red > chi2_limit:

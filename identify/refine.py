@@ -34,13 +34,14 @@ evaluations); the best of them.  Minimiser: :func:`scipy.optimize.least_squares`
 reflective, bounds).  Each pass pins
 the morphed map's reference mesh where it starts (one smooth map per pass; the mesh of the d-bin
 below, :func:`reference_below`: a morph that grows the inclusion's mesh costs far less accuracy
-than one that shrinks it), measures the model
-error there (held for the pass; the covariance re-measures it at the estimate) and takes the Jacobian
+than one that shrinks it), takes the Jacobian
 at its start from the map's exact derivative where it has one
 (:meth:`ForwardMap.tangent`: ``∂m/∂θ`` by one back-solve per parameter with the solve's own
 factorisation, :meth:`elastimap.solver.morph.MorphedForward.solve_tangent`), else by central
 differences, carried within the pass by Broyden's rank-one update (below); the covariance takes
-the exact derivative at the estimate.  A pinned morphed map also takes its reference press (the no-inclusion solve it subtracts)
+the exact derivative at the estimate.  The model error is measured where each pass starts -- with
+``forward_fine`` only where the first corrected pass starts (pass 0's optimum, near the answer),
+held for the later passes' weights -- and again at the estimate for the covariance.  A pinned morphed map also takes its reference press (the no-inclusion solve it subtracts)
 to first order in (d, h) about the pin (exact there; one linear solve per evaluation instead of two;
 the difference is second order in the move; measured against the map's own discretisation error
 in docs/camera.md 4c).  The neighbouring level re-solves its press (:meth:`ForwardMap.pin_exact`),
@@ -69,14 +70,20 @@ Uncertainty: Gauss–Newton covariance at ``θ̂`` from the Jacobian at ``θ̂``
 map without a derivative, the pass's central-difference Jacobian),
 ``C_x = (JᵀJ)⁻¹ max(1, χ²_red) + b bᵀ`` (the Birge factor widens it when the misfit exceeds
 the stated errors, never narrows it), mapped to (d, h, ln E) by the delta method.  The 95 %
-interval is ``q ± 1.96 sd`` for d and h and, for E, ``e ± 1.96 sd_e`` mapped back to E (with
-``coords="log"``: ``E exp(±1.96 sd_ln E)``), clipped to the design box.  ``intervals="posterior"``
+interval is ``q ± 1.96 k sd`` for d and h and, for E, ``e ± 1.96 k sd_e`` mapped back to E (with
+``coords="log"``: ``E exp(±1.96 k sd_ln E)``), clipped to the design box; ``k`` is set per class of
+the parameter's relative sd by split-conformal calibration on benchmark lesions
+(:mod:`elastimap.identify.intervals`: the Gauss–Newton sd is too narrow where the image tells a
+parameter best, the valley's discretisation pull, and too wide where it cannot tell it;
+``intervals="gauss"``: ``k = 1``, kept in :class:`FitResult` ``lo_gauss``/``hi_gauss`` either way).
+``intervals="posterior"``
 (:func:`posterior_interval`, tried 2026-11-27 and not adopted, docs/camera.md 4j): the central
 95 % of the Laplace posterior -- the likelihood's Gaussian ``N(x̂, C_x)`` in the fit's coordinates
 (for a fit on the box's edge centred at the Gauss–Newton step beyond it) times the design's prior,
 uniform in d, in the depth fraction u and in ln E over the box; the Gauss–Newton interval is kept
 in :class:`FitResult` ``lo_gauss``/``hi_gauss`` either way.
-No factor is tuned.
+The fit itself tunes no factor; the interval's scales are calibrated on seen benchmark seeds, never
+on the lesions a table scores.
 
 The remeshing-era fits (:func:`refine`, :func:`refine_rsm`, :func:`fit`, :data:`INTERVAL_SCALE`)
 -------------------------------------------------------------------------------------------------
@@ -98,6 +105,8 @@ import numpy as np
 
 from elastimap.dataset.schema import DESIGN_BOX, THICKNESS
 from elastimap.errors import UserError
+
+from .intervals import Z95, scales_for
 
 FD = (0.25, 0.25, 0.05)  # finite-difference steps: d mm, h mm (at fixed d), ln E
 # The reported interval is the local CRB's 95 % interval widened by this factor: on the held-out
@@ -138,7 +147,9 @@ def _dtheta_dx(x, thickness: float = THICKNESS) -> np.ndarray:
 
 COORDS = ("contrast", "log")  # the fit's E coordinate, see FitCoords
 FINE_MODES = ("correct", "direct")  # how fit_image's passes use a finer level (forward_fine)
-INTERVALS = ("gauss", "posterior")  # fit_image's 95 % intervals (θ̂ ± 1.96 sd clipped, or posterior_interval)
+#: fit_image's 95 % intervals: θ̂ ± 1.96 k sd with the calibrated scales k of :mod:`elastimap.identify.intervals`,
+#: θ̂ ± 1.96 sd (Gauss–Newton), or :func:`posterior_interval`
+INTERVALS = ("calibrated", "gauss", "posterior")
 
 
 @dataclass(frozen=True)
@@ -528,7 +539,6 @@ def fem_model(mesh: str = "default", cache: str | None = None) -> Callable[[np.n
 # ============================================================================ the fit inference uses (fit_image)
 STILL_MOVING = "still moving"  # the message of a fit whose passes ran out (FitResult.converged)
 FD_STEPS = (0.15, 0.15, 0.03)  # central-difference steps: d mm, h mm (at fixed d), ln E
-Z95 = 1.959963984540054
 
 
 def image_of(out) -> np.ndarray:
@@ -562,9 +572,19 @@ class FitResult:
     #: parameters the last pass still moved by more than 0.2 of their sd (empty when converged)
     moving: list[str] = field(default_factory=list)
     #: the Gauss–Newton interval θ̂ ± 1.96 sd clipped to the box (E's in the fit's coordinate); ``lo``/``hi``
-    #: are these by default, the design-prior posterior's (:func:`posterior_interval`) with ``intervals="posterior"``
+    #: are these with ``intervals="gauss"``, the calibrated ones by default, the design-prior posterior's
+    #: (:func:`posterior_interval`) with ``intervals="posterior"``
     lo_gauss: np.ndarray | None = None
     hi_gauss: np.ndarray | None = None
+    #: the interval's scale k of (d, h, E) (``lo``/``hi`` = θ̂ ± 1.96 k sd): the calibrated one of
+    #: :func:`elastimap.identify.intervals.scales_for` with ``intervals="calibrated"``, else ones
+    scale: np.ndarray = field(default_factory=lambda: np.ones(3))
+
+    @property
+    def relstd_calibrated(self) -> np.ndarray:
+        """``relstd`` times the interval's scale: the relative sd the reported interval stands for
+        (what decides whether a parameter is identifiable)."""
+        return self.relstd * self.scale
 
     @property
     def sd(self) -> np.ndarray:
@@ -640,9 +660,11 @@ def fit_image(
     else :class:`elastimap.solver.params.Tissue`'s).  ``fine``: how passes after the first use
     ``forward_fine`` -- ``"correct"`` (defect correction, above) or ``"direct"`` (they fit the finer
     map itself, pinned like ``forward`` and with its exact derivative where it has one; ``forward``
-    then only gives the E scan and pass 0).  ``intervals``: ``"gauss"`` (``θ̂ ± 1.96 sd`` clipped to the
-    box) or ``"posterior"`` (the design prior's Laplace posterior, :func:`posterior_interval`; not
-    adopted, docs/camera.md 4j).  See the module docstring."""
+    then only gives the E scan and pass 0).  ``intervals``: ``"gauss"`` (``θ̂ ± 1.96 sd`` clipped to
+    the box), ``"calibrated"`` (``θ̂ ± 1.96 k sd``, ``k`` by class of the fit's relative sd,
+    :mod:`elastimap.identify.intervals`: calibrated for the maps of :func:`default_intervals`, which
+    callers that build the maps from mesh levels use) or ``"posterior"`` (the design prior's Laplace
+    posterior, :func:`posterior_interval`; not adopted, docs/camera.md 4j).  See the module docstring."""
     from scipy.optimize import least_squares
 
     t0 = time.perf_counter()
@@ -691,7 +713,7 @@ def fit_image(
         """Pin the maps' reference meshes at ``x`` (maps with a ``pin(d, h)``), so that one pass
         sees one smooth map, take (``correct``, with ``forward_fine``) the defect correction
         ``m_fine(x) − m(x)`` there and (``measure``) the model error, the differences
-        ``m(x) − m_alt,k(x)``, held for the pass."""
+        ``m(x) − m_alt,k(x)``, held until measured again (without ``measure`` the last one stays)."""
         d, h, _ = tt(x)
         direct = correct and forward_fine is not None and fine == "direct"
         f = forward_fine if direct else forward
@@ -703,7 +725,8 @@ def fit_image(
             mf = flat(_pinned_exact(forward_fine, d, h)(*tt(x)), "finer")
             n_fine[0] += 1
             cur["corr"] = mf - mc(x)
-        cur["delta"] = [m(x) - a for a in alt_images(x)] if measure else []
+        if measure:
+            cur["delta"] = [m(x) - a for a in alt_images(x)]
 
     def key(x, f, level: str = "fit"):
         return (level, getattr(f, "key", None), *np.round(np.asarray(x, float), 10))
@@ -828,11 +851,15 @@ def fit_image(
     first = 1 if forward_fine is not None else 0  # the first corrected pass
     for k in range(max_passes + first):
         # each pass starts from a fresh Jacobian (exact, or central differences), the reference
-        # meshes pinned, the model error measured and (from pass ``first`` on) the map corrected
-        # where it starts; the fit is accepted when such a pass moves no parameter by more than 0.2
-        # of its standard deviation (from that Jacobian).  With ``forward_fine`` pass 0 fits the
-        # cheaper map alone (σ_meas), so that the finer map is first evaluated near the answer.
-        pin(x, correct=k >= first, measure=k >= first)
+        # meshes pinned and (from pass ``first`` on) the map corrected where it starts; the fit is
+        # accepted when such a pass moves no parameter by more than 0.2 of its standard deviation
+        # (from that Jacobian).  With ``forward_fine`` pass 0 fits the cheaper map alone (σ_meas),
+        # so that the finer map is first evaluated near the answer.  The model error (the pixel
+        # weights) is measured where each pass starts -- with ``forward_fine`` only where the first
+        # corrected pass starts, at pass 0's optimum and so already near the answer, and held for
+        # the later passes (one solve of each other level saved a pass; a fit without it starts
+        # pass 0 at θ₀, which can be far).  The covariance re-measures it at the estimate.
+        pin(x, correct=k >= first, measure=k == first if forward_fine is not None else True)
         s_tot, _ = sigma()
         J = fd_jac(x, s_tot)
         xn, res = one_pass(x, s_tot, J)
@@ -866,14 +893,21 @@ def fit_image(
     sd = np.sqrt(np.clip(np.diag(C), 0, None))
     relstd = np.array([sd[0] / th[0], sd[1] / th[1], sd[2]])
     hlo, hhi = h_range(th[0], thickness)
-    se = Z95 * math.sqrt(max(float(Cx[2, 2]), 0.0))  # E's interval in the fit's own coordinate
-    e_lo, e_hi = tt([x[0], x[1], max(x[2] - se, lb[2])])[2], tt([x[0], x[1], min(x[2] + se, ub[2])])[2]
-    lo = np.array([max(th[0] - Z95 * sd[0], d_range[0]), max(th[1] - Z95 * sd[1], hlo), e_lo])
-    hi = np.array([min(th[0] + Z95 * sd[0], d_range[1]), min(th[1] + Z95 * sd[1], hhi), e_hi])
-    lo[2], hi[2] = max(lo[2], E_range[0]), min(hi[2], E_range[1])
+
+    def gauss_interval(k):
+        """θ̂ ± 1.96 k sd clipped to the box (E's in the fit's own coordinate, mapped back)."""
+        se = Z95 * k[2] * math.sqrt(max(float(Cx[2, 2]), 0.0))
+        e_lo, e_hi = tt([x[0], x[1], max(x[2] - se, lb[2])])[2], tt([x[0], x[1], min(x[2] + se, ub[2])])[2]
+        lo = np.array([max(th[0] - Z95 * k[0] * sd[0], d_range[0]), max(th[1] - Z95 * k[1] * sd[1], hlo), e_lo])
+        hi = np.array([min(th[0] + Z95 * k[0] * sd[0], d_range[1]), min(th[1] + Z95 * k[1] * sd[1], hhi), e_hi])
+        lo[2], hi[2] = max(lo[2], E_range[0]), min(hi[2], E_range[1])
+        return lo, hi
+
+    lo_gauss, hi_gauss = gauss_interval(np.ones(3))
+    scale = scales_for(relstd) if intervals == "calibrated" else np.ones(3)
+    lo, hi = gauss_interval(scale)
     tol = 1e-3 * (ub - lb)
     at = [q for j, q in enumerate(("d", "h", "E")) if x[j] <= lb[j] + tol[j] or x[j] >= ub[j] - tol[j]]
-    lo_gauss, hi_gauss = lo.copy(), hi.copy()
     if intervals == "posterior":
         # on the box's edge the likelihood peaks beyond it: its quadratic model about x̂ is centred at
         # the Gauss–Newton step x̂ − (JᵀJ)⁻¹ Jᵀ r
@@ -901,6 +935,7 @@ def fit_image(
         moving,  # empty when the fit converged (its last pass moved nothing by 0.2 sd)
         lo_gauss,
         hi_gauss,
+        scale,
     )
 
 
@@ -948,6 +983,12 @@ def default_geometry() -> str:
 #: (tests only: 6 elements a diameter) keeps the nearest bin on all its maps: its two frame-fit tests
 #: went from d +13 % to +27 % and lost their coverage with the bin below
 BELOW_LEVELS = ("coarse", "default", "fine")
+#: the CG tolerance of a fit's morphed maps (:class:`~elastimap.solver.reduction.Recycled`; the
+#: solver's default is 1e-12): measured 2026-11-27 on `fine` and `default` at five points (d 5.5 and
+#: 9 mm), it changes the difference image by at most 1.1e-7 of its peak (float32's own resolution;
+#: the pixel noise of 30 frames is ~0.5 % of the peak) and saves 0.4–1.0 s a `fine` solve, 0.25–0.35 s
+#: a `default` one (1e-7: up to 4.4e-6 of the peak; docs/camera.md 4l)
+FIT_CG_RTOL = 1e-9
 
 
 def reference_below(morphed, d: float, h: float):
@@ -1051,7 +1092,9 @@ def forward_map(
     if geometry == "morph":
         from elastimap.solver.morph import MorphedForward
 
-        return ForwardMap(MorphedForward(base), below=mesh in BELOW_LEVELS if below is None else bool(below))
+        return ForwardMap(
+            MorphedForward(base, cg_rtol=FIT_CG_RTOL), below=mesh in BELOW_LEVELS if below is None else bool(below)
+        )
 
     def forward(d, h, E):
         from elastimap.solver import solve
@@ -1085,15 +1128,25 @@ def default_correct(mesh: str) -> str | None:
     return DEFAULT_CORRECT.get(mesh)
 
 
+def default_intervals(mesh: str, correct: str | None) -> str:
+    """The intervals a fit on ``mesh`` corrected by ``correct`` reports unless told otherwise:
+    ``"calibrated"`` for the configuration the scales of :mod:`elastimap.identify.intervals` were
+    calibrated on (:data:`elastimap.identify.intervals.CALIBRATED_FOR`), else the Gauss–Newton ones."""
+    from .intervals import CALIBRATED_FOR
+
+    return "calibrated" if (mesh, correct) == CALIBRATED_FOR else "gauss"
+
+
 def fit_forward(
     image, sigma, theta0, mesh: str = "coarse", geometry: str | None = None, correct: str | None = None, **kw
 ) -> FitResult:
     """:func:`fit_image` on :func:`forward_map` at ``mesh`` with its model error measured against the
     neighbouring level (:func:`neighbour_level`); with ``correct`` (a finer level) the map is
     defect-corrected by that level (``forward_fine``) and its error measured against ``correct``'s
-    neighbouring level."""
+    neighbouring level.  ``intervals`` (in ``kw``) defaults to :func:`default_intervals`."""
     check_correct(mesh, correct)
     below = mesh in BELOW_LEVELS  # one bin rule for all the fit's maps
+    kw.setdefault("intervals", default_intervals(mesh, correct))
     return fit_image(
         image,
         sigma,

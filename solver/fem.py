@@ -49,7 +49,7 @@ from .interface import Friction, Interface, active_set
 from .materials import CellMaterials, psi_blended
 from .newton import Newton
 from .params import SolveParams
-from .reduction import LU, Recycled, Reduction, Solution
+from .reduction import CG_RTOL, LU, Recycled, Reduction, Solution
 from .sampler import ImageSampler
 from .space import Space
 
@@ -98,6 +98,7 @@ class Model:
         self.lu: LU | None = None
         self.recycled: dict[str, Recycled] = {}
         self.refactor_after: int | None = None  # Recycled's: a resolve after more CG iterations refactorises
+        self.cg_rtol: float = CG_RTOL  # Recycled's CG tolerance (set before the first solve)
         self.last_linear: LU | Recycled | None = None  # what the last linear solve used (``resolve``)
         self.newton = self._finite_strain() if self.materials.beta is not None else None
         self._warm = None  # (prescribed-values key, u) of the last Newton solution
@@ -148,7 +149,7 @@ class Model:
         if friction is None:
             kind = "reference" if E_inclusion == self.p.tissue.E else "inclusion"
             if kind not in self.recycled:
-                self.recycled[kind] = Recycled(kind, refactor_after=self.refactor_after)
+                self.recycled[kind] = Recycled(kind, rtol=self.cg_rtol, refactor_after=self.refactor_after)
             rec = self.last_linear = self.recycled[kind]
             # an inclusion modulus far from the factorised one (rec.tag): cond(K₀⁻¹K) up to the
             # ratio, more CG iterations than a factorisation costs (a sweep's E, not a variant's)

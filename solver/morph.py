@@ -275,7 +275,7 @@ def _recording_model_class():
 class _Entry:
     """One reference: its raw mesh, motion and DOLFINx Model, and where the Model's mesh is now."""
 
-    def __init__(self, template: SolveParams, ref: Reference):
+    def __init__(self, template: SolveParams, ref: Reference, cg_rtol: float | None = None):
         from .geometry import build_mesh
 
         p0 = template.with_inclusion(d=ref.d0, h=ref.h0).validate()
@@ -284,6 +284,8 @@ class _Entry:
         self.model = _recording_model_class()(self.raw, p0)
         # a fit moves the mesh away from the factorised one a little per sample (REFACTOR_AFTER)
         self.model.refactor_after = REFACTOR_AFTER
+        if cg_rtol is not None:
+            self.model.cg_rtol = float(cg_rtol)
         self.igi = np.asarray(self.model.mesh.geometry.input_global_indices, dtype=np.int64)
         self.at = (ref.d0, ref.h0)
         self.reference_solve = None  # (d, h, tuple) of the last reference solve
@@ -374,9 +376,16 @@ class _Entry:
 
 
 class MorphedForward:
-    """The forward map on morphed reference meshes; see the module docstring for the contract."""
+    """The forward map on morphed reference meshes; see the module docstring for the contract.
 
-    def __init__(self, params: SolveParams, max_references: int = 2):
+    ``max_references``: reference meshes kept (least recently used dropped); ``cg_rtol``: the
+    relative tolerance of the CG solves on recycled factors
+    (:class:`~elastimap.solver.reduction.Recycled`; None: its default ``CG_RTOL``)."""
+
+    def __init__(self, params: SolveParams, max_references: int = 2, cg_rtol: float | None = None):
+        if cg_rtol is not None and not (math.isfinite(cg_rtol) and 0 < cg_rtol < 1):
+            raise UserError("cg_rtol", f"must be in (0, 1) (got {cg_rtol})")
+        self.cg_rtol = cg_rtol
         params = params.validate()
         self.template = params.replace(disc=dataclasses.replace(params.disc, geometry="morph"))
         self.max_references = max(1, int(max_references))
@@ -394,7 +403,7 @@ class MorphedForward:
         while len(self._entries) >= self.max_references:
             _k, old = self._entries.popitem(last=False)
             old.destroy()
-        e = _Entry(self.template, ref)
+        e = _Entry(self.template, ref, self.cg_rtol)
         self._entries[ref] = e
         return e, e.build_seconds
 

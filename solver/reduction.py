@@ -229,6 +229,8 @@ class LU:
 #: keeps every solve at its tolerance)
 BLR_MIN_UNKNOWNS = 25_000
 BLR_TOLERANCE = 1e-8
+#: :class:`Recycled`'s relative tolerance of CG (preconditioned residual) unless told otherwise
+CG_RTOL = 1e-12
 
 
 class Recycled:
@@ -269,7 +271,7 @@ class Recycled:
     def __init__(
         self,
         name: str = "recycled",
-        rtol: float = 1e-12,
+        rtol: float = CG_RTOL,
         max_it: int = 30,
         refactor_after: int | None = None,
         blr_min: int | None = BLR_MIN_UNKNOWNS,

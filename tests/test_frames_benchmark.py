@@ -29,8 +29,8 @@ def test_region_stratified_lesions_lie_where_the_map_allows_and_are_reproducible
     from elastimap.errors import UserError
 
     a = fb.draw_lesions(12, seed=7, inside="E")
-    assert a.shape == (12, 3) and fb._region(a, "frames")[:, 2].all()
-    assert not fb._region(fb.draw_lesions(200, seed=7), "frames")[:, 2].all()  # the plain design is not
+    assert a.shape == (12, 3) and fb.identifiable_at(a, "frames")[:, 2].all()
+    assert not fb.identifiable_at(fb.draw_lesions(200, seed=7), "frames")[:, 2].all()  # the plain design is not
     np.testing.assert_array_equal(a, fb.draw_lesions(12, seed=7, inside="E"))
     assert not np.array_equal(a, fb.draw_lesions(12, seed=8, inside="E"))
     monkeypatch.setattr(fb, "INSIDE_OVERDRAW", 1)  # ~3 % of a design of n points holds fewer than n
@@ -78,7 +78,7 @@ def test_summary_scores_where_the_estimator_reports():
     recs[0]["fit_interval_gauss"] = {"lo": [8.9, 6.0, 40.0], "hi": [9.5, 8.0, 60.0]}  # misses d = 8
     recs[1]["fit_interval_gauss"] = None  # no fit ran (no signal): its reported interval stands for both
     g = fb.summarise(recs)["fit_gauss_coverage"]
-    inside = fb._region(np.array([truth, truth]))[0]
+    inside = fb.identifiable_at(np.array([truth, truth]))[0]
     assert g["d"]["inside" if inside[0] else "outside"] == pytest.approx(0.5)
     assert g["h"]["inside" if inside[1] else "outside"] == pytest.approx(0.5)  # 7.0 outside [7.5, 8.0] again
     assert "Gauss–Newton interval" in fb.table(fb.summarise(recs))

@@ -251,3 +251,32 @@ def test_inclusion_press_on_the_reference_press_factors(monkeypatch):
         rec = next(iter(f._entries.values())).model.recycled["inclusion"]
         assert rec.borrowed == 1 and rec.factorisations == 1  # the tangent's back-solves factorised it
         np.testing.assert_allclose(J, plain_J, rtol=0, atol=1e-6 * np.abs(plain_J).max())
+
+
+def test_a_looser_cg_tolerance_reaches_the_solvers_and_keeps_the_image(monkeypatch):
+    """``MorphedForward(cg_rtol=)`` (what a fit's maps use, identify.refine.FIT_CG_RTOL) sets the
+    tolerance of every recycled CG solver of its models; forced to solve by CG on the tiny mesh
+    (borrowed factors, as the large meshes do), the image at 1e-9 equals the default 1e-12's to
+    1e-6 of its peak, in fewer iterations; a tolerance outside (0, 1) is refused by name."""
+    import functools
+
+    import elastimap.solver.fem as fem
+    from elastimap.solver.morph import MorphedForward
+    from elastimap.solver.reduction import CG_RTOL, Recycled
+
+    monkeypatch.setattr(fem, "Recycled", functools.partial(Recycled, blr_min=1))
+    theta = (8.3, 7.2, 40.0)
+    out = {}
+    for rtol in (None, 1e-9):
+        with MorphedForward(TINY, cg_rtol=rtol) as f:
+            img = f.solve(*theta).image.astype(float)
+            model = next(iter(f._entries.values())).model
+            rec = model.recycled["inclusion"]
+            assert rec.borrowed == 1
+            assert rec.ksp.getTolerances()[0] == pytest.approx(rtol or CG_RTOL)
+            out[rtol] = (img, rec.iterations)
+    (a, n_a), (b, n_b) = out[None], out[1e-9]
+    np.testing.assert_allclose(b, a, rtol=0, atol=1e-6 * np.abs(a).max())
+    assert n_b < n_a
+    with pytest.raises(UserError, match="cg_rtol"):
+        MorphedForward(TINY, cg_rtol=0.0)

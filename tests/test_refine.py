@@ -269,6 +269,39 @@ def test_defect_correction_by_a_finer_level_removes_the_cheaper_maps_bias():
     assert corrected.moving == [] and "d" in short.moving
 
 
+def test_model_error_is_measured_where_the_first_corrected_pass_starts_and_at_the_estimate():
+    """The other level is solved twice per fit however many corrected passes run (SYNTHETIC maps of
+    the test above, an 'other level' with d off by 1 %): once where the first corrected pass starts
+    (its weights, held for the later passes) and once at the estimate (the covariance)."""
+    from elastimap.identify.refine import fit_image
+
+    truth = np.array([8.0, 7.0, 60.0])
+    I = bump(truth)
+    calls = []
+
+    def alt(d, h, E):
+        calls.append((d, h, E))
+        return bump((1.01 * d, h, E))
+
+    def cheap(d, h, E):
+        return bump((0.97 * d, h, E))
+
+    fit = fit_image(
+        I,
+        2e-3 * I.max(),
+        truth * [1.04, 1, 1],
+        cheap,
+        forward_alt=alt,
+        forward_fine=lambda d, h, E: bump((d, h, E)),
+        e_scan=0,
+        tangent=False,
+        max_passes=3,
+    )
+    assert fit.n_fine >= 2  # more than one corrected pass ran
+    assert fit.n_alt == len(calls) == 2
+    np.testing.assert_allclose(calls[-1], fit.theta)
+
+
 @pytest.mark.parametrize(
     ("extra", "says"),
     [
@@ -400,3 +433,13 @@ def test_a_fit_map_morphs_from_the_reference_below_never_shrinks_by_more_than_a_
     assert isinstance(reference_below(Stub(), 9.8, 8.0), Reference)
     assert ForwardMap(Stub(), below=False).pin(9.8, 8.0).reference == reference_for(9.8, 8.0)  # the nearest bin
     assert "tiny" not in BELOW_LEVELS and "coarse" in BELOW_LEVELS and "fine" in BELOW_LEVELS
+
+
+def test_a_fits_morphed_maps_solve_to_the_fits_cg_tolerance():
+    """forward_map's morphed maps carry FIT_CG_RTOL to their solvers (tests/test_morph.py checks
+    that a MorphedForward passes it on), looser than the solver's default."""
+    from elastimap.identify.refine import FIT_CG_RTOL, forward_map
+    from elastimap.solver.reduction import CG_RTOL
+
+    f = forward_map("tiny", "morph")
+    assert f.morphed.cg_rtol == FIT_CG_RTOL and CG_RTOL < FIT_CG_RTOL <= 1e-9

@@ -100,7 +100,7 @@ def draw_lesions(n: int, seed: int = TRUTH_SEED, inside: str | None = None) -> n
         return _lhs_lesions(n, seed)
     j = "dhE".index(inside)
     cand = _lhs_lesions(INSIDE_OVERDRAW * n, seed)
-    keep = cand[_region(cand, "frames")[:, j]]
+    keep = cand[identifiable_at(cand, "frames")[:, j]]
     if len(keep) < n:
         from elastimap.errors import UserError
 
@@ -500,7 +500,14 @@ def run_cmd(
     from elastimap.camera.infer import load_identifiability, load_model, refine_estimates
     from elastimap.camera.optics import SensorModel
     from elastimap.errors import UserError
-    from elastimap.identify.refine import BELOW_LEVELS, check_correct, default_geometry, forward_map, neighbour_level
+    from elastimap.identify.refine import (
+        BELOW_LEVELS,
+        check_correct,
+        default_geometry,
+        default_intervals,
+        forward_map,
+        neighbour_level,
+    )
 
     k, nsh = shard
     geometry = geometry or default_geometry()
@@ -539,6 +546,18 @@ def run_cmd(
     fit_label = f"{geometry}, {fit_mesh} mesh" + (f", {how} {correct_mesh}{sized['fine']}" if correct_mesh else "")
     fit_label += f"; model error vs {alt_level}{sized['alt']}; E coordinate {coords}"
     fit_label += "; references: the d-bin below" if below and geometry == "morph" else ""
+    # the calibrated interval only for the fit it was calibrated on (identify.intervals.CALIBRATED_FOR):
+    # morphed maps, fixed sizing, the default model-error level and passes, defect correction
+    calibrated_fit = (
+        geometry == "morph"
+        and correct_sizing == "fixed"
+        and levels == [neighbour_level(top)]
+        and coords == "contrast"
+        and max_passes == 2
+        and fine_mode == "correct"
+    )
+    intervals = default_intervals(fit_mesh, correct_mesh) if calibrated_fit else "gauss"
+    fit_label += f"; {intervals} intervals"
     # the calibration's FEM side: the map the fit stands for (the finer one when it corrects)
     cal = calibrate(out, truth_mesh, fwd_fine or fwd, frames, seed, cal_tag, truth_sizing)
     setup = time.perf_counter() - t
@@ -564,6 +583,7 @@ def run_cmd(
             coords=coords,
             max_passes=max_passes,
             fine=fine_mode,
+            intervals=intervals,
         )
         cpu_fit = time.process_time() - c0
         spent = {key: acc.get(key, 0) - before.get(key, 0) for key in acc}
@@ -593,6 +613,10 @@ def run_cmd(
             }
             if fit.fit is not None and fit.fit.lo_gauss is not None
             else None,
+            # the Gauss–Newton relative sds (d, h; ln E) and the reported interval's scales
+            # (identify.intervals): the fit's sd_q above is the Gauss–Newton one times the scale
+            "fit_relstd_gauss": [float(v) for v in fit.fit.relstd] if fit.fit is not None else None,
+            "fit_interval_scale": [float(v) for v in fit.fit.scale] if fit.fit is not None else None,
             "seconds_fit_level_solves": spent.get("fit_level", 0.0),
             "n_fit_level_solves": spent.get("fit_level_n", 0),
             "seconds_alt_level_solves": spent.get("alt_level", 0.0),
@@ -621,7 +645,7 @@ def run_cmd(
 REGION_SETS = ("frames", "camera", "image")
 
 
-def _region(truth: np.ndarray, mset: str = "frames") -> np.ndarray:
+def identifiable_at(truth: np.ndarray, mset: str = "frames") -> np.ndarray:
     """(n, 3) bool: the shipped identifiability map (set ``mset``, 10 %) calls d, h, E identifiable at
     the truth.  ``frames``: what inference from frames uses (the larger of the camera and image
     bounds); ``camera``: the nominal camera at the map's frame count (the benchmark's camera);
@@ -635,7 +659,7 @@ def _region(truth: np.ndarray, mset: str = "frames") -> np.ndarray:
 def summarise(recs: list[dict], region_set: str = "frames") -> dict:
     """Per estimator: MRE where identifiable, coverage inside/outside, seconds; from the lesion records."""
     truth = np.array([r["truth"] for r in recs])
-    reg = _region(truth, region_set)
+    reg = identifiable_at(truth, region_set)
     sig = np.array(["no_signal" not in r["network"]["flags"] for r in recs])
     conv = np.array([STILL_MOVING not in r.get("fit_message", "") for r in recs])
     out = {"n": len(recs), "identifiable": {q: int(reg[:, j].sum()) for j, q in enumerate("dhE")}}
@@ -778,7 +802,7 @@ def plot(recs: list[dict], path: str, region_set: str = "frames", inside: str | 
     import matplotlib.pyplot as plt
 
     truth = np.array([r["truth"] for r in recs])
-    reg = _region(truth, region_set)
+    reg = identifiable_at(truth, region_set)
     fig, axes = plt.subplots(1, 3, figsize=(14, 4.6))
     for j, (q, unit) in enumerate((("d", "mm"), ("h", "mm"), ("E", "kPa"))):
         ax = axes[j]

@@ -1,0 +1,159 @@
+"""The fit's calibrated 95 % intervals (elastimap.identify.intervals): the conformal quantile against
+numpy's own, the classes, the in-sample guarantee and held-out coverage on SYNTHETIC scores, and the
+calibrated interval of fit_image / refine_estimates."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from elastimap.errors import UserError
+from elastimap.identify.intervals import (
+    CLASS_EDGES,
+    SCALES,
+    Z95,
+    calibrate,
+    class_of,
+    conformal_quantile,
+    scales_for,
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(0, 50, allow_nan=False), min_size=19, max_size=300), st.sampled_from([0.8, 0.9, 0.95]))
+def test_conformal_quantile_is_numpys_inverted_cdf_at_the_finite_sample_level(scores, level):
+    """The ⌈(n+1) level⌉-th smallest score equals numpy's inverted-CDF quantile at ⌈(n+1) level⌉ / n
+    (an independent implementation), and at least that fraction of the scores lies at or below it."""
+    s = np.array(scores)
+    n = s.size
+    k = math.ceil((n + 1) * level)
+    q = conformal_quantile(s, level)
+    if k > n:
+        assert math.isnan(q)
+        return
+    assert q == np.quantile(s, k / n, method="inverted_cdf")
+    assert np.mean(s <= q) >= level
+
+
+def test_conformal_quantile_refuses_bad_scores_and_levels():
+    with pytest.raises(UserError, match="scores"):
+        conformal_quantile([1.0, -0.5])
+    with pytest.raises(UserError, match="level"):
+        conformal_quantile([1.0, 2.0], level=1.0)
+    assert math.isnan(conformal_quantile(np.arange(10.0)))  # 19 scores at least for 95 %
+
+
+def test_classes_are_right_closed_half_decades_and_scales_follow_them():
+    assert CLASS_EDGES == (0.03, 0.10, 0.30)
+    np.testing.assert_array_equal(class_of([0.01, 0.03, 0.031, 0.1, 0.2, 0.3, 5.0]), [0, 0, 1, 1, 2, 2, 3])
+    table = {"d": (1.0, 2.0, 3.0, 4.0), "h": (5.0, 6.0, 7.0, 8.0), "E": (0.5, 0.6, 0.7, 0.8)}
+    np.testing.assert_array_equal(scales_for([0.02, 0.05, 0.5], table), [1.0, 6.0, 0.8])
+    np.testing.assert_array_equal(scales_for([np.nan, 0.05, np.inf], table), [1.0, 6.0, 1.0])  # not finite: 1
+    assert set(SCALES) == {"d", "h", "E"} and all(len(v) == 4 and min(v) > 0 for v in SCALES.values())
+    with pytest.raises(UserError, match="relstd"):
+        scales_for([0.1, 0.2])
+
+
+def test_calibrated_scales_hold_fresh_draws_at_95_percent_per_class():
+    """SYNTHETIC scores whose spread differs by class (a Gauss–Newton sd 3x too narrow in one class,
+    2x too wide in another): scales from one draw hold 95 % of a fresh, independent draw in each class
+    (within three binomial standard errors), where k = 1 holds 53 % and ~100 %; a class with too few
+    lesions keeps 1."""
+    rng = np.random.default_rng(11)
+
+    def draw(n):
+        rel = np.exp(rng.uniform(np.log(0.005), np.log(1.0), n))
+        spread = np.choose(class_of(rel), [3.0, 1.0, 0.5, 0.5])  # |err| / sd ~ |N(0, spread²)|
+        return rel, np.abs(rng.standard_normal(n)) * spread
+
+    rel, s = draw(4000)
+    k, n = calibrate(rel, s)
+    assert n.sum() == 4000 and (n >= 19).all()
+    rel2, s2 = draw(20000)
+    held = s2 <= Z95 * k[class_of(rel2)]
+    for c in range(4):
+        m = class_of(rel2) == c
+        se = math.sqrt(0.95 * 0.05 / m.sum())
+        assert abs(held[m].mean() - 0.95) < 3 * se + 0.01, (c, held[m].mean(), k)
+    plain = s2 <= Z95
+    assert plain[class_of(rel2) == 0].mean() < 0.6 and plain[class_of(rel2) == 3].mean() > 0.99
+    k_few, n_few = calibrate(rel[:30], s[:30])
+    assert all(kk == 1.0 for kk, nn in zip(k_few, n_few) if nn < 19)
+
+
+def test_fit_image_calibrated_interval_scales_the_gauss_newton_half_width():
+    """SYNTHETIC image model (test_refine's bump): ``intervals="calibrated"`` keeps the estimate and
+    the Gauss–Newton interval (``lo_gauss``) and reports θ̂ ± 1.96 k sd with k of :func:`scales_for`
+    (d and h exactly; E in the fit's coordinate, so its ends move the same way)."""
+    from elastimap.identify.refine import fit_image
+
+    truth = np.array([8.0, 7.0, 60.0])
+    I = bump(truth)
+    sig = 5e-3 * I.max()
+    kw = {"e_scan": 0, "tangent": False}
+    g = fit_image(I, sig, truth * [1.05, 1.0, 0.8], bump_map, **kw)
+    c = fit_image(I, sig, truth * [1.05, 1.0, 0.8], bump_map, intervals="calibrated", **kw)
+    np.testing.assert_array_equal(c.theta, g.theta)
+    np.testing.assert_array_equal(c.lo_gauss, g.lo)
+    np.testing.assert_array_equal(g.scale, np.ones(3))
+    k = scales_for(c.relstd)
+    np.testing.assert_array_equal(c.scale, k)
+    sd = c.sd
+    for j in (0, 1):
+        if c.lo[j] > 0 and g.lo[j] > 0:
+            assert c.theta[j] - c.lo[j] == pytest.approx(k[j] * (g.theta[j] - g.lo[j]), rel=1e-9)
+    assert (c.lo[2] < g.lo[2]) == (k[2] > 1) and (c.hi[2] > g.hi[2]) == (k[2] > 1)
+    np.testing.assert_allclose(c.relstd_calibrated, c.relstd * k)
+    assert np.all(sd > 0)
+    with pytest.raises(UserError, match="intervals"):
+        fit_image(I, sig, truth, bump_map, intervals="wide", **kw)
+
+
+_Y, _X = np.mgrid[0:16, 0:16] * 0.75
+_R2 = _X.ravel() ** 2 + _Y.ravel() ** 2
+
+
+def bump(theta):
+    """SYNTHETIC difference image (mm), tests/test_refine.py's: a bump whose width follows d and h, a
+    depth-damped amplitude and a halo whose share falls as E rises."""
+    d, h, E = theta
+    amp = 1e-2 * d**2 / h
+    w = 0.45 * d + 0.35 * h
+    s = E / (E + 40.0)
+    return amp * (s * np.exp(-_R2 / (2 * w**2)) - 0.3 * (1 - s) * np.exp(-_R2 / (8 * w**2)))
+
+
+def bump_map(d, h, E):
+    return bump((d, h, E))
+
+
+def test_default_intervals_are_calibrated_only_for_the_calibrated_fit():
+    from elastimap.identify.intervals import CALIBRATED_FOR
+    from elastimap.identify.refine import default_intervals
+
+    assert default_intervals(*CALIBRATED_FOR) == "calibrated"
+    assert default_intervals("coarse", None) == "gauss"
+    assert default_intervals("tiny", None) == "gauss"
+    assert default_intervals("coarse", "default") == "gauss"
+
+
+def test_refine_estimates_reports_the_sd_its_interval_stands_for():
+    """``refine_estimates(intervals="calibrated")`` on a SYNTHETIC map: the estimate's sd and crb are
+    the Gauss–Newton ones times the scale, and non_identifiable is decided from them."""
+    from elastimap.camera.infer import Estimate, refine_estimates
+
+    truth = np.array([8.0, 7.0, 60.0])
+    I = bump(truth)
+    nan3 = np.full(3, np.nan)
+    start = truth * [1.05, 1, 0.8]
+    e = Estimate("1", nan3, nan3, start.copy(), nan3, start, start, 1, [], input="image")
+    (r,) = refine_estimates([e], I[None], image_noise=0.01, forward=bump_map, intervals="calibrated")
+    np.testing.assert_allclose(r.crb, r.fit.relstd * r.fit.scale)
+    np.testing.assert_allclose(r.sd, r.fit.sd * r.fit.scale)
+    for j, q in enumerate("dhE"):
+        assert (f"non_identifiable:{q}" in r.flags) == (r.crb[j] > 0.10)
+    np.testing.assert_array_equal(r.lo, r.fit.lo)

@@ -1,0 +1,148 @@
+"""The scales of the fit's calibrated 95 % intervals (:mod:`elastimap.identify.intervals`) from the
+records of camera-frame benchmark folders, and the coverage they give, seed by seed.
+
+    python -m elastimap.workflows.studies.interval_calibration runs/fb27 runs/fb29 ... runs/fb36 \\
+        [--check runs/fb37] [--loso]
+
+Each FOLDER is a ``workflows/frames_benchmark.py`` output (SYNTHETIC lesions; its fits in
+``fits-morph-coarse-corr-fine-drift``, the calibrated configuration
+:data:`~elastimap.identify.intervals.CALIBRATED_FOR`).  Per lesion with a signal and per parameter q
+the score is ``|x̂_q − x_q| / sd_q`` in the fit's coordinate (d mm, h mm, e = ln c(E) of
+:class:`~elastimap.identify.refine.FitCoords`) with the fit's Gauss–Newton sd (records before
+2026-11-27 hold it as ``sd``/``crb_rel``, later ones as ``fit_relstd_gauss``).  Prints the scales per
+class of the relative sd (:func:`~elastimap.identify.intervals.calibrate`, the table to copy into
+``SCALES``), then the coverage of the Gauss–Newton and of the calibrated interval inside and
+outside the shipped identifiability map's region (``frames`` set, 10 %, at the truth; the
+benchmark's own split): of the calibration folders themselves (in-sample: says only that the scales
+do what they were set to), with ``--loso`` of each folder with the scales of the others (leave one
+seed out: an honest estimate of held-out coverage), and of the ``--check`` folders (never used for
+the scales).  A study: the scales it prints are what ``SCALES`` holds, nothing else reads it.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import os
+
+import click
+import numpy as np
+
+from elastimap.cli_util import run
+
+FITS = "fits-morph-coarse-corr-fine-drift"
+
+
+def read_folder(folder: str) -> dict:
+    """Arrays of one benchmark folder's lesions with a signal: ``truth`` (n, 3) in (d, h, E),
+    ``x_true``/``x_fit`` (n, 3) in the fit's coordinates (d, h, e), ``sd`` (n, 3) the Gauss–Newton sd in
+    those coordinates, ``relstd`` (n, 3) the Gauss–Newton relative sds (d, h; ln E)."""
+    from elastimap.errors import UserError
+    from elastimap.identify.refine import FitCoords
+
+    paths = sorted(glob.glob(os.path.join(folder, FITS, "lesion-*.json")))
+    if not paths:
+        raise UserError("FOLDER", f"{folder} holds no {FITS}/lesion-*.json")
+    X = FitCoords()
+    rows = []
+    for path in paths:
+        with open(path) as fh:
+            r = json.load(fh)
+        if "no_signal" in r["network"]["flags"] or r.get("fit_message", "") == "":
+            continue
+        f = r["fit"]
+        th = np.array([f["d"], f["h"], f["E"]])
+        rel = r.get("fit_relstd_gauss") or [f["d_crb_rel"], f["h_crb_rel"], f["E_crb_rel"]]
+        rel = np.asarray(rel, dtype=float)
+        # ∂ ln E / ∂e at the estimate turns the sd of ln E into that of e (the E row of FitCoords.dtheta)
+        g_e = abs(X.dtheta(X.x(th))[2, 2])
+        sd = np.array([rel[0] * th[0], rel[1] * th[1], rel[2] / g_e])
+        t = np.asarray(r["truth"], dtype=float)
+        xt, xf = X.x(t), X.x(th)
+        rows.append((t, np.array([t[0], t[1], xt[2]]), np.array([th[0], th[1], xf[2]]), sd, rel))
+    cols = list(zip(*rows))
+    return {k: np.array(v) for k, v in zip(("truth", "x_true", "x_fit", "sd", "relstd"), cols)}
+
+
+def scores(data: dict) -> np.ndarray:
+    """(n, 3) ``|x̂ − x| / sd`` per lesion and parameter."""
+    return np.abs(data["x_fit"] - data["x_true"]) / data["sd"]
+
+
+def scales_of(datas: list[dict]) -> tuple[dict, dict]:
+    """The class scales and class sizes per parameter from the pooled lesions of ``datas``."""
+    from elastimap.identify.intervals import PARAMS, calibrate
+
+    rel = np.concatenate([d["relstd"] for d in datas])
+    sc = np.concatenate([scores(d) for d in datas])
+    out, sizes = {}, {}
+    for j, q in enumerate(PARAMS):
+        k, n = calibrate(rel[:, j], sc[:, j])
+        out[q], sizes[q] = tuple(round(float(v), 3) for v in k), tuple(int(v) for v in n)
+    return out, sizes
+
+
+def coverage(data: dict, table: dict | None) -> dict:
+    """Coverage inside/outside the map's region per parameter of ``x̂ ± 1.96 k sd`` (``table``:
+    the scales, None: the Gauss–Newton interval, k = 1).  The truth lies in the box, so clipping the
+    interval to the box does not change whether it holds it."""
+    from elastimap.identify.intervals import PARAMS, Z95, scales_for
+    from elastimap.workflows.frames_benchmark import identifiable_at
+
+    reg = identifiable_at(data["truth"])
+    k = np.ones_like(data["sd"]) if table is None else np.array([scales_for(r, table) for r in data["relstd"]])
+    held = scores(data) <= Z95 * k
+    out = {}
+    for j, q in enumerate(PARAMS):
+        i_in, i_out = reg[:, j], ~reg[:, j]
+        out[q] = (held[i_in, j].sum(), i_in.sum(), held[i_out, j].sum(), i_out.sum())
+    return out
+
+
+def _row(name: str, cov: dict) -> str:
+    def pct(a, n):
+        return f"{100 * a / n:5.1f} % ({n:3d})" if n else "    —        "
+
+    cells = [f"{q} in {pct(*cov[q][:2])} out {pct(*cov[q][2:])}" for q in ("d", "h", "E")]
+    return f"{name:<28s} " + " | ".join(cells)
+
+
+def _sum(covs: list[dict]) -> dict:
+    return {q: tuple(int(sum(c[q][i] for c in covs)) for i in range(4)) for q in covs[0]}
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("folders", nargs=-1, required=True)
+@click.option("--check", "checks", multiple=True, help="A folder scored with the scales, never used for them.")
+@click.option("--loso", is_flag=True, help="Also score each folder with the scales of the others.")
+def main(folders, checks, loso):
+    """Interval scales from benchmark FOLDERS (SYNTHETIC lesions) and the coverage they give."""
+    datas = {f: read_folder(f) for f in folders}
+    table, sizes = scales_of(list(datas.values()))
+    click.echo(f"SYNTHETIC calibration: {sum(len(d['truth']) for d in datas.values())} lesions of {len(datas)} folders")
+    click.echo("class edges of the relative sd: (0, 0.03], (0.03, 0.1], (0.1, 0.3], > 0.3")
+    for q in table:
+        click.echo(f"  {q}: scales {table[q]}  lesions per class {sizes[q]}")
+    click.echo("\ncoverage, Gauss–Newton then calibrated (in-sample for the calibration folders):")
+    for f, d in datas.items():
+        click.echo(_row(f"{f} gauss", coverage(d, None)))
+        click.echo(_row(f"{f} calibrated", coverage(d, table)))
+    if loso and len(datas) > 1:
+        click.echo("\nleave one folder out (its coverage with the scales of the others):")
+        covs, covs0 = [], []
+        for f, d in datas.items():
+            t, _ = scales_of([v for g, v in datas.items() if g != f])
+            covs.append(coverage(d, t))
+            covs0.append(coverage(d, None))
+            click.echo(_row(f"{f} held out", covs[-1]))
+        click.echo(_row("all, Gauss–Newton", _sum(covs0)))
+        click.echo(_row("all, held out", _sum(covs)))
+    for f in checks:
+        d = read_folder(f)
+        click.echo(f"\ncheck folder {f} (not used for the scales):")
+        click.echo(_row("  gauss", coverage(d, None)))
+        click.echo(_row("  calibrated", coverage(d, table)))
+
+
+if __name__ == "__main__":
+    run(main, prog_name="python -m elastimap.workflows.studies.interval_calibration")
