@@ -84,6 +84,18 @@ def test_summary_scores_where_the_estimator_reports():
     assert "Gauss–Newton interval" in fb.table(fb.summarise(recs))
 
 
+def test_the_fits_cost_is_averaged_over_the_lesions_a_fit_ran_for():
+    """A lesion without a signal (no fit, 0 solves) does not lower the fit's mean CPU time."""
+    truth = (8.0, 7.0, 50.0)
+    recs = [_rec(truth, truth, truth, truth, (True, True, True)) for _ in range(3)]
+    for r, cpu, n in zip(recs, (20.0, 40.0, 0.0), (30, 30, 0)):
+        r["cpu_seconds_fit"], r["n_fit_level_solves"] = cpu, n
+    sm = fb.summarise(recs)
+    assert sm["cpu_seconds_fit"]["mean"] == pytest.approx(30.0) and sm["cpu_seconds_fit"]["n"] == 2
+    assert sm["n_fit_level_solves"] == pytest.approx(30.0)
+    assert sm["seconds_fit_level_solves"] == pytest.approx(0.0)  # the records carry no split here
+
+
 @pytest.mark.parametrize(
     ("args", "says", "existing"),
     [
