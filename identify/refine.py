@@ -71,11 +71,13 @@ map without a derivative, the pass's central-difference Jacobian),
 ``C_x = (JᵀJ)⁻¹ max(1, χ²_red) + b bᵀ`` (the Birge factor widens it when the misfit exceeds
 the stated errors, never narrows it), mapped to (d, h, ln E) by the delta method.  The 95 %
 interval is ``q ± 1.96 k sd`` for d and h and, for E, ``e ± 1.96 k sd_e`` mapped back to E (with
-``coords="log"``: ``E exp(±1.96 k sd_ln E)``), clipped to the design box; ``k`` is set per class of
-the parameter's relative sd by split-conformal calibration on benchmark lesions
+``coords="log"``: ``E exp(±1.96 k sd_ln E)``), clipped to the design box.  ``intervals="gauss"``
+(:func:`fit_image`'s default): ``k = 1``, the Gauss–Newton interval, kept in :class:`FitResult`
+``lo_gauss``/``hi_gauss`` whatever is reported; ``"calibrated"`` (what :func:`fit_forward` and
+inference use for the fit the scales were calibrated on, :func:`default_intervals`): ``k`` per class
+of the parameter's relative sd, by split-conformal calibration on benchmark lesions
 (:mod:`elastimap.identify.intervals`: the Gauss–Newton sd is too narrow where the image tells a
-parameter best, the valley's discretisation pull, and too wide where it cannot tell it;
-``intervals="gauss"``: ``k = 1``, kept in :class:`FitResult` ``lo_gauss``/``hi_gauss`` either way).
+parameter best, the valley's discretisation pull, and too wide where it cannot tell it).
 ``intervals="posterior"``
 (:func:`posterior_interval`, tried 2026-11-27 and not adopted, docs/camera.md 4j): the central
 95 % of the Laplace posterior -- the likelihood's Gaussian ``N(x̂, C_x)`` in the fit's coordinates
@@ -572,8 +574,8 @@ class FitResult:
     #: parameters the last pass still moved by more than 0.2 of their sd (empty when converged)
     moving: list[str] = field(default_factory=list)
     #: the Gauss–Newton interval θ̂ ± 1.96 sd clipped to the box (E's in the fit's coordinate); ``lo``/``hi``
-    #: are these with ``intervals="gauss"``, the calibrated ones by default, the design-prior posterior's
-    #: (:func:`posterior_interval`) with ``intervals="posterior"``
+    #: are these with ``intervals="gauss"`` (fit_image's default), θ̂ ± 1.96 k sd with ``"calibrated"``
+    #: (:func:`default_intervals`), the design-prior posterior's (:func:`posterior_interval`) with ``"posterior"``
     lo_gauss: np.ndarray | None = None
     hi_gauss: np.ndarray | None = None
     #: the interval's scale k of (d, h, E) (``lo``/``hi`` = θ̂ ± 1.96 k sd): the calibrated one of

@@ -35,7 +35,8 @@ processes; the calibration and the fits are kept per forward map, ``OUT/cal-<tag
 each marked in the tag: ``--correct-sizing by_d`` sizes the correcting level and its model-error
 level by d (``-corr-<level>-by_d``); ``--fine-mode direct`` makes the passes after the first fit
 the correcting level itself instead of correcting the fit's map (``-direct``); ``--max-passes N``
-(``-p<N>`` when not 2).  Each record keeps the fit's Gauss–Newton interval beside the reported one.
+(``-p<N>`` when not 2).  Each record keeps the fit's Gauss–Newton interval beside the reported one, its
+Gauss–Newton relative sds and the reported interval's scales (``identify.intervals``).
 
     OMP_NUM_THREADS=1 .venv/bin/python workflows/frames_benchmark.py run --model M --out runs/frames-bench
 
