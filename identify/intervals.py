@@ -5,11 +5,11 @@ deviation, the scales set by split-conformal prediction on benchmark lesions.
 Why.  On the SYNTHETIC camera-frame benchmark (world `fine` sized by d, drifting camera, 30 frames;
 docs/camera.md 4l) the Gauss–Newton standard deviation ``sd`` misstates the spread of the fit's
 errors, and how depends on how well the image tells the parameter.  Over 832 lesions of seeds 2027,
-2029–2036 the 95 % quantile of ``|θ̂ − θ| / sd`` for d is 4.0 where the fit's relative sd is under
+2029–2036 the 95 % quantile of ``|θ̂ − θ| / sd`` for d is about 4 where the fit's relative sd is under
 3 % (the discretisation's pull along the d–E valley: a bias the noise-only width does not hold) and
 0.5 where it is over 30 % (there the fit starts at the network's estimate and stops once χ² is flat,
 inside the box, so it moves less along the valley than the likelihood's width); for E (in the fit's
-coordinate ``e``) it is 5–10 where its sd is under 10 %.  One factor cannot mend both ends.
+coordinate ``e``) it is about 10 where its sd is under 10 %.  One factor cannot mend both ends.
 
 The interval.  For each parameter q the class of the fit's relative sd ``r_q`` (d and h: sd/θ; E:
 sd of ln E) among :data:`CLASS_EDGES` -- half-decades, the product's 10 % threshold one of their
