@@ -409,8 +409,8 @@ def refine_estimates(
     ones with a finer level; :func:`~elastimap.identify.refine.fit_image`); ``fine``: how those passes
     use the finer level, ``"correct"`` (defect correction) or ``"direct"`` (they fit it).  ``intervals``:
     the fit's 95 % intervals (:func:`~elastimap.identify.refine.fit_image`); None: the calibrated ones
-    where the maps are the solver's at the calibrated levels
-    (:func:`~elastimap.identify.refine.default_intervals`), else the Gauss–Newton ones.
+    where all the maps are the solver's (:func:`~elastimap.identify.refine.fit_maps`) at the calibrated
+    levels (:func:`~elastimap.identify.refine.default_intervals`), else the Gauss–Newton ones.
     ``progress(i, n)`` after each lesion.
 
     Each estimate's mean becomes the fitted (d, h, E), ``lo``/``hi`` its 95 % interval and ``sd``/``crb``
@@ -421,14 +421,7 @@ def refine_estimates(
     model cannot reproduce the image at the stated noise), ``at_design_edge:q`` for each parameter
     the fit ended on the design box's edge with (then nothing is reportable); ``input`` gains
     ``+fem_refined``."""
-    from elastimap.identify.refine import (
-        BELOW_LEVELS,
-        check_correct,
-        default_intervals,
-        fit_image,
-        neighbour_level,
-        shared_map,
-    )
+    from elastimap.identify.refine import check_correct, fit_image, fit_maps
 
     if not 0 < image_noise < 1:
         raise UserError("image_noise", f"must be in (0, 1) (got {image_noise:g})")
@@ -439,15 +432,14 @@ def refine_estimates(
     else:
         imgs = list(np.asarray(images, dtype=float).reshape(len(ests), -1))
     check_correct(mesh, correct)
-    if intervals is None:  # calibrated only for the solver's maps at the calibrated levels
-        intervals = default_intervals(mesh, correct) if forward is None else "gauss"
+    given = forward is not None or forward_alt is not None or forward_fine is not None
     if forward is None:
-        below = mesh in BELOW_LEVELS  # one bin rule for all the fit's maps (identify.refine.reference_below)
-        forward = shared_map(mesh, geometry, below=below)
-        top = correct or mesh  # the level the (corrected) map stands for
-        forward_alt = shared_map(neighbour_level(top), geometry, below=below) if forward_alt is None else forward_alt
-        if correct is not None and forward_fine is None:
-            forward_fine = shared_map(correct, geometry, below=below)
+        maps = fit_maps(mesh, correct, geometry)
+        forward = maps.forward
+        forward_alt = maps.forward_alt if forward_alt is None else forward_alt
+        forward_fine = maps.forward_fine if forward_fine is None else forward_fine
+    if intervals is None:  # calibrated only for the solver's own maps at the calibrated levels
+        intervals = "gauss" if given else maps.intervals
     for i, (e, img) in enumerate(zip(ests, imgs)):
         if "no_signal" not in e.flags:
             n = int(round(math.sqrt(img.size)))

@@ -1130,13 +1130,40 @@ def default_correct(mesh: str) -> str | None:
     return DEFAULT_CORRECT.get(mesh)
 
 
-def default_intervals(mesh: str, correct: str | None) -> str:
-    """The intervals a fit on ``mesh`` corrected by ``correct`` reports unless told otherwise:
-    ``"calibrated"`` for the configuration the scales of :mod:`elastimap.identify.intervals` were
-    calibrated on (:data:`elastimap.identify.intervals.CALIBRATED_FOR`), else the Gauss–Newton ones."""
+def default_intervals(mesh: str, correct: str | None, geometry: str | None = None) -> str:
+    """The intervals a fit on ``mesh`` corrected by ``correct`` (``geometry``: None, the default)
+    reports unless told otherwise: ``"calibrated"`` for the configuration the scales of
+    :mod:`elastimap.identify.intervals` were calibrated on (:data:`elastimap.identify.intervals.CALIBRATED_FOR`,
+    morphed maps), else the Gauss–Newton ones."""
     from .intervals import CALIBRATED_FOR
 
-    return "calibrated" if (mesh, correct) == CALIBRATED_FOR else "gauss"
+    morphed = (geometry or default_geometry()) == "morph"
+    return "calibrated" if morphed and (mesh, correct) == CALIBRATED_FOR else "gauss"
+
+
+@dataclass(frozen=True)
+class FitMaps:
+    """A fit's maps built from mesh levels (:func:`fit_maps`) and the intervals it reports by default."""
+
+    forward: Callable
+    forward_alt: Callable
+    forward_fine: Callable | None
+    intervals: str
+
+
+def fit_maps(mesh: str = "coarse", correct: str | None = None, geometry: str | None = None) -> FitMaps:
+    """The process's maps of a fit at ``mesh``: the fit's map, the neighbouring level of the level it
+    stands for (``correct`` or ``mesh``; the model error) and, with ``correct`` (a finer level), the
+    correcting map -- all with the fit level's bin rule (:data:`BELOW_LEVELS`) -- and
+    :func:`default_intervals`.  What :func:`fit_forward` and ``infer --refine`` fit with."""
+    check_correct(mesh, correct)
+    below = mesh in BELOW_LEVELS  # one bin rule for all the fit's maps
+    return FitMaps(
+        shared_map(mesh, geometry, below=below),
+        shared_map(neighbour_level(correct or mesh), geometry, below=below),
+        shared_map(correct, geometry, below=below) if correct else None,
+        default_intervals(mesh, correct, geometry),
+    )
 
 
 def fit_forward(
@@ -1145,18 +1172,11 @@ def fit_forward(
     """:func:`fit_image` on :func:`forward_map` at ``mesh`` with its model error measured against the
     neighbouring level (:func:`neighbour_level`); with ``correct`` (a finer level) the map is
     defect-corrected by that level (``forward_fine``) and its error measured against ``correct``'s
-    neighbouring level.  ``intervals`` (in ``kw``) defaults to :func:`default_intervals`."""
-    check_correct(mesh, correct)
-    below = mesh in BELOW_LEVELS  # one bin rule for all the fit's maps
-    kw.setdefault("intervals", default_intervals(mesh, correct))
+    neighbouring level (:func:`fit_maps`).  ``intervals`` (in ``kw``) defaults to :func:`default_intervals`."""
+    maps = fit_maps(mesh, correct, geometry)
+    kw.setdefault("intervals", maps.intervals)
     return fit_image(
-        image,
-        sigma,
-        theta0,
-        shared_map(mesh, geometry, below=below),
-        forward_alt=shared_map(neighbour_level(correct or mesh), geometry, below=below),
-        forward_fine=shared_map(correct, geometry, below=below) if correct else None,
-        **kw,
+        image, sigma, theta0, maps.forward, forward_alt=maps.forward_alt, forward_fine=maps.forward_fine, **kw
     )
 
 

@@ -139,6 +139,27 @@ def test_default_intervals_are_calibrated_only_for_the_calibrated_fit():
     assert default_intervals("coarse", None) == "gauss"
     assert default_intervals("tiny", None) == "gauss"
     assert default_intervals("coarse", "default") == "gauss"
+    assert default_intervals(*CALIBRATED_FOR, geometry="remesh") == "gauss"  # calibrated on morphed maps
+
+
+def test_fit_maps_share_one_bin_rule_and_say_which_intervals():
+    """fit_maps (what fit_forward and infer --refine fit with): the fit's, the model error's and the
+    correcting maps at their levels with the fit level's bin rule, and the default intervals."""
+    from elastimap.identify.refine import BELOW_LEVELS, fit_maps
+
+    m = fit_maps("coarse", "fine")
+    assert m.intervals == "calibrated" and m.forward_fine is not None
+    assert {f.morphed.template.disc.mesh for f in (m.forward, m.forward_alt, m.forward_fine)} == {
+        "coarse",
+        "default",
+        "fine",
+    }
+    assert m.forward.below and m.forward_alt.below and m.forward_fine.below
+    t = fit_maps("tiny")
+    assert "tiny" not in BELOW_LEVELS and not t.forward.below and not t.forward_alt.below
+    assert t.forward_fine is None and t.intervals == "gauss"
+    with pytest.raises(UserError, match="correct"):
+        fit_maps("fine", "coarse")
 
 
 def test_refine_estimates_reports_the_sd_its_interval_stands_for():

@@ -548,16 +548,16 @@ def run_cmd(
     fit_label += f"; model error vs {alt_level}{sized['alt']}; E coordinate {coords}"
     fit_label += "; references: the d-bin below" if below and geometry == "morph" else ""
     # the calibrated interval only for the fit it was calibrated on (identify.intervals.CALIBRATED_FOR):
-    # morphed maps, fixed sizing, the default model-error level and passes, defect correction
+    # (default_intervals: levels, morphed maps) with the fixed sizing, the default model-error level
+    # and passes, defect correction -- the benchmark's switches that infer does not have
     calibrated_fit = (
-        geometry == "morph"
-        and correct_sizing == "fixed"
+        correct_sizing == "fixed"
         and levels == [neighbour_level(top)]
         and coords == "contrast"
         and max_passes == 2
         and fine_mode == "correct"
     )
-    intervals = default_intervals(fit_mesh, correct_mesh) if calibrated_fit else "gauss"
+    intervals = default_intervals(fit_mesh, correct_mesh, geometry) if calibrated_fit else "gauss"
     fit_label += f"; {intervals} intervals"
     # the calibration's FEM side: the map the fit stands for (the finer one when it corrects)
     cal = calibrate(out, truth_mesh, fwd_fine or fwd, frames, seed, cal_tag, truth_sizing)
