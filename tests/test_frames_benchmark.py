@@ -39,6 +39,24 @@ def test_region_stratified_lesions_lie_where_the_map_allows_and_are_reproducible
     assert exc.value.param == "n"
 
 
+def test_outside_draw_is_the_mirror_of_inside_and_refuses_both():
+    """``draw_lesions(outside="d")``: every lesion is one the map does NOT call d identifiable at,
+    reproducible; inside and outside together are a one-line error; the ``--outside`` flag reaches
+    the lesion record's design (and whole-design records read as before)."""
+    from elastimap.errors import UserError
+
+    b = fb.draw_lesions(15, seed=7, outside="d")
+    assert b.shape == (15, 3) and not fb.identifiable_at(b, "frames")[:, 0].any()
+    assert fb.identifiable_at(fb.draw_lesions(200, seed=7), "frames")[:, 0].any()  # the plain design is not
+    np.testing.assert_array_equal(b, fb.draw_lesions(15, seed=7, outside="d"))
+    with pytest.raises(UserError) as exc:
+        fb.draw_lesions(3, seed=7, inside="E", outside="d")
+    assert exc.value.param == "outside"
+    assert fb._design_record(3, 7, None, "d") == {"n": 3, "seed": 7, "inside": None, "outside": "d"}
+    assert fb._design_record(3, 7, "E", None) == {"n": 3, "seed": 7, "inside": "E"}
+    assert "does not call d" in fb._drawn({"outside": "d"}) and "whole design" in fb._drawn(None)
+
+
 def _rec(truth, est, lo, hi, reportable, flags=""):
     part = {"flags": flags, "fit_chi2_red": 1.0}
     for j, q in enumerate("dhE"):

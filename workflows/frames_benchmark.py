@@ -28,7 +28,7 @@ the image network (``--model``) -> the maximum-likelihood fit on the forward map
 first (``fit_image(forward_fine=...)``); the fit then stands for that level (the calibration's
 FEM side is solved on it) and its model error is measured against that level's neighbour.  One
 JSON file per lesion in ``OUT/fits`` (resumable; a folder holding lesions of another design --
-another ``--seed``, ``--n`` or ``--inside`` -- is refused; ``--shard K/N`` splits the lesions between
+another ``--seed``, ``--n``, ``--inside`` or ``--outside`` -- is refused; ``--shard K/N`` splits the lesions between
 processes; the calibration and the fits are kept per forward map, ``OUT/cal-<tag>.json`` and
 ``OUT/fits-<tag>``, tag ``<geometry>-<mesh>`` plus ``-corr-<level>`` with ``--correct-mesh`` and
 ``-err-<level>`` when ``--error-mesh`` is not the default).  Measurement knobs (docs/camera.md 4j),
@@ -47,7 +47,10 @@ from the calibration's (:func:`session_sensor`); inference keeps the nominal mod
 region-stratified one: the first N lesions of an overdrawn Latin hypercube at which the shipped
 map's ``frames`` set calls E identifiable (:func:`draw_lesions`; about 3 % of the design: large,
 soft, shallow-to-mid inclusions), so that a quantity identifiable over a small part of the design
-is scored on enough lesions.  Its lesions are not a sample of the design: report them apart.
+is scored on enough lesions.  ``--outside d`` is its mirror: lesions where the map does NOT call d
+identifiable (about a quarter of the design: small or deep inclusions), to score the intervals
+outside a region on more lesions than a design draw holds.  Neither set is a sample of the design:
+report them apart.
 
 Stage ``report``: the table (printed, ``OUT/benchmark.md``), ``OUT/benchmark.json`` and
 ``OUT/benchmark.png``.  Regions: the shipped identifiability map (``--region-set``, default the
@@ -90,33 +93,58 @@ TRUTH_SEED = 2026
 INSIDE_OVERDRAW = 200
 
 
-def draw_lesions(n: int, seed: int = TRUTH_SEED, inside: str | None = None) -> np.ndarray:
+def draw_lesions(n: int, seed: int = TRUTH_SEED, inside: str | None = None, outside: str | None = None) -> np.ndarray:
     """(n, 3) lesions (d mm, h mm, E kPa): Latin hypercube over d, the admissible depth fraction and ln E.
 
     ``inside`` (d, h or E): a region-stratified set instead -- the first n of a Latin hypercube of
     ``INSIDE_OVERDRAW`` n points at which the shipped map's ``frames`` set calls that quantity
     identifiable (10 %), decided from the truth before any fit, so that a quantity identifiable
-    over a small part of the design can be scored on enough lesions."""
-    if inside is None:
-        return _lhs_lesions(n, seed)
-    j = "dhE".index(inside)
-    cand = _lhs_lesions(INSIDE_OVERDRAW * n, seed)
-    keep = cand[identifiable_at(cand, "frames")[:, j]]
-    if len(keep) < n:
-        from elastimap.errors import UserError
+    over a small part of the design can be scored on enough lesions.  ``outside``: the same, at
+    points where the map does NOT call it identifiable (to score the intervals there on more than
+    the quarter of a design draw that lies outside d's region).  At most one of the two."""
+    from elastimap.errors import UserError
 
-        raise UserError("n", f"at most {len(keep)} lesions with {inside} identifiable at seed {seed} (got {n})")
+    if inside is not None and outside is not None:
+        raise UserError("outside", f"give inside or outside, not both (got inside={inside!r}, outside={outside!r})")
+    if inside is None and outside is None:
+        return _lhs_lesions(n, seed)
+    q = inside or outside
+    cand = _lhs_lesions(INSIDE_OVERDRAW * n, seed)
+    ident = identifiable_at(cand, "frames")[:, "dhE".index(q)]
+    keep = cand[ident if inside is not None else ~ident]
+    if len(keep) < n:
+        where = "identifiable" if inside is not None else "not identifiable"
+        raise UserError("n", f"at most {len(keep)} lesions with {q} {where} at seed {seed} (got {n})")
     return keep[:n]
 
 
-def _design(n: int, seed: int, inside: str | None) -> np.ndarray:
-    """:func:`draw_lesions` for the commands: its error names the flag --n."""
+def _design(n: int, seed: int, inside: str | None, outside: str | None = None) -> np.ndarray:
+    """:func:`draw_lesions` for the commands: its errors name the flags."""
     from elastimap.errors import UserError
 
     try:
-        return draw_lesions(n, seed, inside)
+        return draw_lesions(n, seed, inside, outside)
     except UserError as exc:
-        raise UserError("--n", exc.message) from None
+        raise UserError("--n" if exc.param == "n" else "--outside", exc.message) from None
+
+
+def _design_record(n: int, seed: int, inside: str | None, outside: str | None) -> dict:
+    """The ``design`` a lesion record keeps (``outside`` only when given, so whole-design and
+    ``--inside`` records read as before)."""
+    rec = {"n": n, "seed": seed, "inside": inside}
+    if outside is not None:
+        rec["outside"] = outside
+    return rec
+
+
+def _drawn(design: dict | None) -> str:
+    """How a record's lesions were drawn, for the report's header and figure."""
+    design = design or {}
+    if design.get("inside"):
+        return f"drawn where the map's 'frames' set calls {design['inside']} identifiable (region-stratified, not a sample of the design)"
+    if design.get("outside"):
+        return f"drawn where the map's 'frames' set does not call {design['outside']} identifiable (region-stratified, not a sample of the design)"
+    return "over the whole design box"
 
 
 def _lhs_lesions(n: int, seed: int) -> np.ndarray:
@@ -170,7 +198,15 @@ INSIDE = click.option(
     default=None,
     help="A region-stratified lesion set: only design points where the shipped map's frames set calls this "
     "quantity identifiable (draw_lesions; for scoring E, identifiable over ~3 % of the design). Give the same "
-    "value to lesions, run and report.",
+    "value to lesions and run.",
+)
+OUTSIDE = click.option(
+    "--outside",
+    type=click.Choice(tuple("dhE")),
+    default=None,
+    help="A region-stratified lesion set: only design points where the shipped map's frames set does NOT call "
+    "this quantity identifiable (to score intervals outside a region on enough lesions; not with --inside). "
+    "Give the same value to lesions and run.",
 )
 
 
@@ -185,12 +221,13 @@ def main():
 @click.option("--truth-mesh", default="default", show_default=True, help="Mesh level of the world's remeshing solver.")
 @TRUTH_SIZING
 @INSIDE
+@OUTSIDE
 @shard_option("K/N: this process solves items i with i % N == K.")
 @click.option(
     "--first", default=0, show_default=True, type=int, help="Only the first K lesions of the design (0: all)."
 )
 @click.option("--out", required=True, help="Benchmark folder (solves land in OUT/solves).")
-def lesions(n, seed, truth_mesh, truth_sizing, inside, shard, first, out):
+def lesions(n, seed, truth_mesh, truth_sizing, inside, outside, shard, first, out):
     """Solve the phantoms and the held-out lesions with the world's forward model (resumable)."""
     from tqdm import tqdm
 
@@ -200,11 +237,12 @@ def lesions(n, seed, truth_mesh, truth_sizing, inside, shard, first, out):
     k, nsh = shard
     if first < 0:
         raise UserError("--first", f"must be >= 0 (got {first})")
+    design = _design(n, seed, inside, outside)  # before any folder is made: a bad draw is one line
     cache = os.path.join(out, "solves")
     os.makedirs(cache, exist_ok=True)
     ph = load_phantoms()
     todo = [(float(r["d"]), float(r["h"]), float(r["E"])) for _, r in ph.iterrows()]
-    todo += [tuple(map(float, t)) for t in _design(n, seed, inside)[: first or n]]
+    todo += [tuple(map(float, t)) for t in design[: first or n]]
     todo = todo[k::nsh]
     t0 = time.perf_counter()
     for d, h, E in tqdm(todo, desc=f"SYNTHETIC world solves ({world_label(truth_mesh, truth_sizing)})"):
@@ -334,7 +372,7 @@ class _Timed:
 
 def _check_same_design(fits: str, truth: np.ndarray) -> None:
     """A one-line error naming --out when ``fits`` already holds a lesion whose truth is not this
-    design's lesion of the same number (another --seed, --n or --inside): ``run`` skips lesions it
+    design's lesion of the same number (another --seed, --n, --inside or --outside): ``run`` skips lesions it
     finds, so it would otherwise mix two designs in one folder."""
     import glob
     import json
@@ -348,7 +386,7 @@ def _check_same_design(fits: str, truth: np.ndarray) -> None:
         if i >= len(truth) or not np.allclose(rec["truth"], truth[i], rtol=1e-12, atol=0.0):
             raise UserError(
                 "--out",
-                f"{fits} holds lesion {i} of another design (--seed, --n or --inside differ); use another --out",
+                f"{fits} holds lesion {i} of another design (--seed, --n, --inside or --outside differ); use another --out",
             )
 
 
@@ -417,6 +455,7 @@ def lesion_inputs(i, theta, seed, sensor, cal, model, idm, out, truth_mesh, trut
 @click.option("--truth-mesh", default="default", show_default=True)
 @TRUTH_SIZING
 @INSIDE
+@OUTSIDE
 @click.option("--fit-mesh", default="coarse", show_default=True, help="Mesh level of the fit's forward map.")
 @click.option(
     "--error-mesh",
@@ -481,6 +520,7 @@ def run_cmd(
     truth_mesh,
     truth_sizing,
     inside,
+    outside,
     fit_mesh,
     error_mesh,
     correct_mesh,
@@ -528,7 +568,7 @@ def run_cmd(
     tag += f"-p{max_passes}" if max_passes != 2 else ""
     tag += "-direct" if fine_mode == "direct" and correct_mesh else ""
     fits = os.path.join(out, f"fits-{tag}")
-    truth = _design(n, seed, inside)
+    truth = _design(n, seed, inside, outside)
     _check_same_design(fits, truth)  # before any work: never add lesions of another design
     os.makedirs(fits, exist_ok=True)
     acc: dict = {}
@@ -592,7 +632,7 @@ def run_cmd(
             "synthetic": True,
             "i": i,
             "truth": [float(d), float(h), float(E)],
-            "design": {"n": n, "seed": seed, "inside": inside},
+            "design": _design_record(n, seed, inside, outside),
             "world": world_label(truth_mesh, truth_sizing) + ", tied, quarter",
             "fit_map": fit_label,
             "frames": frames,
@@ -804,7 +844,7 @@ def table(sm: dict) -> str:
     return "\n".join(lines)
 
 
-def plot(recs: list[dict], path: str, region_set: str = "frames", inside: str | None = None) -> None:
+def plot(recs: list[dict], path: str, region_set: str = "frames") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -846,7 +886,14 @@ def plot(recs: list[dict], path: str, region_set: str = "frames", inside: str | 
         ax.set_ylabel(f"estimated {q} ({unit})")
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
-    where = "" if inside is None else f" drawn where the map calls {inside} identifiable"
+    design = recs[0].get("design") or {}
+    where = (
+        f" drawn where the map calls {design['inside']} identifiable"
+        if design.get("inside")
+        else f" drawn where the map does not call {design['outside']} identifiable"
+        if design.get("outside")
+        else ""
+    )
     fig.suptitle(f"SYNTHETIC camera frames, {len(recs)} held-out lesions{where}: estimate vs truth (95 % intervals)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -898,16 +945,13 @@ def report_cmd(out, fits_name, region_set, common):
     designs = {json.dumps(r.get("design"), sort_keys=True) for r in recs}
     if len(designs) != 1:
         raise UserError("--out", f"{os.path.join(out, fits_name)} mixes lesion designs ({', '.join(sorted(designs))})")
-    inside = (recs[0].get("design") or {}).get("inside")
+    design = recs[0].get("design") or {}
     sm = summarise(recs, region_set)
     sm["region_set"] = region_set
-    sm["inside"] = inside
+    sm["inside"] = design.get("inside")
+    sm["outside"] = design.get("outside")
     r0 = recs[0]
-    drawn = (
-        "over the whole design box"
-        if inside is None
-        else f"drawn where the map's 'frames' set calls {inside} identifiable (region-stratified, not a sample of the design)"
-    )
+    drawn = _drawn(design)
     head = (
         f"SYNTHETIC camera frames ({r0['frames']} lesion + {r0['frames']} background frames per lesion; camera: "
         f"{'nominal' if r0.get('camera', 'nominal') == 'nominal' else 'LED powers and vignetting drawn per lesion'}), "
@@ -943,7 +987,7 @@ def report_cmd(out, fits_name, region_set, common):
         fh.write(md)
     with open(os.path.join(out, f"{stem}.json"), "w") as fh:
         json.dump({"synthetic": True, "summary": sm, "lesions": recs}, fh, indent=1)
-    plot(recs, os.path.join(out, f"{stem}.png"), region_set, inside)
+    plot(recs, os.path.join(out, f"{stem}.png"), region_set)
     click.echo(md)
 
 
