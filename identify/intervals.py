@@ -3,13 +3,13 @@ Gauss–Newton interval with its half-width scaled per class of the fit's own re
 deviation, the scales set by split-conformal prediction on benchmark lesions.
 
 Why.  On the SYNTHETIC camera-frame benchmark (world `fine` sized by d, drifting camera, 30 frames;
-docs/camera.md 4l) the Gauss–Newton standard deviation ``sd`` misstates the spread of the fit's
-errors, and how depends on how well the image tells the parameter.  Over 832 lesions of seeds 2027,
-2029–2036 the 95 % quantile of ``|θ̂ − θ| / sd`` for d is about 4 where the fit's relative sd is under
+docs/camera.md 4l, 4m) the Gauss–Newton standard deviation ``sd`` misstates the spread of the fit's
+errors, and how depends on how well the image tells the parameter.  Over 1007 lesions of seeds 2027,
+2029–2038 the 95 % quantile of ``|θ̂ − θ| / sd`` for d is about 3.7 where the fit's relative sd is under
 3 % (the discretisation's pull along the d–E valley: a bias the noise-only width does not hold) and
 0.5 where it is over 30 % (there the fit starts at the network's estimate and stops once χ² is flat,
 inside the box, so it moves less along the valley than the likelihood's width); for E (in the fit's
-coordinate ``e``) it is about 10 where its sd is under 10 %.  One factor cannot mend both ends.
+coordinate ``e``) it is 6–8 where its sd is under 10 %.  One factor cannot mend both ends.
 
 The interval.  For each parameter q the class of the fit's relative sd ``r_q`` (d and h: sd/θ; E:
 sd of ln E) among :data:`CLASS_EDGES` -- half-decades, the product's 10 % threshold one of their
@@ -52,14 +52,14 @@ LEVEL = 0.95
 #: needs at least 19)
 MIN_CLASS = 19
 #: the scales per parameter and class (:data:`CLASS_EDGES`), from
-#: ``python -m elastimap.workflows.studies.interval_calibration runs/fb27 runs/fb29 ... runs/fb36``
-#: (SYNTHETIC: 832 lesions with a signal, seeds 2027 and 2029–2036, world `fine` by_d, drifting camera,
-#: 30 frames, fit `coarse` corrected by `fine`; docs/camera.md 4l); a class that had fewer than
+#: ``python -m elastimap.workflows.studies.interval_calibration runs/fb27 runs/fb29 ... runs/fb38``
+#: (SYNTHETIC: 1007 lesions with a signal, seeds 2027 and 2029–2038, world `fine` by_d, drifting camera,
+#: 30 frames, fit `coarse` corrected by `fine`; docs/camera.md 4l, 4m); a class that had fewer than
 #: MIN_CLASS lesions is 1.0
 SCALES = {
-    "d": (2.122, 1.052, 0.613, 0.262),
-    "h": (1.057, 0.987, 1.0, 1.0),
-    "E": (5.038, 4.928, 1.738, 0.608),
+    "d": (1.9, 1.049, 0.608, 0.261),
+    "h": (0.99, 0.706, 1.0, 1.0),
+    "E": (3.189, 4.191, 1.661, 0.615),
 }
 PARAMS = TARGETS  # (d, h, E): the rows of SCALES
 #: the fit the scales were calibrated on: (fit level, correcting level) of
