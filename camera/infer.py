@@ -19,7 +19,11 @@ never silently extrapolated: every estimate carries ``flags``:
 * ``outside_training:Ok`` - the calibrated FEM feature k outside the
   network's training range (``ensemble.feature_range``);
 * ``no_signal`` - O1 at or below zero, or (from frames) no pixel of the difference image
-  :data:`DETECT_SIGMA` standard errors above zero: no inclusion visible, nothing is reportable;
+  :data:`DETECT_SIGMA` standard errors above zero: no inclusion visible, nothing is reportable,
+  and the interval ``[q_lo, q_hi]`` is the whole design box (:func:`design_box_interval`): the
+  model's number for an image it cannot see is an extrapolation, and its interval there held the
+  centre depth of 1 of the 13 such lesions of the SYNTHETIC benchmark's seeds 2027–2038
+  (docs/camera.md 4m);
 * ``non_identifiable:q`` - at the estimate, the Cramér–Rao bound of the
   identifiability map (:mod:`elastimap.identify.region`; by default the one shipped,
   measured on the default 512-sample sweep) says ``q`` cannot be determined
@@ -202,9 +206,29 @@ def _plausibility(ests: list[Estimate]) -> list[Estimate]:
     return ests
 
 
+def design_box_interval() -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) over (d mm, h mm, E kPa) of the whole design box: d and E over
+    :data:`~elastimap.solver.params.DESIGN_BOX`, h over every admissible centre depth of those d
+    (``depth_range`` of the smallest d, the default slab): what a ``no_signal`` lesion may be."""
+    from elastimap.solver.params import DESIGN_BOX, depth_range  # pure python, no DOLFINx
+
+    (d0, d1), (E0, E1) = DESIGN_BOX["d"], DESIGN_BOX["E"]
+    h0, h1 = depth_range(d0)
+    return np.array([d0, h0, E0]), np.array([d1, h1, E1])
+
+
+def _no_signal_box(ests: list[Estimate]) -> list[Estimate]:
+    """A ``no_signal`` estimate's interval is the design box (see the module docstring)."""
+    lo, hi = design_box_interval()
+    for e in ests:
+        if "no_signal" in e.flags:
+            e.lo, e.hi = lo.copy(), hi.copy()
+    return ests
+
+
 def _assess(ests: list[Estimate], ensemble, idmap, mset: str, threshold: float, scale: float = 1.0) -> list[Estimate]:
     if idmap is None:
-        return _plausibility(ests)
+        return _plausibility(_no_signal_box(ests))
     mean = np.array([e.mean for e in ests])
     a = idmap.assess(
         mean,
@@ -218,7 +242,7 @@ def _assess(ests: list[Estimate], ensemble, idmap, mset: str, threshold: float, 
     for i, e in enumerate(ests):
         e.lo, e.hi, e.crb, e.crb_set = a.lo[i], a.hi[i], a.r[i], mset
         e.flags.extend(a.flags[i])
-    return _plausibility(ests)
+    return _plausibility(_no_signal_box(ests))
 
 
 def _members(Y: np.ndarray, n: int):

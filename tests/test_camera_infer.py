@@ -112,6 +112,7 @@ def test_estimate_shapes_flags_and_uncertainty(chain):
     assert "outside_calibration:O1" in est[1].flags and not est[1].ok
     assert any(f.startswith("outside_training") for f in est[1].flags)
     assert est[2].flags[0] == "no_signal"
+    np.testing.assert_array_equal(np.c_[est[2].lo, est[2].hi], np.c_[[2.0, 2.0, 10.0], [15.0, 17.0, 200.0]])
     row = est[0].to_dict()
     assert {"d", "d_sd", "h", "E_sd", "cam_O1", "fem_O3", "flags", "ok"} <= set(row)
     with pytest.raises(UserError, match="three camera features"):
@@ -399,3 +400,12 @@ def test_no_visible_inclusion_in_frames_is_not_reported(toy_image_model):
     )[0]
     assert "no_signal" not in loud.flags
     assert "no_signal" in quiet.flags and not any(quiet.reportable(q) for q in "dhE")
+    # what cannot be seen may be anywhere in the design: its interval is the box, not the model's guess
+    from elastimap.camera.infer import design_box_interval
+
+    lo, hi = design_box_interval()
+    np.testing.assert_allclose(lo, [2.0, 2.0, 10.0])
+    np.testing.assert_allclose(hi, [15.0, 17.0, 200.0])
+    np.testing.assert_array_equal(quiet.lo, lo)
+    np.testing.assert_array_equal(quiet.hi, hi)
+    assert not np.array_equal(loud.lo, lo)
