@@ -192,21 +192,20 @@ TRUTH_SIZING = sizing_option(
 )
 
 
-INSIDE = click.option(
-    "--inside",
-    type=click.Choice(tuple("dhE")),
-    default=None,
-    help="A region-stratified lesion set: only design points where the shipped map's frames set calls this "
-    "quantity identifiable (draw_lesions; for scoring E, identifiable over ~3 % of the design). Give the same "
-    "value to lesions and run.",
-)
-OUTSIDE = click.option(
-    "--outside",
-    type=click.Choice(tuple("dhE")),
-    default=None,
-    help="A region-stratified lesion set: only design points where the shipped map's frames set does NOT call "
-    "this quantity identifiable (to score intervals outside a region on enough lesions; not with --inside). "
-    "Give the same value to lesions and run.",
+def _region_option(flag: str, where: str, why: str):
+    """``--inside`` / ``--outside``: a region-stratified lesion set (:func:`draw_lesions`)."""
+    return click.option(
+        flag,
+        type=click.Choice(tuple("dhE")),
+        default=None,
+        help=f"A region-stratified lesion set: only design points where the shipped map's frames set {where} "
+        f"this quantity identifiable ({why}). Give the same value to lesions and run.",
+    )
+
+
+INSIDE = _region_option("--inside", "calls", "draw_lesions; for scoring E, identifiable over ~3 % of the design")
+OUTSIDE = _region_option(
+    "--outside", "does NOT call", "to score intervals outside a region on enough lesions; not with --inside"
 )
 
 
