@@ -27,7 +27,7 @@ smallest) / 1.96.  For a lesion exchangeable with the calibration lesions -- the
 fit and design -- the interval then holds the truth with probability at least 95 % within each class.
 A class with fewer than :data:`MIN_CLASS` lesions keeps ``k = 1``.  Known limit (docs/camera.md 4m):
 the classes do not separate large stiff inclusions close to the slab's base, whose d and E errors
-reach 10–13 sd at a small relative sd, from the rest; they set the first classes' scales, so
+reach 13–14 sd at a small relative sd, from the rest; they set the first classes' scales, so
 elsewhere there (E's region: large soft inclusions) the interval is wider than it needs to be.  A real sensor is *not*
 exchangeable with the synthetic world: recompute the scales from its own phantoms
 (``python -m elastimap.workflows.studies.interval_calibration``, which made :data:`SCALES`).
