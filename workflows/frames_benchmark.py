@@ -138,13 +138,14 @@ def _design_record(n: int, seed: int, inside: str | None, outside: str | None) -
 
 
 def _drawn(design: dict | None) -> str:
-    """How a record's lesions were drawn, for the report's header and figure."""
+    """Where a record's lesions were drawn, for the report's header and the figure's title ("" for
+    the whole design box)."""
     design = design or {}
     if design.get("inside"):
-        return f"drawn where the map's 'frames' set calls {design['inside']} identifiable (region-stratified, not a sample of the design)"
+        return f"drawn where the map's 'frames' set calls {design['inside']} identifiable"
     if design.get("outside"):
-        return f"drawn where the map's 'frames' set does not call {design['outside']} identifiable (region-stratified, not a sample of the design)"
-    return "over the whole design box"
+        return f"drawn where the map's 'frames' set does not call {design['outside']} identifiable"
+    return ""
 
 
 def _lhs_lesions(n: int, seed: int) -> np.ndarray:
@@ -885,14 +886,8 @@ def plot(recs: list[dict], path: str, region_set: str = "frames") -> None:
         ax.set_ylabel(f"estimated {q} ({unit})")
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
-    design = recs[0].get("design") or {}
-    where = (
-        f" drawn where the map calls {design['inside']} identifiable"
-        if design.get("inside")
-        else f" drawn where the map does not call {design['outside']} identifiable"
-        if design.get("outside")
-        else ""
-    )
+    where = _drawn(recs[0].get("design"))
+    where = f" {where}" if where else ""
     fig.suptitle(f"SYNTHETIC camera frames, {len(recs)} held-out lesions{where}: estimate vs truth (95 % intervals)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -951,6 +946,7 @@ def report_cmd(out, fits_name, region_set, common):
     sm["outside"] = design.get("outside")
     r0 = recs[0]
     drawn = _drawn(design)
+    drawn = f"{drawn} (region-stratified, not a sample of the design)" if drawn else "over the whole design box"
     head = (
         f"SYNTHETIC camera frames ({r0['frames']} lesion + {r0['frames']} background frames per lesion; camera: "
         f"{'nominal' if r0.get('camera', 'nominal') == 'nominal' else 'LED powers and vignetting drawn per lesion'}), "
