@@ -14,13 +14,17 @@ from hypothesis import strategies as st
 from elastimap.errors import UserError
 from elastimap.identify.intervals import (
     CLASS_EDGES,
+    NEAR_BASE_MM,
     SCALES,
+    STRATA,
     Z95,
     calibrate,
     class_of,
     conformal_quantile,
+    near_base,
     scales_for,
 )
+from elastimap.solver.params import THICKNESS, depth_range
 
 
 @settings(max_examples=60, deadline=None)
@@ -50,42 +54,77 @@ def test_conformal_quantile_refuses_bad_scores_and_levels():
     assert math.isnan(conformal_quantile(np.arange(10.0)))  # 19 scores at least for 95 %
 
 
-def test_classes_are_right_closed_half_decades_and_scales_follow_them():
+def test_classes_are_right_closed_half_decades_and_scales_follow_them_and_the_stratum():
     assert CLASS_EDGES == (0.03, 0.10, 0.30)
     np.testing.assert_array_equal(class_of([0.01, 0.03, 0.031, 0.1, 0.2, 0.3, 5.0]), [0, 0, 1, 1, 2, 2, 3])
-    table = {"d": (1.0, 2.0, 3.0, 4.0), "h": (5.0, 6.0, 7.0, 8.0), "E": (0.5, 0.6, 0.7, 0.8)}
-    np.testing.assert_array_equal(scales_for([0.02, 0.05, 0.5], table), [1.0, 6.0, 0.8])
-    np.testing.assert_array_equal(scales_for([np.nan, 0.05, np.inf], table), [1.0, 6.0, 1.0])  # not finite: 1
-    assert set(SCALES) == {"d", "h", "E"} and all(len(v) == 4 and min(v) > 0 for v in SCALES.values())
+    table = {
+        "d": ((1.0, 2.0, 3.0, 4.0), (11.0, 12.0, 13.0, 14.0)),
+        "h": ((5.0, 6.0, 7.0, 8.0), (15.0, 16.0, 17.0, 18.0)),
+        "E": ((0.5, 0.6, 0.7, 0.8), (0.1, 0.2, 0.3, 0.4)),
+    }
+    far, near = (6.0, 5.0, 60.0), (12.0, THICKNESS - 6.0 - 1.0, 60.0)  # bottoms 11 mm and 1 mm above the base
+    np.testing.assert_array_equal(scales_for([0.02, 0.05, 0.5], far, table), [1.0, 6.0, 0.8])
+    np.testing.assert_array_equal(scales_for([0.02, 0.05, 0.5], near, table), [11.0, 16.0, 0.4])
+    np.testing.assert_array_equal(scales_for([np.nan, 0.05, np.inf], far, table), [1.0, 6.0, 1.0])  # not finite: 1
+    assert STRATA == ("far", "near")
+    assert set(SCALES) == {"d", "h", "E"}
+    assert all(len(v) == 2 and all(len(row) == 4 and min(row) > 0 for row in v) for v in SCALES.values())
     with pytest.raises(UserError, match="relstd"):
-        scales_for([0.1, 0.2])
+        scales_for([0.1, 0.2], far)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.floats(2.0, 15.0), st.floats(0.0, 1.0), st.floats(10.0, 200.0))
+def test_near_base_is_the_bottom_within_near_base_mm_of_the_base(d, t, E):
+    """Over the design box: an estimate is near the base exactly when the gap under the inclusion,
+    thickness − h − d/2 (at least the design's 2 mm floor), is under NEAR_BASE_MM; the deepest allowed
+    inclusion of every size is near, the shallowest far."""
+    lo, hi = depth_range(d)
+    h = lo + t * (hi - lo)
+    assert bool(near_base((d, h, E))) == (THICKNESS - h - d / 2 < NEAR_BASE_MM)
+    assert near_base((d, hi, E)) and not near_base((d, lo, E))
+    np.testing.assert_array_equal(near_base(np.array([[d, hi, E], [d, lo, E]])), [True, False])
 
 
 def test_calibrated_scales_hold_fresh_draws_at_95_percent_per_class():
     """SYNTHETIC scores whose spread differs by class (a Gauss–Newton sd 3x too narrow in one class,
-    2x too wide in another): scales from one draw hold 95 % of a fresh, independent draw in each class
-    (within three binomial standard errors), where k = 1 holds 53 % and ~100 %; a class with too few
-    lesions keeps 1."""
+    2x too wide in another) and, in the first class, by stratum (5x too narrow near the base, on a
+    fifth of the lesions): scales from one draw hold 95 % of a fresh, independent draw in each cell
+    (within three binomial standard errors), where k = 1 holds 31–53 % and ~100 %, and pooling the
+    strata would hold far fewer near the base; a cell with too few lesions takes its class's scale, a
+    class with too few keeps 1."""
     rng = np.random.default_rng(11)
 
     def draw(n):
         rel = np.exp(rng.uniform(np.log(0.005), np.log(1.0), n))
-        spread = np.choose(class_of(rel), [3.0, 1.0, 0.5, 0.5])  # |err| / sd ~ |N(0, spread²)|
-        return rel, np.abs(rng.standard_normal(n)) * spread
+        near = rng.uniform(size=n) < 0.2
+        spread = np.choose(class_of(rel), [3.0, 1.0, 0.5, 0.5]) * np.where(near & (class_of(rel) == 0), 5 / 3, 1.0)
+        return rel, near, np.abs(rng.standard_normal(n)) * spread  # |err| / sd ~ |N(0, spread²)|
 
-    rel, s = draw(4000)
-    k, n = calibrate(rel, s)
-    assert n.sum() == 4000 and (n >= 19).all()
-    rel2, s2 = draw(20000)
-    held = s2 <= Z95 * k[class_of(rel2)]
-    for c in range(4):
-        m = class_of(rel2) == c
-        se = math.sqrt(0.95 * 0.05 / m.sum())
-        assert abs(held[m].mean() - 0.95) < 3 * se + 0.01, (c, held[m].mean(), k)
+    rel, near, s = draw(6000)
+    k, n = calibrate(rel, s, near)
+    assert k.shape == n.shape == (2, 4) and n.sum() == 6000 and (n >= 19).all()
+    rel2, near2, s2 = draw(30000)
+    cell = (near2.astype(int), class_of(rel2))
+    held = s2 <= Z95 * k[cell]
+    for i in range(2):
+        for c in range(4):
+            m = (near2 == bool(i)) & (class_of(rel2) == c)
+            se = math.sqrt(0.95 * 0.05 / m.sum())
+            assert abs(held[m].mean() - 0.95) < 3 * se + 0.01, (i, c, held[m].mean(), k)
     plain = s2 <= Z95
     assert plain[class_of(rel2) == 0].mean() < 0.6 and plain[class_of(rel2) == 3].mean() > 0.99
-    k_few, n_few = calibrate(rel[:30], s[:30])
-    assert all(kk == 1.0 for kk, nn in zip(k_few, n_few) if nn < 19)
+    k_pooled, _ = calibrate(rel, s)  # one stratum: the near cells of class 0 under-covered
+    m = near2 & (class_of(rel2) == 0)
+    assert (s2[m] <= Z95 * k_pooled[0, 0]).mean() < 0.85
+    k_few, n_few = calibrate(rel[:60], s[:60], near[:60])
+    whole, n_whole = calibrate(rel[:60], s[:60])
+    for c in range(4):
+        for i in range(2):
+            if n_few[i, c] < 19:
+                assert k_few[i, c] == (whole[0, c] if n_whole[0, c] >= 19 else 1.0)
+    with pytest.raises(UserError, match="scores"):
+        calibrate(rel[:5], s[:5], near[:4])
 
 
 def test_fit_image_calibrated_interval_scales_the_gauss_newton_half_width():
@@ -103,7 +142,7 @@ def test_fit_image_calibrated_interval_scales_the_gauss_newton_half_width():
     np.testing.assert_array_equal(c.theta, g.theta)
     np.testing.assert_array_equal(c.lo_gauss, g.lo)
     np.testing.assert_array_equal(g.scale, np.ones(3))
-    k = scales_for(c.relstd)
+    k = scales_for(c.relstd, c.theta)
     np.testing.assert_array_equal(c.scale, k)
     sd = c.sd
     for j in (0, 1):

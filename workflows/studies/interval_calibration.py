@@ -1,8 +1,8 @@
 """The scales of the fit's calibrated 95 % intervals (:mod:`elastimap.identify.intervals`) from the
 records of camera-frame benchmark folders, and the coverage they give, seed by seed.
 
-    python -m elastimap.workflows.studies.interval_calibration runs/fb27 runs/fb29 ... runs/fb36 \\
-        [--check runs/fb37] [--loso]
+    python -m elastimap.workflows.studies.interval_calibration runs/fb27 runs/fb28Ec ... runs/fb41E \\
+        [--check runs/fb42E] [--loso]
 
 Each FOLDER is a ``workflows/frames_benchmark.py`` output (SYNTHETIC lesions; its fits in
 ``fits-morph-coarse-corr-fine-drift``, the calibrated configuration
@@ -10,10 +10,11 @@ Each FOLDER is a ``workflows/frames_benchmark.py`` output (SYNTHETIC lesions; it
 the score is ``|x̂_q − x_q| / sd_q`` in the fit's coordinate (d mm, h mm, e = ln c(E) of
 :class:`~elastimap.identify.refine.FitCoords`) with the fit's Gauss–Newton sd (records before
 2026-11-27 hold it as ``sd``/``crb_rel``, later ones as ``fit_relstd_gauss``).  Prints the scales per
-class of the relative sd (:func:`~elastimap.identify.intervals.calibrate`, the table to copy into
+stratum of the estimate (far from or near the slab's base, :func:`~elastimap.identify.intervals.near_base`)
+and class of the relative sd (:func:`~elastimap.identify.intervals.calibrate`, the table to copy into
 ``SCALES``), then the coverage of the Gauss–Newton and of the calibrated interval inside and
 outside the shipped identifiability map's region (``frames`` set, 10 %, at the truth; the
-benchmark's own split): of the calibration folders themselves (in-sample: says only that the scales
+benchmark's own split) and near the base: of the calibration folders themselves (in-sample: says only that the scales
 do what they were set to), with ``--loso`` of each folder with the scales of the others (leave one
 seed out: an honest estimate of held-out coverage), and of the ``--check`` folders (never used for
 the scales).  A study: the scales it prints are what ``SCALES`` holds, nothing else reads it.
@@ -36,7 +37,8 @@ FITS = "fits-morph-coarse-corr-fine-drift"
 def read_folder(folder: str) -> dict:
     """Arrays of one benchmark folder's lesions with a signal: ``truth`` (n, 3) in (d, h, E),
     ``x_true``/``x_fit`` (n, 3) in the fit's coordinates (d, h, e), ``sd`` (n, 3) the Gauss–Newton sd in
-    those coordinates, ``relstd`` (n, 3) the Gauss–Newton relative sds (d, h; ln E)."""
+    those coordinates, ``relstd`` (n, 3) the Gauss–Newton relative sds (d, h; ln E), ``theta_fit``
+    (n, 3) the estimate (d, h, E)."""
     from elastimap.errors import UserError
     from elastimap.identify.refine import FitCoords
 
@@ -59,9 +61,9 @@ def read_folder(folder: str) -> dict:
         sd = np.array([rel[0] * th[0], rel[1] * th[1], rel[2] / g_e])
         t = np.asarray(r["truth"], dtype=float)
         xt, xf = X.x(t), X.x(th)
-        rows.append((t, np.array([t[0], t[1], xt[2]]), np.array([th[0], th[1], xf[2]]), sd, rel))
+        rows.append((t, np.array([t[0], t[1], xt[2]]), np.array([th[0], th[1], xf[2]]), sd, rel, th))
     cols = list(zip(*rows))
-    return {k: np.array(v) for k, v in zip(("truth", "x_true", "x_fit", "sd", "relstd"), cols)}
+    return {k: np.array(v) for k, v in zip(("truth", "x_true", "x_fit", "sd", "relstd", "theta_fit"), cols)}
 
 
 def scores(data: dict) -> np.ndarray:
@@ -70,32 +72,40 @@ def scores(data: dict) -> np.ndarray:
 
 
 def scales_of(datas: list[dict]) -> tuple[dict, dict]:
-    """The class scales and class sizes per parameter from the pooled lesions of ``datas``."""
-    from elastimap.identify.intervals import PARAMS, calibrate
+    """The scales and cell sizes per parameter (stratum × class) from the pooled lesions of ``datas``."""
+    from elastimap.identify.intervals import PARAMS, calibrate, near_base
 
     rel = np.concatenate([d["relstd"] for d in datas])
     sc = np.concatenate([scores(d) for d in datas])
+    nb = near_base(np.concatenate([d["theta_fit"] for d in datas]))
     out, sizes = {}, {}
     for j, q in enumerate(PARAMS):
-        k, n = calibrate(rel[:, j], sc[:, j])
-        out[q], sizes[q] = tuple(round(float(v), 3) for v in k), tuple(int(v) for v in n)
+        k, n = calibrate(rel[:, j], sc[:, j], nb)
+        out[q] = tuple(tuple(round(float(v), 3) for v in row) for row in k)
+        sizes[q] = tuple(tuple(int(v) for v in row) for row in n)
     return out, sizes
 
 
 def coverage(data: dict, table: dict | None) -> dict:
-    """Coverage inside/outside the map's region per parameter of ``x̂ ± 1.96 k sd`` (``table``:
-    the scales, None: the Gauss–Newton interval, k = 1).  The truth lies in the box, so clipping the
+    """Coverage inside/outside the map's region, and of the estimates near the base
+    (:func:`~elastimap.identify.intervals.near_base`), per parameter of ``x̂ ± 1.96 k sd`` (``table``:
+    the scales, None: the Gauss–Newton interval, k = 1): (held, n) for each of the three.  The truth lies in the box, so clipping the
     interval to the box does not change whether it holds it."""
-    from elastimap.identify.intervals import PARAMS, Z95, scales_for
+    from elastimap.identify.intervals import PARAMS, Z95, near_base, scales_for
     from elastimap.workflows.frames_benchmark import identifiable_at
 
     reg = identifiable_at(data["truth"])
-    k = np.ones_like(data["sd"]) if table is None else np.array([scales_for(r, table) for r in data["relstd"]])
+    k = (
+        np.ones_like(data["sd"])
+        if table is None
+        else np.array([scales_for(r, t, table) for r, t in zip(data["relstd"], data["theta_fit"])])
+    )
     held = scores(data) <= Z95 * k
+    nb = near_base(data["theta_fit"])
     out = {}
     for j, q in enumerate(PARAMS):
         i_in, i_out = reg[:, j], ~reg[:, j]
-        out[q] = (held[i_in, j].sum(), i_in.sum(), held[i_out, j].sum(), i_out.sum())
+        out[q] = (held[i_in, j].sum(), i_in.sum(), held[i_out, j].sum(), i_out.sum(), held[nb, j].sum(), nb.sum())
     return out
 
 
@@ -103,12 +113,12 @@ def _row(name: str, cov: dict) -> str:
     def pct(a, n):
         return f"{100 * a / n:5.1f} % ({n:3d})" if n else "    —        "
 
-    cells = [f"{q} in {pct(*cov[q][:2])} out {pct(*cov[q][2:])}" for q in ("d", "h", "E")]
+    cells = [f"{q} in {pct(*cov[q][:2])} out {pct(*cov[q][2:4])} near {pct(*cov[q][4:])}" for q in ("d", "h", "E")]
     return f"{name:<28s} " + " | ".join(cells)
 
 
 def _sum(covs: list[dict]) -> dict:
-    return {q: tuple(int(sum(c[q][i] for c in covs)) for i in range(4)) for q in covs[0]}
+    return {q: tuple(int(sum(c[q][i] for c in covs)) for i in range(6)) for q in covs[0]}
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -117,12 +127,17 @@ def _sum(covs: list[dict]) -> dict:
 @click.option("--loso", is_flag=True, help="Also score each folder with the scales of the others.")
 def main(folders, checks, loso):
     """Interval scales from benchmark FOLDERS (SYNTHETIC lesions) and the coverage they give."""
+    from elastimap.identify.intervals import NEAR_BASE_MM
+
     datas = {f: read_folder(f) for f in folders}
     table, sizes = scales_of(list(datas.values()))
     click.echo(f"SYNTHETIC calibration: {sum(len(d['truth']) for d in datas.values())} lesions of {len(datas)} folders")
-    click.echo("class edges of the relative sd: (0, 0.03], (0.03, 0.1], (0.1, 0.3], > 0.3")
+    click.echo(
+        "class edges of the relative sd: (0, 0.03], (0.03, 0.1], (0.1, 0.3], > 0.3; rows: far from the base, "
+        f"near it (the estimated inclusion's bottom within {NEAR_BASE_MM:g} mm of the base)"
+    )
     for q in table:
-        click.echo(f"  {q}: scales {table[q]}  lesions per class {sizes[q]}")
+        click.echo(f"  {q}: scales {table[q]}  lesions per cell {sizes[q]}")
     click.echo("\ncoverage, Gauss–Newton then calibrated (in-sample for the calibration folders):")
     for f, d in datas.items():
         click.echo(_row(f"{f} gauss", coverage(d, None)))
