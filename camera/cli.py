@@ -349,8 +349,9 @@ def calibrate(
     help="Image models (--fem-image, --images or --csv): refine each estimate by the maximum-likelihood fit of "
     "the forward map (elastimap.identify.refine.fit_image: runs the solver, about 20-30 forward solves per "
     "lesion); 95 % intervals from the Gauss-Newton covariance, for the default --mesh coarse corrected by fine "
-    "scaled per class of each parameter's relative sd (and whether the estimated inclusion lies within 3 mm of "
-    "the slab's base) as calibrated on SYNTHETIC benchmark lesions (elastimap.identify.intervals; docs/camera.md 4n).  From frames, every pixel is weighted by "
+    "scaled per class of each parameter's relative sd (and by whether the estimated inclusion's bottom lies "
+    "within 3 mm of the slab's base) as calibrated on SYNTHETIC benchmark lesions "
+    "(elastimap.identify.intervals; docs/camera.md 4n).  From frames, every pixel is weighted by "
     "its own noise, measured from the frames' scatter, plus the forward map's error measured between two "
     "mesh levels.",
 )

@@ -60,8 +60,8 @@ Z95 = 1.959963984540054
 CLASS_EDGES = (0.03, 0.10, 0.30)
 #: the interval's coverage the scales are set for
 LEVEL = 0.95
-#: fewer calibration lesions than this in a class: its scale stays 1 (the conformal quantile at 95 %
-#: needs at least 19)
+#: fewer calibration lesions than this in a cell (class × stratum): it takes its class's scale over
+#: both strata, and a class with fewer keeps 1 (the conformal quantile at 95 % needs at least 19)
 MIN_CLASS = 19
 #: the estimate is "near the base" when its inclusion's bottom lies closer than this to the slab's
 #: base (mm; the design keeps at least 2, ``solver.params.depth_range``'s floor)
@@ -71,7 +71,9 @@ STRATA = ("far", "near")
 #: the scales per parameter, stratum (:data:`STRATA`) and class (:data:`CLASS_EDGES`), from
 #: ``python -m elastimap.workflows.studies.interval_calibration runs/fb27 runs/fb28Ec runs/fb29 ... runs/fb41E``
 #: (SYNTHETIC: 1317 lesions with a signal, seeds 2027–2041, world `fine` by_d, drifting camera,
-#: 30 frames, fit `coarse` corrected by `fine`; docs/camera.md 4n)
+#: 30 frames, fit `coarse` corrected by `fine`; docs/camera.md 4n); cells with fewer than MIN_CLASS
+#: lesions hold their class's scale (d near r > 30 %, h near 3–10 %, E near r ≤ 3 %) or, where the
+#: class had fewer too, 1 (h above 10 %)
 SCALES = {
     "d": ((1.214, 1.076, 0.613, 0.293), (4.428, 0.304, 0.407, 0.271)),
     "h": ((0.909, 0.742, 1.0, 1.0), (1.721, 0.706, 1.0, 1.0)),

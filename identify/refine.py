@@ -75,9 +75,10 @@ interval is ``q ± 1.96 k sd`` for d and h and, for E, ``e ± 1.96 k sd_e`` mapp
 (:func:`fit_image`'s default): ``k = 1``, the Gauss–Newton interval, kept in :class:`FitResult`
 ``lo_gauss``/``hi_gauss`` whatever is reported; ``"calibrated"`` (what :func:`fit_forward` and
 inference use for the fit the scales were calibrated on, :func:`default_intervals`): ``k`` per class
-of the parameter's relative sd and per stratum of the estimate (near the slab's base or not), by split-conformal calibration on benchmark lesions
-(:mod:`elastimap.identify.intervals`: the Gauss–Newton sd is too narrow where the image tells a
-parameter best, the valley's discretisation pull, and too wide where it cannot tell it).
+of the parameter's relative sd and per stratum of the estimate (near the slab's base or not), by
+split-conformal calibration on benchmark lesions (:mod:`elastimap.identify.intervals`: the
+Gauss–Newton sd is too narrow where the image tells a parameter best, the valley's discretisation
+pull, and too wide where it cannot tell it).
 ``intervals="posterior"``
 (:func:`posterior_interval`, tried 2026-11-27 and not adopted, docs/camera.md 4j): the central
 95 % of the Laplace posterior -- the likelihood's Gaussian ``N(x̂, C_x)`` in the fit's coordinates
@@ -663,8 +664,8 @@ def fit_image(
     ``forward_fine`` -- ``"correct"`` (defect correction, above) or ``"direct"`` (they fit the finer
     map itself, pinned like ``forward`` and with its exact derivative where it has one; ``forward``
     then only gives the E scan and pass 0).  ``intervals``: ``"gauss"`` (``θ̂ ± 1.96 sd`` clipped to
-    the box), ``"calibrated"`` (``θ̂ ± 1.96 k sd``, ``k`` by class of the fit's relative sd and the estimate's stratum,
-    :mod:`elastimap.identify.intervals`: calibrated for the maps of :func:`default_intervals`, which
+    the box), ``"calibrated"`` (``θ̂ ± 1.96 k sd``, ``k`` by class of the fit's relative sd and the
+    estimate's stratum, :mod:`elastimap.identify.intervals`: calibrated for the maps of :func:`default_intervals`, which
     callers that build the maps from mesh levels use) or ``"posterior"`` (the design prior's Laplace
     posterior, :func:`posterior_interval`; not adopted, docs/camera.md 4j).  See the module docstring."""
     from scipy.optimize import least_squares

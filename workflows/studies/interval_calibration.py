@@ -14,8 +14,8 @@ stratum of the estimate (far from or near the slab's base, :func:`~elastimap.ide
 and class of the relative sd (:func:`~elastimap.identify.intervals.calibrate`, the table to copy into
 ``SCALES``), then the coverage of the Gauss–Newton and of the calibrated interval inside and
 outside the shipped identifiability map's region (``frames`` set, 10 %, at the truth; the
-benchmark's own split) and near the base: of the calibration folders themselves (in-sample: says only that the scales
-do what they were set to), with ``--loso`` of each folder with the scales of the others (leave one
+benchmark's own split) and near the base: of the calibration folders themselves (in-sample: says
+only that the scales do what they were set to), with ``--loso`` of each folder with the scales of the others (leave one
 seed out: an honest estimate of held-out coverage), and of the ``--check`` folders (never used for
 the scales).  A study: the scales it prints are what ``SCALES`` holds, nothing else reads it.
 """
