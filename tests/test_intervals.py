@@ -90,9 +90,10 @@ def test_calibrated_scales_hold_fresh_draws_at_95_percent_per_class():
     """SYNTHETIC scores whose spread differs by class (a Gauss–Newton sd 3x too narrow in one class,
     2x too wide in another) and, in the first class, by stratum (5x too narrow near the base, on a
     fifth of the lesions): scales from one draw hold 95 % of a fresh, independent draw in each cell
-    (within three binomial standard errors), where k = 1 holds 31–53 % and ~100 %, and pooling the
-    strata would hold far fewer near the base; a cell with too few lesions takes its class's scale, a
-    class with too few keeps 1."""
+    (within three binomial standard errors), where k = 1 holds 30 % (near) and 49 % (far) of the first
+    class and ~100 % of the last, and pooling the strata would hold far fewer near the base; a cell
+    with too few lesions takes its class's scale, a class with too few keeps 1 (2·Φ(1.96/5) − 1 = 0.30,
+    2·Φ(1.96/3) − 1 = 0.49)."""
     rng = np.random.default_rng(11)
 
     def draw(n):
