@@ -21,7 +21,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_bad_inputs import SYNTH, invoke, make_dataset, make_model, snapshot
 
-from elastimap.errors import UserError, check_range
+from elastimap.constraints import check_range
+from elastimap.errors import UserError
 
 # its module fixture is costly: under pytest-xdist (make test) this module runs on one worker
 pytestmark = pytest.mark.xdist_group("test_data_safety")
