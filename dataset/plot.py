@@ -16,6 +16,7 @@ import numpy as np
 from elastimap.errors import UserError
 
 from . import io
+from .phantoms import is_phantom
 from .schema import COLUMNS, FEATURES, TARGETS
 
 
@@ -61,7 +62,7 @@ def plot_all(path, out_dir, n_images: int = 12) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     files = []
     d, h, E = (df[c].to_numpy(dtype=float) for c in TARGETS)
-    phantom = df["tag"].str.startswith("phantom").to_numpy()
+    phantom = is_phantom(df["tag"])
 
     # 1. paper-style 3-D scatter
     fig = plt.figure(figsize=(15, 5))

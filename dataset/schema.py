@@ -18,14 +18,12 @@ room shares; writers (``sweep``) and readers (``training``, ``camera``, ``gap``,
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pyarrow as pa
 
 from elastimap.solver.params import DESIGN_BOX, THICKNESS, depth_range  # noqa: F401  (vocabulary, re-exported)
 
-#: the nine calibration-phantom inclusions (shipped with the package)
-PHANTOMS_CSV = Path(__file__).resolve().parent / "phantoms.csv"
+from .phantoms import PHANTOMS_CSV  # noqa: F401  (the shipped phantom table; read it with dataset.phantoms)
+
 
 SCHEMA_VERSION = 1
 
