@@ -24,7 +24,6 @@ from elastimap.solver.params import DESIGN_BOX, THICKNESS, depth_range  # noqa: 
 
 from .phantoms import PHANTOMS_CSV  # noqa: F401  (the shipped phantom table; read it with dataset.phantoms)
 
-
 SCHEMA_VERSION = 1
 
 # name: (arrow type, unit, description)
