@@ -2,7 +2,7 @@
 
 elastimap dataset inspect sweeps/default-tied-lhs512-s0
 elastimap dataset plot sweeps/default-tied-lhs512-s0 --out figs/
-elastimap dataset export sweeps/default-tied-lhs512-s0 --csv table.csv
+elastimap dataset export sweeps/default-tied-lhs512-s0 --out table.csv
 elastimap dataset compact sweeps/default-tied-lhs512-s0
 """
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import click
 
-from elastimap.cli_util import CONTEXT_SETTINGS, out_option, param_flags
+from elastimap.cli_util import CONTEXT_SETTINGS, Choice, out_option, param_flags
 from elastimap.cli_util import run as run_cli
 from elastimap.errors import UserError
 
@@ -52,29 +52,30 @@ def plot_cmd(path, out, images):
 
 @cli.command("export")
 @click.argument("path")
+@out_option(help="CSV file to write (default: <PATH>.csv next to the dataset); '-' for stdout")
 @click.option(
-    "--csv",
-    "csv_path",
-    default=None,
-    help="CSV file to write (default: <PATH>.csv next to the dataset); '-' for stdout",
+    "--status",
+    type=Choice(["ok", "failed", "all"]),
+    default="all",
+    show_default=True,
+    help="Which samples to write: the solved ones, the failed ones or all.",
 )
-@click.option("--status", type=click.Choice(["ok", "failed", "all"]), default="all", show_default=True)
 @click.option(
     "--images/--no-images",
     default=False,
     show_default=True,
     help="include the image as one column of space-separated values",
 )
-def export_cmd(path, csv_path, status, images):
+def export_cmd(path, out, status, images):
     """One CSV table for spreadsheets (one row per sample, parameters, features, status, statistics)."""
     from elastimap.outputs import check_out_file
 
     from . import io
 
     src = Path(path).resolve()
-    target = csv_path or str(src.with_suffix(".csv") if src.is_file() else src.with_name(src.name + ".csv"))
+    target = out or str(src.with_suffix(".csv") if src.is_file() else src.with_name(src.name + ".csv"))
     if target != "-":
-        check_out_file(target, "--csv")  # before reading
+        check_out_file(target, "--out")  # before reading
     df = io.read_samples(path, status=None if status == "all" else status)
     if images:
         df["image"] = [" ".join(f"{x:.6g}" for x in v) if v is not None else "" for v in df["image"]]
@@ -85,7 +86,7 @@ def export_cmd(path, csv_path, status, images):
         return 0
     from elastimap.outputs import write_or_fallback
 
-    t = write_or_fallback(lambda f: df.to_csv(f, index=False), target, "--csv")
+    t = write_or_fallback(lambda f: df.to_csv(f, index=False), target, "--out")
     click.echo(f"wrote {len(df)} rows to {t}")
     return 0
 

@@ -84,7 +84,7 @@ def test_training_reads_what_inspect_reads(tmp_path):
             "2",
             "--hidden",
             "3",
-            "--quiet",
+            "--no-progress",
             "--out",
             str(tmp_path / "tr"),
             "--no-model",
@@ -124,7 +124,7 @@ def test_no_other_sample_reader_in_the_rooms():
 
 
 # ----------------------------------------------------------------------------- train --out
-TRAIN = ["--synthetic", "30", "--repeats", "1", "--epochs", "2", "--hidden", "3", "--quiet"]
+TRAIN = ["--synthetic", "30", "--repeats", "1", "--epochs", "2", "--hidden", "3", "--no-progress"]
 
 
 def test_train_out_holds_exactly_one_run(tmp_path):
@@ -156,7 +156,7 @@ def test_failed_train_run_leaves_nothing(tmp_path):
             "2",
             "--hidden",
             "3",
-            "--quiet",
+            "--no-progress",
             "--val-fraction",
             "0.95",
             "--out",
