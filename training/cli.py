@@ -226,7 +226,7 @@ def _run(samples, cfg, spec: RunSpec, out: str, final: str) -> int:
         for a in spec.algos:
             r = run_validation(samples, a, v, spec.repeats, cfg, seed=spec.seed, test_split=spec.test_split)
             results.append(r)
-            plot_curves(r, os.path.join(out, f"curves-{a}-{v}.png"))
+            plot_curves(r, os.path.join(out, f"curves-{a}-{v}.png"), label=f", {samples.source}")
             click.echo(
                 f"{a} {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s "
                 f"({r.row['trainings_per_s']:.2f}/s); stops {r.row['stops']}",
