@@ -11,16 +11,15 @@ column              unit   rule
 ``h``               mm     required, depth of the inclusion CENTRE below the surface, > 0
 ``E``               kPa    required, inclusion Young's modulus, > 0
 ``phantom``                optional, the phantom the inclusion belongs to (a label)
-``tissue_E``        kPa    optional, background modulus, > 0 (absent: the solver's default)
-``tissue_thickness`` mm    optional, tissue height, > 0 (absent: the solver's default)
+``tissue_E``        kPa    optional, background modulus, > 0 (absent: the run's own tissue)
+``tissue_thickness`` mm    optional, tissue height, > 0 (absent: the run's own tissue)
 ==================  =====  ==============================================================
 
 :func:`read_phantoms` applies these rules to every table, the shipped one
-(:data:`PHANTOMS_CSV`: the paper's nine inclusions, three phantoms of three) and a user's,
-and refuses a bad table with one :class:`~elastimap.errors.UserError` line.  In a sample dataset a
+(:data:`~elastimap.dataset.schema.PHANTOMS_CSV`: the paper's nine inclusions, three phantoms of
+three) and a user's, and refuses a bad table with one :class:`~elastimap.errors.UserError` line.  In a sample dataset a
 phantom row is tagged ``phantom:<name>`` and has the id ``phantom-<name>`` (:func:`phantom_tag`,
-:func:`is_phantom`, :func:`phantom_samples`).  Importing this module imports numpy only (pandas
-when a table is read), so :mod:`elastimap.dataset.schema` can name :data:`PHANTOMS_CSV`.
+:func:`is_phantom`, :func:`phantom_samples`).  pandas is imported only when a table is read.
 """
 
 from __future__ import annotations
@@ -33,16 +32,14 @@ import numpy as np
 
 from elastimap.errors import UserError
 
+from .schema import PHANTOMS_CSV, TARGETS, UNITS
+
 if TYPE_CHECKING:
     import pandas as pd
 
-#: the shipped table: the nine calibration-phantom inclusions (installed with the package)
-PHANTOMS_CSV = Path(__file__).resolve().parent / "phantoms.csv"
 #: ``tag`` of a phantom row in a sample dataset is ``TAG_PREFIX + name``; its ``sample_id`` ``ID_PREFIX + name``
 TAG_PREFIX = "phantom:"
 ID_PREFIX = "phantom-"
-#: required numeric columns and their units
-NUMBERS = {"d": "mm", "h": "mm", "E": "kPa"}
 #: optional numeric columns (the background the inclusion sits in) and their units
 TISSUE = {"tissue_E": "kPa", "tissue_thickness": "mm"}
 
@@ -69,7 +66,7 @@ def read_phantoms(
         raise UserError(param, f"{p}: not a readable CSV ({type(exc).__name__})") from None
     if "name" not in df.columns and "id" in df.columns:
         df = df.rename(columns={"id": "name"})
-    missing = [c for c in ("name", *NUMBERS) if c not in df.columns]
+    missing = [c for c in ("name", *TARGETS) if c not in df.columns]
     if missing:
         raise UserError(param, f"{p}: missing column(s) {', '.join(missing)} (need name or id, d, h, E)")
     if len(df) < min_rows:
@@ -81,10 +78,10 @@ def read_phantoms(
     if names.duplicated().any():
         raise UserError(param, f"{p}: duplicate names {sorted(set(names[names.duplicated()]))}")
     df["name"] = names
-    for c in (*NUMBERS, *(c for c in TISSUE if c in df.columns)):
+    for c in (*TARGETS, *(c for c in TISSUE if c in df.columns)):
         v = pd.to_numeric(df[c], errors="coerce")
         if not (np.isfinite(v).all() and (v > 0).all()):
-            raise UserError(param, f"{p}: column {c} must be positive numbers ({NUMBERS.get(c) or TISSUE[c]})")
+            raise UserError(param, f"{p}: column {c} must be positive numbers ({UNITS.get(c) or TISSUE[c]})")
         df[c] = v.astype(float)
     if "phantom" in df.columns:
         df["phantom"] = df["phantom"].astype(str)
@@ -115,6 +112,6 @@ def phantom_samples(table: pd.DataFrame | None = None) -> list[dict]:
     rows = []
     for r in table.to_dict("records"):
         row = {"sample_id": ID_PREFIX + r["name"], "tag": phantom_tag(r["name"])}
-        row.update({c: float(r[c]) for c in (*NUMBERS, *TISSUE) if c in r})
+        row.update({c: float(r[c]) for c in (*TARGETS, *TISSUE) if c in r})
         rows.append(row)
     return rows

@@ -18,11 +18,15 @@ room shares; writers (``sweep``) and readers (``training``, ``camera``, ``gap``,
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pyarrow as pa
 
 from elastimap.solver.params import DESIGN_BOX, THICKNESS, depth_range  # noqa: F401  (vocabulary, re-exported)
 
-from .phantoms import PHANTOMS_CSV  # noqa: F401  (the shipped phantom table; read it with dataset.phantoms)
+#: the shipped calibration-phantom table (installed with the package); read it with
+#: :func:`elastimap.dataset.phantoms.read_phantoms`
+PHANTOMS_CSV = Path(__file__).resolve().parent / "phantoms.csv"
 
 SCHEMA_VERSION = 1
 
