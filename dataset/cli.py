@@ -36,11 +36,11 @@ def inspect_cmd(path, as_json, top):
     return 0
 
 
-@param_flags({"n_images": "--images", "out_dir": "--out"})
+@param_flags({"n_images": "--n-images", "out_dir": "--out"})
 @cli.command("plot")
 @click.argument("path")
 @out_option(required=True, help="directory for the PNG figures")
-@click.option("--images", default=12, show_default=True, help="example images in the grid")
+@click.option("--n-images", "images", default=12, show_default=True, help="example images in the grid of images.png")
 def plot_cmd(path, out, images):
     """PNG figures: the paper's 3-D scatter per feature, features vs parameters, example images."""
     from .plot import plot_all
@@ -61,10 +61,11 @@ def plot_cmd(path, out, images):
     help="Which samples to write: the solved ones, the failed ones or all.",
 )
 @click.option(
-    "--images/--no-images",
+    "--image-column/--no-image-column",
+    "images",
     default=False,
     show_default=True,
-    help="include the image as one column of space-separated values",
+    help="include the elasticity image as one column of space-separated values (mm)",
 )
 def export_cmd(path, out, status, images):
     """One CSV table for spreadsheets (one row per sample, parameters, features, status, statistics)."""

@@ -290,7 +290,7 @@ CASES = [
     ("dataset", ["inspect", "{A}/ds", "--top", "-1"], ("top",)),
     ("dataset", ["plot", "{A}/ds", "--out", "{A}/a-file"], ("out", "a-file")),
     ("dataset", ["plot", "{A}/ds", "--out", "{A}/a-file/sub"], ("out", "a-file")),
-    ("dataset", ["plot", "{A}/ds", "--out", "figs", "--images", "-1"], ("images",)),
+    ("dataset", ["plot", "{A}/ds", "--out", "figs", "--n-images", "-1"], ("--n-images",)),
     ("dataset", ["plot", "{A}/foreign.parquet", "--out", "figs"], ("foreign.parquet",)),
     ("dataset", ["export", "{A}/ds", "--out", "nodir/x.csv"], ("out", "nodir")),
     ("dataset", ["export", "{A}/ds", "--out", "{A}/ds"], ("out",)),
