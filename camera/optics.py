@@ -59,7 +59,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from elastimap.errors import UserError, check_range
+from elastimap.constraints import check_range
+from elastimap.errors import UserError
 
 SENSOR_ROWS = 1042
 SENSOR_COLS = 1392

@@ -40,7 +40,7 @@ STAGES = {
     "solve": ("elastimap.solver.cli:command", "One forward solve: features, force and image of one inclusion."),
     "sweep": ("elastimap.sweep.cli:cli", "Batch sweeps of the forward model into Parquet datasets."),
     "dataset": ("elastimap.dataset.cli:cli", "Inspect, plot, export and compact sample datasets."),
-    "train": ("elastimap.training.cli:train", "Train and validate the inverse MLP (LM/SCG, HOV/LOOCV)."),
+    "train": ("elastimap.training.cli:cli", "Train and validate the inverse MLP (LM/SCG, HOV/LOOCV)."),
     "camera": ("elastimap.camera.cli:main", "Camera side: synthetic frames, features, calibrate, infer, detect."),
     "gap": ("elastimap.gap.cli:main_group", "Sim-to-real gap diagnosis (synth, diagnose, selftest)."),
 }

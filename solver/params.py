@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from elastimap.constraints import Interval, Options, validate_params
-from elastimap.errors import UserError, check_range
+from elastimap.constraints import Interval, Options, check_range, validate_params
+from elastimap.errors import UserError
 
 MESH_LEVELS = ("tiny", "coarse", "default", "fine", "finer")
 INTERFACES = ("tied", "contact", "bonded")

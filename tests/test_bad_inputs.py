@@ -231,7 +231,7 @@ def assets(tmp_path_factory):
 # ----------------------------------------------------------------------------- the cases
 # (console script, arguments with {A} = the shared inputs folder, words of which the error line names one)
 TINY = ["--mesh", "tiny"]
-TRAIN = ["--synthetic", "30", "--repeats", "1", "--epochs", "2", "--hidden", "3", "--quiet", "--out", "tr"]
+TRAIN = ["--synthetic", "30", "--repeats", "1", "--epochs", "2", "--hidden", "3", "--no-progress", "--out", "tr"]
 SYNTH = ["--backend", "toy", "--cache", "none", "--n", "4", "--frames", "2", "--mesh", "tiny", "--quiet"]
 DIAG = ["--measured", "{A}/S", "--backend", "toy", "--cache", "none", "--no-inverse", "--quiet", "--out", "dg"]
 INFER = ["--calibration", "{A}/cal.json", "--features", "1", "2", "3", "--identifiability", "none"]
@@ -290,12 +290,12 @@ CASES = [
     ("dataset", ["inspect", "{A}/ds", "--top", "-1"], ("top",)),
     ("dataset", ["plot", "{A}/ds", "--out", "{A}/a-file"], ("out", "a-file")),
     ("dataset", ["plot", "{A}/ds", "--out", "{A}/a-file/sub"], ("out", "a-file")),
-    ("dataset", ["plot", "{A}/ds", "--out", "figs", "--images", "-1"], ("images",)),
+    ("dataset", ["plot", "{A}/ds", "--out", "figs", "--n-images", "-1"], ("--n-images",)),
     ("dataset", ["plot", "{A}/foreign.parquet", "--out", "figs"], ("foreign.parquet",)),
-    ("dataset", ["export", "{A}/ds", "--csv", "nodir/x.csv"], ("csv", "nodir")),
-    ("dataset", ["export", "{A}/ds", "--csv", "{A}/ds"], ("csv",)),
-    ("dataset", ["export", "{A}/foreign.parquet", "--csv", "x.csv"], ("foreign.parquet",)),
-    ("dataset", ["export", "{A}/ds", "--status", "bogus", "--csv", "x.csv"], ("status",)),
+    ("dataset", ["export", "{A}/ds", "--out", "nodir/x.csv"], ("out", "nodir")),
+    ("dataset", ["export", "{A}/ds", "--out", "{A}/ds"], ("out",)),
+    ("dataset", ["export", "{A}/foreign.parquet", "--out", "x.csv"], ("foreign.parquet",)),
+    ("dataset", ["export", "{A}/ds", "--status", "bogus", "--out", "x.csv"], ("status",)),
     ("dataset", ["compact", "missing"], ("missing",)),
     ("dataset", ["compact", "{A}/ds", "--batch-rows", "0"], ("batch",)),
     # ---- train
@@ -313,8 +313,8 @@ CASES = [
     ("train", [*TRAIN, "--feature-noise", "2"], ("noise",)),
     ("train", [*TRAIN, "--val-fraction", "1"], ("val",)),
     ("train", [*TRAIN, "--test-split", "1.5"], ("split",)),
-    ("train", [*TRAIN[:4], "--epochs", "2", "--hidden", "0", "--quiet", "--out", "tr"], ("hidden",)),
-    ("train", [*TRAIN[:4], "--epochs", "2", "--hidden", "3:foo", "--quiet", "--out", "tr"], ("hidden", "foo")),
+    ("train", [*TRAIN[:4], "--epochs", "2", "--hidden", "0", "--no-progress", "--out", "tr"], ("hidden",)),
+    ("train", [*TRAIN[:4], "--epochs", "2", "--hidden", "3:foo", "--no-progress", "--out", "tr"], ("hidden", "foo")),
     ("train", [*TRAIN, "--activation", "foo"], ("activation", "foo")),
     ("train", [*TRAIN, "--device", "tpu"], ("device",)),
     ("train", [*TRAIN, "--workers", "-1"], ("workers",)),

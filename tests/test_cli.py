@@ -364,7 +364,7 @@ def test_train_runs_as_elastimap_train_and_as_train(tmp_path):
         "--hidden",
         "3",
         "--no-model",
-        "--quiet",
+        "--no-progress",
         "--threads",
         "1",
         "--workers",

@@ -21,7 +21,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_bad_inputs import SYNTH, invoke, make_dataset, make_model, snapshot
 
-from elastimap.errors import UserError, check_range
+from elastimap.constraints import check_range
+from elastimap.errors import UserError
 
 # its module fixture is costly: under pytest-xdist (make test) this module runs on one worker
 pytestmark = pytest.mark.xdist_group("test_data_safety")
@@ -83,7 +84,7 @@ def test_training_reads_what_inspect_reads(tmp_path):
             "2",
             "--hidden",
             "3",
-            "--quiet",
+            "--no-progress",
             "--out",
             str(tmp_path / "tr"),
             "--no-model",
@@ -123,7 +124,7 @@ def test_no_other_sample_reader_in_the_rooms():
 
 
 # ----------------------------------------------------------------------------- train --out
-TRAIN = ["--synthetic", "30", "--repeats", "1", "--epochs", "2", "--hidden", "3", "--quiet"]
+TRAIN = ["--synthetic", "30", "--repeats", "1", "--epochs", "2", "--hidden", "3", "--no-progress"]
 
 
 def test_train_out_holds_exactly_one_run(tmp_path):
@@ -155,7 +156,7 @@ def test_failed_train_run_leaves_nothing(tmp_path):
             "2",
             "--hidden",
             "3",
-            "--quiet",
+            "--no-progress",
             "--val-fraction",
             "0.95",
             "--out",

@@ -156,7 +156,7 @@ def test_cli_inspect_export_compact_plot(tmp_path, capsys):
     assert "status: failed 1, ok 6" in out and "SolverError: boom" in out and "NaN/inf in ok rows: none" in out
     code, out, _ = _cli(["inspect", str(ds), "--json"], capsys)
     assert json.loads(out)["status"] == {"ok": 6, "failed": 1}
-    code, out, _ = _cli(["export", str(ds), "--csv", str(tmp_path / "t.csv")], capsys)
+    code, out, _ = _cli(["export", str(ds), "--out", str(tmp_path / "t.csv")], capsys)
     assert code == 0 and (tmp_path / "t.csv").read_text().count("\n") == 8
     code, out, _ = _cli(["compact", str(ds)], capsys)
     assert code == 0 and "7 files -> 1" in out

@@ -19,7 +19,7 @@ from elastimap.cli_util import run
 from elastimap.dataset import io as dio
 from elastimap.errors import UserError
 from elastimap.training.api import fit_ensemble
-from elastimap.training.cli import train
+from elastimap.training.cli import cli as train_cli
 from elastimap.training.data import data_hash, load_samples, prepare, synthetic_table
 from elastimap.training.experiment import TrainConfig, run_validation, summarize
 from elastimap.training.model import Ensemble
@@ -151,7 +151,7 @@ def test_validation_runner_metrics(toy):
 
 def _cli(args, capsys):
     with pytest.raises(SystemExit) as exc:
-        run(train, args=args, prog_name="train")
+        run(train_cli, args=args, prog_name="train")
     cap = capsys.readouterr()
     return exc.value.code, cap.out, cap.err
 
@@ -172,7 +172,7 @@ def _cli(args, capsys):
     ],
 )
 def test_cli_bad_options_exit_2(args, msg, capsys):
-    code, out, err = _cli(args + ["--quiet"], capsys)
+    code, out, err = _cli(args + ["--no-progress"], capsys)
     assert code == 2
     assert err.startswith("error: ") and msg.lower() in err.lower() and len(err.strip().splitlines()) == 1
 
@@ -197,7 +197,7 @@ def test_cli_run_writes_tables_curves_and_models(tmp_path, toy, capsys):
             "5,3",
             "--out",
             str(out),
-            "--quiet",
+            "--no-progress",
             "--threads",
             "1",
         ],

@@ -17,6 +17,7 @@ HOME = {
     "UNITS": "dataset/schema.py",
     "THICKNESS": "solver/params.py",
     "DESIGN_BOX": "solver/params.py",
+    "PHANTOMS_CSV": "dataset/schema.py",
 }
 
 
