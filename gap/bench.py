@@ -12,9 +12,14 @@ from __future__ import annotations
 
 import os
 import platform
+import resource
 import time
 
 from . import effects as fx
+from .diagnose import diagnose
+from .settings import FINER, Settings
+from .simulate import Simulator
+from .synth import phantom_design, synthesize
 
 
 def run(
@@ -30,10 +35,6 @@ def run(
     seed: int = 0,
     log=print,
 ) -> dict:
-    from .diagnose import FINER, Settings, diagnose
-    from .simulate import Simulator
-    from .synth import phantom_design, synthesize
-
     dhe = phantom_design(n, seed)
     dc = os.path.join(data_cache, f"fem-{data_mesh}") if data_cache else None
     sim_data = Simulator(dc, data_mesh, "fem", jobs)
@@ -66,7 +67,6 @@ def run(
     sim = Simulator(None, mesh, "fem", jobs, progress=progress(mesh))
     fine = Simulator(None, FINER[mesh], "fem", jobs, progress=progress(FINER[mesh])) if FINER.get(mesh) else None
     st = Settings(inverse=inverse, adaptive=adaptive, seed=seed)
-    import resource
 
     def cpu():
         a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -127,15 +127,3 @@ def run(
         log("\n".join(L))
     out["text"] = "\n".join(L)
     return out
-
-
-def main(argv=None) -> None:
-    from .cli import main as gap_main
-
-    gap_main(["bench", *(argv or [])])
-
-
-if __name__ == "__main__":
-    import sys
-
-    main(sys.argv[1:])

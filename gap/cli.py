@@ -208,7 +208,8 @@ def diagnose_cmd(
     from elastimap.outputs import check_out_dir
 
     from . import measured, report
-    from .diagnose import Settings, diagnose
+    from .diagnose import diagnose
+    from .settings import Settings
 
     if not 0 < alpha < 0.5:
         raise UserError("alpha", "must be in (0, 0.5)")
@@ -242,7 +243,7 @@ def diagnose_cmd(
 
 def error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet):
     """The simulator of the finer mesh level for the model error (None: assumed floor)."""
-    from .diagnose import FINER
+    from .settings import FINER
 
     level = FINER.get(sim.mesh) if error_mesh is None else (None if error_mesh == "none" else error_mesh)
     if level is None:
@@ -315,7 +316,7 @@ def selftest_cmd(
 ):
     """Blind benchmark with model-form error: no-effect, in-library and out-of-library trials (SYNTHETIC)."""
     from . import selftest
-    from .diagnose import FINER, Settings
+    from .settings import FINER, Settings
 
     if trials < 1:
         raise UserError("trials", f"must be >= 1 (got {trials})")

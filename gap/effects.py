@@ -116,7 +116,7 @@ class Effect:
     def own_model_error(self) -> bool:
         """Whether the baseline's discretisation error does not carry over to this effect's
         magnitudes, so the diagnosis measures the model error at its refined magnitudes
-        (:func:`elastimap.gap.diagnose.refine`): the effects that remesh, and the tissue's
+        (:func:`elastimap.gap.adaptive.refine`): the effects that remesh, and the tissue's
         Poisson ratio (the error of nearly incompressible elements grows as ν → 0.5)."""
         return self.stage == "mechanics" and self.name in OWN_ERROR
 

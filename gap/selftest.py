@@ -36,7 +36,9 @@ import numpy as np
 from elastimap.errors import UserError
 
 from . import effects as fx
-from .diagnose import Settings, common_factor, diagnose, isolated_member
+from .diagnose import diagnose
+from .selection import common_factor, isolated_member
+from .settings import Settings
 from .simulate import Simulator
 from .synth import phantom_design, synthesize
 
@@ -215,7 +217,7 @@ def run(
 
 def family_isolates(row: dict, effect: str) -> bool:
     """Whether a family (a ranking row with several members) names ``effect`` alone
-    (:func:`elastimap.gap.diagnose.isolated_member`, :func:`elastimap.gap.diagnose.common_factor`)."""
+    (:func:`elastimap.gap.selection.isolated_member`, :func:`elastimap.gap.selection.common_factor`)."""
     cf = common_factor(row)
     return isolated_member(row) == effect or (cf is not None and cf[0] == effect)
 
