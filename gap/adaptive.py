@@ -117,7 +117,7 @@ def _target(c: Candidate | None, name: str, th: float, single: bool, want: dict,
     # a single effect's fit at the end of its range: the range is extended (one step a
     # round) up to the effect's limits, since a real effect need not stay on the grid.
     # A family's members are not: with several parameters outside their grids a family
-    # mimics effects that are not in the library (seed-4 blind run, aspect ratio)
+    # mimics effects that are not in the library (docs/history/gap.md, 'Blind benchmark, seed 4')
     out = None if c is None or len(c.grid) < 2 or not single else c.effect.beyond(th, *fit_range(c))
     if out is not None:
         # once per effect and magnitude (a family and its member may both ask for it)

@@ -170,4 +170,5 @@ def image_residual(meas: Measured, Dsim, me: dict, sensor) -> dict:
         "rings": rings,
         "max_abs_z": float(np.max(np.abs(mean) / np.maximum(band, 1e-300))),
         "noise_px": float(np.median(se) * math.sqrt(n)),
+        "pixel_mm": float(pix),
     }
