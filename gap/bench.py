@@ -106,8 +106,19 @@ def run(
         "best": ev["best"],
         "machine": f"{platform.node()} {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}",
     }
+    L = _lines(out, res, len(res["candidates"]), ev, sbe)
+    if log:
+        log("\n".join(L))
+    out["text"] = "\n".join(L)
+    return out
+
+
+def _lines(out: dict, res: dict, n_cands: int, ev: dict, sbe: dict) -> list[str]:
+    """The printed summary of one bench run."""
+    n, mesh, jobs, adaptive, inverse = out["n"], out["mesh"], out["jobs"], out["adaptive"], out["inverse"]
+    wall, cpu_s = out["wall_seconds"], out["cpu_seconds"]
     L = [
-        f"first diagnosis: {n} phantoms, {len(res['candidates'])} default candidates, mesh {mesh} "
+        f"first diagnosis: {n} phantoms, {n_cands} default candidates, mesh {mesh} "
         f"(model error vs {out['error_mesh']}), --jobs {jobs}, no cache, "
         f"{'adaptive magnitudes' if adaptive else 'full grids'}, inverse {'on' if inverse else 'off'}",
         f"  wall {wall:.0f} s, CPU {cpu_s:.0f} s (main process and workers; CPU / {jobs} = the wall time "
@@ -123,7 +134,4 @@ def run(
         f"  verdict: {ev['outcome']} {ev['ambiguous_set'] or ''} (best {ev['best']})",
         f"  machine: {out['machine']}",
     ]
-    if log:
-        log("\n".join(L))
-    out["text"] = "\n".join(L)
-    return out
+    return L

@@ -64,6 +64,7 @@ Settings: :mod:`~elastimap.gap.settings`.
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -100,62 +101,36 @@ def diagnose(
         raise UserError("effects", "no candidate effects to test")
     sensor, settings = meas.sensor_model(), meas.settings()
     solved0 = sim.stats["solved"]
-    timing = {}
-    tt = time.perf_counter()
-    V0, D0, C, base_seconds = simulate_candidates(meas, cands, sim, sensor, settings, adaptive=st.adaptive)
-    timing["candidates"] = time.perf_counter() - tt
-    tt = time.perf_counter()
-    me = model_error(meas, sim, sim_fine, sensor, settings, V0, D0, st)
-    if st.richardson and me["kind"] == "measured":
-        V0, D0 = richardson_correct(V0, D0, C, me, st)
-        me["note"] += (
-            "; predictions extrapolated by it, σ = the spread of that extrapolation over orders "
-            f"p in {list(st.order_range_image)} (image), {list(st.order_range_force)} (force)"
-        )
-    timing["model_error"] = time.perf_counter() - tt
+    timing: dict[str, float] = {}
+    with _timed(timing, "candidates"):
+        V0, D0, C, base_seconds = simulate_candidates(meas, cands, sim, sensor, settings, adaptive=st.adaptive)
+    with _timed(timing, "model_error"):
+        me = model_error(meas, sim, sim_fine, sensor, settings, V0, D0, st)
+        if st.richardson and me["kind"] == "measured":
+            V0, D0 = richardson_correct(V0, D0, C, me, st)
+            me["note"] += (
+                "; predictions extrapolated by it, σ = the spread of that extrapolation over orders "
+                f"p in {list(st.order_range_image)} (image), {list(st.order_range_force)} (force)"
+            )
     mv = measured_views(meas, sensor, settings)
     names = decision_views(mv)
-    y = cat({k: v for k, (v, _) in mv.items()}, names)
-    se = cat({k: s for k, (_, s) in mv.items()}, names)
-    y0 = cat(V0, names)
-    S0 = np.sqrt(se**2 + cat(me["sigma"], names) ** 2)
-    S0 = np.maximum(S0, 1e-12 * np.maximum(np.abs(y0), 1e-300))
+    y, y0, S0 = _decision_data(mv, V0, me, names)
 
     def evaluate_now():
         modes, spread = systematic_modes(me, names)
         return evaluate(y, S0, y0, build_models(C, names, V0, st), meas.n, st, slices(V0, names), modes, spread)
 
-    tt = time.perf_counter()
-    ref_solves, ref_rounds, ref_fine_seconds = (
-        refine(meas, C, sim, sensor, settings, me, st, evaluate_now, sim_fine) if st.adaptive else (0, 0, 0.0)
-    )
-    timing["refine"] = time.perf_counter() - tt
-    tt = time.perf_counter()
-    ev = evaluate_now()
-    timing["evaluate"] = time.perf_counter() - tt
-    tt = time.perf_counter()
-    _annotate_ranking(ev["ranking"], C)
-    ev["views"] = names
-    ev["by_view"] = view_baselines(mv, V0, me, st)
-    wh = where(meas, mv, V0, D0, me, st)
-    rows = {r["effect"]: r for r in ev["ranking"]}
-    best = rows[ev["best"]] if ev["best"] else None
-    shrink = shrink_features(meas, y, y0, best["_S"], best["_model"], names) if best else None
-    prop = None
-    if ev["outcome"] == "ambiguous":
-        prop = propose(
-            meas, [ev["reported"][n]["_row"] for n in ev["ambiguous_set"]], V0, me, names, sim, sensor, settings, st
+    with _timed(timing, "refine"):
+        ref_solves, ref_rounds, ref_fine_seconds = (
+            refine(meas, C, sim, sensor, settings, me, st, evaluate_now, sim_fine) if st.adaptive else (0, 0, 0.0)
         )
-    inv = None
-    if st.inverse and best is not None and ev["outcome"] not in ("no significant gap",):
-        inv = shrink_inverse(meas, best["_model"], shrink["magnitude"], sim, sensor, settings, st)
-    _stage_summary(wh["stage"], ev["ranking"], inv)
-    if best is not None and "image" in wh:
-        Dw = best["_model"].image(best["_theta"])
-        if Dw is not None:
-            wh["image_after"] = image_residual(meas, Dw, me, sensor)
-            wh["image_after"]["effect"] = best["effect"]
-    timing["rest"] = time.perf_counter() - tt
+    with _timed(timing, "evaluate"):
+        ev = evaluate_now()
+    with _timed(timing, "rest"):
+        _annotate_ranking(ev["ranking"], C)
+        ev["views"] = names
+        ev["by_view"] = view_baselines(mv, V0, me, st)
+        found = _findings(meas, ev, mv, V0, D0, me, names, y, y0, sim, sensor, settings, st)
     solve_seconds = {"baseline": base_seconds}
     solve_seconds.update({c.effect.name: c.solve_seconds for c in C if c.solve_seconds is not None})
     if "_solve_seconds" in me or ref_fine_seconds:
@@ -183,10 +158,7 @@ def diagnose(
         "_V0": V0,
         "baseline": V0["features"],
         "evaluation": ev,
-        "where": wh,
-        "shrink_features": shrink,
-        "shrink_inverse": inv,
-        "proposal": prop,
+        **found,
         "simulator": dict(
             sim.stats,
             backend=sim.backend,
@@ -197,6 +169,49 @@ def diagnose(
         ),
         "seconds": time.perf_counter() - t0,
     }
+
+
+@contextmanager
+def _timed(timing: dict, stage: str):
+    """Add the wall seconds of the block to ``timing[stage]``."""
+    t = time.perf_counter()
+    yield
+    timing[stage] = time.perf_counter() - t
+
+
+def _decision_data(mv: dict, V0: dict, me: dict, names) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(y, y0, S0) of the decision views ``names``: measured, baseline and
+    S0 = sqrt(se² + σ_model²) (floored at 1e-12 |y0|)."""
+    y = cat({k: v for k, (v, _) in mv.items()}, names)
+    se = cat({k: s for k, (_, s) in mv.items()}, names)
+    y0 = cat(V0, names)
+    S0 = np.sqrt(se**2 + cat(me["sigma"], names) ** 2)
+    return y, y0, np.maximum(S0, 1e-12 * np.maximum(np.abs(y0), 1e-300))
+
+
+def _findings(meas: Measured, ev: dict, mv, V0, D0, me: dict, names, y, y0, sim, sensor, settings, st) -> dict:
+    """Where the gap lies, how far it shrinks with the best candidate, and (ambiguous) which
+    measurement would separate the reported set: {"where", "shrink_features", "shrink_inverse",
+    "proposal"}."""
+    wh = where(meas, mv, V0, D0, me, st)
+    rows = {r["effect"]: r for r in ev["ranking"]}
+    best = rows[ev["best"]] if ev["best"] else None
+    shrink = shrink_features(meas, y, y0, best["_S"], best["_model"], names) if best else None
+    prop = None
+    if ev["outcome"] == "ambiguous":
+        prop = propose(
+            meas, [ev["reported"][n]["_row"] for n in ev["ambiguous_set"]], V0, me, names, sim, sensor, settings, st
+        )
+    inv = None
+    if st.inverse and best is not None and ev["outcome"] not in ("no significant gap",):
+        inv = shrink_inverse(meas, best["_model"], shrink["magnitude"], sim, sensor, settings, st)
+    _stage_summary(wh["stage"], ev["ranking"], inv)
+    if best is not None and "image" in wh:
+        Dw = best["_model"].image(best["_theta"])
+        if Dw is not None:
+            wh["image_after"] = image_residual(meas, Dw, me, sensor)
+            wh["image_after"]["effect"] = best["effect"]
+    return {"where": wh, "shrink_features": shrink, "shrink_inverse": inv, "proposal": prop}
 
 
 def _annotate_ranking(rows: list[dict], C: list[Candidate]) -> None:

@@ -163,42 +163,59 @@ def markdown(res: dict, figs: list[str]) -> str:
         f"candidates within Δscore ≤ {res['settings']['ambiguity_margin']:g} of a passing best cannot be told apart."
     )
     if ev["outcome"] == "ambiguous" and res.get("proposal"):
-        p = res["proposal"]
-        cols = (
-            ["now (these phantoms)"]
-            + (["plate force"] if p["force"] else [])
-            + (["second depth"] if p["second_depth"] else [])
+        L += _md_proposal(res["proposal"])
+    L += _md_ranking(ev)
+    L += _md_where(wh)
+    L += _md_shrink(res)
+    L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figs]
+    L += ["", "Method and equations: docs/gap.md, 'Method'.", ""]
+    return "\n".join(L)
+
+
+def _md_proposal(p: dict) -> list[str]:
+    """The report's lines on what would separate an ambiguous set."""
+    L: list[str] = []
+    cols = (
+        ["now (these phantoms)"]
+        + (["plate force"] if p["force"] else [])
+        + (["second depth"] if p["second_depth"] else [])
+    )
+    L += [
+        "",
+        "### Cannot be told apart with these phantoms — what would separate them",
+        "",
+        "Predicted separation of each pair in noise units, sqrt(Σ ((f_a − f_b)/S)²):",
+        "",
+        "| pair | " + " | ".join(cols) + " |",
+        "|---" * (len(cols) + 1) + "|",
+    ]
+    for k, v in p["now"].items():
+        vals = [v] + ([p["force"][k]] if p["force"] else []) + ([p["second_depth"][k]] if p["second_depth"] else [])
+        L.append(f"| {k} | " + " | ".join(f"{x:.3g}" for x in vals) + " |")
+    L += [""]
+    if p.get("force_note") and p["force"]:
+        L.append(f"* plate force: {p['force_note']}.")
+    if p.get("second_depth_note"):
+        L.append(f"* second depth: {p['second_depth_note']}.")
+    for ph in p["phantoms"]:
+        sv = ph.get("solved_pair_separation")
+        L.append(
+            f"* new phantom d {ph['d']:.3g} mm, h {ph['h']:.3g} mm, E {ph['E']:.3g} kPa: emulated min pair "
+            f"separation {ph['predicted_min_pair_separation']:.3g}"
+            + (f"; solved: {', '.join(f'{k} {v:.3g}' for k, v in sv.items())}" if sv else "")
         )
-        L += [
-            "",
-            "### Cannot be told apart with these phantoms — what would separate them",
-            "",
-            "Predicted separation of each pair in noise units, sqrt(Σ ((f_a − f_b)/S)²):",
-            "",
-            "| pair | " + " | ".join(cols) + " |",
-            "|---" * (len(cols) + 1) + "|",
-        ]
-        for k, v in p["now"].items():
-            vals = [v] + ([p["force"][k]] if p["force"] else []) + ([p["second_depth"][k]] if p["second_depth"] else [])
-            L.append(f"| {k} | " + " | ".join(f"{x:.3g}" for x in vals) + " |")
-        L += [""]
-        if p.get("force_note") and p["force"]:
-            L.append(f"* plate force: {p['force_note']}.")
-        if p.get("second_depth_note"):
-            L.append(f"* second depth: {p['second_depth_note']}.")
-        for ph in p["phantoms"]:
-            sv = ph.get("solved_pair_separation")
-            L.append(
-                f"* new phantom d {ph['d']:.3g} mm, h {ph['h']:.3g} mm, E {ph['E']:.3g} kPa: emulated min pair "
-                f"separation {ph['predicted_min_pair_separation']:.3g}"
-                + (f"; solved: {', '.join(f'{k} {v:.3g}' for k, v in sv.items())}" if sv else "")
-            )
-        L += [
-            f"* ({p['phantoms_note']}.)",
-            "",
-            f"**Recommended next measurement: {p['recommendation']['measurement']}** "
-            f"(smallest pair separation {p['recommendation']['min_pair_separation_noise_units']:.3g} noise units).",
-        ]
+    L += [
+        f"* ({p['phantoms_note']}.)",
+        "",
+        f"**Recommended next measurement: {p['recommendation']['measurement']}** "
+        f"(smallest pair separation {p['recommendation']['min_pair_separation_noise_units']:.3g} noise units).",
+    ]
+    return L
+
+
+def _md_ranking(ev: dict) -> list[str]:
+    """The report's ranking table and its table of every view."""
+    L: list[str] = []
     L += [
         "",
         "## Which effect (cross-validated ranking)",
@@ -233,6 +250,12 @@ def markdown(res: dict, figs: list[str]) -> str:
             f"{'yes' if b['significant'] else 'no'} | {', '.join(f'{100 * x:.2g} %' for x in b['model_error_relative_median'])} | "
             f"{', '.join(f'{100 * x:.2g} %' for x in b['noise_relative_median'])} |"
         )
+    return L
+
+
+def _md_where(wh: dict) -> list[str]:
+    """The report's lines on where the gap lies (feature, region, stage, image)."""
+    L: list[str] = []
     L += [
         "",
         "## Where the gap lies",
@@ -288,28 +311,41 @@ def markdown(res: dict, figs: list[str]) -> str:
             f"features d {100 * mea['d']:.1f} %, h {100 * mea['h']:.1f} %, E {100 * mea['E']:.1f} %."
         )
     if "image" in wh:
-        im = wh["image"]
-        L += [
-            "",
-            "### By image region",
-            "",
-            f"Mean residual (measured − baseline) of the camera difference images over {im['n']} phantoms "
-            f"(`residual_map.png`); noise band = noise of the mean ({im['noise_kind']}) and the model error per pixel; "
-            f"largest |mean residual| = {im['max_abs_z']:.3g} × its band.",
-            "",
-            "| annulus (mm) | mean residual (FS) | band (FS) | noise units |"
-            + (" after |" if "image_after" in wh else ""),
-            "|---|---|---|---|" + ("---|" if "image_after" in wh else ""),
-        ]
-        after = {tuple(r["r_mm"]): r for r in wh["image_after"]["rings"]} if "image_after" in wh else {}
-        for r in im["rings"]:
-            a = after.get(tuple(r["r_mm"]))
-            L.append(
-                f"| {r['r_mm'][0]:g} – {r['r_mm'][1]:g} | {r['mean_residual']:.3g} | {r['band']:.3g} | {r['noise_units']:+.2f} |"
-                + (f" {a['noise_units']:+.2f} |" if a else "")
-            )
-        if "image_after" in wh:
-            L.append(f"\n(after: residual once `{wh['image_after']['effect']}` at its fitted magnitude is added.)")
+        L += _md_image(wh)
+    return L
+
+
+def _md_image(wh: dict) -> list[str]:
+    """The report's lines on the image residual by annulus."""
+    im = wh["image"]
+    L: list[str] = []
+    L += [
+        "",
+        "### By image region",
+        "",
+        f"Mean residual (measured − baseline) of the camera difference images over {im['n']} phantoms "
+        f"(`residual_map.png`); noise band = noise of the mean ({im['noise_kind']}) and the model error per pixel; "
+        f"largest |mean residual| = {im['max_abs_z']:.3g} × its band.",
+        "",
+        "| annulus (mm) | mean residual (FS) | band (FS) | noise units |" + (" after |" if "image_after" in wh else ""),
+        "|---|---|---|---|" + ("---|" if "image_after" in wh else ""),
+    ]
+    after = {tuple(r["r_mm"]): r for r in wh["image_after"]["rings"]} if "image_after" in wh else {}
+    for r in im["rings"]:
+        a = after.get(tuple(r["r_mm"]))
+        L.append(
+            f"| {r['r_mm'][0]:g} – {r['r_mm'][1]:g} | {r['mean_residual']:.3g} | {r['band']:.3g} | {r['noise_units']:+.2f} |"
+            + (f" {a['noise_units']:+.2f} |" if a else "")
+        )
+    if "image_after" in wh:
+        L.append(f"\n(after: residual once `{wh['image_after']['effect']}` at its fitted magnitude is added.)")
+    return L
+
+
+def _md_shrink(res: dict) -> list[str]:
+    """The report's lines on how far the gap shrinks (withheld phantoms, retrained inverse)."""
+    ev = res["evaluation"]
+    L: list[str] = []
     L += ["", "## How far it shrinks (withheld phantoms)", ""]
     sf = res.get("shrink_features")
     if sf:
@@ -348,9 +384,7 @@ def markdown(res: dict, figs: list[str]) -> str:
                 f"{100 * np.mean(list(e.values())):.1f} % |"
             )
         L += ["", f"(d, h, E) error shrink: **{100 * si['shrink']:.1f} %**."]
-    L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figs]
-    L += ["", "Method and equations: docs/gap.md, 'Method'.", ""]
-    return "\n".join(L)
+    return L
 
 
 def to_html(md: str, folder: Path) -> str:
