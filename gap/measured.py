@@ -36,9 +36,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
+from elastimap.camera.features import FeatureSettings
+from elastimap.camera.frames import expand, read_stack
+from elastimap.camera.optics import SensorModel
 from elastimap.dataset.schema import FEATURES
 from elastimap.errors import UserError
+
+from .views import from_frames as views_from_frames
 
 KIND = "elastimap.gap.measured"
 VERSION = 1
@@ -87,13 +93,9 @@ class Measured:
         return len(self.ids)
 
     def sensor_model(self):
-        from elastimap.camera.optics import SensorModel
-
         return SensorModel.from_dict(self.sensor) if self.sensor else SensorModel()
 
     def settings(self):
-        from elastimap.camera.features import FeatureSettings
-
         return FeatureSettings.from_dict(self.feature_settings or {})
 
     def subset(self, idx) -> Measured:
@@ -132,8 +134,6 @@ def _table_path(path: Path) -> Path:
 
 def load(path: str | os.PathLike) -> Measured:
     """Read and validate a measured dataset; every problem is a one-line :class:`UserError`."""
-    import pandas as pd
-
     tp = _table_path(Path(path))
     base = tp.parent
     try:
@@ -173,8 +173,6 @@ def load(path: str | os.PathLike) -> Measured:
     sensor = side.get("sensor")
     settings = side.get("feature_settings", {})
     if sensor is not None:
-        from elastimap.camera.optics import SensorModel
-
         SensorModel.from_dict(sensor)
     n = len(df)
     has_feat = all(k in df.columns for k in FEATURES)
@@ -198,12 +196,6 @@ def load(path: str | os.PathLike) -> Measured:
     if has_img:
         # frames given: features (where not in the table), the difference image and its
         # per-pixel noise always come from the frames, so the residual map is never lost
-        from elastimap.camera.features import FeatureSettings
-        from elastimap.camera.frames import expand, read_stack
-        from elastimap.camera.optics import SensorModel
-
-        from .views import from_frames as views_from_frames
-
         sm = SensorModel.from_dict(sensor) if sensor else SensorModel()
         fs = FeatureSettings.from_dict(settings or {})
         for i in range(n):
@@ -295,8 +287,6 @@ def load(path: str | os.PathLike) -> Measured:
 
 def write(m: Measured, folder: str | os.PathLike, fmt: str = "csv") -> Path:
     """Write a dataset in the format above (difference images as ``.npy`` next to the table)."""
-    import pandas as pd
-
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     prefix = "synthetic_" if m.synthetic else ""

@@ -28,6 +28,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import ndimage
 
+from elastimap.camera.features import camera_features
+
 from .simulate import camera_features_of
 
 if TYPE_CHECKING:  # measured.py reads frames with this module's from_frames
@@ -92,8 +94,6 @@ def difference_se(
 def from_frames(frames: np.ndarray, background: np.ndarray, sensor, settings, full_scale: float | None = None) -> dict:
     """Features, their standard errors, the denoised difference image and its per-pixel standard
     error from lesion and background frames (arrays in DN; ``full_scale`` defaults to the sensor's)."""
-    from elastimap.camera.features import camera_features
-
     fs = float(full_scale or sensor.full_scale)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
