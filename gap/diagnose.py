@@ -74,14 +74,14 @@ from . import effects as fx
 from .adaptive import refine
 from .candidates import Candidate, needs_solves, phantom_params, simulate_candidates
 from .fit_models import build_models, systematic_modes
-from .measured import Measured
+from .measured import Measured, measured_views
 from .model_error import model_error, richardson_correct
 from .propose import propose
 from .selection import evaluate
 from .settings import Settings
 from .shrink import shrink_features, shrink_inverse
 from .simulate import Simulator
-from .views import cat, decision_views, measured_views, slices
+from .views import cat, decision_views, slices
 from .where import image_residual, view_baselines, where
 
 

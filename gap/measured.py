@@ -45,6 +45,7 @@ from elastimap.dataset.schema import FEATURES
 from elastimap.errors import UserError
 
 from .views import from_frames as views_from_frames
+from .views import profile_se, radial_profile
 
 KIND = "elastimap.gap.measured"
 VERSION = 1
@@ -327,3 +328,22 @@ def write(m: Measured, folder: str | os.PathLike, fmt: str = "csv") -> Path:
     }
     (out / SIDECAR).write_text(json.dumps(side, indent=2) + "\n")
     return tp
+
+
+def measured_views(meas: Measured, sensor, settings) -> dict:
+    """{view: (values (n,q), standard errors (n,q))} of the measured data."""
+    out = {"features": (meas.y, meas.se)}
+    if meas.has_images:
+        P, Pse = [], []
+        for D, Dse in zip(meas.difference, meas.difference_se):
+            P.append(radial_profile(D, sensor.pixel_mm))
+            if Dse is None:  # no per-pixel noise given: the window's outer ring's scatter, uniform
+                ring = np.zeros(D.shape, bool)
+                w = max(2, D.shape[0] // 10)
+                ring[:w, :] = ring[-w:, :] = ring[:, :w] = ring[:, -w:] = True
+                Dse = np.full(D.shape, float(np.std(D[ring])))
+            Pse.append(profile_se(Dse, sensor.pixel_mm, settings.smooth_px))
+        out["profile"] = (np.asarray(P), np.asarray(Pse))
+    if meas.has_force:
+        out["force"] = (meas.force[:, None], meas.force_se[:, None])
+    return out

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import ndimage
@@ -31,9 +30,6 @@ from scipy import ndimage
 from elastimap.camera.features import camera_features
 
 from .simulate import camera_features_of
-
-if TYPE_CHECKING:  # measured.py reads frames with this module's from_frames
-    from .measured import Measured
 
 EDGES = (0.0, 1.0, 2.0, 3.0, 4.5, 6.0, 8.0, 10.0, 12.5)  # mm from the probe axis
 VIEWS = ("features", "profile", "force")
@@ -119,7 +115,8 @@ def from_frames(frames: np.ndarray, background: np.ndarray, sensor, settings, fu
     }
 
 
-# The views of a diagnosis: simulated (from solve records) and measured, and the decision's view list.
+# The views of a diagnosis: simulated (from solve records; the measured ones: measured.measured_views)
+# and the decision's view list.
 def sim_views(recs, sensor, settings) -> tuple[dict, np.ndarray]:
     """Views {"features" (n,3), "profile" (n,K), "force" (n,1)} and difference images of records."""
     F, P, D, Fo = [], [], [], []
@@ -130,25 +127,6 @@ def sim_views(recs, sensor, settings) -> tuple[dict, np.ndarray]:
         P.append(radial_profile(d, sensor.pixel_mm) if np.all(np.isfinite(d)) else np.full(len(EDGES) - 1, np.nan))
         Fo.append([r.force])
     return {"features": np.asarray(F), "profile": np.asarray(P), "force": np.asarray(Fo, float)}, np.asarray(D)
-
-
-def measured_views(meas: Measured, sensor, settings) -> dict:
-    """{view: (values (n,q), standard errors (n,q))} of the measured data."""
-    out = {"features": (meas.y, meas.se)}
-    if meas.has_images:
-        P, Pse = [], []
-        for D, Dse in zip(meas.difference, meas.difference_se):
-            P.append(radial_profile(D, sensor.pixel_mm))
-            if Dse is None:  # no per-pixel noise given: the window's outer ring's scatter, uniform
-                ring = np.zeros(D.shape, bool)
-                w = max(2, D.shape[0] // 10)
-                ring[:w, :] = ring[-w:, :] = ring[:, :w] = ring[:, -w:] = True
-                Dse = np.full(D.shape, float(np.std(D[ring])))
-            Pse.append(profile_se(Dse, sensor.pixel_mm, settings.smooth_px))
-        out["profile"] = (np.asarray(P), np.asarray(Pse))
-    if meas.has_force:
-        out["force"] = (meas.force[:, None], meas.force_se[:, None])
-    return out
 
 
 def decision_views(mv: dict) -> list[str]:

@@ -288,8 +288,9 @@ def test_frames_give_features_images_and_pixel_noise(tmp_path, toy, dhe):
 
 def test_profile_noise_is_calibrated(toy, dhe):
     """Noise-only data: χ²/N of the profile and features with the frame-scatter errors is about 1."""
+    from elastimap.gap.measured import measured_views
     from elastimap.gap.simulate import base_params
-    from elastimap.gap.views import measured_views, sim_views
+    from elastimap.gap.views import sim_views
 
     recs = toy.run([base_params("tiny", *r) for r in dhe])
     zs = {"features": [], "profile": []}
