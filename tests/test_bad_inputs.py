@@ -196,7 +196,7 @@ def assets(tmp_path_factory):
             "2",
             "--mesh",
             "tiny",
-            "--quiet",
+            "--no-progress",
         ],
     )
     assert r[0] == 0, r
@@ -219,7 +219,7 @@ def assets(tmp_path_factory):
             "2",
             "--mesh",
             "tiny",
-            "--quiet",
+            "--no-progress",
         ],
     )
     assert r[0] == 0, r
