@@ -90,16 +90,16 @@ def effects_cmd():
     "--out",
     required=True,
     type=click.Path(file_okay=False),
-    help="new folder for the SYNTHETIC measured dataset (an existing one only with --overwrite)",
+    help="New folder for the SYNTHETIC measured dataset (an existing one only with --overwrite).",
 )
 @click.option(
     "--overwrite",
     is_flag=True,
-    help="replace an earlier SYNTHETIC dataset in --out (real measured data is never replaced)",
+    help="Replace an earlier SYNTHETIC dataset in --out (real measured data is never replaced).",
 )
-@click.option("--effect", "effect", default="", help="NAME=MAGNITUDE[,NAME=MAGNITUDE] (empty: baseline only)")
+@click.option("--effect", "effect", default="", help="NAME=MAGNITUDE[,NAME=MAGNITUDE] (empty: baseline only).")
 @click.option(
-    "--phantoms", type=click.Path(), default=None, help="CSV with id (or name), d, h, E; default an LHS design"
+    "--phantoms", type=click.Path(), default=None, help="CSV with id (or name), d, h, E (default: an LHS design)."
 )
 @click.option(
     "--n", "n", type=int, default=12, show_default=True, help="Phantoms of the LHS design (ignored with --phantoms)."
@@ -121,7 +121,7 @@ def effects_cmd():
     type=click.Choice(["tied", "contact", "bonded"]),
     default="tied",
     show_default=True,
-    help="probe-tissue interface of the data's forward model",
+    help="Probe-tissue interface of the data's forward model.",
 )
 @click.option(
     "--force-noise", type=float, default=None, help="Also 'measure' the plate force with this relative error."
@@ -187,7 +187,7 @@ def synth_cmd(
     "mpath",
     required=True,
     type=click.Path(),
-    help="Measured dataset: a folder (or its table) as written by 'gap synth' (docs/gap.md, 'Measured data').",
+    help="Measured dataset: a folder (or its table) as written by 'gap synth' (docs/gap.md, 'Measured-data format').",
 )
 @click.option(
     "--out",
@@ -213,7 +213,11 @@ def synth_cmd(
 )
 @click.option("--alpha", type=float, default=0.01, show_default=True, help="Level of the calibrated chi-square tests.")
 @click.option(
-    "--seed", type=int, default=0, show_default=True, help="Seeds the folds, the bootstrap and the inverse training."
+    "--seed",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Seeds the folds, the bootstrap, the proposed phantoms and the inverse training.",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON (stdout).")
 @common
