@@ -196,7 +196,7 @@ def assets(tmp_path_factory):
             "2",
             "--mesh",
             "tiny",
-            "--quiet",
+            "--no-progress",
         ],
     )
     assert r[0] == 0, r
@@ -219,7 +219,7 @@ def assets(tmp_path_factory):
             "2",
             "--mesh",
             "tiny",
-            "--quiet",
+            "--no-progress",
         ],
     )
     assert r[0] == 0, r
@@ -232,8 +232,8 @@ def assets(tmp_path_factory):
 # (console script, arguments with {A} = the shared inputs folder, words of which the error line names one)
 TINY = ["--mesh", "tiny"]
 TRAIN = ["--synthetic", "30", "--repeats", "1", "--epochs", "2", "--hidden", "3", "--no-progress", "--out", "tr"]
-SYNTH = ["--backend", "toy", "--cache", "none", "--n", "4", "--frames", "2", "--mesh", "tiny", "--quiet"]
-DIAG = ["--measured", "{A}/S", "--backend", "toy", "--cache", "none", "--no-inverse", "--quiet", "--out", "dg"]
+SYNTH = ["--backend", "toy", "--cache", "none", "--n", "4", "--frames", "2", "--mesh", "tiny", "--no-progress"]
+DIAG = ["--measured", "{A}/S", "--backend", "toy", "--cache", "none", "--no-inverse", "--no-progress", "--out", "dg"]
 INFER = ["--calibration", "{A}/cal.json", "--features", "1", "2", "3", "--identifiability", "none"]
 SIN = ["--d", "8", "--h", "8", "--E", "60", "--frames", "1", "--mesh", "tiny", "--out", "fr"]
 

@@ -209,7 +209,7 @@ def test_gap_diagnose_keeps_the_report_when_out_fails_late(tmp_path, monkeypatch
             "--cache",
             "none",
             "--no-inverse",
-            "--quiet",
+            "--no-progress",
             "--effects",
             "friction",
             "--out",

@@ -14,7 +14,8 @@ import pytest
 from elastimap.errors import UserError
 from elastimap.gap import effects as fx
 from elastimap.gap import measured, synth
-from elastimap.gap.diagnose import Settings, diagnose
+from elastimap.gap.diagnose import diagnose
+from elastimap.gap.settings import Settings
 from elastimap.gap.simulate import Simulator
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -287,8 +288,9 @@ def test_frames_give_features_images_and_pixel_noise(tmp_path, toy, dhe):
 
 def test_profile_noise_is_calibrated(toy, dhe):
     """Noise-only data: χ²/N of the profile and features with the frame-scatter errors is about 1."""
-    from elastimap.gap.diagnose import measured_views, sim_views
+    from elastimap.gap.measured import measured_views
     from elastimap.gap.simulate import base_params
+    from elastimap.gap.views import sim_views
 
     recs = toy.run([base_params("tiny", *r) for r in dhe])
     zs = {"features": [], "profile": []}
@@ -390,7 +392,7 @@ def test_camera_effects_are_extrapolated_through_their_own_camera(dhe, monkeypat
     made through the nominal camera, is not the correction through a saturating one.  Data from
     a finer TOY level with a strong saturation: the own correction fits better (held-out χ²),
     the candidate carries its own Δ into its interval, and the interval holds the truth."""
-    from elastimap.gap import diagnose as dg
+    from elastimap.gap import adaptive, model_error
 
     data = MeshToy("default", a=0.01)
     meas, _ = synth.synthesize(dhe, [(fx.get("saturation"), 0.2)], data, frames=6, seed=5)
@@ -404,10 +406,10 @@ def test_camera_effects_are_extrapolated_through_their_own_camera(dhe, monkeypat
     assert lo <= 0.2 <= hi, (row["magnitude"], row["magnitude_ci"])
 
     def baseline_only(c, me):
-        c.V, c.D = dg.correct(c.V, c.D, me)
+        c.V, c.D = model_error.correct(c.V, c.D, me)
 
-    monkeypatch.setattr(dg, "own_correct_rendered", baseline_only)
-    monkeypatch.setattr(dg, "RENDER_TOL", 10.0)  # no exact renders either: the old path
+    monkeypatch.setattr(model_error, "own_correct_rendered", baseline_only)
+    monkeypatch.setattr(adaptive, "RENDER_TOL", 10.0)  # no exact renders either: the old path
     ev0 = diagnose(meas, cands, MeshToy("tiny", a=0.01), st, MeshToy("coarse", a=0.01))["evaluation"]
     row0 = {r["effect"]: r for r in ev0["ranking"]}["saturation"]
     assert row0["_model"].own_delta(row0["_theta"]) is None
@@ -427,8 +429,6 @@ def test_an_effect_beyond_its_grid_extends_the_range_within_its_physical_limits(
     assert fx.get("tissue_nu").beyond(0.495, 0.45, 0.495) == pytest.approx(0.499)
     assert fx.get("friction").beyond(0.0, 0.0, 1.0) is None  # 0 = frictionless, the end
 
-    from elastimap.gap import diagnose as dg
-
     data = MeshToy("default", a=0.002)
     meas, _ = synth.synthesize(dhe, [(e, 0.1)], data, frames=6, seed=4)
     cands = fx.parse_list("saturation,friction,gamma")
@@ -445,7 +445,7 @@ def test_an_effect_beyond_its_grid_extends_the_range_within_its_physical_limits(
             return None
 
     stuck = NoBeyond(**{f.name: getattr(e, f.name) for f in dataclasses.fields(e)})
-    ev0 = dg.diagnose(meas, [stuck, *cands[1:]], MeshToy("tiny", a=0.002), st, MeshToy("coarse", a=0.002))
+    ev0 = diagnose(meas, [stuck, *cands[1:]], MeshToy("tiny", a=0.002), st, MeshToy("coarse", a=0.002))
     row0 = {r["effect"]: r for r in ev0["evaluation"]["ranking"]}["saturation"]
     assert row0["at_grid_edge"] and row0["magnitude"][0] == pytest.approx(0.15), row0["magnitude"]
 
@@ -456,7 +456,8 @@ def test_a_family_holds_its_members_inside_their_grids():
     each member's view is linear in its magnitude; the data ask for probe_E1 = 120 kPa (below
     its grid's 180) and probe_E2 = 160 kPa.  The single fit follows E1 onto the extended point;
     the family holds E1 at its grid's end 180, says so, and its interval stays inside the grid."""
-    from elastimap.gap.diagnose import Candidate, Composed, Single
+    from elastimap.gap.candidates import Candidate
+    from elastimap.gap.fit_models import Composed, Single
 
     names = ["features"]
     y0 = np.array([[1.0, 2.0, 3.0]])  # one phantom, three quantities
@@ -487,7 +488,7 @@ def test_profile_correction_stays_bounded_where_an_annulus_crosses_zero():
     """The Richardson correction of a candidate's profile is the baseline's scaled by the
     candidate's size (per phantom), exact for an effect that scales the image; a per-annulus
     ratio would blow up at the annulus where the baseline crosses zero."""
-    from elastimap.gap.diagnose import correct, profile_scale
+    from elastimap.gap.model_error import correct, profile_scale
 
     y0 = np.array([[1.0, 0.6, 0.2, 1e-6], [2.0, 1.0, 0.1, -1e-7]])
     delta = np.array([[0.01, 0.008, 0.004, 0.002], [0.02, 0.01, 0.002, 0.001]])
@@ -540,7 +541,7 @@ def test_cli_end_to_end_and_errors(tmp_path):
             "8",
             "--cache",
             "none",
-            "--quiet",
+            "--no-progress",
         ],
         capture_output=True,
         text=True,
@@ -564,7 +565,7 @@ def test_cli_end_to_end_and_errors(tmp_path):
             "--effects",
             "saturation,friction,blur",
             "--no-inverse",
-            "--quiet",
+            "--no-progress",
             "--json",
         ],
         capture_output=True,
@@ -621,7 +622,7 @@ def test_a_family_that_isolates_one_member_is_reported_as_that_member():
     """The nested-model rule: a family in the reported set whose fit moves one member only is
     reported as that member, with the family's fitted magnitude; a family with two members off
     stays itself; a name reached twice keeps its better-scored entry."""
-    from elastimap.gap.diagnose import reported_set
+    from elastimap.gap.selection import reported_set
 
     fam = layers_E_row([199.0, 148.0, 49.5], [[192.8, 205.3], [145.2, 151.3], [48.7, 50.3]])
     single = {
@@ -646,7 +647,7 @@ def test_a_family_off_by_one_common_factor_is_reported_as_its_nested_effect():
     fit whose members' intervals, as ratios to their nominals, share a part that excludes 1 is
     reported as probe_moduli with probe_moduli's own fit; members off by different factors, or
     a common part that holds 1, stay the family."""
-    from elastimap.gap.diagnose import common_factor, reported_set
+    from elastimap.gap.selection import common_factor, reported_set
     from elastimap.gap.selftest import family_isolates
 
     # ratios [0.63, 0.70], [0.64, 0.70], [0.62, 0.71]: common part [0.64, 0.70]
@@ -683,7 +684,7 @@ def test_the_jackknife_interval_matches_a_direct_computation():
     written out here, and clipped to the effect's range."""
     from scipy import stats as st
 
-    from elastimap.gap.diagnose import jackknife_interval
+    from elastimap.gap.fit_models import jackknife_interval
 
     class M:
         def grid_of(self, l):
@@ -709,7 +710,8 @@ def test_the_jackknife_interval_matches_a_direct_computation():
 def test_a_fit_beyond_the_solved_magnitudes_counts_as_extrapolated():
     """Refinement also takes the best rows whose fit lies beyond their solved magnitudes (their
     score there is the end secant's guess): the rule that finds them."""
-    from elastimap.gap.diagnose import Candidate, extrapolated
+    from elastimap.gap.adaptive import extrapolated
+    from elastimap.gap.candidates import Candidate
 
     e = fx.get("probe_moduli")  # nominal 1, range [0.6, 1.5], solved first at 1 and 1.5
     c = Candidate(e, np.array([1.0, 1.5]), {}, None, adaptive=True)

@@ -52,7 +52,8 @@ def test_adaptive_magnitudes_solve_less_and_find_the_same_answer():
     fewer solves; the refined candidate carries the emulator's measured miss."""
     from elastimap.gap import effects as fx
     from elastimap.gap import synth
-    from elastimap.gap.diagnose import Settings, diagnose
+    from elastimap.gap.diagnose import diagnose
+    from elastimap.gap.settings import Settings
     from elastimap.gap.simulate import Simulator
 
     dhe = synth.phantom_design(6, 1)
@@ -79,7 +80,8 @@ def test_adaptive_magnitudes_solve_less_and_find_the_same_answer():
 def test_nothing_is_refined_without_a_significant_gap():
     from elastimap.gap import effects as fx
     from elastimap.gap import synth
-    from elastimap.gap.diagnose import Settings, diagnose
+    from elastimap.gap.diagnose import diagnose
+    from elastimap.gap.settings import Settings
     from elastimap.gap.simulate import Simulator
 
     sim = Simulator(None, "tiny", "toy")
@@ -93,7 +95,7 @@ def test_selftest_resume_replays_the_same_draws():
     """--start K runs trials K.. with the draws of a whole run (TOY backend, tiny)."""
     from elastimap.gap import effects as fx
     from elastimap.gap import selftest
-    from elastimap.gap.diagnose import Settings
+    from elastimap.gap.settings import Settings
     from elastimap.gap.simulate import Simulator
 
     cands = fx.parse_list("background_E,saturation")
@@ -126,7 +128,7 @@ def test_selftest_trial_with_failed_data_is_void_and_the_run_goes_on(monkeypatch
     from elastimap.errors import UserError
     from elastimap.gap import effects as fx
     from elastimap.gap import selftest
-    from elastimap.gap.diagnose import Settings
+    from elastimap.gap.settings import Settings
     from elastimap.gap.simulate import Simulator
 
     real = selftest.synthesize
