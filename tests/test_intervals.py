@@ -132,7 +132,7 @@ def test_fit_image_calibrated_interval_scales_the_gauss_newton_half_width():
     """SYNTHETIC image model (test_refine's bump): ``intervals="calibrated"`` keeps the estimate and
     the Gauss–Newton interval (``lo_gauss``) and reports θ̂ ± 1.96 k sd with k of :func:`scales_for`
     (d and h exactly; E in the fit's coordinate, so its ends move the same way)."""
-    from elastimap.identify.refine import fit_image
+    from elastimap.identify.fit import fit_image
 
     truth = np.array([8.0, 7.0, 60.0])
     I = bump(truth)
@@ -175,8 +175,8 @@ def bump_map(d, h, E):
 
 
 def test_default_intervals_are_calibrated_only_for_the_calibrated_fit():
+    from elastimap.identify.forward_maps import default_intervals
     from elastimap.identify.intervals import CALIBRATED_FOR
-    from elastimap.identify.refine import default_intervals
 
     assert default_intervals(*CALIBRATED_FOR) == "calibrated"
     assert default_intervals("coarse", None) == "gauss"
@@ -188,7 +188,7 @@ def test_default_intervals_are_calibrated_only_for_the_calibrated_fit():
 def test_fit_maps_share_one_bin_rule_and_say_which_intervals():
     """fit_maps (what fit_forward and infer --refine fit with): the fit's, the model error's and the
     correcting maps at their levels with the fit level's bin rule, and the default intervals."""
-    from elastimap.identify.refine import BELOW_LEVELS, fit_maps
+    from elastimap.identify.forward_maps import BELOW_LEVELS, fit_maps
 
     m = fit_maps("coarse", "fine")
     assert m.intervals == "calibrated" and m.forward_fine is not None

@@ -8,7 +8,7 @@ Each FOLDER is a ``workflows/frames_benchmark.py`` output (SYNTHETIC lesions; it
 ``fits-morph-coarse-corr-fine-drift``, the calibrated configuration
 :data:`~elastimap.identify.intervals.CALIBRATED_FOR`).  Per lesion with a signal and per parameter q
 the score is ``|x̂_q − x_q| / sd_q`` in the fit's coordinate (d mm, h mm, e = ln c(E) of
-:class:`~elastimap.identify.refine.FitCoords`) with the fit's Gauss–Newton sd (records before
+:class:`~elastimap.identify.coords.FitCoords`) with the fit's Gauss–Newton sd (records before
 2026-11-27 hold it as ``sd``/``crb_rel``, later ones as ``fit_relstd_gauss``).  Prints the scales per
 stratum of the estimate (far from or near the slab's base, :func:`~elastimap.identify.intervals.near_base`)
 and class of the relative sd (:func:`~elastimap.identify.intervals.calibrate`, the table to copy into
@@ -40,7 +40,7 @@ def read_folder(folder: str) -> dict:
     those coordinates, ``relstd`` (n, 3) the Gauss–Newton relative sds (d, h; ln E), ``theta_fit``
     (n, 3) the estimate (d, h, E)."""
     from elastimap.errors import UserError
-    from elastimap.identify.refine import FitCoords
+    from elastimap.identify.coords import FitCoords
 
     paths = sorted(glob.glob(os.path.join(folder, FITS, "lesion-*.json")))
     if not paths:

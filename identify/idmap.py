@@ -1,6 +1,6 @@
 """Where an estimate of (d, h, E) can be trusted: the identifiability map used by inference.
 
-The map holds, on the grid of :func:`elastimap.identify.local.grid` (d, depth fraction u, E), the Cramér–Rao
+The map holds, on the grid of :func:`elastimap.identify.bounds.grid` (d, depth fraction u, E), the Cramér–Rao
 relative standard deviation ``r_q = sqrt(C_qq) / q`` (``C = F⁻¹``, ``F`` the Fisher information of
 the measurement set under the camera noise of :mod:`elastimap.workflows.studies.crbmap`) of each output
 ``q ∈ {d, h, E}``.  ``r_q`` is a *lower* bound on the relative error of any unbiased estimator at
