@@ -65,10 +65,10 @@ def default_geometry() -> str:
 #: went from d +13 % to +27 % and lost their coverage with the bin below
 BELOW_LEVELS = ("coarse", "default", "fine")
 #: the CG tolerance of a fit's morphed maps (:class:`~elastimap.solver.reduction.Recycled`; the
-#: solver's default is 1e-12): measured 2026-11-27 on `fine` and `default` at five points (d 5.5 and
+#: solver's default is 1e-12): measured on `fine` and `default` at five points (d 5.5 and
 #: 9 mm), it changes the difference image by at most 1.1e-7 of its peak (float32's own resolution;
 #: the pixel noise of 30 frames is ~0.5 % of the peak) and saves 0.4–1.0 s a `fine` solve, 0.25–0.35 s
-#: a `default` one (1e-7: up to 4.4e-6 of the peak; docs/camera.md 4l)
+#: a `default` one (1e-7: up to 4.4e-6 of the peak; docs/history/camera.md, 'Calibrated intervals, a cheaper fit')
 FIT_CG_RTOL = 1e-9
 
 
@@ -80,7 +80,8 @@ def reference_below(morphed, d: float, h: float):
     against gmsh meshes at the sample itself, three fresh design points were off by χ² 1 231 / 12 /
     0.3 grown by 8-12 % against 315 667 / 193 / 8.9 shrunk by 21-24 % (units of 0.1 µm a pixel), and
     a benchmark lesion (d 9.2 mm) by 108 grown 15 % against 1 074 shrunk 19 %; over 16 samples the
-    bin below won 11, the one above 4 (those within ~10 % of it) (docs/camera.md 4k)."""
+    bin below won 11, the one above 4 (those within ~10 % of it)
+    (docs/history/camera.md, 'Where the valley pull comes from, and fit maps that morph from the bin below')."""
     from elastimap.solver.morph import D_ANCHOR, D_RATIO
 
     k = math.floor(math.log(float(d) / D_ANCHOR) / math.log(D_RATIO) + 1e-9)
@@ -189,7 +190,7 @@ def check_correct(mesh: str, correct: str | None) -> None:
 
 
 #: the level that defect-corrects a fit's map by default (:func:`default_correct`): the benchmarked
-#: configuration, `coarse` corrected by `fine` (docs/camera.md 4f-4g)
+#: configuration, `coarse` corrected by `fine` (docs/camera.md, 'Inference')
 DEFAULT_CORRECT = {"coarse": "fine"}
 
 

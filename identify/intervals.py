@@ -23,8 +23,8 @@ interval is
 
 clipped to the design box, as the Gauss–Newton one (``k = 1``).
 
-Why the second axis (docs/history/camera.md, 'A second axis for the intervals: near the slab's base or not').  Large stiff inclusions close to the fixed base have d
-and E errors of up to 13–14 sd at a small relative sd: there the world's and the fit's
+Why the second axis (docs/history/camera.md, 'A second axis for the intervals: near the slab's
+base or not').  Large stiff inclusions close to the fixed base have d and E errors of up to 13–14 sd at a small relative sd: there the world's and the fit's
 discretisations differ in a way that moves the estimate along the d–E valley.  Pooled with the rest
 of their class they set its scale, so the interval over-covered elsewhere (E's region: 80 of 80) and
 still under-covered them (leave one seed out: d 91.8, h 89.6, E 92.3 % of 183).  The stratum is

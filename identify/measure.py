@@ -26,10 +26,12 @@ the shape (measured: see docs/identifiability.md).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
+from elastimap.dataset.io import read_image_meta, read_samples
 from elastimap.errors import UserError
 
 SETS = ("features", "image", "image+force")
@@ -79,10 +81,6 @@ class Data:
 
 def load(data_path: str, design_only: bool = False) -> Data:
     """Read a sweep (Parquet directory) with its images; rows sorted by ``sample_id``."""
-    import os
-
-    from elastimap.dataset.io import read_image_meta, read_samples
-
     path = data_path
     if not os.path.exists(path):
         raise UserError("data_path", f"no such file or directory: {path}")

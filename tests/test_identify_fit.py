@@ -104,7 +104,7 @@ def test_bad_input_is_a_user_error():
         fit_image(I, 1e-3, [8, 7, 60], lambda d, h, E: bump([d, h, E]), tangent=True)
 
 
-def test_fem_refinement_on_the_tiny_mesh():
+def test_physics_fit_on_the_tiny_mesh():
     """The real forward model through the inference API (elastimap.camera.infer.refine_estimates):
     a noise-free image of the REMESHING tiny-mesh solver (not the fit's map), 1 % pixel noise
     assumed, start 30 % off in E and 6 % in d; the fit runs the morphed tiny map and measures its

@@ -129,7 +129,7 @@ def test_calibrated_scales_hold_fresh_draws_at_95_percent_per_class():
 
 
 def test_fit_image_calibrated_interval_scales_the_gauss_newton_half_width():
-    """SYNTHETIC image model (test_refine's bump): ``intervals="calibrated"`` keeps the estimate and
+    """SYNTHETIC image model (test_identify_fit's bump): ``intervals="calibrated"`` keeps the estimate and
     the Gauss–Newton interval (``lo_gauss``) and reports θ̂ ± 1.96 k sd with k of :func:`scales_for`
     (d and h exactly; E in the fit's coordinate, so its ends move the same way)."""
     from elastimap.identify.fit import fit_image
@@ -161,7 +161,7 @@ _R2 = _X.ravel() ** 2 + _Y.ravel() ** 2
 
 
 def bump(theta):
-    """SYNTHETIC difference image (mm), tests/test_refine.py's: a bump whose width follows d and h, a
+    """SYNTHETIC difference image (mm), tests/test_identify_fit.py's: a bump whose width follows d and h, a
     depth-damped amplitude and a halo whose share falls as E rises."""
     d, h, E = theta
     amp = 1e-2 * d**2 / h
