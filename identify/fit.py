@@ -232,14 +232,14 @@ class FitModel:
         self.f, self.level, self.pinned_alts = forward, "fit", list(alts)
         self.correction: np.ndarray | float = 0.0
         self.delta: list[np.ndarray] = []
-        self.images: dict = {}
-        self.jacs: dict = {}  # the map's exact derivative (d, h, E) at the points in images, where used
-        self.alt_images_: dict = {}
+        self.cache: dict = {}
+        self.jac_cache: dict = {}  # the exact derivatives (d, h, E) at the cached points, where used
+        self.alt_cache: dict = {}
         self.n_eval = self.n_fine = 0
 
     @property
     def n_alt(self) -> int:
-        return len(self.alt_images_)
+        return len(self.alt_cache)
 
     def pin(self, x, correct: bool = True, measure: bool = True) -> None:
         """Pin the maps' reference meshes at ``x``, so that one pass sees one smooth map, take
@@ -282,32 +282,32 @@ class FitModel:
     def pinned(self, x, need_j: bool = True) -> np.ndarray:
         """The pinned map at ``x`` (and, with ``need_j``, its exact derivative where used)."""
         k = self.key(x, self.f, self.level)
-        if k not in self.images or (self.tangent and need_j and k not in self.jacs):
+        if k not in self.cache or (self.tangent and need_j and k not in self.jac_cache):
             if self.level == "fine":
                 self.n_fine += 1
             else:
                 self.n_eval += 1
             if self.tangent and need_j:
                 out, jt = self.f.tangent(*self.theta_of(x))
-                self.jacs[k] = np.asarray(jt, dtype=float).reshape(3, -1).T
+                self.jac_cache[k] = np.asarray(jt, dtype=float).reshape(3, -1).T
             else:
                 out = self.f(*self.theta_of(x))
-            self.images[k] = self.flat(out, "fit's")
-        return self.images[k]
+            self.cache[k] = self.flat(out, "fit's")
+        return self.cache[k]
 
     def jacobian(self, x) -> np.ndarray:
         """The pinned map's exact derivative ``(p, 3)`` = ∂m/∂(d, h, E) at ``x``."""
         self.pinned(x)
-        return self.jacs[self.key(x, self.f, self.level)]
+        return self.jac_cache[self.key(x, self.f, self.level)]
 
     def alt_images(self, x) -> list:
         """The other levels' images at ``x`` (cached per pinned map)."""
         out = []
         for i, fa in enumerate(self.pinned_alts):
             k = (i, *self.key(x, fa))
-            if k not in self.alt_images_:
-                self.alt_images_[k] = self.flat(fa(*self.theta_of(x)), "alternative")
-            out.append(self.alt_images_[k])
+            if k not in self.alt_cache:
+                self.alt_cache[k] = self.flat(fa(*self.theta_of(x)), "alternative")
+            out.append(self.alt_cache[k])
         return out
 
 
@@ -409,6 +409,9 @@ class ImageFit:
         self.tangent = bool(tangent)
 
     def __call__(self, image, sigma, theta0) -> FitResult:
+        """The fit of ``image`` (mm, ``(ny, nx)`` or flat) with per-pixel standard errors ``sigma``
+        (mm, scalar or like ``image``) from ``theta0`` (d mm, h mm, E kPa): start, passes, then the
+        model error, covariance and intervals at the estimate."""
         t0 = time.perf_counter()
         I, s_meas, shape, theta0 = self._inputs(image, sigma, theta0)
         prior = self.config.prior
@@ -418,7 +421,7 @@ class ImageFit:
         noise = PixelNoise(s_meas, shape)
 
         # the start and the E scan: the map alone, σ_meas
-        x0 = self._start(X, model, I, s_meas, theta0, lb, ub)
+        x0 = self._start(X, model, theta0, lb, ub)
         r0 = (model(x0, need_j=False) - I) / s_meas
         x0 = self._scan_E(model, I, s_meas, x0, r0, lb, ub)
         x, J, moving, msg = self._passes(X, model, noise, I, x0, lb, ub)
@@ -443,24 +446,24 @@ class ImageFit:
         big = np.abs(I) >= 0.1 * np.abs(I).max()
         me = float(np.sqrt(np.mean(s_mod[big] ** 2)) / np.sqrt(np.mean(s_meas[big] ** 2)))
         return FitResult(
-            th,
-            theta0.copy(),
-            relstd,
-            lo,
-            hi,
-            chi2,
-            float(r0 @ r0) / dof,
-            me,
-            model.n_eval,
-            model.n_alt,
-            time.perf_counter() - t0,
-            "; ".join(msg),
-            at,
-            model.n_fine,
-            moving,  # empty when the fit converged (its last pass moved nothing by 0.2 sd)
-            lo_gauss,
-            hi_gauss,
-            scale,
+            theta=th,
+            theta0=theta0.copy(),
+            relstd=relstd,
+            lo=lo,
+            hi=hi,
+            chi2_red=chi2,
+            chi2_red0=float(r0 @ r0) / dof,
+            model_error=me,
+            n_solves=model.n_eval,
+            n_alt=model.n_alt,
+            seconds=time.perf_counter() - t0,
+            message="; ".join(msg),
+            at_bound=at,
+            n_fine=model.n_fine,
+            moving=moving,  # empty when the fit converged (its last pass moved nothing by 0.2 sd)
+            lo_gauss=lo_gauss,
+            hi_gauss=hi_gauss,
+            scale=scale,
         )
 
     @staticmethod
@@ -480,7 +483,7 @@ class ImageFit:
             raise UserError("theta0", f"need a finite (d, h, E > 0) start (got {theta0})")
         return I, s_meas, shape, theta0
 
-    def _start(self, X: FitCoords, model: FitModel, I, s_meas, theta0, lb, ub) -> np.ndarray:
+    def _start(self, X: FitCoords, model: FitModel, theta0, lb, ub) -> np.ndarray:
         """θ₀ clipped into the box (in x), the maps pinned there without correction or model error."""
         prior = self.config.prior
         pad = 1e-3 * (ub - lb)
