@@ -34,13 +34,6 @@ import numpy as np
 from elastimap.dataset.io import read_image_meta, read_samples
 from elastimap.errors import UserError
 
-SETS = ("features", "image", "image+force")
-SET_LABEL = {
-    "features": "(a) O1, O2, O3",
-    "image": "(b) whole image",
-    "image+force": "(c) image + plate force",
-    "two-depths": "(d) images at δ = 1.5 and 3 mm",
-}
 PEAK_FLOOR = 1e-7  # mm; peaks below this are clipped before the log (no visible inclusion)
 
 
