@@ -431,7 +431,7 @@ def infer(
     if refine and not 0 < image_noise < 1:
         raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
     if correct not in ("auto", "none"):
-        from elastimap.identify.refine import check_correct
+        from elastimap.identify.forward_maps import check_correct
 
         if not refine:
             raise UserError("--refine-correct", "only applies with --refine")
@@ -442,7 +442,7 @@ def infer(
                 "--refine-correct", "must be auto, none or " + exc.message.removeprefix("must be ")
             ) from None
     elif refine:
-        from elastimap.identify.refine import default_correct
+        from elastimap.identify.forward_maps import default_correct
 
         correct = default_correct(mesh) if correct == "auto" else None
     else:

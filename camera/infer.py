@@ -172,7 +172,7 @@ def load_identifiability(identifiability="default"):
     """``"default"`` (the shipped map), a path, an :class:`elastimap.identify.region.IdentifiabilityMap`, or None."""
     if identifiability is None:
         return None
-    from elastimap.identify.region import IdentifiabilityMap
+    from elastimap.identify.idmap import IdentifiabilityMap
 
     if isinstance(identifiability, IdentifiabilityMap):
         return identifiability
@@ -385,7 +385,7 @@ def estimate_fem_images(
                 sigma=sg,
             )
         )
-    from elastimap.identify.region import FRAMES
+    from elastimap.identify.idmap import FRAMES
 
     if sigma is not None and idmap is not None and "camera" in idmap.relstd and idmap.camera_sigma is not None:
         # measured per-pixel noise (frames): the camera set scaled by this camera's noise, never
@@ -445,7 +445,8 @@ def refine_estimates(
     model cannot reproduce the image at the stated noise), ``at_design_edge:q`` for each parameter
     the fit ended on the design box's edge with (then nothing is reportable); ``input`` gains
     ``+fem_refined``."""
-    from elastimap.identify.refine import check_correct, fit_image, fit_maps
+    from elastimap.identify.fit import fit_image
+    from elastimap.identify.forward_maps import check_correct, fit_maps
 
     if not 0 < image_noise < 1:
         raise UserError("image_noise", f"must be in (0, 1) (got {image_noise:g})")

@@ -85,10 +85,6 @@ STUDIES = {
         "elastimap.workflows.studies.region_score:main",
         "Score the identifiable region on held-out predictions.",
     ),
-    "refine": (
-        "elastimap.workflows.studies.refine:main",
-        "Refine image-network estimates by a FEM maximum-likelihood fit.",
-    ),
 }
 
 
@@ -107,7 +103,7 @@ def cli():
     cls=LazyGroup,
     lazy=STUDIES,
     context_settings=CONTEXT_SETTINGS,
-    short_help="Identifiability studies (crbmap, fdgrid, imagenet, refine, ...).",
+    short_help="Identifiability studies (crbmap, fdgrid, imagenet, ...).",
 )
 def identify():
     """Identifiability studies: the maps, bounds and tables behind docs/identifiability.md."""

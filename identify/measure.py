@@ -26,19 +26,14 @@ the shape (measured: see docs/identifiability.md).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
+from elastimap.dataset.io import read_image_meta, read_samples
 from elastimap.errors import UserError
 
-SETS = ("features", "image", "image+force")
-SET_LABEL = {
-    "features": "(a) O1, O2, O3",
-    "image": "(b) whole image",
-    "image+force": "(c) image + plate force",
-    "two-depths": "(d) images at δ = 1.5 and 3 mm",
-}
 PEAK_FLOOR = 1e-7  # mm; peaks below this are clipped before the log (no visible inclusion)
 
 
@@ -79,10 +74,6 @@ class Data:
 
 def load(data_path: str, design_only: bool = False) -> Data:
     """Read a sweep (Parquet directory) with its images; rows sorted by ``sample_id``."""
-    import os
-
-    from elastimap.dataset.io import read_image_meta, read_samples
-
     path = data_path
     if not os.path.exists(path):
         raise UserError("data_path", f"no such file or directory: {path}")

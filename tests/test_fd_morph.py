@@ -7,8 +7,7 @@ real FEM, about 20 s).
 
 import numpy as np
 
-from elastimap.identify.local import fd_jacobian_solves
-from elastimap.identify.solves import cached_solve, morph_reference
+from elastimap.workflows.studies.solves import cached_solve, fd_jacobian_solves, morph_reference
 
 D, H, E = 6.5, 7.0, 50.0
 

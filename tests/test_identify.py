@@ -157,7 +157,18 @@ def test_shared_noise_predictions_put_one_noisy_image_through_every_network():
 
 
 @pytest.mark.parametrize(
-    "name", ["global_cv", "fd_check", "fdgrid", "crbmap", "mapcheck", "imagenet", "region_score", "refine", "valleyfit"]
+    "name",
+    [
+        "global_cv",
+        "fd_check",
+        "fdgrid",
+        "crbmap",
+        "mapcheck",
+        "imagenet",
+        "region_score",
+        "valleyfit",
+        "interval_calibration",
+    ],
 )
 def test_every_study_is_a_click_main_with_help(name):
     """The studies live in elastimap.workflows.studies, each a click command ``main`` with -h."""

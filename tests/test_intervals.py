@@ -129,10 +129,10 @@ def test_calibrated_scales_hold_fresh_draws_at_95_percent_per_class():
 
 
 def test_fit_image_calibrated_interval_scales_the_gauss_newton_half_width():
-    """SYNTHETIC image model (test_refine's bump): ``intervals="calibrated"`` keeps the estimate and
+    """SYNTHETIC image model (test_identify_fit's bump): ``intervals="calibrated"`` keeps the estimate and
     the Gauss–Newton interval (``lo_gauss``) and reports θ̂ ± 1.96 k sd with k of :func:`scales_for`
     (d and h exactly; E in the fit's coordinate, so its ends move the same way)."""
-    from elastimap.identify.refine import fit_image
+    from elastimap.identify.fit import fit_image
 
     truth = np.array([8.0, 7.0, 60.0])
     I = bump(truth)
@@ -161,7 +161,7 @@ _R2 = _X.ravel() ** 2 + _Y.ravel() ** 2
 
 
 def bump(theta):
-    """SYNTHETIC difference image (mm), tests/test_refine.py's: a bump whose width follows d and h, a
+    """SYNTHETIC difference image (mm), tests/test_identify_fit.py's: a bump whose width follows d and h, a
     depth-damped amplitude and a halo whose share falls as E rises."""
     d, h, E = theta
     amp = 1e-2 * d**2 / h
@@ -175,8 +175,8 @@ def bump_map(d, h, E):
 
 
 def test_default_intervals_are_calibrated_only_for_the_calibrated_fit():
+    from elastimap.identify.forward_maps import default_intervals
     from elastimap.identify.intervals import CALIBRATED_FOR
-    from elastimap.identify.refine import default_intervals
 
     assert default_intervals(*CALIBRATED_FOR) == "calibrated"
     assert default_intervals("coarse", None) == "gauss"
@@ -188,7 +188,7 @@ def test_default_intervals_are_calibrated_only_for_the_calibrated_fit():
 def test_fit_maps_share_one_bin_rule_and_say_which_intervals():
     """fit_maps (what fit_forward and infer --refine fit with): the fit's, the model error's and the
     correcting maps at their levels with the fit level's bin rule, and the default intervals."""
-    from elastimap.identify.refine import BELOW_LEVELS, fit_maps
+    from elastimap.identify.forward_maps import BELOW_LEVELS, fit_maps
 
     m = fit_maps("coarse", "fine")
     assert m.intervals == "calibrated" and m.forward_fine is not None
@@ -221,3 +221,96 @@ def test_refine_estimates_reports_the_sd_its_interval_stands_for():
     for j, q in enumerate("dhE"):
         assert (f"non_identifiable:{q}" in r.flags) == (r.crb[j] > 0.10)
     np.testing.assert_array_equal(r.lo, r.fit.lo)
+
+
+def test_shipped_scales_are_read_from_the_calibration_file_with_provenance():
+    """The scales inference uses are data (identify/maps/intervals.json), not code: the file holds the
+    numbers the calibration recorded in git at c1a9e14 (seeds 2027-2041, 1317 lesions) and says so."""
+    from elastimap.identify.intervals import CALIBRATED_FOR, INTERVALS_FILE, load_scales
+
+    cal = load_scales(INTERVALS_FILE)
+    assert cal["scales"] == SCALES and cal["calibrated_for"] == CALIBRATED_FOR == ("coarse", "fine")
+    assert SCALES["d"] == ((1.214, 1.076, 0.613, 0.293), (4.428, 0.304, 0.407, 0.271))
+    assert SCALES["E"][1] == (1.559, 7.074, 3.538, 0.387)
+    prov = cal["provenance"]
+    assert prov["git_commit"] == "c1a9e14" and prov["lesions"] == 1317 and "2027-2041" in prov["seeds"]
+
+
+def test_a_calibration_file_with_other_classes_is_refused(tmp_path):
+    import json
+
+    from elastimap.identify.intervals import INTERVALS_FILE, load_scales
+
+    with open(INTERVALS_FILE) as fh:
+        doc = json.load(fh)
+    doc["class_edges"] = [0.05, 0.1, 0.3]
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(doc))
+    with pytest.raises(UserError, match="other classes"):
+        load_scales(bad)
+    bad.write_text("{}")
+    with pytest.raises(UserError, match="not an interval calibration"):
+        load_scales(bad)
+
+
+def _benchmark_folder(root, seed: int, n: int, rng) -> str:
+    """A SYNTHETIC frames-benchmark folder: ``n`` lesion records with a fit whose errors are Gaussian
+    with twice the stated sd (so the scales come out near 2)."""
+    import json
+    import os
+
+    from elastimap.identify.coords import FitCoords
+    from elastimap.workflows.studies.interval_calibration import FITS
+
+    X = FitCoords()
+    folder = os.path.join(root, f"fb{seed}")
+    os.makedirs(os.path.join(folder, FITS))
+    for i in range(n):
+        d = rng.uniform(4.0, 12.0)
+        lo, hi = depth_range(d)
+        t = np.array([d, rng.uniform(lo, 0.5 * (lo + hi)), rng.uniform(30.0, 150.0)])
+        rel = np.array([0.02, 0.02, 0.05])
+        x = X.x(t)
+        z = 2.0 * rng.standard_normal(3)  # errors twice the stated sd
+        e = x[2] + z[2] * rel[2] / abs(X.dtheta(x)[2, 2])
+        th = np.array([t[0] * (1 + z[0] * rel[0]), t[1] * (1 + z[1] * rel[1]), X.theta([x[0], x[1], e])[2]])
+        rec = {
+            "truth": t.tolist(),
+            "network": {"flags": []},
+            "fit_message": "ok",
+            "fit": {"d": th[0], "h": th[1], "E": th[2]},
+            "fit_relstd_gauss": rel.tolist(),
+            "design": {"n": n, "seed": seed, "inside": None},
+        }
+        with open(os.path.join(folder, FITS, f"lesion-{i:03d}.json"), "w") as fh:
+            json.dump(rec, fh)
+    return folder
+
+
+def test_interval_calibration_writes_the_file_inference_reads(tmp_path):
+    """``interval_calibration FOLDERS --out FILE`` (SYNTHETIC records) writes a calibration file that
+    load_scales reads, with its provenance: folders, seeds, lesions in all and per cell, method,
+    commit and date; the scales are those the study prints (calibrate on the pooled scores)."""
+    import json
+
+    from click.testing import CliRunner
+
+    from elastimap.identify.intervals import load_scales
+    from elastimap.workflows.studies.interval_calibration import main, read_folder, scales_of
+
+    rng = np.random.default_rng(11)
+    folders = [_benchmark_folder(str(tmp_path), s, 30, rng) for s in (3001, 3002)]
+    out = tmp_path / "intervals.json"
+    r = CliRunner().invoke(main, [*folders, "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    cal = load_scales(out)
+    table, sizes = scales_of([read_folder(f) for f in folders])
+    assert cal["scales"] == {q: tuple(tuple(row) for row in table[q]) for q in table}
+    prov = json.loads(out.read_text())["provenance"]
+    assert prov["folders"] == folders and prov["seeds"] == [3001, 3002] and prov["lesions"] == 60
+    assert prov["lesions_per_cell"]["d"] == [list(row) for row in sizes["d"]]
+    assert sum(map(sum, prov["lesions_per_cell"]["d"])) == 60
+    assert prov["date"] and prov["git_commit"] and "conformal" in prov["method"]
+    assert 1.2 < cal["scales"]["d"][0][0] < 3.5  # errors twice the stated sd: k near 2
+    r = CliRunner().invoke(main, [*folders, "--out", str(out), "--install"])  # before any work
+    assert isinstance(r.exception, UserError) and r.exception.param == "--out" and "not both" in str(r.exception)

@@ -211,7 +211,7 @@ def test_sweep_folder_serves_as_a_store(tmp_path):
 
 
 def test_identify_cached_solve_reads_through_the_store(tmp_path):
-    from elastimap.identify.solves import _legacy_npz, _params, cached_solve
+    from elastimap.workflows.studies.solves import cached_solve, params_of
 
     a = cached_solve(8.0, 7.0, 60.0, mesh="tiny", cache=str(tmp_path), solver=synthetic.solve)
     files = sorted(tmp_path.glob("*.parquet"))
@@ -224,14 +224,8 @@ def test_identify_cached_solve_reads_through_the_store(tmp_path):
     # another sizing is another discretisation: solved and kept apart, the fixed one still served
     cached_solve(8.0, 7.0, 60.0, mesh="tiny", cache=str(tmp_path), solver=synthetic.solve, sizing="by_d")
     assert len(sorted(tmp_path.glob("*.parquet"))) == 2
-    assert _params(8.0, 7.0, 60.0, "tiny", 3.0, 0.0, sizing="by_d").disc.sizing == "by_d"
+    assert params_of(8.0, 7.0, 60.0, "tiny", 3.0, 0.0, sizing="by_d").disc.sizing == "by_d"
     b2 = cached_solve(8.0, 7.0, 60.0, mesh="tiny", cache=str(tmp_path), solver=synthetic.solve)
     assert np.array_equal(b2["image"], a["image"]) and len(sorted(tmp_path.glob("*.parquet"))) == 2
-    p = _params(8.0, 7.0, 60.0, "tiny", 3.0, 0.0)
+    p = params_of(8.0, 7.0, 60.0, "tiny", 3.0, 0.0)
     assert np.array_equal(SolveStore(tmp_path, solver="synthetic").get(p).image, a["image"].astype(np.float32))
-    # the FEM's solves of the per-solve npz cache this store replaced are still read
-    q = _params(9.0, 8.0, 70.0, "tiny", 3.0, 0.0)
-    old = {k: np.asarray(v) for k, v in a.items()}
-    np.savez(_legacy_npz(str(tmp_path), q), **old)
-    c = cached_solve(9.0, 8.0, 70.0, mesh="tiny", cache=str(tmp_path))  # would run DOLFINx if not found
-    assert np.array_equal(c["image"], old["image"])

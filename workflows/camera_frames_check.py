@@ -78,7 +78,7 @@ def main(data_path, model_dir, mesh, n, refine_n, frames, seed, cache, out):
     from elastimap.camera.features import FeatureSettings
     from elastimap.camera.infer import estimate_fem_images, load_identifiability, refine_estimates
     from elastimap.camera.optics import SensorModel, render_pair
-    from elastimap.identify.solves import cached_solve
+    from elastimap.workflows.studies.solves import cached_solve
 
     os.makedirs(out, exist_ok=True)
     t0 = time.perf_counter()

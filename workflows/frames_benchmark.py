@@ -82,7 +82,8 @@ import click
 import numpy as np
 
 from elastimap.cli_util import shard_option, sizing_option
-from elastimap.identify.refine import COORDS, FINE_MODES, STILL_MOVING
+from elastimap.identify.coords import COORDS
+from elastimap.identify.fit import FINE_MODES, STILL_MOVING
 from elastimap.solver.params import MESH_LEVELS, SIZINGS
 
 TRUTH_SEED = 2026
@@ -178,7 +179,7 @@ def session_sensor(sensor, rng: np.random.Generator):
 
 
 def truth_solve(d, h, E, mesh: str, cache: str, sizing: str = "fixed") -> dict:
-    from elastimap.identify.solves import cached_solve
+    from elastimap.workflows.studies.solves import cached_solve
 
     return cached_solve(float(d), float(h), float(E), mesh=mesh, cache=cache, sizing=sizing)
 
@@ -403,7 +404,7 @@ def run_tags(
     per forward map -- ``<geometry>-<mesh>`` plus ``-corr-<level>`` (``-corr-<level>-by_d`` when the
     correcting level is sized by d), ``-err-<levels>`` when the model error is not measured against the
     default neighbour; the fits also ``-log`` and ``-drift``."""
-    from elastimap.identify.refine import neighbour_level
+    from elastimap.identify.forward_maps import neighbour_level
 
     top = correct_mesh or fit_mesh
     tag = f"{geometry}-{fit_mesh}" + (f"-corr-{correct_mesh}" if correct_mesh else "")
@@ -541,7 +542,7 @@ def run_cmd(
     from elastimap.camera.infer import load_identifiability, load_model, refine_estimates
     from elastimap.camera.optics import SensorModel
     from elastimap.errors import UserError
-    from elastimap.identify.refine import (
+    from elastimap.identify.forward_maps import (
         BELOW_LEVELS,
         check_correct,
         default_geometry,
@@ -691,7 +692,7 @@ def identifiable_at(truth: np.ndarray, mset: str = "frames") -> np.ndarray:
     the truth.  ``frames``: what inference from frames uses (the larger of the camera and image
     bounds); ``camera``: the nominal camera at the map's frame count (the benchmark's camera);
     ``image``: 1 % of the peak per pixel (the regions of the tables before 2026-11-25)."""
-    from elastimap.identify.region import IdentifiabilityMap
+    from elastimap.identify.idmap import IdentifiabilityMap
 
     r, _ = IdentifiabilityMap.load().bound(truth, mset)
     return r <= 0.10
@@ -1002,7 +1003,7 @@ def press_cmd(n, design_n, seed, fit_mesh):
     discretisation error (this level minus the neighbouring level, both re-solved).  Prints a table;
     writes nothing."""
     from elastimap.errors import UserError
-    from elastimap.identify.refine import forward_map, neighbour_level
+    from elastimap.identify.forward_maps import forward_map, neighbour_level
     from elastimap.solver.params import depth_range
 
     if not 1 <= n <= design_n:

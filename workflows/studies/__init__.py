@@ -14,7 +14,6 @@ or ``elastimap identify <name>``:
 ``mapcheck``       the map against the real-FD grid
 ``imagenet``       HOV / LOOCV of the image-based inverse; ``--save-model`` trains the deployed one
 ``region_score``   held-out errors and interval coverage inside / outside the identifiable region
-``refine``         the held-out study of the FEM refinement
 =================  =================================================================================
 
 The library they study is :mod:`elastimap.identify` (bounds, the map, the image model, the

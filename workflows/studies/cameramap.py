@@ -49,7 +49,7 @@ def camera_bound(J: np.ndarray, sigma: np.ndarray, theta) -> np.ndarray:
     """Cramér–Rao relative std (d, h, E) at ``theta`` (d mm, h mm, E kPa) from the image's derivative
     ``J`` (3, ny, nx) = ∂I/∂(d mm, h mm, E kPa) (mm per unit) and the per-pixel noise ``sigma`` (mm,
     image-shaped): F = Jᵀ diag(σ⁻²) J in (d, h, ln E)."""
-    from elastimap.identify.local import crb_relstd
+    from elastimap.identify.bounds import crb_relstd
 
     theta = np.asarray(theta, float)
     Jp = np.asarray(J, float).reshape(3, -1).T * np.array([1.0, 1.0, theta[2]])  # ∂I/∂ln E = E ∂I/∂E
@@ -72,8 +72,8 @@ def compute_cmd(mesh, frames, shard, out):
     from tqdm import tqdm
 
     from elastimap.camera.optics import background_deflection, deflection_noise_map
-    from elastimap.identify.local import grid
-    from elastimap.identify.refine import forward_map
+    from elastimap.identify.bounds import grid
+    from elastimap.identify.forward_maps import forward_map
 
     if frames < 1:
         raise UserError("--frames", f"must be >= 1 (got {frames})")
@@ -103,8 +103,8 @@ def compute_cmd(mesh, frames, shard, out):
 @click.option("--map", "map_path", default=None, help="Map file to add the set to (default: the shipped map).")
 def install_cmd(out, map_path):
     """Add the ``camera`` set to the map (every column must be there)."""
-    from elastimap.identify.local import grid
-    from elastimap.identify.region import DEFAULT_MAP, IdentifiabilityMap
+    from elastimap.identify.bounds import grid
+    from elastimap.identify.idmap import DEFAULT_MAP, IdentifiabilityMap
 
     from .crbmap import install_map
 

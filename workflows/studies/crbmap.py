@@ -82,7 +82,7 @@ def fd_grid_geometry(path: str) -> str:
 def install_map(src: str, dest: str | None = None) -> str:
     """Copy the map file ``src`` to ``dest`` (default: the shipped map inference reads) after checking
     that it loads as an identifiability map; the destination is replaced atomically."""
-    from elastimap.identify.region import DEFAULT_MAP, IdentifiabilityMap
+    from elastimap.identify.idmap import DEFAULT_MAP, IdentifiabilityMap
 
     dest = dest or DEFAULT_MAP
     IdentifiabilityMap.load(src)
@@ -101,7 +101,7 @@ def install_map(src: str, dest: str | None = None) -> str:
 
 def check_install_target(dest: str | None = None) -> str:
     """The install destination, checked before any work: its folder must exist and be writable."""
-    from elastimap.identify.region import DEFAULT_MAP
+    from elastimap.identify.idmap import DEFAULT_MAP
 
     dest = dest or DEFAULT_MAP
     folder = os.path.dirname(os.path.abspath(dest))
@@ -120,8 +120,8 @@ def stored_surrogate(path: str):
     ``map`` is an :class:`~elastimap.identify.region.IdentifiabilityMap` holding the file's
     ``<set>_surrogate`` entries (every set of :data:`SETS`), on the grid of
     :func:`elastimap.identify.local.grid`; ``map.bound(theta, set)`` interpolates them."""
-    from elastimap.identify.local import grid
-    from elastimap.identify.region import IdentifiabilityMap
+    from elastimap.identify.bounds import grid
+    from elastimap.identify.idmap import IdentifiabilityMap
 
     if not os.path.isfile(path):
         raise UserError("--surrogate-from", f"{path}: no such map file")
@@ -159,7 +159,7 @@ def compute(
     recorded in the map's ``source``.  Returns ``{set: (n_grid, 3)}`` relative std."""
     if install:
         check_install_target(install)
-    from elastimap.identify.local import Surrogate, crb_relstd, fisher, grid
+    from elastimap.identify.bounds import Surrogate, crb_relstd, fisher, grid
 
     from .fd_check import NOISE as noise
     from .fd_check import POINTS, fd_crb
@@ -319,7 +319,7 @@ def compute(
 )
 def main(data_path, out, no_fd_scale, fd_grid, surrogate_from, install):
     """Cramér–Rao identifiability maps (local evidence) and the map inference uses."""
-    from elastimap.identify.region import DEFAULT_MAP
+    from elastimap.identify.idmap import DEFAULT_MAP
 
     cmd = ["elastimap identify crbmap"]
     if surrogate_from:

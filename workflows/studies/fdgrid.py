@@ -42,7 +42,7 @@ def fd_grid_points(ds=FD_D, us=FD_U, Es=FD_E, thickness: float = THICKNESS) -> n
 
 
 def compute(out: str, mesh: str = "default", progress: bool = True, geometry: str = "morph") -> dict:
-    from elastimap.identify.local import fd_jacobian_solves
+    from elastimap.workflows.studies.solves import fd_jacobian_solves
 
     pts = fd_grid_points()
     res = {"theta": pts[:, :3], "u": pts[:, 3], "image": [], "lnF": [], "dF": [], "image0": [], "lnF0": [], "dF0": []}

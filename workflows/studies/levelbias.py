@@ -76,11 +76,11 @@ def level_errors(theta: np.ndarray, world: np.ndarray, fmap) -> dict:
 def main(n, seed, mesh, levels, coarse_sizes, cache, out):
     """Image error of each morphed level against the remeshing world and the (d, h, E) shift it causes."""
     from elastimap.errors import UserError
-    from elastimap.identify.refine import forward_map
-    from elastimap.identify.solves import cached_solve
+    from elastimap.identify.forward_maps import forward_map
     from elastimap.solver import geometry
     from elastimap.solver.params import MESH_LEVELS
     from elastimap.workflows.frames_benchmark import draw_lesions
+    from elastimap.workflows.studies.solves import cached_solve
 
     names = [v.strip() for v in levels.split(",") if v.strip()]
     bad = [v for v in names if v not in MESH_LEVELS]

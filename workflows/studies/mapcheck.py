@@ -27,7 +27,7 @@ SETS = ("features", "image", "two-depths")
 
 def fd_bounds(path: str) -> tuple[np.ndarray, dict]:
     """``theta`` (n, 3) and ``{set: (n, 3)}`` CRB relative std from an fdgrid file."""
-    from elastimap.identify.local import fd_relstd
+    from elastimap.identify.bounds import fd_relstd
 
     from .fd_check import NOISE
 
@@ -67,7 +67,7 @@ def compare(map_r: np.ndarray, fd_r: np.ndarray, threshold: float = 0.10) -> dic
 @click.option("--threshold", default=0.10, show_default=True, type=float)
 def main(fdgrid, map_path, threshold):
     """Compare the identifiability map with real-FD Cramér–Rao bounds on the FD grid."""
-    from elastimap.identify.region import IdentifiabilityMap
+    from elastimap.identify.idmap import IdentifiabilityMap
 
     theta, fd = fd_bounds(fdgrid)
     idm = IdentifiabilityMap.load(None if map_path == "default" else map_path)

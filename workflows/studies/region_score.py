@@ -25,7 +25,7 @@ import numpy as np
 
 from elastimap.cli_util import run
 from elastimap.errors import UserError
-from elastimap.identify.region import SETS
+from elastimap.identify.idmap import SETS
 
 
 def score(pred: np.ndarray, theta: np.ndarray, crb: np.ndarray, threshold: float = 0.10) -> dict:
@@ -58,7 +58,7 @@ def score(pred: np.ndarray, theta: np.ndarray, crb: np.ndarray, threshold: float
 @click.option("--threshold", default=0.10, show_default=True, type=float, help="CRB relative std limit.")
 def main(pred_path, map_path, mset, threshold):
     """MRE of held-out predictions inside / outside the identifiable region of the map."""
-    from elastimap.identify.region import IdentifiabilityMap
+    from elastimap.identify.idmap import IdentifiabilityMap
 
     if mset not in SETS:
         raise UserError("--set", f"must be one of {', '.join(SETS)} (got {mset!r})")

@@ -46,7 +46,7 @@ FITS = ("corrected", "fine")
 
 def _maps(sizing: str) -> dict:
     """The morphed maps of the three levels with element sizing ``sizing``."""
-    from elastimap.identify.refine import forward_map
+    from elastimap.identify.forward_maps import forward_map
 
     return {v: forward_map(v, "morph", sizing=sizing) for v in ("coarse", "default", "fine")}
 
@@ -67,7 +67,7 @@ def main(out, n, seed, lesions, model, image, start, maps, fit):
     from elastimap.camera.infer import load_identifiability, load_model
     from elastimap.camera.optics import SensorModel
     from elastimap.errors import UserError
-    from elastimap.identify.refine import fit_image
+    from elastimap.identify.fit import fit_image
     from elastimap.workflows.frames_benchmark import draw_lesions, lesion_inputs, run_tags
 
     try:

@@ -34,7 +34,7 @@ def _world(d, h, E, mesh):
 def test_fit_holds_a_lesion_from_another_mesh_level_in_its_interval():
     """Data: coarse-mesh remeshing solve + 0.3 %-of-peak Gaussian noise (about what 30 frames give at
     the peak).  Fit: tiny morphed map, model error against the coarse morphed map, start 15 % off."""
-    from elastimap.identify.refine import fit_forward
+    from elastimap.identify.fit import fit_forward
 
     w = _world(*TRUTH, "coarse")
     sig = 0.003 * w.image.max()
@@ -54,7 +54,7 @@ def test_defect_corrected_fit_stands_for_the_finer_level():
     truth in d than the tiny map alone, and in E where it calls E identifiable (sd of ln E ≤ 0.1;
     on this lesion E lies along the flat d–E valley and the corrected fit says so: its interval
     spans most of the box), and its interval still holds the truth."""
-    from elastimap.identify.refine import fit_forward
+    from elastimap.identify.fit import fit_forward
 
     w = _world(*TRUTH, "coarse")
     sig = 0.003 * w.image.max()
@@ -75,7 +75,8 @@ def test_fit_of_its_own_noise_free_map_returns_the_truth():
     the fit pins at its start, so its reference press is linearised about another point): the fit
     is exact with the map's derivative and with central differences + Broyden, and the derivative
     needs fewer evaluations (measured 19 against 38)."""
-    from elastimap.identify.refine import fit_image, forward_map
+    from elastimap.identify.fit import fit_image
+    from elastimap.identify.forward_maps import forward_map
 
     f = forward_map("tiny", "morph").pin(TRUTH[0], TRUTH[1])
     img = f(*TRUTH).image
@@ -98,7 +99,7 @@ def frames_case(tmp_path_factory):
     from elastimap.camera.features import FeatureSettings, camera_features
     from elastimap.camera.frames import write_frames
     from elastimap.camera.optics import SensorModel, render_pair
-    from elastimap.identify.refine import forward_map
+    from elastimap.identify.forward_maps import forward_map
     from elastimap.solver.synthetic import solve_dhe as toy_solve
     from elastimap.training.api import fit_ensemble
 

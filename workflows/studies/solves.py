@@ -1,26 +1,28 @@
-"""Stored forward solves for the local study (finite-difference checks, indentation check).
+"""Stored forward solves for the studies (finite-difference Jacobians, level bias, the frames
+benchmark's worlds).
 
 Each solve is kept once in the solve store (:class:`elastimap.dataset.store.SolveStore`) in the
-folder ``cache``, keyed by the solve parameters, so reruns of the study and of the tests cost
-nothing.  Files of the older per-solve cache (``<cache>/<hash>.npz``) are still read.  Only this
-module runs solves.
+folder ``cache``, keyed by the solve parameters, so reruns of the studies and of the tests cost
+nothing.  :func:`fd_jacobian_solves` takes central-difference Jacobians from such solves, to check
+the bounds of :mod:`elastimap.identify.bounds`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import os
 from collections.abc import Callable
 
 import numpy as np
 
+from elastimap.dataset.store import SolveStore, solver_label
+from elastimap.solver.params import SolveParams
+
 DEFAULT_CACHE = "data/identify/solves"
 _STORES: dict = {}
 
 
-def _params(
+def params_of(
     d: float,
     h: float,
     E: float,
@@ -30,8 +32,6 @@ def _params(
     geometry: str = "remesh",
     sizing: str = "fixed",
 ):
-    from elastimap.solver.params import SolveParams
-
     p = SolveParams().with_inclusion(d=float(d), h=float(h), E=float(E))
     return p.replace(
         disc=dataclasses.replace(p.disc, mesh=mesh, geometry=geometry, sizing=sizing),
@@ -40,15 +40,7 @@ def _params(
     )
 
 
-def _legacy_npz(cache: str, p) -> str:
-    """Path of the solve in the per-solve npz cache this store replaced."""
-    key = hashlib.sha256(json.dumps(p.to_dict(), sort_keys=True).encode()).hexdigest()[:20]
-    return os.path.join(cache, key + ".npz")
-
-
 def _store(cache: str, solver: str):
-    from elastimap.dataset.store import SolveStore
-
     k = (os.path.abspath(cache), solver)
     if k not in _STORES:  # one per folder and process: its index is reused across calls
         _STORES[k] = SolveStore(cache, solver=solver)
@@ -108,9 +100,7 @@ def cached_solve(
     reference mesh (:class:`PinnedMorph`).  ``sizing``: how the element size near the inclusion is
     chosen (``"fixed"`` or ``"by_d"``, :class:`elastimap.solver.params.Discretisation`).  Images come as stored (float32 values, as float64 arrays).
     """
-    from elastimap.dataset.store import solver_label
-
-    p = _params(d, h, E, mesh, delta, nonlinearity, geometry, sizing)
+    p = params_of(d, h, E, mesh, delta, nonlinearity, geometry, sizing)
     if reference is not None:
         if geometry != "morph":
             raise ValueError("reference= pins a morphed mesh: it needs geometry='morph'")
@@ -118,9 +108,6 @@ def cached_solve(
             solver = PinnedMorph(*reference)
     store = _store(cache, solver_label(solver))
     res = store.get(p, need_raw=True)
-    if res is None and solver is None and os.path.exists(_legacy_npz(cache, p)):
-        z = np.load(_legacy_npz(cache, p))
-        return {k: z[k] for k in z.files}
     if res is None:
         res = store.solve(p, solver, need_raw=True)
     return {
@@ -133,3 +120,39 @@ def cached_solve(
         "delta": np.array(res.delta),
         "seconds": np.array(res.seconds),
     }
+
+
+# d mm, h mm, ln E: large enough to beat remeshing noise; on the morphed map the 0.5 mm step's
+# truncation error in dO2 is 0.3-0.6 % (docs/forward-model.md, derivative smoothness)
+FD_STEP = np.array([0.5, 0.5, 0.1])
+
+
+def fd_jacobian_solves(theta, mesh: str = "default", cache: str | None = None, geometry: str = "morph") -> dict:
+    """Jacobians from 7 real (cached) forward solves, central differences with :data:`FD_STEP`.
+
+    ``geometry="morph"`` (default) takes all 7 on the smooth morphed map, the reference mesh
+    pinned at the centre's (:func:`elastimap.workflows.studies.solves.morph_reference`), so the
+    differences carry no remeshing jitter; ``"remesh"`` meshes each solve anew (the older maps).
+    """
+    d, h, E = (float(v) for v in theta)
+    kw = {"mesh": mesh, "cache": cache or DEFAULT_CACHE, "geometry": geometry}
+    if geometry == "morph":
+        kw["reference"] = morph_reference(d, h)
+    base = cached_solve(d, h, E, **kw)
+    J = {"image": np.zeros((base["image"].size, 3)), "lnF": np.zeros((3, 3)), "dF": np.zeros(3)}
+    for j in range(3):
+        r = []
+        for s in (+1, -1):
+            p = np.array([d, h, np.log(E)])
+            p[j] += s * FD_STEP[j]
+            r.append(cached_solve(p[0], p[1], float(np.exp(p[2])), **kw))
+        J["image"][:, j] = (r[0]["image"].ravel() - r[1]["image"].ravel()) / (2 * FD_STEP[j])
+        J["lnF"][:, j] = (np.log(r[0]["O"]) - np.log(r[1]["O"])) / (2 * FD_STEP[j])
+        f0 = r[0]["force"] - r[0]["force_ref"]
+        f1 = r[1]["force"] - r[1]["force_ref"]
+        J["dF"][j] = (f0 - f1) / (2 * FD_STEP[j])
+    J["image0"] = base["image"].ravel()
+    J["lnF0"] = np.log(base["O"])
+    J["dF0"] = float(base["force"] - base["force_ref"])
+    J["background"] = base["image_raw"] - base["image"]
+    return J

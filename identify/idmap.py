@@ -1,6 +1,6 @@
 """Where an estimate of (d, h, E) can be trusted: the identifiability map used by inference.
 
-The map holds, on the grid of :func:`elastimap.identify.local.grid` (d, depth fraction u, E), the Cramér–Rao
+The map holds, on the grid of :func:`elastimap.identify.bounds.grid` (d, depth fraction u, E), the Cramér–Rao
 relative standard deviation ``r_q = sqrt(C_qq) / q`` (``C = F⁻¹``, ``F`` the Fisher information of
 the measurement set under the camera noise of :mod:`elastimap.workflows.studies.crbmap`) of each output
 ``q ∈ {d, h, E}``.  ``r_q`` is a *lower* bound on the relative error of any unbiased estimator at
@@ -39,9 +39,11 @@ import os
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.interpolate import RegularGridInterpolator
 
 from elastimap.dataset.schema import TARGETS, THICKNESS
 from elastimap.errors import UserError
+from elastimap.solver.params import depth_range
 
 DEFAULT_MAP = os.path.join(os.path.dirname(__file__), "maps", "default.npz")
 #: measurement sets; "camera": the nominal SYNTHETIC camera's frames (per-pixel shot and read noise
@@ -49,7 +51,7 @@ DEFAULT_MAP = os.path.join(os.path.dirname(__file__), "maps", "default.npz")
 SETS = ("features", "image", "image+force", "two-depths", "camera")
 #: what inference from camera frames uses: per output the larger of the ``camera`` bound (the
 #: frames' noise) and the ``image`` bound (1 % of the peak, about the forward model's own error at
-#: the mesh levels it runs on: 0.1-1.3 % of the peak, docs/identifiability.md (7)) -- an estimate
+#: the mesh levels it runs on: 0.1-1.3 % of the peak, docs/identifiability.md, 'What camera frames identify') -- an estimate
 #: from frames is no better than either allows
 FRAMES = "frames"
 
@@ -142,8 +144,6 @@ class IdentifiabilityMap:
     # ------------------------------------------------------------------ evaluation
     def coords(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(n, 3) grid coordinates (d, u, ln E) clipped to the box, and (n,) bool: was inside."""
-        from elastimap.solver.params import depth_range
-
         theta = np.atleast_2d(np.asarray(theta, float))
         lo, hi = np.array([depth_range(max(dv, 1e-6), self.thickness) for dv in theta[:, 0]]).T
         u = (theta[:, 1] - lo) / np.where(hi > lo, hi - lo, 1.0)
@@ -163,8 +163,6 @@ class IdentifiabilityMap:
         if mset == FRAMES:
             rc, inside = self.bound(theta, "camera", scale)
             return np.maximum(rc, self.bound(theta, "image")[0]), inside
-        from scipy.interpolate import RegularGridInterpolator
-
         if mset not in self.relstd:
             raise UserError("identifiability", f"the map has no set {mset!r} (has {', '.join(self.relstd)})")
         x, inside = self.coords(theta)

@@ -1,8 +1,8 @@
-"""Local identifiability (elastimap.identify.local): Fisher / Cramér–Rao on SYNTHETIC Jacobians (no solves)."""
+"""Local identifiability (elastimap.identify.bounds): Fisher / Cramér–Rao on SYNTHETIC Jacobians (no solves)."""
 
 import numpy as np
 
-from elastimap.identify.local import NoiseSpec, crb_relstd, fisher, from_param, grid, to_param
+from elastimap.identify.bounds import NoiseSpec, crb_relstd, fisher, from_param, grid, to_param
 
 
 def _J(n=4, p=30, seed=0):
@@ -69,7 +69,7 @@ def test_region_score_splits_rows_by_the_bound():
 
 
 def test_fd_relstd_isolates_a_point_without_a_finite_bound():
-    from elastimap.identify.local import fd_relstd
+    from elastimap.identify.bounds import fd_relstd
 
     J = _J()
     th = np.tile([5.0, 6.0, 30.0], (4, 1))

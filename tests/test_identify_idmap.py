@@ -1,4 +1,4 @@
-"""Identifiability map (elastimap.identify.region) and its use by inference; SYNTHETIC maps and models."""
+"""Identifiability map (elastimap.identify.idmap) and its use by inference; SYNTHETIC maps and models."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from elastimap.errors import UserError
-from elastimap.identify.region import DEFAULT_MAP, IdentifiabilityMap
+from elastimap.identify.idmap import DEFAULT_MAP, IdentifiabilityMap
 
 
 def _map() -> IdentifiabilityMap:
@@ -339,7 +339,7 @@ def test_crbmap_surrogate_from_reuses_the_stored_raw_bounds(tmp_path):
     """``crbmap --surrogate-from``: the raw surrogate bounds of an earlier map file stand in for the GP
     fit (no sweep read): without FD scaling the new map IS those bounds, the surrogate at a point is
     their interpolation, and the file records where they came from.  SYNTHETIC bounds."""
-    from elastimap.identify.local import grid
+    from elastimap.identify.bounds import grid
     from elastimap.workflows.studies.crbmap import SETS, compute, stored_surrogate
 
     T, (ds, us, Es) = grid()
@@ -387,7 +387,7 @@ def test_cameramap_install_adds_the_camera_set_and_keeps_the_others(tmp_path):
 
     from click.testing import CliRunner
 
-    from elastimap.identify.local import grid
+    from elastimap.identify.bounds import grid
     from elastimap.workflows.studies.cameramap import main
 
     T, (ds, us, Es) = grid()

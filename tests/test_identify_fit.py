@@ -1,4 +1,4 @@
-"""Maximum-likelihood refinement through the forward model (elastimap.identify.refine).
+"""The physics fit: maximum likelihood through the forward model (elastimap.identify.fit, .coords, .forward_maps).
 
 The fast tests use a SYNTHETIC analytic image model; one test fits the real FEM on the tiny mesh."""
 
@@ -10,7 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from elastimap.errors import UserError
-from elastimap.identify.refine import COORDS, FitCoords, refine, refine_rsm, to_theta, to_x
+from elastimap.identify.coords import COORDS, FitCoords, to_theta, to_x
+from elastimap.identify.fit import fit_image
 
 _Y, _X = np.mgrid[0:16, 0:16] * 0.75
 _R2 = _X.ravel() ** 2 + _Y.ravel() ** 2
@@ -24,6 +25,10 @@ def bump(theta):
     w = 0.45 * d + 0.35 * h
     s = E / (E + 40.0)
     return amp * (s * np.exp(-_R2 / (2 * w**2)) - 0.3 * (1 - s) * np.exp(-_R2 / (8 * w**2)))
+
+
+def bump_map(d, h, E):
+    return bump((d, h, E))
 
 
 def test_parametrisation_roundtrip_keeps_h_inside_the_depth_range():
@@ -85,72 +90,21 @@ def test_fit_coordinates_name_a_bad_choice():
         FitCoords(E_tissue=0.0)
 
 
-def test_noise_free_fit_recovers_the_truth_from_a_wrong_start():
-    truth = np.array([8.0, 7.0, 60.0])
-    I = bump(truth)
-    r = refine(I, 1e-2 * I.max(), [8.6, 6.6, 85.0], bump, max_iter=30)
-    np.testing.assert_allclose(r.theta, truth, rtol=2e-3)
-    assert r.chi2_red < 1e-4 < r.chi2_red0
-    assert r.n_solves >= 5
-
-
-def test_reported_uncertainty_matches_the_scatter_under_noise():
-    truth = np.array([10.0, 8.0, 40.0])
-    I0 = bump(truth)
-    sig = 0.01 * I0.max()
-    rng = np.random.default_rng(3)
-    est, sd = [], []
-    for _ in range(30):
-        r = refine(I0 + sig * rng.standard_normal(I0.shape), sig, truth * [1.04, 0.97, 1.15], bump, max_iter=30)
-        est.append(r.theta)
-        sd.append(r.relstd)
-    est, sd = np.array(est), np.array(sd)
-    emp = np.std(np.log(est[:, 2]))
-    assert 0.6 < emp / np.median(sd[:, 2]) < 1.6  # std of ln E
-    assert abs(np.mean(np.log(est[:, 2] / truth[2]))) < 3 * emp / np.sqrt(len(est))  # no bias
-    assert 0.3 < r.chi2_red < 3
-
-
-def test_response_surface_fit_recovers_the_truth_and_its_scatter_matches_the_bound():
-    truth = np.array([10.0, 8.0, 40.0])
-    I0 = bump(truth)
-    r = refine_rsm(I0, 0.01 * I0.max(), truth * [1.05, 0.97, 1.2], bump)
-    np.testing.assert_allclose(r.theta, truth, rtol=5e-3)
-    assert r.n_solves == 30 and r.chi2_red < 1e-2 < r.chi2_red0
-    sig = 0.01 * I0.max()
-    rng = np.random.default_rng(4)
-    est, sd = [], []
-    for _ in range(30):
-        q = refine_rsm(I0 + sig * rng.standard_normal(I0.shape), sig, truth * [1.04, 0.97, 1.15], bump)
-        est.append(q.theta)
-        sd.append(q.relstd)
-    est, sd = np.array(est), np.array(sd)
-    emp = np.std(np.log(est[:, 2]))
-    assert 0.6 < emp / np.median(sd[:, 2]) < 1.6
-    assert abs(np.mean(np.log(est[:, 2] / truth[2]))) < 3 * emp / np.sqrt(len(est))
-
-
 def test_bad_input_is_a_user_error():
     I = bump([8.0, 7.0, 60.0])
     with pytest.raises(UserError, match="sigma"):
-        refine(I, 0.0, [8, 7, 60], bump)
+        fit_image(I, 0.0, [8, 7, 60], bump_map)
     with pytest.raises(UserError, match="image"):
-        refine(np.full_like(I, np.nan), 1e-3, [8, 7, 60], bump)
+        fit_image(np.full_like(I, np.nan), 1e-3, [8, 7, 60], bump_map)
     with pytest.raises(UserError, match="theta0"):
-        refine(I, 1e-3, [8, 7, -1], bump)
+        fit_image(I, 1e-3, [8, 7, -1], bump_map)
     with pytest.raises(UserError, match="sigma"):
-        refine_rsm(I, -1.0, [8, 7, 60], bump)
-    from elastimap.identify.refine import fit
-
-    with pytest.raises(UserError, match="method"):
-        fit(I, 1e-3, [8, 7, 60], bump, method="newton")
-    from elastimap.identify.refine import fit_image
-
+        fit_image(I, -1.0, [8, 7, 60], bump_map)
     with pytest.raises(UserError, match="tangent"):  # a plain function has no exact derivative
         fit_image(I, 1e-3, [8, 7, 60], lambda d, h, E: bump([d, h, E]), tangent=True)
 
 
-def test_fem_refinement_on_the_tiny_mesh(tmp_path):
+def test_physics_fit_on_the_tiny_mesh():
     """The real forward model through the inference API (elastimap.camera.infer.refine_estimates):
     a noise-free image of the REMESHING tiny-mesh solver (not the fit's map), 1 % pixel noise
     assumed, start 30 % off in E and 6 % in d; the fit runs the morphed tiny map and measures its
@@ -158,10 +112,10 @@ def test_fem_refinement_on_the_tiny_mesh(tmp_path):
     direction of the fit and that its intervals hold the truth; accuracy: workflows/frames_benchmark.py."""
     pytest.importorskip("elastimap.solver.morph")
     from elastimap.camera.infer import Estimate, refine_estimates
-    from elastimap.identify.refine import fem_model
+    from elastimap.identify.forward_maps import forward_map
 
     truth = np.array([8.0, 7.0, 40.0])
-    I = fem_model("tiny", cache=str(tmp_path))(truth)
+    I = forward_map("tiny", "remesh")(*truth).image
     start = np.array([8.5, 7.0, 52.0])
     nan3 = np.full(3, np.nan)
     e = Estimate("x", nan3, nan3, start.copy(), nan3, start, start, 1, ["non_identifiable:E"], input="image")
@@ -218,8 +172,6 @@ def test_several_model_error_levels_add_their_variances():
     """fit_image with two 'other levels' (SYNTHETIC: the bump with d off by ±1 %): each level
     difference adds its own systematic term, so the interval is at least as wide as with either
     alone and as with the same level twice it is √2 times one (C_sys = Σ b_k b_kᵀ)."""
-    from elastimap.identify.refine import fit_image
-
     truth = np.array([8.0, 7.0, 60.0])
     I = bump(truth)
     sig = 2e-3 * I.max()
@@ -244,8 +196,6 @@ def test_defect_correction_by_a_finer_level_removes_the_cheaper_maps_bias():
     map the bump with d scaled by 0.97): the cheaper map alone lands ~3 % off in d; corrected at the
     start of each pass by the finer level's defect, the fit converges to the truth (the fixed point
     of m(x) + m_fine(x_s) − m(x_s) = I is m_fine(x) = I), with a few finer evaluations."""
-    from elastimap.identify.refine import fit_image
-
     truth = np.array([8.0, 7.0, 60.0])
     I = bump(truth)
     sig = 2e-3 * I.max()
@@ -273,8 +223,6 @@ def test_model_error_is_measured_where_the_first_corrected_pass_starts_and_at_th
     """The other level is solved twice per fit however many corrected passes run (SYNTHETIC maps of
     the test above, an 'other level' with d off by 1 %): once where the first corrected pass starts
     (its weights, held for the later passes) and once at the estimate (the covariance)."""
-    from elastimap.identify.refine import fit_image
-
     truth = np.array([8.0, 7.0, 60.0])
     I = bump(truth)
     calls = []
@@ -331,9 +279,9 @@ def test_refine_estimates_checks_the_correcting_level():
 
 
 def test_default_correct_is_the_benchmarked_configuration():
-    """``infer --refine`` corrects the coarse map by ``fine`` unless told otherwise (docs/camera.md
-    4f-4g measured that configuration); the other levels fit their map alone."""
-    from elastimap.identify.refine import check_correct, default_correct
+    """``infer --refine`` corrects the coarse map by ``fine`` unless told otherwise (the camera-frame benchmark
+    measured that configuration, docs/camera.md, 'Inference'); the other levels fit their map alone."""
+    from elastimap.identify.forward_maps import check_correct, default_correct
 
     assert default_correct("coarse") == "fine"
     for mesh in ("tiny", "default", "fine", "finer"):
@@ -347,8 +295,6 @@ def test_direct_passes_fit_the_finer_level_itself_and_agree_with_the_defect_corr
     """``fine="direct"`` (SYNTHETIC, the maps of the test above): passes after the first fit the finer
     map itself, so they land on its fit as the defect-corrected passes do (their fixed point), the
     finer level's evaluations counted in ``n_fine``; a mode that does not exist is named."""
-    from elastimap.identify.refine import fit_image
-
     truth = np.array([8.0, 7.0, 60.0])
     I = bump(truth)
     sig = 2e-3 * I.max()
@@ -365,57 +311,22 @@ def test_direct_passes_fit_the_finer_level_itself_and_agree_with_the_defect_corr
     np.testing.assert_allclose(direct.theta, truth, rtol=2e-3)
     np.testing.assert_allclose(direct.theta, corrected.theta, rtol=2e-3)
     assert direct.converged and direct.n_fine > corrected.n_fine  # it evaluates the finer map at every step
-    # the reported interval is the Gauss–Newton one unless the posterior is asked for (docs/camera.md 4j)
+    # the reported interval is the Gauss–Newton one by default; the posterior interval is gone
     assert np.array_equal(direct.lo, direct.lo_gauss) and np.array_equal(direct.hi, direct.hi_gauss)
-    post = fit_image(I, sig, truth * [1.05, 1.0, 0.8], cheap, forward_fine=finer, intervals="posterior", **kw)
-    np.testing.assert_allclose(post.theta, corrected.theta, rtol=1e-9)
-    assert post.lo[0] <= post.theta[0] <= post.hi[0] and not np.array_equal(post.lo, post.lo_gauss)
+    with pytest.raises(UserError, match="intervals"):
+        fit_image(I, sig, truth * [1.05, 1.0, 0.8], cheap, forward_fine=finer, intervals="posterior", **kw)
     with pytest.raises(UserError, match="fine"):
         fit_image(I, sig, truth, cheap, forward_fine=finer, fine="both", **kw)
 
 
-def test_posterior_interval_is_the_gauss_newton_one_where_the_image_tells_and_covers_where_it_cannot():
-    """:func:`posterior_interval` (SYNTHETIC likelihoods, no image): (1) a narrow likelihood inside the
-    box gives θ̂ ± 1.96 sd; (2) where the likelihood is wide (sd of d a third of the box, E's over
-    the whole box), truths drawn from the design's prior (uniform d, depth fraction and ln E) and
-    a likelihood centred at the truth plus its own noise (unconstrained, as at a fit on the box's
-    edge) are covered 95 % of the time -- a Bayesian interval under the prior the truths come from
-    -- and every interval lies in the box."""
-    from elastimap.identify.refine import FitCoords, h_range, posterior_interval
-
-    X = FitCoords()
-    lb, ub = X.box((2.0, 15.0), (10.0, 200.0))
-    x0 = X.x([8.0, 7.0, 50.0])
-    C = np.diag([0.05, 0.01, 0.02]) ** 2
-    lo, hi = posterior_interval(X, x0, C, lb, ub)
-    th = X.theta(x0)
-    np.testing.assert_allclose([lo[0], hi[0]], [th[0] - 1.96 * 0.05, th[0] + 1.96 * 0.05], rtol=2e-3)
-
-    rng = np.random.default_rng(7)
-    C = np.diag([0.33 * (ub[0] - lb[0]), 0.02, 1.0 * (ub[2] - lb[2])]) ** 2
-    C[0, 2] = C[2, 0] = -0.8 * np.sqrt(C[0, 0] * C[2, 2])  # the d–E valley
-    L = np.linalg.cholesky(C)
-    held, n = np.zeros(3), 300
-    for _ in range(n):
-        d, u, lnE = rng.uniform([2.0, 0.0, np.log(10.0)], [15.0, 1.0, np.log(200.0)])
-        lo_h, hi_h = h_range(d)
-        xt = X.x([d, lo_h + u * (hi_h - lo_h), np.exp(lnE)])
-        c = xt + L @ rng.standard_normal(3)
-        lo, hi = posterior_interval(X, c, C, lb, ub, n=4000, seed=int(rng.integers(1 << 30)))
-        tt = X.theta(xt)
-        held += (lo <= tt) & (tt <= hi)
-        assert 2.0 <= lo[0] <= hi[0] <= 15.0 and 10.0 <= lo[2] <= hi[2] <= 200.0
-    assert 0.91 <= held[0] / n <= 0.985 and 0.91 <= held[2] / n <= 0.985, held / n
-
-
 def test_a_fit_map_morphs_from_the_reference_below_never_shrinks_by_more_than_a_rounding():
     """:func:`reference_below`: the d-bin reference ``d₀ ≤ d < √2 d₀`` (the nearest bin would shrink
-    a mesh by up to 16 %, which costs far more accuracy than growing it, docs/camera.md 4k), also for
+    a mesh by up to 16 %, which costs far more accuracy than growing it), also for
     what ``pin`` and ``pin_exact`` hold; ``below=False`` (a `tiny` fit's maps) keeps the nearest bin
-    (a stub morphed map: no DOLFINx; this checks the bin algebra, the accuracy is docs/camera.md 4k)."""
+    (a stub morphed map: no DOLFINx; this checks the bin algebra, the accuracy: docs/history/camera.md, 'Where the valley pull comes from, and fit maps that morph from the bin below')."""
     import math
 
-    from elastimap.identify.refine import BELOW_LEVELS, ForwardMap, reference_below
+    from elastimap.identify.forward_maps import BELOW_LEVELS, ForwardMap, reference_below
     from elastimap.solver.morph import D_RATIO, Reference, reference_for
 
     class Stub:
@@ -438,7 +349,7 @@ def test_a_fit_map_morphs_from_the_reference_below_never_shrinks_by_more_than_a_
 def test_a_fits_morphed_maps_solve_to_the_fits_cg_tolerance():
     """forward_map's morphed maps carry FIT_CG_RTOL to their solvers (tests/test_morph.py checks
     that a MorphedForward passes it on), looser than the solver's default."""
-    from elastimap.identify.refine import FIT_CG_RTOL, forward_map
+    from elastimap.identify.forward_maps import FIT_CG_RTOL, forward_map
     from elastimap.solver.reduction import CG_RTOL
 
     f = forward_map("tiny", "morph")

@@ -1,12 +1,12 @@
-"""Local identifiability: Jacobian, Fisher information and Cramér–Rao bounds.
+"""Local bounds on (d, h, E): Jacobian, Fisher information and Cramér–Rao bounds.
 
 Jacobian of each measurement with respect to ``theta' = (d mm, h mm, ln E)`` by **central finite
 differences of a smooth surrogate** fitted to the sweep (:class:`Surrogate`: one Gaussian-process
 regression per output on standardised ``(d, h, ln E)``, Matérn 5/2 ARD kernel).  The surrogate
 predicts ``ln O1, ln O2, ln O3``, ``ln peak`` and the shape scores of the image
 (:class:`elastimap.identify.measure.ShapePCA`) and the plate-force difference; images are reconstructed as
-``peak * (mean + scores @ components)``.  :func:`fd_jacobian_solves` gives the same Jacobian from
-real forward solves (central differences, cached) to check the surrogate.
+``peak * (mean + scores @ components)``.  The studies check it against the Jacobian from real
+forward solves (:func:`elastimap.workflows.studies.solves.fd_jacobian_solves`).
 
 Fisher information with independent Gaussian noise ``sigma_i``: ``F = Jᵀ diag(1/sigma²) J``;
 Cramér–Rao bound ``C = F⁻¹``; relative standard deviations ``sqrt(C_dd)/d``, ``sqrt(C_hh)/h`` and
@@ -19,8 +19,12 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from sklearn.gaussian_process import GaussianProcessRegressor
+from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+from tqdm import tqdm
 
 from elastimap.dataset.schema import DESIGN_BOX, THICKNESS
+from elastimap.solver.params import depth_range
 
 from .measure import Data, ShapePCA, feature_inputs
 
@@ -49,9 +53,6 @@ class Surrogate:
 
     @classmethod
     def fit(cls, data: Data, k: int = 16, progress: bool = False) -> Surrogate:
-        from sklearn.gaussian_process import GaussianProcessRegressor
-        from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
-
         P = to_param(data.theta)
         mu, sd = P.mean(0), P.std(0)
         X = (P - mu) / sd
@@ -60,8 +61,6 @@ class Surrogate:
         gps = []
         it = range(Y.shape[1])
         if progress:
-            from tqdm import tqdm
-
             it = tqdm(it, desc="surrogate GPs", leave=False)
         for j in it:
             kern = ConstantKernel(1.0, (1e-3, 1e3)) * Matern([1.0, 1.0, 1.0], (1e-2, 1e2), nu=2.5) + WhiteKernel(
@@ -155,45 +154,6 @@ def crb_relstd(F: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return np.column_stack([sd[:, 0] / theta[:, 0], sd[:, 1] / theta[:, 1], sd[:, 2]])
 
 
-# ----------------------------------------------------------------------------- real FD
-# d mm, h mm, ln E: large enough to beat remeshing noise; on the morphed map the 0.5 mm step's
-# truncation error in dO2 is 0.3-0.6 % (docs/forward-model.md, derivative smoothness)
-FD_STEP = np.array([0.5, 0.5, 0.1])
-
-
-def fd_jacobian_solves(theta, mesh: str = "default", cache: str | None = None, geometry: str = "morph") -> dict:
-    """Jacobians from 7 real (cached) forward solves, central differences with :data:`FD_STEP`.
-
-    ``geometry="morph"`` (default) takes all 7 on the smooth morphed map, the reference mesh
-    pinned at the centre's (:func:`elastimap.identify.solves.morph_reference`), so the
-    differences carry no remeshing jitter; ``"remesh"`` meshes each solve anew (the older maps).
-    """
-    from .solves import DEFAULT_CACHE, cached_solve, morph_reference
-
-    d, h, E = (float(v) for v in theta)
-    kw = {"mesh": mesh, "cache": cache or DEFAULT_CACHE, "geometry": geometry}
-    if geometry == "morph":
-        kw["reference"] = morph_reference(d, h)
-    base = cached_solve(d, h, E, **kw)
-    J = {"image": np.zeros((base["image"].size, 3)), "lnF": np.zeros((3, 3)), "dF": np.zeros(3)}
-    for j in range(3):
-        r = []
-        for s in (+1, -1):
-            p = np.array([d, h, np.log(E)])
-            p[j] += s * FD_STEP[j]
-            r.append(cached_solve(p[0], p[1], float(np.exp(p[2])), **kw))
-        J["image"][:, j] = (r[0]["image"].ravel() - r[1]["image"].ravel()) / (2 * FD_STEP[j])
-        J["lnF"][:, j] = (np.log(r[0]["O"]) - np.log(r[1]["O"])) / (2 * FD_STEP[j])
-        f0 = r[0]["force"] - r[0]["force_ref"]
-        f1 = r[1]["force"] - r[1]["force_ref"]
-        J["dF"][j] = (f0 - f1) / (2 * FD_STEP[j])
-    J["image0"] = base["image"].ravel()
-    J["lnF0"] = np.log(base["O"])
-    J["dF0"] = float(base["force"] - base["force_ref"])
-    J["background"] = base["image_raw"] - base["image"]
-    return J
-
-
 def fd_relstd(J: dict, theta: np.ndarray, noise: NoiseSpec) -> dict:
     """CRB relative std ``{set: (n, 3)}`` from stacked FD Jacobians (keys image, image0, lnF, dF).
 
@@ -220,8 +180,6 @@ def grid(nd: int = 14, nu: int = 5, nE: int = 15, d=DESIGN_BOX["d"], E=DESIGN_BO
     """(d, h, E) grid over the design space; h = lo + u (hi - lo) of the allowed range for d.
 
     Returns ``theta`` (nd*nu*nE, 3) and the axes (d, u, E) with ``theta`` in C order over them."""
-    from elastimap.solver.params import depth_range  # pure-python module (no dolfinx)
-
     ds = np.linspace(*d, nd)
     us = np.linspace(0.1, 0.9, nu)
     Es = np.geomspace(*E, nE)
