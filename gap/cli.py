@@ -26,6 +26,7 @@ import click
 
 from elastimap.cli_util import CONTEXT_SETTINGS, jobs_option, mesh_option, options
 from elastimap.cli_util import run as run_cli
+from elastimap.dataset.phantoms import read_phantoms
 from elastimap.errors import UserError
 from elastimap.outputs import check_out_dir, check_out_file, staged_dir
 
@@ -154,7 +155,8 @@ def synth_cmd(
         raise UserError("frames", f"must be >= 1 (got {frames})")
     ids = None
     if phantoms:
-        dhe, ids = synth.load_phantoms(phantoms)
+        table = read_phantoms(phantoms, min_rows=4, why="for a diagnosis")
+        dhe, ids = table[["d", "h", "E"]].to_numpy(float), list(table["name"])
     else:
         if n < 4:
             raise UserError("n", f"need at least 4 phantoms (got {n})")

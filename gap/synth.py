@@ -66,33 +66,6 @@ def check_out(out: str | os.PathLike, overwrite: bool = False) -> Path:
     return check_out_dir(p, "out", overwrite=overwrite)
 
 
-def load_phantoms(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
-    """``(dhe (n, 3), ids)`` of a phantom table: the calibration-phantom CSV (name, d, h, E) or
-    a CSV with id, d, h, E."""
-    import pandas as pd
-
-    p = Path(path)
-    if not p.is_file():
-        raise UserError("phantoms", f"{p}: no such file (a CSV with columns id or name, d, h, E)")
-    try:
-        df = pd.read_csv(p, comment="#", skipinitialspace=True)
-    except Exception as exc:  # pandas raises several types for a bad CSV
-        raise UserError("phantoms", f"{p}: not a readable CSV ({type(exc).__name__})") from None
-    df = df.rename(columns={"id": "name"})
-    missing = [c for c in ("name", "d", "h", "E") if c not in df.columns]
-    if missing:
-        raise UserError("phantoms", f"{p}: missing column(s) {', '.join(missing)} (need id or name, d, h, E)")
-    if len(df) < 4:
-        raise UserError("phantoms", f"{p}: need at least 4 phantoms (got {len(df)})")
-    ids = [str(x) for x in df["name"]]
-    if len(set(ids)) != len(ids):
-        raise UserError("phantoms", f"{p}: duplicate names/ids")
-    dhe = df[["d", "h", "E"]].apply(pd.to_numeric, errors="coerce").to_numpy(float)
-    if not (np.isfinite(dhe).all() and (dhe > 0).all()):
-        raise UserError("phantoms", f"{p}: d, h and E must be positive numbers")
-    return dhe, ids
-
-
 def phantom_design(n: int = DEFAULT_N, seed: int = 0) -> np.ndarray:
     """(n, 3) phantom (d, h, E): LHS over d 5-12 mm, E 30-150 kPa (log), depth valid for every
     effect of the library (ellipsoid up to aspect 1.25, 1 mm skin layer)."""

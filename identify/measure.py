@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from elastimap.dataset.io import read_image_meta, read_samples
+from elastimap.dataset.phantoms import is_phantom
 from elastimap.errors import UserError
 
 PEAK_FLOOR = 1e-7  # mm; peaks below this are clipped before the log (no visible inclusion)
@@ -83,7 +84,7 @@ def load(data_path: str, design_only: bool = False) -> Data:
     shape, pixel = read_image_meta(path)
     df = df.sort_values("sample_id", kind="stable").reset_index(drop=True)
     if design_only:
-        df = df[~df["tag"].astype(str).str.startswith("phantom:")].reset_index(drop=True)
+        df = df[~is_phantom(df["tag"])].reset_index(drop=True)
     if len(df) < 10:
         raise UserError("data_path", f"{path}: only {len(df)} usable rows; need at least 10")
     images = np.stack(df["image"].to_numpy()).astype(np.float64)

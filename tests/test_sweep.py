@@ -20,6 +20,7 @@ from sweep_helpers import sweep_env as _env
 from sweep_helpers import synthetic as _synthetic
 
 from elastimap.dataset import io
+from elastimap.dataset.phantoms import phantom_samples
 from elastimap.errors import UserError
 from elastimap.solver.params import depth_range
 from elastimap.sweep import design as dsg
@@ -97,7 +98,7 @@ def test_samples_table_parquet_and_csv(tmp_path):
 
 
 def test_phantoms_file_nine_valid_inclusions():
-    ph = dsg.load_phantoms()
+    ph = phantom_samples()
     assert len(ph) == 9 and len({p["sample_id"] for p in ph}) == 9
     assert {p["tag"].split(":")[1].split("-")[0] for p in ph} == {"size", "depth", "hardness"}
     assert all(p["tissue_E"] == 5.0 and p["tissue_thickness"] == 20.0 for p in ph)
