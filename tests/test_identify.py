@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from elastimap.identify.imagenet import ImageModel, fit_image_model, run_image_validation
+from elastimap.identify.image_model import ImageModel, fit_image_model, run_image_validation
 from elastimap.identify.measure import Data, ShapePCA, add_image_noise, image_inputs
 
 
