@@ -1,7 +1,7 @@
 """The ``camera`` set of the identifiability map: Cramér–Rao bounds from camera frames (SYNTHETIC camera).
 
-    python -m elastimap.workflows.studies.cameramap compute --shard 0/2 --out runs/cameramap   # and 1/2 beside it
-    python -m elastimap.workflows.studies.cameramap install --out runs/cameramap
+    elastimap study cameramap compute --shard 0/2 --out runs/cameramap   # and 1/2 beside it
+    elastimap study cameramap install --out runs/cameramap
 
 The map's other sets assume white image noise of 1 % of each image's peak.  A camera's noise is
 not relative to the peak: per pixel it is the shot and read noise of the frames, turned into
@@ -151,4 +151,4 @@ def install_cmd(out, map_path):
 if __name__ == "__main__":
     import sys
 
-    run(main, sys.argv[1:], prog_name="python -m elastimap.workflows.studies.cameramap")
+    run(main, sys.argv[1:], prog_name="elastimap study cameramap")

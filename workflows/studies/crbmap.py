@@ -1,6 +1,6 @@
 """Cramér–Rao maps over (d, h, E) from the GP surrogate, checked against real FD Jacobians.
 
-    python -m elastimap.workflows.studies.crbmap [--data data/sweep512] [--out docs/figures]
+    elastimap study crbmap [--data data/sweep512] [--out docs/figures]
 
 Fits :class:`elastimap.identify.local.Surrogate` (one GP per output) to the sweep, takes central-difference
 Jacobians of the surrogate on :func:`elastimap.identify.local.grid` (14 d x 5 depth fractions x 15 E),
@@ -321,7 +321,7 @@ def main(data_path, out, no_fd_scale, fd_grid, surrogate_from, install):
     """Cramér–Rao identifiability maps (local evidence) and the map inference uses."""
     from elastimap.identify.region import DEFAULT_MAP
 
-    cmd = ["elastimap identify crbmap"]
+    cmd = ["elastimap study crbmap"]
     if surrogate_from:
         cmd.append(f"--surrogate-from {surrogate_from}")
     else:
@@ -342,4 +342,4 @@ def main(data_path, out, no_fd_scale, fd_grid, surrogate_from, install):
 if __name__ == "__main__":
     import sys
 
-    run(main, sys.argv[1:], prog_name="python -m elastimap.workflows.studies.crbmap")
+    run(main, sys.argv[1:], prog_name="elastimap study crbmap")

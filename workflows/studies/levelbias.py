@@ -1,7 +1,7 @@
 """How far each mesh level of the morphed forward map is from a finer world, and where it moves (d, h, E).
 
-    elastimap identify levelbias --n 10 --seed 99 --world fine --levels coarse,default,fine
-    elastimap identify levelbias --n 10 --seed 99 --world fine --levels coarse \\
+    elastimap study levelbias --n 10 --seed 99 --world fine --levels coarse,default,fine
+    elastimap study levelbias --n 10 --seed 99 --world fine --levels coarse \\
         --coarse-sizes 1.1,14,0.45,10
 
 Calibration lesions (SYNTHETIC; a Latin hypercube over the design box like the frames benchmark's,
@@ -80,7 +80,7 @@ def main(n, seed, mesh, levels, coarse_sizes, cache, out):
     from elastimap.identify.solves import cached_solve
     from elastimap.solver import geometry
     from elastimap.solver.params import MESH_LEVELS
-    from elastimap.workflows.frames_benchmark import draw_lesions
+    from elastimap.workflows.benchmarks.frames import draw_lesions
 
     names = [v.strip() for v in levels.split(",") if v.strip()]
     bad = [v for v in names if v not in MESH_LEVELS]
@@ -132,4 +132,4 @@ def main(n, seed, mesh, levels, coarse_sizes, cache, out):
 if __name__ == "__main__":
     import sys
 
-    run(main, sys.argv[1:], prog_name="python -m elastimap.workflows.studies.levelbias")
+    run(main, sys.argv[1:], prog_name="elastimap study levelbias")

@@ -1,8 +1,8 @@
 """Held-out study of the FEM refinement: the numbers behind :data:`elastimap.identify.refine.INTERVAL_SCALE`.
 
-    python -m elastimap.workflows.studies.refine --pred runs/img-loocv/pred-scg-lnE-loocv.npz [--data data/sweep512]
+    elastimap study refine --pred runs/img-loocv/pred-scg-lnE-loocv.npz [--data data/sweep512]
 
-Takes the held-out image-network estimates of ``python -m elastimap.workflows.studies.imagenet``
+Takes the held-out image-network estimates of ``elastimap study image_model``
 (LOOCV with image noise), rebuilds each row's noisy image exactly as that study drew it, refines
 the ensemble's estimate with :func:`elastimap.identify.refine.fit` through the cached FEM solves
 (:func:`elastimap.identify.refine.fem_model`) and reports the MRE of the network and of the refined
@@ -40,9 +40,9 @@ def study(
     progress: bool = True,
     method: str = "rsm",
 ) -> dict:
-    """Refine the held-out ensemble estimates of ``pred_path`` (elastimap.workflows.studies.imagenet) with the FEM.
+    """Refine the held-out ensemble estimates of ``pred_path`` (elastimap study image_model) with the FEM.
 
-    The measured image of each row is rebuilt exactly as imagenet drew the *shared* noisy image
+    The measured image of each row is rebuilt exactly as the image_model study drew the *shared* noisy image
     (``add_image_noise(images, image_noise, default_rng([seed, 9]))``); the start is the mean over
     the repeats' networks of their prediction from it (``pred_shared_noise``), as inference reports it."""
     from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -54,7 +54,7 @@ def study(
     if "pred_shared_noise" not in z.files:
         raise UserError(
             "--pred",
-            f"{pred_path} has no pred_shared_noise (run elastimap.workflows.studies.imagenet with --image-noise > 0)",
+            f"{pred_path} has no pred_shared_noise (run elastimap study image_model with --image-noise > 0)",
         )
     level = float(z["image_noise"]) if image_noise is None and "image_noise" in z.files else image_noise
     sd = int(z["seed"]) if seed is None and "seed" in z.files else seed
@@ -193,16 +193,23 @@ def plot(res: dict, path: str) -> str:
     "--pred",
     "pred_path",
     required=True,
-    help="pred-<algo>-loocv.npz of python -m elastimap.workflows.studies.imagenet (with image noise).",
+    help="pred-<algo>-loocv.npz of elastimap study image_model (with image noise).",
 )
 @click.option("--data", "data_path", default="data/sweep512", show_default=True, help="The sweep it was made from.")
 @click.option(
     "--rows",
     default="identifiable",
     show_default=True,
-    help="'identifiable' (E's map CRB <= --threshold at the true values), 'all', or sample ids a,b,c.",
+    help="'identifiable' (E's map CRB <= --crb-limit at the true values), 'all', or sample ids a,b,c.",
 )
-@click.option("--threshold", default=0.10, show_default=True, type=float)
+@click.option(
+    "--crb-limit",
+    "threshold",
+    default=0.10,
+    show_default=True,
+    type=float,
+    help="Cramér–Rao relative std above which an output is non-identifiable.",
+)
 @click.option(
     "--image-noise", default=None, type=float, help="Noise level of the prediction file (default: the one it records)."
 )
@@ -224,7 +231,7 @@ def plot(res: dict, path: str) -> str:
     "trf: trust-region least squares with a central-difference Jacobian.",
 )
 @click.option("--limit", default=0, type=int, help="Only the first N selected rows (0 = all).")
-@click.option("--out", default="runs/refine", show_default=True)
+@click.option("--out", default="runs/refine", show_default=True, help="Output folder of the study's tables.")
 def main(pred_path, data_path, rows, threshold, image_noise, seed, mesh, jobs, max_iter, method, limit, out):
     """Refine held-out image-network estimates by a maximum-likelihood fit of the FEM image.
 
@@ -239,7 +246,7 @@ def main(pred_path, data_path, rows, threshold, image_noise, seed, mesh, jobs, m
     if not os.path.isfile(pred_path):
         raise UserError("--pred", f"no such file: {pred_path}")
     if not 0 < threshold < 10:
-        raise UserError("--threshold", f"must be in (0, 10) (got {threshold:g})")
+        raise UserError("--crb-limit", f"must be in (0, 10) (got {threshold:g})")
     if image_noise is not None and not 0 < image_noise < 1:
         raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
     if jobs < 1:
@@ -286,4 +293,4 @@ def main(pred_path, data_path, rows, threshold, image_noise, seed, mesh, jobs, m
 
 
 if __name__ == "__main__":
-    run(main, prog_name="python -m elastimap.workflows.studies.refine")
+    run(main, prog_name="elastimap study refine")
