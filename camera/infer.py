@@ -2,11 +2,11 @@
 
 Python API (imports no solver and no DOLFINx)::
 
-    from elastimap.camera.infer import load_ensemble, estimate, estimate_images
+    from elastimap.camera.infer import load_model, estimate, estimate_images
     from elastimap.camera.calibration import Calibration
     cal = Calibration.load("cal.json")
-    ens = load_ensemble("models/run1")              # elastimap.training.model.Ensemble
-    est = estimate([[O1, O2, O3]], cal, ens)        # camera features (see elastimap.camera.features)
+    model = load_model("models/run1")               # any elastimap.training.model.InverseModel
+    est = estimate([[O1, O2, O3]], cal, model)      # camera features (see elastimap.camera.features)
     est[0].d, est[0].d_sd, est[0].flags
 
 Uncertainty: the ensemble's members (the networks of the training repeats)
@@ -16,14 +16,15 @@ never silently extrapolated: every estimate carries ``flags``:
 
 * ``outside_calibration:Ok`` - camera feature k outside the range spanned by
   the nine calibration phantoms (the linear map is extrapolated);
-* ``outside_training:Ok`` - the calibrated FEM feature k outside the
-  network's training range (``ensemble.feature_range``);
+* ``outside_training:<input>`` - an input of the model outside its training range
+  (:meth:`elastimap.training.model.InverseModel.outside_training`: the calibrated FEM feature
+  ``Ok`` for a feature model, ``image`` for an image model);
 * ``no_signal`` - O1 at or below zero, or (from frames) no pixel of the difference image
   :data:`DETECT_SIGMA` standard errors above zero: no inclusion visible, nothing is reportable,
   and the interval ``[q_lo, q_hi]`` is the whole design box (:func:`design_box_interval`): the
   model's number for an image it cannot see is an extrapolation, and its interval there held the
   centre depth of 1 of the 13 such lesions of the SYNTHETIC benchmark's seeds 2027–2038
-  (docs/camera.md 4m);
+  (docs/camera.md, 'Inference');
 * ``non_identifiable:q`` - at the estimate, the Cramér–Rao bound of the
   identifiability map (:mod:`elastimap.identify.region`; by default the one shipped,
   measured on the default 512-sample sweep) says ``q`` cannot be determined

@@ -27,7 +27,7 @@ small deep one far worse.  This study gives the bound for what a camera actually
 frames scales the set by the frames' own noise against ``camera_sigma``
 (:meth:`elastimap.identify.region.IdentifiabilityMap.camera_scale`).  ``crbmap --install`` writes
 a map without this set: run ``install`` again after it.  The bound holds for the model's physics
-alone: the forward model's own error is not in it (docs/identifiability.md (7) measures how far
+alone: the forward model's own error is not in it (docs/identifiability.md, 'What camera frames identify', measures how far
 that error reaches).
 """
 

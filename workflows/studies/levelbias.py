@@ -17,7 +17,7 @@ with another seed, so none of them is a benchmark lesion).  At each lesion θ = 
 
 ``--coarse-sizes h0,h_max,grading,per_d`` replaces the ``coarse`` level's sizes (mm; see
 :data:`elastimap.solver.geometry.LEVELS`) for this process only: which part of a finer level removes
-the coarse level's bias (docs/camera.md 4e).  Prints one row per lesion and level and a summary;
+the coarse level's bias (docs/camera.md, 'Inference').  Prints one row per lesion and level and a summary;
 ``--out FILE.json`` keeps the rows.
 """
 

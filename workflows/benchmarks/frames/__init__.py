@@ -11,8 +11,8 @@ Everything it makes is SYNTHETIC.
 
     OMP_NUM_THREADS=1 .venv/bin/python -m elastimap.workflows.benchmarks.frames lesions --n 120 --out runs/frames-bench
 
-Stage ``network``: the start network (the image model's SCG ensemble, the recipe of docs/camera.md
-4d) trained on a sweep's design rows, into ``OUT/image-model``.
+Stage ``network``: the start network (the image model's SCG ensemble, the recipe in docs/camera.md,
+'Inference') trained on a sweep's design rows, into ``OUT/image-model``.
 
     .venv/bin/elastimap sweep run --n 160 --mesh tiny --seed 0 --jobs 1 --out runs/sweep-tiny160
     .venv/bin/python -m elastimap.workflows.benchmarks.frames network --sweep runs/sweep-tiny160 --out runs/frames-bench
@@ -31,7 +31,7 @@ JSON file per lesion in ``OUT/fits`` (resumable; a folder holding lesions of ano
 another ``--seed``, ``--n``, ``--inside`` or ``--outside`` -- is refused; ``--shard K/N`` splits the lesions between
 processes; the calibration and the fits are kept per forward map, ``OUT/cal-<tag>.json`` and
 ``OUT/fits-<tag>``, tag ``<geometry>-<mesh>`` plus ``-corr-<level>`` with ``--correct-mesh`` and
-``-err-<level>`` when ``--error-mesh`` is not the default).  Measurement knobs (docs/camera.md 4j),
+``-err-<level>`` when ``--error-mesh`` is not the default).  Measurement knobs (docs/camera.md, 'Inference'),
 each marked in the tag: ``--correct-sizing by_d`` sizes the correcting level and its model-error
 level by d (``-corr-<level>-by_d``); ``--fine-mode direct`` makes the passes after the first fit
 the correcting level itself instead of correcting the fit's map (``-direct``); ``--max-passes N``
@@ -65,7 +65,7 @@ user is told to trust).
 
 Stage ``press`` (a check of the fit's map, writes nothing): at the first lesions, how far the pinned
 map's first-order reference press is from the re-solved one, against the map's own discretisation
-error (docs/camera.md 4c).
+error (docs/camera.md, 'Inference').
 
     OMP_NUM_THREADS=1 .venv/bin/python -m elastimap.workflows.benchmarks.frames press --n 5
 """

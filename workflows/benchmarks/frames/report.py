@@ -58,8 +58,7 @@ def summarise(recs: list[dict], region_set: str = "frames") -> dict:
         out[name] = row
     sec = np.array([r["seconds_fit"] for r in recs])
     out["seconds_fit"] = {"mean": float(sec.mean()), "median": float(np.median(sec)), "max": float(sec.max())}
-    # the fit's cost over the lesions a fit ran for (a lesion without a signal costs none; before
-    # 2026-11-27 these means were over all lesions)
+    # the fit's cost over the lesions a fit ran for (a lesion without a signal costs none)
     ran = [r for r in recs if r.get("n_fit_level_solves", 0) > 0] or recs
     cpu = np.array([r.get("cpu_seconds_fit", np.nan) for r in ran])
     out["cpu_seconds_fit"] = {

@@ -38,7 +38,7 @@ from .lesions import (
 @click.option("--seed", default=0, show_default=True, type=int)
 @click.option("--out", required=True, help="Benchmark folder: the network lands in OUT/image-model.")
 def network_cmd(sweep_dir, repeats, epochs, seed, out):
-    """Train the start network (the recipe of docs/camera.md 4d): SCG ensemble of the image model,
+    """Train the start network (the recipe in docs/camera.md, 'Inference'): SCG ensemble of the image model,
     hidden 12-6 tansig, ln(peak) + 9 shape-PCA scores, 1 % image noise, target ln E."""
     from elastimap.errors import UserError
     from elastimap.identify.image_model import fit_image_model
@@ -229,7 +229,7 @@ def lesion_inputs(i, theta, seed, sensor, cal, model, idm, out, truth_mesh, trut
 @click.option("--model", "model_dir", required=True, help="Image model (the network that gives the start).")
 @click.option("--n", "n", default=120, show_default=True, type=int, help="Held-out lesions (as in 'lesions').")
 @click.option("--seed", default=TRUTH_SEED, show_default=True, type=int, help="Seed of the lesion design and camera.")
-@click.option("--truth-mesh", default="default", show_default=True)
+@click.option("--truth-mesh", default="default", show_default=True, help="Mesh level of the world's remeshing solver.")
 @TRUTH_SIZING
 @INSIDE
 @OUTSIDE
@@ -289,175 +289,218 @@ def lesion_inputs(i, theta, seed, sensor, cal, model, idm, out, truth_mesh, trut
 )
 @shard_option("K/N: this process fits lesions i with i % N == K.")
 @click.option("--limit", default=0, type=int, help="Stop after this many new fits (0: all).")
-@click.option("--out", required=True)
-def run_cmd(
-    model_dir,
-    n,
-    seed,
-    truth_mesh,
-    truth_sizing,
-    inside,
-    outside,
-    fit_mesh,
-    error_mesh,
-    correct_mesh,
-    correct_sizing,
-    geometry,
-    frames,
-    coords,
-    session,
-    max_passes,
-    fine_mode,
-    shard,
-    limit,
-    out,
-):
+@click.option("--out", required=True, help="The benchmark folder (fits land in OUT/fits-<tag>).")
+def run_cmd(model_dir, n, seed, truth_mesh, truth_sizing, inside, outside, frames, shard, limit, out, **fit):
     """Frames -> network -> physics fit for every held-out lesion (resumable, one JSON per lesion)."""
-    import json
-
-    from elastimap.camera.infer import load_identifiability, load_model, refine_estimates
+    from elastimap.camera.infer import load_identifiability, load_model
     from elastimap.camera.optics import SensorModel
-    from elastimap.errors import UserError
-    from elastimap.identify.refine import (
-        BELOW_LEVELS,
-        check_correct,
-        default_geometry,
-        default_intervals,
-        forward_map,
-        neighbour_level,
-    )
 
     k, nsh = shard
-    geometry = geometry or default_geometry()
-    try:
-        check_correct(fit_mesh, correct_mesh)  # both levels, the correcting one finer
-    except UserError as exc:
-        raise UserError("--fit-mesh" if exc.param == "mesh" else "--correct-mesh", exc.message) from None
-    top = correct_mesh or fit_mesh  # the level the fit's (corrected) map stands for
-    levels = [v.strip() for v in (error_mesh or neighbour_level(top)).split(",")]
-    if any(v not in MESH_LEVELS or v == top for v in levels) or len(set(levels)) != len(levels):
-        raise UserError(
-            "--error-mesh",
-            f"distinct levels of {', '.join(MESH_LEVELS)} other than {top} (got {error_mesh!r})",
-        )
-    alt_level = "+".join(levels)
-    cal_tag, tag = run_tags(geometry, fit_mesh, correct_mesh, levels, coords, session, correct_sizing)
-    tag += f"-p{max_passes}" if max_passes != 2 else ""
-    tag += "-direct" if fine_mode == "direct" and correct_mesh else ""
+    setup = FitSetup.from_options(**fit)
+    cal_tag, tag = setup.tags()
     fits = os.path.join(out, f"fits-{tag}")
     truth = lesion_design(n, seed, inside, outside)
     _check_same_design(fits, truth)  # before any work: never add lesions of another design
     os.makedirs(fits, exist_ok=True)
     acc: dict = {}
     t = time.perf_counter()
-    below = fit_mesh in BELOW_LEVELS  # one bin rule for all the fit's maps (identify.refine.reference_below)
-    fwd = _Timed(forward_map(fit_mesh, geometry, below=below), acc, "fit_level")
-    top_sizing = correct_sizing if correct_mesh else "fixed"  # the sizing of the map the fit stands for
-    fwd_alt = [_Timed(forward_map(v, geometry, sizing=top_sizing, below=below), acc, "alt_level") for v in levels]
-    fwd_fine = (
-        _Timed(forward_map(correct_mesh, geometry, sizing=correct_sizing, below=below), acc, "fine_level")
-        if correct_mesh
-        else None
-    )
-    sized = {k: "" if v == "fixed" else f" sized {v}" for k, v in (("fine", correct_sizing), ("alt", top_sizing))}
-    how = "then fitted on" if fine_mode == "direct" else "defect-corrected by"
-    fit_label = f"{geometry}, {fit_mesh} mesh" + (f", {how} {correct_mesh}{sized['fine']}" if correct_mesh else "")
-    fit_label += f"; model error vs {alt_level}{sized['alt']}; E coordinate {coords}"
-    fit_label += "; references: the d-bin below" if below and geometry == "morph" else ""
-    # the calibrated interval only for the fit it was calibrated on (identify.intervals.CALIBRATED_FOR):
-    # (default_intervals: levels, morphed maps) with the fixed sizing, the default model-error level
-    # and passes, defect correction -- the benchmark's switches that infer does not have
-    calibrated_fit = (
-        correct_sizing == "fixed"
-        and levels == [neighbour_level(top)]
-        and coords == "contrast"
-        and max_passes == 2
-        and fine_mode == "correct"
-    )
-    intervals = default_intervals(fit_mesh, correct_mesh, geometry) if calibrated_fit else "gauss"
-    fit_label += f"; {intervals} intervals"
+    maps = setup.maps(acc)
     # the calibration's FEM side: the map the fit stands for (the finer one when it corrects)
-    cal = calibrate(out, truth_mesh, fwd_fine or fwd, frames, seed, cal_tag, truth_sizing)
-    setup = time.perf_counter() - t
+    cal = calibrate(out, truth_mesh, maps[2] or maps[0], frames, seed, cal_tag, truth_sizing)
+    setup_s = time.perf_counter() - t
     model = load_model(model_dir)
     idm = load_identifiability("default")
     sensor = SensorModel(seed=seed)
+    common = {
+        "design": design_record(n, seed, inside, outside),
+        "world": world_label(truth_mesh, truth_sizing) + ", tied, quarter",
+        "fit_map": setup.label(),
+        "frames": frames,
+    }
     done = 0
     for i in range(k, n, nsh):
         path = os.path.join(fits, f"lesion-{i:04d}.json")
         if os.path.exists(path):
             continue
-        d, h, E = truth[i]
-        one = lesion_inputs(i, truth[i], seed, sensor, cal, model, idm, out, truth_mesh, truth_sizing, session, frames)
-        w, cam, di, net, t_net = one.world, one.camera, one.recovered, one.network, one.seconds
-        before = dict(acc)
-        c0 = time.process_time()
-        (fit,) = refine_estimates(
-            [copy.deepcopy(net)],
-            None,
-            forward=fwd,
-            forward_alt=fwd_alt,
-            forward_fine=fwd_fine,
-            coords=coords,
-            max_passes=max_passes,
-            fine=fine_mode,
-            intervals=intervals,
+        one = lesion_inputs(
+            i, truth[i], seed, sensor, cal, model, idm, out, truth_mesh, truth_sizing, setup.session, frames
         )
-        cpu_fit = time.process_time() - c0
-        spent = {key: acc.get(key, 0) - before.get(key, 0) for key in acc}
-        rec = {
-            "synthetic": True,
-            "i": i,
-            "truth": [float(d), float(h), float(E)],
-            "design": design_record(n, seed, inside, outside),
-            "world": world_label(truth_mesh, truth_sizing) + ", tied, quarter",
-            "fit_map": fit_label,
-            "frames": frames,
-            "camera": "nominal"
-            if session == "nominal"
-            else {"led_power": list(cam.led_power), "vignetting": cam.vignetting},
-            "image_peak_mm": float(w["image"].max()),
-            "recovered_z_rms": float(np.sqrt(np.mean(((di.image - w["image"]) / di.sigma) ** 2))),
-            "network": net.to_dict(),
-            "fit": fit.to_dict(),
-            "seconds_camera_and_network": t_net,
-            "seconds_fit": float(fit.fit.seconds) if fit.fit is not None else 0.0,
-            "cpu_seconds_fit": cpu_fit,
-            "fit_message": fit.fit.message if fit.fit is not None else "",
-            # the fit's Gauss–Newton interval (θ̂ ± 1.96 sd clipped to the box) beside the reported one
-            "fit_interval_gauss": {
-                "lo": [float(v) for v in fit.fit.lo_gauss],
-                "hi": [float(v) for v in fit.fit.hi_gauss],
-            }
-            if fit.fit is not None and fit.fit.lo_gauss is not None
-            else None,
-            # the Gauss–Newton relative sds (d, h; ln E) and the reported interval's scales
-            # (identify.intervals): the fit's sd_q above is the Gauss–Newton one times the scale
-            "fit_relstd_gauss": [float(v) for v in fit.fit.relstd] if fit.fit is not None else None,
-            "fit_interval_scale": [float(v) for v in fit.fit.scale] if fit.fit is not None else None,
-            "seconds_fit_level_solves": spent.get("fit_level", 0.0),
-            "n_fit_level_solves": spent.get("fit_level_n", 0),
-            "seconds_alt_level_solves": spent.get("alt_level", 0.0),
-            "n_alt_level_solves": spent.get("alt_level_n", 0),
-            "seconds_fine_level_solves": spent.get("fine_level", 0.0),
-            "n_fine_level_solves": spent.get("fine_level_n", 0),
-            "setup_seconds_this_process": setup,
-        }
-        tmp = path + ".tmp"
-        with open(tmp, "w") as fh:
-            json.dump(rec, fh, indent=1)
-        os.replace(tmp, path)
-        f = rec["fit"]
-        click.echo(
-            f"lesion {i}: truth {d:.2f}/{h:.2f}/{E:.1f}  net {net.d:.2f}/{net.h:.2f}/{net.E:.1f}  "
-            f"fit {f['d']:.2f}/{f['h']:.2f}/{f['E']:.1f}  chi2 {f.get('fit_chi2_red', float('nan')):.2f}  "
-            f"{rec['seconds_fit']:.1f} s ({rec['n_fit_level_solves']}+{rec['n_alt_level_solves']}"
-            f"+{rec['n_fine_level_solves']} solves)",
-            err=True,
-        )
+        rec = {"synthetic": True, "i": i, "truth": [float(v) for v in truth[i]], **common}
+        rec.update(fit_lesion(one, setup, maps, acc))
+        rec["setup_seconds_this_process"] = setup_s
+        _write_record(path, rec)
         done += 1
         if limit and done >= limit:
             break
+
+
+@dataclass
+class FitSetup:
+    """How ``run`` fits each lesion: the forward maps (levels, sizing, geometry), the fit's coordinate
+    of E, its passes and intervals, and the camera session; its tags name the output folders."""
+
+    geometry: str
+    fit_mesh: str
+    correct_mesh: str | None
+    levels: list[str]  # the level(s) the model error is measured against
+    correct_sizing: str
+    coords: str
+    session: str
+    max_passes: int
+    fine_mode: str
+
+    @classmethod
+    def from_options(
+        cls, fit_mesh, error_mesh, correct_mesh, correct_sizing, geometry, coords, session, max_passes, fine_mode
+    ) -> FitSetup:
+        """Check the command's options (one line naming the flag, before any work)."""
+        from elastimap.errors import UserError
+        from elastimap.identify.refine import check_correct, default_geometry, neighbour_level
+
+        try:
+            check_correct(fit_mesh, correct_mesh)  # both levels, the correcting one finer
+        except UserError as exc:
+            raise UserError("--fit-mesh" if exc.param == "mesh" else "--correct-mesh", exc.message) from None
+        top = correct_mesh or fit_mesh  # the level the fit's (corrected) map stands for
+        levels = [v.strip() for v in (error_mesh or neighbour_level(top)).split(",")]
+        if any(v not in MESH_LEVELS or v == top for v in levels) or len(set(levels)) != len(levels):
+            raise UserError(
+                "--error-mesh",
+                f"distinct levels of {', '.join(MESH_LEVELS)} other than {top} (got {error_mesh!r})",
+            )
+        geometry = geometry or default_geometry()
+        return cls(geometry, fit_mesh, correct_mesh, levels, correct_sizing, coords, session, max_passes, fine_mode)
+
+    def tags(self) -> tuple[str, str]:
+        """(calibration tag, fits tag): :func:`run_tags` plus the passes and the fine mode."""
+        cal_tag, tag = run_tags(
+            self.geometry, self.fit_mesh, self.correct_mesh, self.levels, self.coords, self.session, self.correct_sizing
+        )
+        tag += f"-p{self.max_passes}" if self.max_passes != 2 else ""
+        tag += "-direct" if self.fine_mode == "direct" and self.correct_mesh else ""
+        return cal_tag, tag
+
+    @property
+    def below(self) -> bool:
+        """One bin rule for all the fit's maps (identify.refine.reference_below)."""
+        from elastimap.identify.refine import BELOW_LEVELS
+
+        return self.fit_mesh in BELOW_LEVELS
+
+    @property
+    def top_sizing(self) -> str:
+        """The sizing of the map the fit stands for."""
+        return self.correct_sizing if self.correct_mesh else "fixed"
+
+    @property
+    def intervals(self) -> str:
+        """The calibrated interval only for the fit it was calibrated on (identify.intervals.CALIBRATED_FOR):
+        (default_intervals: levels, morphed maps) with the fixed sizing, the default model-error level
+        and passes, defect correction -- the benchmark's switches that infer does not have."""
+        from elastimap.identify.refine import default_intervals, neighbour_level
+
+        calibrated_fit = (
+            self.correct_sizing == "fixed"
+            and self.levels == [neighbour_level(self.correct_mesh or self.fit_mesh)]
+            and self.coords == "contrast"
+            and self.max_passes == 2
+            and self.fine_mode == "correct"
+        )
+        return default_intervals(self.fit_mesh, self.correct_mesh, self.geometry) if calibrated_fit else "gauss"
+
+    def maps(self, acc: dict):
+        """(forward, [model-error maps], correcting map or None), each timed into ``acc``."""
+        from elastimap.identify.refine import forward_map
+
+        g, below = self.geometry, self.below
+        fwd = _Timed(forward_map(self.fit_mesh, g, below=below), acc, "fit_level")
+        alt = [_Timed(forward_map(v, g, sizing=self.top_sizing, below=below), acc, "alt_level") for v in self.levels]
+        fine = None
+        if self.correct_mesh:
+            fine = _Timed(forward_map(self.correct_mesh, g, sizing=self.correct_sizing, below=below), acc, "fine_level")
+        return fwd, alt, fine
+
+    def label(self) -> str:
+        """The records' ``fit_map``: what the fit ran on, in words."""
+        sized = {
+            k: "" if v == "fixed" else f" sized {v}"
+            for k, v in (("fine", self.correct_sizing), ("alt", self.top_sizing))
+        }
+        how = "then fitted on" if self.fine_mode == "direct" else "defect-corrected by"
+        s = f"{self.geometry}, {self.fit_mesh} mesh"
+        s += f", {how} {self.correct_mesh}{sized['fine']}" if self.correct_mesh else ""
+        s += f"; model error vs {'+'.join(self.levels)}{sized['alt']}; E coordinate {self.coords}"
+        s += "; references: the d-bin below" if self.below and self.geometry == "morph" else ""
+        return s + f"; {self.intervals} intervals"
+
+
+def fit_lesion(one: LesionInputs, setup: FitSetup, maps, acc: dict) -> dict:
+    """The physics fit of one lesion from its network estimate: the record's fit fields."""
+    from elastimap.camera.infer import refine_estimates
+
+    fwd, fwd_alt, fwd_fine = maps
+    w, cam, di, net = one.world, one.camera, one.recovered, one.network
+    before = dict(acc)
+    c0 = time.process_time()
+    (fit,) = refine_estimates(
+        [copy.deepcopy(net)],
+        None,
+        forward=fwd,
+        forward_alt=fwd_alt,
+        forward_fine=fwd_fine,
+        coords=setup.coords,
+        max_passes=setup.max_passes,
+        fine=setup.fine_mode,
+        intervals=setup.intervals,
+    )
+    cpu_fit = time.process_time() - c0
+    spent = {key: acc.get(key, 0) - before.get(key, 0) for key in acc}
+    r = fit.fit
+    return {
+        "camera": "nominal"
+        if setup.session == "nominal"
+        else {"led_power": list(cam.led_power), "vignetting": cam.vignetting},
+        "image_peak_mm": float(w["image"].max()),
+        "recovered_z_rms": float(np.sqrt(np.mean(((di.image - w["image"]) / di.sigma) ** 2))),
+        "network": net.to_dict(),
+        "fit": fit.to_dict(),
+        "seconds_camera_and_network": one.seconds,
+        "seconds_fit": float(r.seconds) if r is not None else 0.0,
+        "cpu_seconds_fit": cpu_fit,
+        "fit_message": r.message if r is not None else "",
+        # the fit's Gauss–Newton interval (θ̂ ± 1.96 sd clipped to the box) beside the reported one
+        "fit_interval_gauss": {"lo": [float(v) for v in r.lo_gauss], "hi": [float(v) for v in r.hi_gauss]}
+        if r is not None and r.lo_gauss is not None
+        else None,
+        # the Gauss–Newton relative sds (d, h; ln E) and the reported interval's scales
+        # (identify.intervals): the fit's sd_q above is the Gauss–Newton one times the scale
+        "fit_relstd_gauss": [float(v) for v in r.relstd] if r is not None else None,
+        "fit_interval_scale": [float(v) for v in r.scale] if r is not None else None,
+        "seconds_fit_level_solves": spent.get("fit_level", 0.0),
+        "n_fit_level_solves": spent.get("fit_level_n", 0),
+        "seconds_alt_level_solves": spent.get("alt_level", 0.0),
+        "n_alt_level_solves": spent.get("alt_level_n", 0),
+        "seconds_fine_level_solves": spent.get("fine_level", 0.0),
+        "n_fine_level_solves": spent.get("fine_level_n", 0),
+    }
+
+
+def _write_record(path: str, rec: dict) -> None:
+    """One lesion's JSON record, written atomically, and its line on stderr."""
+    import json
+
+    tmp = path + ".tmp"
+    with open(tmp, "w") as fh:
+        json.dump(rec, fh, indent=1)
+    os.replace(tmp, path)
+    (d, h, E), net, f = rec["truth"], rec["network"], rec["fit"]
+    click.echo(
+        f"lesion {rec['i']}: truth {d:.2f}/{h:.2f}/{E:.1f}  net {net['d']:.2f}/{net['h']:.2f}/{net['E']:.1f}  "
+        f"fit {f['d']:.2f}/{f['h']:.2f}/{f['E']:.1f}  chi2 {f.get('fit_chi2_red', float('nan')):.2f}  "
+        f"{rec['seconds_fit']:.1f} s ({rec['n_fit_level_solves']}+{rec['n_alt_level_solves']}"
+        f"+{rec['n_fine_level_solves']} solves)",
+        err=True,
+    )
 
 
 PRESS_MOVES = ((0.3, 0.0), (0.0, 0.3), (-0.8, 0.5), (1.0, -1.0))  # (Δd, Δh) mm from the pin
