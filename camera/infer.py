@@ -149,18 +149,6 @@ class Estimate:
         return out
 
 
-def load_ensemble(directory: str | os.PathLike):
-    """Load a trained ensemble (``elastimap.training.model.Ensemble.load``) with a clear error if impossible."""
-    d = str(directory)
-    if not os.path.isdir(d):
-        raise UserError("model", f"{d}: no such model directory")
-    try:
-        from elastimap.training.model import Ensemble
-    except ImportError as exc:
-        raise UserError("model", f"the training package is not available ({exc})") from None
-    return Ensemble.load(d)
-
-
 def load_identifiability(identifiability="default"):
     """``"default"`` (the shipped map), a path, an :class:`elastimap.identify.region.IdentifiabilityMap`, or None."""
     if identifiability is None:
@@ -272,11 +260,13 @@ def _ids(ids, n: int, what: str) -> list[str]:
     return ids
 
 
-def _predict(model, X: np.ndarray, ids: list[str], cam, fem, flags, no_signal, **kw) -> list[Estimate]:
+def _predict(
+    model, X: np.ndarray, ids: list[str], cam, fem, flags, no_signal, input="features", images=None, sigma=None
+) -> list[Estimate]:
     """The one path of every inverse model: its members' predictions of the model inputs ``X``
     -> one :class:`Estimate` per row, with the given ``flags`` (per row), ``outside_training:<input>``
-    for inputs outside the model's training range and ``no_signal`` first where ``no_signal[i]``;
-    ``kw`` (``input``, ``image``, ``sigma``: per row or None) go to each Estimate."""
+    for inputs outside the model's training range and ``no_signal`` first where ``no_signal[i]``.
+    ``images``/``sigma`` (per row, or None): the difference image the estimate keeps and its noise."""
     n = len(ids)
     Y, mean, sd, p10, p90 = _members(model.predict(X), n)
     outside = model.outside_training(X)
@@ -285,8 +275,10 @@ def _predict(model, X: np.ndarray, ids: list[str], cam, fem, flags, no_signal, *
         f = list(flags[i]) + [f"outside_training:{k}" for k in outside[i]]
         if no_signal[i]:
             f.insert(0, "no_signal")
-        extra = {k: (v if k == "input" else None if v is None else v[i]) for k, v in kw.items()}
-        ests.append(Estimate(ids[i], cam[i], fem[i], mean[i], sd[i], p10[i], p90[i], Y.shape[0], f, **extra))
+        e = Estimate(ids[i], cam[i], fem[i], mean[i], sd[i], p10[i], p90[i], Y.shape[0], f, input=input)
+        e.image = None if images is None else images[i]
+        e.sigma = None if sigma is None else sigma[i]
+        ests.append(e)
     return ests
 
 
@@ -318,16 +310,16 @@ def estimate(
 
 
 def load_model(directory: str | os.PathLike):
-    """The :class:`~elastimap.training.model.InverseModel` a directory holds: a feature ensemble
-    (``training``) or an image model (:mod:`elastimap.identify.image_model`, which adds its PCA file)."""
+    """The :class:`~elastimap.training.model.InverseModel` a directory holds: an image model
+    (:mod:`elastimap.identify.image_model`, which adds its PCA file) or a feature ensemble
+    (:class:`elastimap.training.model.Ensemble`); any damage is one :class:`UserError`."""
+    from elastimap.identify.image_model import PCA_FILE, ImageModel
+    from elastimap.training.model import Ensemble
+
     d = str(directory)
-    from elastimap.identify.image_model import PCA_FILE
-
-    if os.path.isfile(os.path.join(d, PCA_FILE)):
-        from elastimap.identify.image_model import ImageModel
-
-        return ImageModel.load(d)
-    return load_ensemble(d)
+    if not os.path.isdir(d):
+        raise UserError("model", f"{d}: no such model directory")
+    return (ImageModel if os.path.isfile(os.path.join(d, PCA_FILE)) else Ensemble).load(d)
 
 
 def estimate_fem_images(
@@ -376,7 +368,7 @@ def estimate_fem_images(
         for i in range(n)
     ]
     flags = flags if flags is not None else [[] for _ in range(n)]
-    ests = _predict(model, imgs, ids, cam, fem, flags, no_signal, input="image", image=imgs.copy(), sigma=sg)
+    ests = _predict(model, imgs, ids, cam, fem, flags, no_signal, "image", imgs.copy(), sg)
     from elastimap.identify.region import FRAMES
 
     if sigma is not None and idmap is not None and "camera" in idmap.relstd and idmap.camera_sigma is not None:

@@ -34,8 +34,8 @@ from .lesions import (
 @click.command("network")
 @click.option("--sweep", "sweep_dir", required=True, help="Sweep folder with stored images (its design rows are used).")
 @click.option("--repeats", default=4, show_default=True, type=int, help="Ensemble members.")
-@click.option("--epochs", default=300, show_default=True, type=int)
-@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--epochs", default=300, show_default=True, type=int, help="Training epochs per member.")
+@click.option("--seed", default=0, show_default=True, type=int, help="Seed of the initialisations and image noise.")
 @click.option("--out", required=True, help="Benchmark folder: the network lands in OUT/image-model.")
 def network_cmd(sweep_dir, repeats, epochs, seed, out):
     """Train the start network (the recipe in docs/camera.md, 'Inference'): SCG ensemble of the image model,
