@@ -66,6 +66,11 @@ def _inputs(data: Data, pca: ShapePCA, force: bool, images=None):
     return image_inputs(imgs, pca, data.dforce if force else None, data.force_ref if force else None)
 
 
+def _noisy_inputs(data: Data, pca: ShapePCA, force: bool, image_noise: float, *key: int) -> np.ndarray:
+    """The inputs of one draw of per-pixel noise (``image_noise`` x each image's peak), seeded by ``key``."""
+    return _inputs(data, pca, force, add_image_noise(data.images, image_noise, np.random.default_rng(list(key))))
+
+
 def _train_targets(T: np.ndarray, log_e: bool) -> np.ndarray:
     """Network targets: (d, h, E) or, with ``log_e``, (d, h, ln E)."""
     Tt = np.array(T, dtype=np.float64, copy=True)
@@ -122,20 +127,8 @@ def run_image_validation(
     X0 = _inputs(data, pca, force)
     X_rep = X_eval = None
     if image_noise > 0:
-        X_rep = np.stack(
-            [
-                _inputs(
-                    data,
-                    pca,
-                    force,
-                    add_image_noise(data.images, image_noise, np.random.default_rng([int(seed), 7, r])),
-                )
-                for r in range(repeats)
-            ]
-        )
-        X_eval = _inputs(
-            data, pca, force, add_image_noise(data.images, image_noise, np.random.default_rng([int(seed), 9]))
-        )
+        X_rep = np.stack([_noisy_inputs(data, pca, force, image_noise, int(seed), 7, r) for r in range(repeats)])
+        X_eval = _noisy_inputs(data, pca, force, image_noise, int(seed), 9)
     vr = validate_inputs(
         X0,
         data.theta.astype(np.float64),
@@ -261,14 +254,7 @@ def fit_image_model(
     T = data.theta.astype(np.float64)
     X_rep = None
     if image_noise > 0:
-        X_rep = np.stack(
-            [
-                _inputs(
-                    data, pca, force, add_image_noise(data.images, image_noise, np.random.default_rng([seed, 8, r]))
-                )
-                for r in range(repeats)
-            ]
-        )
+        X_rep = np.stack([_noisy_inputs(data, pca, force, image_noise, seed, 8, r) for r in range(repeats)])
     res, batch = train_final(
         X0, _train_targets(T, log_e), algo, repeats, cfg, seed, names=input_names(k, force), X_repeats=X_rep
     )
