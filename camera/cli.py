@@ -421,16 +421,7 @@ def infer(
     by the frames' own scatter) and its 1 % image set (output column crb_set: frames), otherwise
     the 1 % set.
     """
-    from .calibration import Calibration
-    from .frames import expand
-    from .infer import (
-        estimate,
-        estimate_fem_images,
-        estimate_images,
-        estimate_lesions_csv,
-        load_identifiability,
-        load_model,
-    )
+    from .infer import load_identifiability, load_model
 
     given = sum(x for x in (feats is not None, bool(images), csv_path is not None, fem_image is not None))
     if given != 1:
@@ -444,23 +435,7 @@ def infer(
         raise UserError("--refine", "needs an image (--fem-image, --images or --csv) and an image model, not features")
     if refine and not 0 < image_noise < 1:
         raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
-    if correct not in ("auto", "none"):
-        from elastimap.identify.refine import check_correct
-
-        if not refine:
-            raise UserError("--refine-correct", "only applies with --refine")
-        try:
-            check_correct(mesh, correct)  # before any work
-        except UserError as exc:
-            raise UserError(
-                "--refine-correct", "must be auto, none or " + exc.message.removeprefix("must be ")
-            ) from None
-    elif refine:
-        from elastimap.identify.refine import default_correct
-
-        correct = default_correct(mesh) if correct == "auto" else None
-    else:
-        correct = None
+    correct = _refine_correct(refine, mesh, correct)
     if fem_image is not None and not os.path.isfile(fem_image):
         raise UserError("--fem-image", f"{fem_image}: no such file")
     if out:
@@ -471,29 +446,7 @@ def infer(
     model = load_model(model_dir)
     if refine and fem_image is not None and model.input_kind != "image":
         raise UserError("--refine", "--fem-image needs an image model (elastimap study image_model --save-model DIR)")
-    if fem_image is not None:
-        try:
-            arr = np.load(fem_image, allow_pickle=False)
-        except Exception as exc:
-            raise UserError("--fem-image", f"{fem_image}: not a .npy array ({exc})") from None
-        ests = estimate_fem_images(arr, model, identifiability=idm, threshold=threshold)
-        cal = None
-    else:
-        if calibration is None and not csv_path:
-            raise UserError("--calibration", "camera features and frames need the FEM<->camera calibration file")
-        cal = Calibration.load(calibration) if calibration is not None else None
-        if images:
-            if not background:
-                raise UserError("background", "--images needs --background frames (the same press without the lesion)")
-            ests = [
-                estimate_images(
-                    expand(list(images)), expand(list(background)), cal, model, "1", idm, threshold, keep_image=refine
-                )
-            ]
-        elif csv_path:
-            ests = estimate_lesions_csv(csv_path, cal, model, idm, threshold, keep_image=refine)
-        else:
-            ests = estimate(np.array([feats]), cal, model, ["1"], idm, threshold)
+    ests, cal = _estimates(model, idm, threshold, refine, calibration, feats, images, background, csv_path, fem_image)
     if refine:
         from tqdm import tqdm
 
@@ -511,18 +464,7 @@ def infer(
             )
     rows = [e.to_dict() for e in ests]
     if out:
-        from elastimap.outputs import write_or_fallback
-
-        def _write(path):
-            if out.endswith(".json"):
-                with open(path, "w") as fh:
-                    json.dump(rows, fh, indent=2)
-            else:
-                import pandas as pd
-
-                pd.DataFrame(rows).to_csv(path, index=False)
-
-        write_or_fallback(_write, out, "--out")
+        _write_rows(rows, out)
     if as_json:
         click.echo(json.dumps(rows, indent=2))
     else:
@@ -535,6 +477,68 @@ def infer(
             )
     if cal is not None and cal.synthetic:
         click.echo("note: the calibration was made with the SYNTHETIC camera", err=True)
+
+
+def _refine_correct(refine: bool, mesh: str, correct: str) -> str | None:
+    """``--refine-correct`` checked before any work: the finer level that corrects the fit's map, or None."""
+    if correct not in ("auto", "none"):
+        from elastimap.identify.refine import check_correct
+
+        if not refine:
+            raise UserError("--refine-correct", "only applies with --refine")
+        try:
+            check_correct(mesh, correct)
+        except UserError as exc:
+            raise UserError(
+                "--refine-correct", "must be auto, none or " + exc.message.removeprefix("must be ")
+            ) from None
+        return correct
+    if refine:
+        from elastimap.identify.refine import default_correct
+
+        return default_correct(mesh) if correct == "auto" else None
+    return None
+
+
+def _estimates(model, idm, threshold, refine, calibration, feats, images, background, csv_path, fem_image):
+    """The estimates of the one input given (``infer``'s options), and the calibration used (or None)."""
+    from .calibration import Calibration
+    from .frames import expand
+    from .infer import estimate, estimate_fem_images, estimate_images, estimate_lesions_csv
+
+    if fem_image is not None:
+        try:
+            arr = np.load(fem_image, allow_pickle=False)
+        except Exception as exc:
+            raise UserError("--fem-image", f"{fem_image}: not a .npy array ({exc})") from None
+        return estimate_fem_images(arr, model, identifiability=idm, threshold=threshold), None
+    if calibration is None and not csv_path:
+        raise UserError("--calibration", "camera features and frames need the FEM<->camera calibration file")
+    cal = Calibration.load(calibration) if calibration is not None else None
+    if images:
+        if not background:
+            raise UserError("background", "--images needs --background frames (the same press without the lesion)")
+        im, bg = expand(list(images)), expand(list(background))
+        return [estimate_images(im, bg, cal, model, "1", idm, threshold, keep_image=refine)], cal
+    if csv_path:
+        return estimate_lesions_csv(csv_path, cal, model, idm, threshold, keep_image=refine), cal
+    return estimate(np.array([feats]), cal, model, ["1"], idm, threshold), cal
+
+
+def _write_rows(rows: list[dict], out: str) -> None:
+    """``--out``: the estimates as JSON (``.json``) or CSV."""
+    from elastimap.outputs import write_or_fallback
+
+    def _write(path):
+        if out.endswith(".json"):
+            with open(path, "w") as fh:
+                json.dump(rows, fh, indent=2)
+        else:
+            import pandas as pd
+
+            pd.DataFrame(rows).to_csv(path, index=False)
+
+    write_or_fallback(_write, out, "--out")
 
 
 def _quantity(r: dict, q: str, unit: str) -> str:

@@ -471,12 +471,7 @@ def validate_inputs(
     Tt = T if train_targets is None else train_targets(T)
     t0 = time.perf_counter()
     batch = make_batch(X, Tt, fit, test, cfg, folds.rng, folds.gen, names)
-    obj = batch.obj
-    if X_repeats is not None:
-        Xs = mapminmax_apply(np.repeat(np.asarray(X_repeats, np.float64), nf, axis=0), batch.x_lo, batch.x_hi)
-        obj = NetObjective(
-            cfg.arch, torch.as_tensor(Xs, dtype=obj.X.dtype, device=obj.X.device), obj.T, obj.w, obj.w_val, obj.w_test
-        )
+    obj = _with_inputs(batch, cfg, None if X_repeats is None else np.repeat(np.asarray(X_repeats), nf, axis=0))
     res = train_batch(algo, obj, batch.theta0, cfg, desc=f"{label or algo} {folds.validate}")
     wall = time.perf_counter() - t0
 
@@ -492,13 +487,8 @@ def validate_inputs(
         lo, hi = mapminmax_fit(Tp, batch.train)
         Ys, Ts = mapminmax_apply(Yp, lo, hi), mapminmax_apply(Tp, lo, hi)
     shp = (R, nf, n)
+    per, cnt, train_mse = _metrics(Ts, Ys, Yp, Tp, test, batch.train, shp)
     tm = test.reshape(shp)[..., None]
-    cnt = tm.sum(axis=(1, 2))  # (R, 1)
-    per = {
-        "mse100": 100.0 * (((Ts - Ys) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
-        "mre": 100.0 * ((np.abs(Yp - Tp) / np.abs(Tp)).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
-        "rmse": np.sqrt((((Yp - Tp) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt),
-    }
     tested = test.reshape(shp).any(axis=1)  # (R, n)
 
     def held_out(Y: np.ndarray) -> np.ndarray:
@@ -512,8 +502,6 @@ def validate_inputs(
             np.broadcast_to(np.asarray(X_eval, np.float64), (test.shape[0], *np.shape(X_eval))), batch.x_lo, batch.x_hi
         )
         extra["pred_eval"] = held_out(physical(torch.as_tensor(Xe, dtype=obj.X.dtype, device=obj.X.device))[1])
-    trm = batch.train.reshape(shp)[..., None]
-    train_mse = 100.0 * ((((Ts - Ys) ** 2).reshape(*shp, 3) * trm).sum(axis=2) / trm.sum(axis=2)).mean(axis=1)
     B = test.shape[0]
     row = {
         "algo": label or algo,
@@ -535,6 +523,39 @@ def validate_inputs(
         "dtype": str(cfg.dtype).replace("torch.", ""),
         "workers": res.workers,
     }
+    stops = _summarise_into(row, per, train_mse, res.stop)
+    curves = {k: v.numpy() for k, v in res.history.items() if k in ("train", "test", "val")}
+    return ValidationResult(label or algo, folds.validate, R, row, per, curves, stops, wall, extra)
+
+
+def _with_inputs(batch: Batch, cfg: TrainConfig, X_b: np.ndarray | None) -> NetObjective:
+    """The batch's objective with its inputs replaced by ``X_b`` ``(B, n, c)`` (scaled as the
+    batch's, fitted on the noise-free inputs); ``X_b`` None: the batch's own."""
+    obj = batch.obj
+    if X_b is None:
+        return obj
+    Xs = mapminmax_apply(np.asarray(X_b, np.float64), batch.x_lo, batch.x_hi)
+    Xs = torch.as_tensor(Xs, dtype=obj.X.dtype, device=obj.X.device)
+    return NetObjective(cfg.arch, Xs, obj.T, obj.w, obj.w_val, obj.w_test)
+
+
+def _metrics(Ts, Ys, Yp, Tp, test: np.ndarray, train: np.ndarray, shp: tuple):
+    """Per repeat over its test predictions (module docstring): ``{metric: (R, 3)}``, the test
+    counts ``(R, 1)`` and the training MSE x 100 ``(R, 3)``; ``shp`` = (repeats, folds, n)."""
+    tm = test.reshape(shp)[..., None]
+    cnt = tm.sum(axis=(1, 2))
+    per = {
+        "mse100": 100.0 * (((Ts - Ys) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
+        "mre": 100.0 * ((np.abs(Yp - Tp) / np.abs(Tp)).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
+        "rmse": np.sqrt((((Yp - Tp) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt),
+    }
+    trm = train.reshape(shp)[..., None]
+    train_mse = 100.0 * ((((Ts - Ys) ** 2).reshape(*shp, 3) * trm).sum(axis=2) / trm.sum(axis=2)).mean(axis=1)
+    return per, cnt, train_mse
+
+
+def _summarise_into(row: dict, per: dict, train_mse: np.ndarray, stop: list[str]) -> dict[str, int]:
+    """Add each metric's summary over repeats, the mean training MSE and the stop reasons to ``row``."""
     for m in METRICS:
         for j, tname in enumerate(TARGETS):
             for k, v in summarize(per[m][:, j]).items():
@@ -542,11 +563,10 @@ def validate_inputs(
     for j, tname in enumerate(TARGETS):
         row[f"train_mse100_{tname}_mean"] = float(train_mse[:, j].mean())
     stops: dict[str, int] = {}
-    for s in res.stop:
+    for s in stop:
         stops[s] = stops.get(s, 0) + 1
     row["stops"] = ";".join(f"{k}:{v}" for k, v in sorted(stops.items()))
-    curves = {k: v.numpy() for k, v in res.history.items() if k in ("train", "test", "val")}
-    return ValidationResult(label or algo, folds.validate, R, row, per, curves, stops, wall, extra)
+    return stops
 
 
 def train_final(
@@ -567,10 +587,5 @@ def train_final(
     cfg = dataclasses.replace(cfg, n_in=X.shape[1]).validate()
     rng, gen = rng_for(seed, "final")
     batch = make_batch(X, np.asarray(T, np.float64), np.ones((repeats, X.shape[0]), bool), None, cfg, rng, gen, names)
-    obj = batch.obj
-    if X_repeats is not None:
-        Xs = mapminmax_apply(np.asarray(X_repeats, np.float64), batch.x_lo, batch.x_hi)
-        obj = NetObjective(
-            cfg.arch, torch.as_tensor(Xs, dtype=obj.X.dtype, device=obj.X.device), obj.T, obj.w, obj.w_val, obj.w_test
-        )
+    obj = _with_inputs(batch, cfg, X_repeats)
     return train_batch(algo, obj, batch.theta0, cfg, desc=f"{algo} final"), batch
