@@ -309,7 +309,7 @@ def deflection_noise_map(background: np.ndarray, pixel: float, frames: int = 30,
     (``frames`` each) are differenced (variance x 2 / frames) and the camera pixels falling in
     one image pixel averaged.  Returns an array of the image's shape (mm), usable as the
     ``sigma_map`` of :func:`elastimap.identify.measure.add_image_noise` and
-    :class:`elastimap.identify.local.NoiseSpec`.
+    :class:`elastimap.identify.bounds.NoiseSpec`.
     """
     s = (sensor or SensorModel()).validate()
     bg = np.asarray(background, dtype=float)

@@ -9,7 +9,7 @@
 * :mod:`.bounds` -- local bounds: Fisher information and Cramér–Rao relative std from Jacobians;
 * :mod:`.idmap` -- the identifiability map inference reads (:data:`.idmap.DEFAULT_MAP`);
 * :mod:`.measure` -- measurement sets, noise, the image representation (shape PCA);
-* the image model (shape PCA -> the paper's MLP) and its validation.
+* :mod:`.image_model` -- the image model (shape PCA -> the paper's MLP) and its validation.
 
 The studies that produced the shipped map, the interval scales and the tables of
 docs/identifiability.md live in :mod:`elastimap.workflows.studies`; this package imports neither

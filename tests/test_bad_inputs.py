@@ -370,7 +370,7 @@ CASES = [
         ["--model", "{A}/model", "--calibration", "{A}/cal.json", "--csv", "{A}/dup.csv", "--identifiability", "none"],
         ("dup.csv",),
     ),
-    ("infer", ["--model", "{A}/model", *INFER, "--threshold", "0"], ("threshold",)),
+    ("infer", ["--model", "{A}/model", *INFER, "--crb-limit", "0"], ("crb-limit",)),
     ("infer", ["--model", "{A}/model", "--fem-image", "missing.npy", "--identifiability", "none"], ("fem-image",)),
     ("infer", ["--model", "{A}/model", "--identifiability", "none"], ("input", "features")),
     (

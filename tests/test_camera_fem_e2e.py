@@ -6,7 +6,7 @@ E above about ten times the tissue modulus and a smaller stiffer inclusion looks
 softer one (docs/training.md, docs/identifiability.md).  Measured here: d 7.74 mm (−14 %), h 7.71 mm (+3 %),
 E 131 kPa for a true 45 kPa, with a confidently narrow ensemble range (115–145 kPa).  That E
 result is kept as a strict xfail so that it is seen, and so that the day the inverse gets E right
-the test says so.  Inference now knows this: with the shipped identifiability map (elastimap.identify.region)
+the test says so.  Inference now knows this: with the shipped identifiability map (elastimap.identify.idmap)
 the estimate carries ``non_identifiable:E`` and an E interval that holds the truth.
 """
 

@@ -57,10 +57,18 @@ class OracleEnsemble:
     how well the features pin (d, h, E) down.  It isolates the camera chain's own error.
     """
 
+    input_kind = "features"  # an elastimap.training.model.InverseModel
+    target_range = None  # intervals are not clipped to a training range
+
     def __init__(self, table, members=3):
         self.table = table
         self.members = members
         self.feature_range = np.vstack([table[:, 3:].min(axis=0), table[:, 3:].max(axis=0)])
+
+    def outside_training(self, X):
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        out = (X < self.feature_range[0]) | (X > self.feature_range[1])
+        return [[k for j, k in enumerate(("O1", "O2", "O3")) if row[j]] for row in out]
 
     def _one(self, f, x0):
         from scipy.optimize import least_squares
@@ -257,7 +265,7 @@ def test_image_model_from_synthetic_camera_frames(chain, tmp_path):
     the toy table's images.  Tolerance 25 % on d and h (a 2-member, 8-neuron net).  The real-FEM
     version of this chain is tests/test_camera_frames_fem.py."""
     from elastimap.camera.infer import difference_of_frames
-    from elastimap.identify.imagenet import fit_image_model
+    from elastimap.identify.image_model import fit_image_model
     from elastimap.identify.measure import Data
     from elastimap.training.experiment import TrainConfig
 
@@ -298,7 +306,7 @@ def test_image_model_from_synthetic_camera_frames(chain, tmp_path):
 
 @pytest.fixture(scope="module")
 def toy_image_model(chain):
-    from elastimap.identify.imagenet import fit_image_model
+    from elastimap.identify.image_model import fit_image_model
     from elastimap.identify.measure import Data
     from elastimap.training.experiment import TrainConfig
 

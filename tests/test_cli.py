@@ -18,10 +18,13 @@ import click
 import pytest
 from click.testing import CliRunner
 
-from elastimap.cli import STAGES, STUDIES, cli
+from elastimap.cli import STAGES, cli
 from elastimap.cli_util import flag_for, load_command, param_flags, run
 from elastimap.constraints import InstanceOf, Interval, Options, Predicate, validate_params
 from elastimap.errors import UserError
+from elastimap.workflows.studies import command_specs
+
+STUDIES = command_specs()
 
 BIN = Path(sys.executable).parent
 ROOT = Path(__file__).resolve().parents[1]
@@ -66,9 +69,9 @@ def _script_entry_points() -> dict[str, md.EntryPoint]:
 def test_help_lists_every_stage():
     r = CliRunner().invoke(cli, ["--help"])
     assert r.exit_code == 0, r.output
-    for name in [*STAGES, "identify", "demo"]:
+    for name in [*STAGES, "study", "demo"]:
         assert f"\n  {name} " in r.output, name
-    r = CliRunner().invoke(cli, ["identify", "-h"])
+    r = CliRunner().invoke(cli, ["study", "-h"])
     assert r.exit_code == 0 and all(f"\n  {s} " in r.output for s in STUDIES)
 
 
@@ -255,7 +258,7 @@ def _timed(argv):
         ["train", "--bogus"],
         ["elastimap", "camera", "infer", "--bogus"],
         ["infer", "--bogus"],
-        ["elastimap", "identify", "crbmap", "--bogus"],
+        ["elastimap", "study", "crbmap", "--bogus"],
         ["elastimap", "--bogus"],
     ],
 )
@@ -283,7 +286,7 @@ def test_mistyped_flag_answers_fast_in_one_line(argv):
         ["train", "--bogus"],
         ["camera", "-h"],
         ["gap", "-h"],
-        ["identify", "-h"],
+        ["study", "-h"],
     ],
 )
 def test_lazy_imports_nothing_heavy(argv):

@@ -1,19 +1,26 @@
-"""The camera-frame benchmark's own pieces (workflows/frames_benchmark.py) on plain records: the
+"""The camera-frame benchmark's own pieces (workflows/benchmarks/frames, run as workflows/frames_benchmark.py) on plain records: the
 session camera that drifts from the calibration's, and the scoring where the estimator itself
-reports a quantity.  The benchmark's figures are docs/camera.md 4c-4g."""
+reports a quantity.  The benchmark's figures are in docs/camera.md, 'Inference'."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from elastimap.camera.optics import SensorModel
-from elastimap.workflows import frames_benchmark as fb
+from elastimap.workflows.benchmarks.frames import lesions as fl
+from elastimap.workflows.benchmarks.frames import report as frep
+from elastimap.workflows.benchmarks.frames import run as frun
+
+#: the benchmark's script, as docs/camera.md runs it
+SCRIPT = Path(__file__).resolve().parent.parent / "workflows" / "frames_benchmark.py"
 
 
 def test_session_sensor_drifts_only_leds_and_vignetting():
     nominal = SensorModel(seed=3)
-    cams = [fb.session_sensor(nominal, np.random.default_rng(k)) for k in range(20)]
+    cams = [fl.session_sensor(nominal, np.random.default_rng(k)) for k in range(20)]
     for cam in cams:
         ratio = np.array(cam.led_power) / np.array(nominal.led_power)
         assert np.all((0.8 <= ratio) & (ratio <= 1.2)) and 0.05 <= cam.vignetting <= 0.3
@@ -28,14 +35,14 @@ def test_region_stratified_lesions_lie_where_the_map_allows_and_are_reproducible
     asking for more such lesions than the overdrawn design holds is a one-line error naming n."""
     from elastimap.errors import UserError
 
-    a = fb.draw_lesions(12, seed=7, inside="E")
-    assert a.shape == (12, 3) and fb.identifiable_at(a, "frames")[:, 2].all()
-    assert not fb.identifiable_at(fb.draw_lesions(200, seed=7), "frames")[:, 2].all()  # the plain design is not
-    np.testing.assert_array_equal(a, fb.draw_lesions(12, seed=7, inside="E"))
-    assert not np.array_equal(a, fb.draw_lesions(12, seed=8, inside="E"))
-    monkeypatch.setattr(fb, "INSIDE_OVERDRAW", 1)  # ~3 % of a design of n points holds fewer than n
+    a = fl.draw_lesions(12, seed=7, inside="E")
+    assert a.shape == (12, 3) and fl.identifiable_at(a, "frames")[:, 2].all()
+    assert not fl.identifiable_at(fl.draw_lesions(200, seed=7), "frames")[:, 2].all()  # the plain design is not
+    np.testing.assert_array_equal(a, fl.draw_lesions(12, seed=7, inside="E"))
+    assert not np.array_equal(a, fl.draw_lesions(12, seed=8, inside="E"))
+    monkeypatch.setattr(fl, "INSIDE_OVERDRAW", 1)  # ~3 % of a design of n points holds fewer than n
     with pytest.raises(UserError) as exc:
-        fb.draw_lesions(50, seed=7, inside="E")
+        fl.draw_lesions(50, seed=7, inside="E")
     assert exc.value.param == "n"
 
 
@@ -45,16 +52,16 @@ def test_outside_draw_is_the_mirror_of_inside_and_refuses_both():
     the lesion record's design (and whole-design records read as before)."""
     from elastimap.errors import UserError
 
-    b = fb.draw_lesions(15, seed=7, outside="d")
-    assert b.shape == (15, 3) and not fb.identifiable_at(b, "frames")[:, 0].any()
-    assert fb.identifiable_at(fb.draw_lesions(200, seed=7), "frames")[:, 0].any()  # the plain design is not
-    np.testing.assert_array_equal(b, fb.draw_lesions(15, seed=7, outside="d"))
+    b = fl.draw_lesions(15, seed=7, outside="d")
+    assert b.shape == (15, 3) and not fl.identifiable_at(b, "frames")[:, 0].any()
+    assert fl.identifiable_at(fl.draw_lesions(200, seed=7), "frames")[:, 0].any()  # the plain design is not
+    np.testing.assert_array_equal(b, fl.draw_lesions(15, seed=7, outside="d"))
     with pytest.raises(UserError) as exc:
-        fb.draw_lesions(3, seed=7, inside="E", outside="d")
+        fl.draw_lesions(3, seed=7, inside="E", outside="d")
     assert exc.value.param == "outside"
-    assert fb._design_record(3, 7, None, "d") == {"n": 3, "seed": 7, "inside": None, "outside": "d"}
-    assert fb._design_record(3, 7, "E", None) == {"n": 3, "seed": 7, "inside": "E"}
-    assert "does not call d" in fb._drawn({"outside": "d"}) and fb._drawn(None) == ""
+    assert fl.design_record(3, 7, None, "d") == {"n": 3, "seed": 7, "inside": None, "outside": "d"}
+    assert fl.design_record(3, 7, "E", None) == {"n": 3, "seed": 7, "inside": "E"}
+    assert "does not call d" in fl.drawn_note({"outside": "d"}) and fl.drawn_note(None) == ""
 
 
 def _rec(truth, est, lo, hi, reportable, flags=""):
@@ -80,26 +87,26 @@ def test_summary_scores_where_the_estimator_reports():
         _rec(truth, (8.8, 7.0, 55.0), (7.0, 6.0, 40.0), (9.0, 8.0, 60.0), (True, True, True)),  # d +10 %, E +10 %
         _rec(truth, (8.0, 7.7, 100.0), (7.5, 7.5, 20.0), (8.5, 8.0, 200.0), (True, True, False)),  # E not reported
     ]
-    sm = fb.summarise(recs)
+    sm = frep.summarise(recs)
     fit = sm["fit"]
     assert fit["E"]["n_reported"] == 1 and fit["E"]["mre_reported"] == pytest.approx(0.10)
     assert fit["d"]["n_reported"] == 2 and fit["d"]["mre_reported"] == pytest.approx(0.05)
     assert fit["h"]["coverage_reported"] == pytest.approx(0.5)  # 7.0 outside [7.5, 8.0]
     recs[0]["fit"]["E_reportable"] = False
-    assert fb.summarise(recs)["fit"]["E"]["mre_reported"] is None
-    assert "reports the quantity as a number" in fb.table(sm)
+    assert frep.summarise(recs)["fit"]["E"]["mre_reported"] is None
+    assert "reports the quantity as a number" in frep.table(sm)
     recs[1]["fit_message"] = "ftol; still moving after 2 passes"
-    sm = fb.summarise(recs)
+    sm = frep.summarise(recs)
     assert sm["not_converged"] == 1 and sm["fit"]["d"]["n_reported_converged"] == 1
     assert sm["fit"]["d"]["mre_reported_converged"] == pytest.approx(0.10)  # lesion 0 alone
     assert "fit_gauss_coverage" not in sm  # older records carry no Gauss–Newton interval
     recs[0]["fit_interval_gauss"] = {"lo": [8.9, 6.0, 40.0], "hi": [9.5, 8.0, 60.0]}  # misses d = 8
     recs[1]["fit_interval_gauss"] = None  # no fit ran (no signal): its reported interval stands for both
-    g = fb.summarise(recs)["fit_gauss_coverage"]
-    inside = fb.identifiable_at(np.array([truth, truth]))[0]
+    g = frep.summarise(recs)["fit_gauss_coverage"]
+    inside = fl.identifiable_at(np.array([truth, truth]))[0]
     assert g["d"]["inside" if inside[0] else "outside"] == pytest.approx(0.5)
     assert g["h"]["inside" if inside[1] else "outside"] == pytest.approx(0.5)  # 7.0 outside [7.5, 8.0] again
-    assert "Gauss–Newton interval" in fb.table(fb.summarise(recs))
+    assert "Gauss–Newton interval" in frep.table(frep.summarise(recs))
 
 
 def test_the_fits_cost_is_averaged_over_the_lesions_a_fit_ran_for():
@@ -108,7 +115,7 @@ def test_the_fits_cost_is_averaged_over_the_lesions_a_fit_ran_for():
     recs = [_rec(truth, truth, truth, truth, (True, True, True)) for _ in range(3)]
     for r, cpu, n in zip(recs, (20.0, 40.0, 0.0), (30, 30, 0)):
         r["cpu_seconds_fit"], r["n_fit_level_solves"] = cpu, n
-    sm = fb.summarise(recs)
+    sm = frep.summarise(recs)
     assert sm["cpu_seconds_fit"]["mean"] == pytest.approx(30.0) and sm["cpu_seconds_fit"]["n"] == 2
     assert sm["n_fit_level_solves"] == pytest.approx(30.0)
     assert sm["seconds_fit_level_solves"] == pytest.approx(0.0)  # the records carry no split here
@@ -125,11 +132,10 @@ def test_the_fits_cost_is_averaged_over_the_lesions_a_fit_ran_for():
 def test_network_stage_answers_bad_input_in_one_line(tmp_path, args, says, existing):
     import subprocess
     import sys
-    from pathlib import Path
 
     if existing:
         (tmp_path / "image-model").mkdir()
-    script = Path(fb.__file__).resolve()
+    script = SCRIPT
     cmd = [sys.executable, str(script), "network", *[a.format(tmp=tmp_path) for a in args], "--out", str(tmp_path)]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
@@ -148,10 +154,9 @@ def test_run_stage_names_a_bad_level_before_any_work(tmp_path, args, says):
     before anything is written."""
     import subprocess
     import sys
-    from pathlib import Path
 
     out = tmp_path / "bench"
-    cmd = [sys.executable, str(Path(fb.__file__).resolve()), "run", "--model", "m", "--out", str(out), *args]
+    cmd = [sys.executable, str(SCRIPT), "run", "--model", "m", "--out", str(out), *args]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and says in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert not out.exists()
@@ -163,7 +168,6 @@ def test_report_refuses_to_mix_lesion_designs(tmp_path):
     import json
     import subprocess
     import sys
-    from pathlib import Path
 
     fits = tmp_path / "fits-x"
     fits.mkdir()
@@ -171,7 +175,7 @@ def test_report_refuses_to_mix_lesion_designs(tmp_path):
         rec = _rec([8, 7, 50], [8, 7, 50], [7, 6, 40], [9, 8, 60], [True] * 3)
         rec.update(design={"n": 2, "seed": 1, "inside": inside}, frames=30, world="w", fit_map="f")
         (fits / f"lesion-{i:04d}.json").write_text(json.dumps(rec))
-    cmd = [sys.executable, str(Path(fb.__file__).resolve()), "report", "--out", str(tmp_path)]
+    cmd = [sys.executable, str(SCRIPT), "report", "--out", str(tmp_path)]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "--out" in r.stderr and "mixes lesion designs" in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "benchmark.md").exists()
@@ -184,13 +188,12 @@ def test_run_stage_refuses_a_folder_of_another_design_before_any_work(tmp_path):
     import json
     import subprocess
     import sys
-    from pathlib import Path
 
     fits = tmp_path / "fits-morph-coarse"
     fits.mkdir()
-    other = fb.draw_lesions(3, seed=11)
+    other = fl.draw_lesions(3, seed=11)
     (fits / "lesion-0000.json").write_text(json.dumps({"i": 0, "truth": list(map(float, other[0]))}))
-    cmd = [sys.executable, str(Path(fb.__file__).resolve()), "run", "--model", "m", "--n", "3", "--seed", "12"]
+    cmd = [sys.executable, str(SCRIPT), "run", "--model", "m", "--n", "3", "--seed", "12"]
     cmd += ["--geometry", "morph", "--out", str(tmp_path)]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "--out" in r.stderr and "another design" in r.stderr, r.stderr
@@ -207,18 +210,18 @@ def test_a_kept_calibration_of_another_camera_or_world_is_refused(tmp_path, monk
     from elastimap.errors import UserError
 
     (tmp_path / "cal-x.json").write_text("{}")
-    world = fb.world_label("fine", "by_d")
+    world = fl.world_label("fine", "by_d")
 
     def kept(seed, w):
         return SimpleNamespace(sensor=SensorModel(seed=seed).to_dict(), meta={"world": w})
 
-    for seed, w, ok in ((5, world, True), (6, world, False), (5, fb.world_label("default", "fixed"), False)):
+    for seed, w, ok in ((5, world, True), (6, world, False), (5, fl.world_label("default", "fixed"), False)):
         monkeypatch.setattr(C.Calibration, "load", staticmethod(lambda path, s=seed, w=w: kept(s, w)))
         if ok:
-            assert fb.calibrate(str(tmp_path), "fine", None, 30, 5, "x", "by_d").meta["world"] == world
+            assert frun.calibrate(str(tmp_path), "fine", None, 30, 5, "x", "by_d").meta["world"] == world
         else:
             with pytest.raises(UserError) as exc:
-                fb.calibrate(str(tmp_path), "fine", None, 30, 5, "x", "by_d")
+                frun.calibrate(str(tmp_path), "fine", None, 30, 5, "x", "by_d")
             assert exc.value.param == "--out"
 
 
@@ -252,7 +255,7 @@ def test_valley_study_refuses_lesions_of_another_design(tmp_path):
     (tmp_path / "cal-morph-coarse-corr-fine.json").write_text("{}")
     fits = tmp_path / "fits-morph-coarse-corr-fine-drift"
     fits.mkdir()
-    other = fb.draw_lesions(120, 2030)[2]
+    other = fl.draw_lesions(120, 2030)[2]
     (fits / "lesion-0002.json").write_text(json.dumps({"truth": [float(v) for v in other]}))
     cmd = [sys.executable, "-m", "elastimap.workflows.studies.valleyfit", "--out", str(tmp_path), "--n", "120"]
     r = subprocess.run([*cmd, "--seed", "2029", "--lesions", "2"], capture_output=True, text=True, timeout=120)

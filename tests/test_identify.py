@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from elastimap.identify.imagenet import ImageModel, fit_image_model, run_image_validation
+from elastimap.identify.image_model import ImageModel, fit_image_model, run_image_validation
 from elastimap.identify.measure import Data, ShapePCA, add_image_noise, image_inputs
+from elastimap.workflows.studies import STUDIES
 
 
 def _synthetic_data(n: int = 48, seed: int = 0, phantoms: int = 6) -> Data:
@@ -110,7 +111,7 @@ def test_cli_bad_options_exit_2(args, param):
     import sys
 
     r = subprocess.run(
-        [sys.executable, "-m", "elastimap.workflows.studies.imagenet", *args], capture_output=True, text=True
+        [sys.executable, "-m", "elastimap.workflows.studies.image_model", *args], capture_output=True, text=True
     )
     assert r.returncode == 2
     assert r.stderr.startswith("error: ") and param in r.stderr and len(r.stderr.strip().splitlines()) == 1
@@ -156,20 +157,7 @@ def test_shared_noise_predictions_put_one_noisy_image_through_every_network():
     assert run_image_validation(data, "scg", "loocv", 1, cfg, k=3, image_noise=0.0).extra["pred_shared_noise"] is None
 
 
-@pytest.mark.parametrize(
-    "name",
-    [
-        "global_cv",
-        "fd_check",
-        "fdgrid",
-        "crbmap",
-        "mapcheck",
-        "imagenet",
-        "region_score",
-        "valleyfit",
-        "interval_calibration",
-    ],
-)
+@pytest.mark.parametrize("name", sorted(STUDIES))
 def test_every_study_is_a_click_main_with_help(name):
     """The studies live in elastimap.workflows.studies, each a click command ``main`` with -h."""
     import importlib

@@ -174,6 +174,11 @@ class _Ens:
         X = np.atleast_2d(X)
         return np.stack([np.tile(self.mean * f, (len(X), 1)) for f in (0.98, 1.0, 1.02)])
 
+    input_kind = "features"  # an elastimap.training.model.InverseModel
+
+    def outside_training(self, X):
+        return [[] for _ in np.atleast_2d(X)]
+
 
 class _Cal:
     synthetic = True
@@ -205,7 +210,7 @@ def test_image_model_inference_from_fem_images(tmp_path):
     from test_identify import _synthetic_data
 
     from elastimap.camera.infer import estimate, estimate_fem_images, load_model
-    from elastimap.identify.imagenet import fit_image_model
+    from elastimap.identify.image_model import fit_image_model
     from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data()
@@ -245,7 +250,7 @@ def test_cli_infer_fem_image_prints_non_identifiable_as_interval(tmp_path):
 
     from test_identify import _synthetic_data
 
-    from elastimap.identify.imagenet import fit_image_model
+    from elastimap.identify.image_model import fit_image_model
     from elastimap.training.experiment import TrainConfig
 
     data = _synthetic_data()
@@ -281,8 +286,8 @@ def test_cli_infer_fem_image_prints_non_identifiable_as_interval(tmp_path):
         text=True,
     )
     assert r.returncode == 2 and r.stderr.startswith("error: --fem-image")
-    r = subprocess.run(base[:-2] + ["--identifiability", "none", "--threshold", "0"], capture_output=True, text=True)
-    assert r.returncode == 2 and "--threshold" in r.stderr
+    r = subprocess.run(base[:-2] + ["--identifiability", "none", "--crb-limit", "0"], capture_output=True, text=True)
+    assert r.returncode == 2 and "--crb-limit" in r.stderr
 
 
 def test_region_score_coverage_of_reported_intervals():

@@ -254,7 +254,7 @@ def test_inclusion_press_on_the_reference_press_factors(monkeypatch):
 
 
 def test_a_looser_cg_tolerance_reaches_the_solvers_and_keeps_the_image(monkeypatch):
-    """``MorphedForward(cg_rtol=)`` (what a fit's maps use, identify.refine.FIT_CG_RTOL) sets the
+    """``MorphedForward(cg_rtol=)`` (what a fit's maps use, identify.forward_maps.FIT_CG_RTOL) sets the
     tolerance of every recycled CG solver of its models; forced to solve by CG on the tiny mesh
     (borrowed factors, as the large meshes do), the image at 1e-9 equals the default 1e-12's to
     1e-6 of its peak, in fewer iterations; a tolerance outside (0, 1) is refused by name."""

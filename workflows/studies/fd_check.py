@@ -1,6 +1,6 @@
 """Cramér–Rao bounds from REAL finite-difference Jacobians at two points (7 cached solves each).
 
-    python -m elastimap.workflows.studies.fd_check
+    elastimap study fd_check
 
 Noise: O1, O2, O3 1 % relative each; image 1 % of its peak per pixel (iid); plate force 0.1 % per
 reading.  "two-depths" is 2 x the image Fisher matrix: the forward model is linear, so the image
@@ -44,4 +44,4 @@ def main(geometry):
 
 
 if __name__ == "__main__":
-    run(main, prog_name="python -m elastimap.workflows.studies.fd_check")
+    run(main, prog_name="elastimap study fd_check")

@@ -107,7 +107,7 @@ def coverage(data: dict, table: dict | None) -> dict:
     (:func:`~elastimap.identify.intervals.near_base`), per parameter of ``x̂ ± 1.96 k sd`` (``table``:
     the scales, None: the Gauss–Newton interval, k = 1): (held, n) for each of the three.  The truth lies in the box, so clipping the
     interval to the box does not change whether it holds it."""
-    from elastimap.workflows.frames_benchmark import identifiable_at  # the benchmark's region rule
+    from elastimap.workflows.benchmarks.frames import identifiable_at  # the benchmark's region rule
 
     reg = identifiable_at(data["truth"])
     k = (

@@ -3,9 +3,10 @@
 Inputs per lesion (:func:`elastimap.identify.measure.image_inputs`): ``ln(peak)`` of the difference image,
 the first ``K - 1`` PCA scores of the peak-normalised image (its *shape*) and, with ``force``,
 ``100 (force - force_ref) / force_ref``.  The network is the paper's MLP (``K -> 25 tansig ->
-10 tansig -> 3 purelin``), trained by :mod:`training`'s batched LM / SCG
-(:func:`elastimap.training.experiment.make_batch` / :func:`~elastimap.training.experiment.train_batch`), validated by
-the same HOV (the 9 phantoms) / LOOCV x repeats, scored with the same metrics (MSE x 100 on the
+10 tansig -> 3 purelin``), trained by :mod:`training`'s batched LM / SCG and
+validated by the same HOV (the 9 phantoms) / LOOCV x repeats of
+:func:`elastimap.training.experiment.validate_inputs` (on these inputs instead of the three
+features), scored with the same metrics (MSE x 100 on the
 network's mapminmax [-1, 1] targets, MRE %, RMSE), so a result is one more row of the training
 table (``algo`` ``lm-image`` / ``scg-image``).
 
@@ -24,44 +25,20 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import time
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import pandas as pd
-import torch
 
 from elastimap.errors import UserError
-from elastimap.training.data import TARGETS, UNITS, prepare
-from elastimap.training.experiment import (
-    METRICS,
-    TrainConfig,
-    ValidationResult,
-    make_batch,
-    predict_scaled,
-    rng_for,
-    split_rows,
-    summarize,
-    train_batch,
-)
+from elastimap.training.data import TARGETS, UNITS, data_hash, prepare
+from elastimap.training.experiment import TrainConfig, ValidationResult, plan_folds, train_final, validate_inputs
 from elastimap.training.model import Ensemble
-from elastimap.training.net import Arch
-from elastimap.training.problem import NetObjective, mapminmax_apply, mapminmax_fit, mapminmax_reverse
 
 from .measure import Data, ShapePCA, add_image_noise, image_inputs
 
 PCA_FILE = "image_pca.json"
-
-
-@dataclass
-class ImageTrainConfig(TrainConfig):
-    """:class:`elastimap.training.experiment.TrainConfig` with ``n_in`` inputs instead of three."""
-
-    n_in: int = 10
-
-    @property
-    def arch(self) -> Arch:
-        return Arch(self.n_in, tuple(self.hidden), len(TARGETS))
 
 
 def input_names(k: int, force: bool) -> tuple[str, ...]:
@@ -89,6 +66,11 @@ def _inputs(data: Data, pca: ShapePCA, force: bool, images=None):
     return image_inputs(imgs, pca, data.dforce if force else None, data.force_ref if force else None)
 
 
+def _noisy_inputs(data: Data, pca: ShapePCA, force: bool, image_noise: float, *key: int) -> np.ndarray:
+    """The inputs of one draw of per-pixel noise (``image_noise`` x each image's peak), seeded by ``key``."""
+    return _inputs(data, pca, force, add_image_noise(data.images, image_noise, np.random.default_rng(list(key))))
+
+
 def _train_targets(T: np.ndarray, log_e: bool) -> np.ndarray:
     """Network targets: (d, h, E) or, with ``log_e``, (d, h, ln E)."""
     Tt = np.array(T, dtype=np.float64, copy=True)
@@ -102,6 +84,15 @@ def _physical(Y: np.ndarray, log_e: bool) -> np.ndarray:
     if log_e:
         Y[..., 2] = np.exp(Y[..., 2])
     return Y
+
+
+def _label(algo: str, log_e: bool) -> str:
+    return f"{algo}-image" + ("-lnE" if log_e else "")
+
+
+def _image_cfg(cfg: TrainConfig) -> TrainConfig:
+    """The image networks draw no feature noise: their noise is ``image_noise`` on the pixels."""
+    return dataclasses.replace(cfg, feature_noise=0.0)
 
 
 def run_image_validation(
@@ -118,134 +109,51 @@ def run_image_validation(
     force: bool = False,
     log_e: bool = False,
 ) -> ValidationResult:
-    """HOV / LOOCV x repeats of the image MLP; ``extra['pred']`` holds the test predictions
-    ``(R, n, 3)`` (NaN where a row was not a test row of that repeat) and ``extra['test']``.
+    """HOV / LOOCV x repeats of the image MLP (:func:`elastimap.training.experiment.validate_inputs`
+    on the image inputs); ``extra['pred']`` holds the test predictions ``(R, n, 3)`` (NaN where a
+    row was not a test row of that repeat), ``extra['test']`` the held-out rows and, with
+    ``image_noise``, ``extra['pred_shared_noise']`` the deployed situation: ONE noisy image of each
+    held-out lesion through every repeat's network (in training each repeat saw its own noise
+    draw, so a mean over repeats would also average noise).
 
     ``log_e``: the network learns ln E instead of E (relative errors of E become additive).  The
-    metrics are computed on E itself either way; MSE x 100 on the linear [-1, 1] mapminmax scaling
-    of (d, h, E) over each training fold, as for the feature MLP, so the rows stay comparable."""
+    metrics are computed on E itself either way (see ``validate_inputs``)."""
     samples = samples_of(data)
     if list(samples.df["sample_id"]) != list(data.ids):
         raise UserError("data", "rows must be sorted by sample_id (use elastimap.identify.measure.load)")
-    n = data.n
-    T = data.theta.astype(np.float64)
-    Tt = _train_targets(T, log_e)
-    rng, gen = rng_for(seed, validate)
-    test1, note = split_rows(samples, validate, test_split, rng)
-    if validate == "hov":
-        test = np.broadcast_to(test1, (repeats, n)).copy()
-        folds = 1
-        pca_rows = ~test1
-    else:
-        test = np.tile(np.eye(n, dtype=bool), (repeats, 1))
-        folds = n
-        note = f"{n} folds"
-        pca_rows = np.ones(n, bool)
-    pca = ShapePCA.fit(data.images[pca_rows], k)
+    folds = plan_folds(samples, validate, repeats, seed, test_split)
+    # PCA sees no targets: HOV fits it on the non-test rows, LOOCV on all rows (module docstring)
+    pca = ShapePCA.fit(data.images[~folds.held_out if validate == "hov" else np.ones(data.n, bool)], k)
     X0 = _inputs(data, pca, force)
-    icfg = ImageTrainConfig(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(TrainConfig)}, n_in=X0.shape[1])
-    icfg.feature_noise = 0.0
-    fit = ~test
-    t0 = time.perf_counter()
-    batch = make_batch(X0, Tt, fit, test, icfg, rng, gen)
-    obj = batch.obj
+    X_rep = X_eval = None
     if image_noise > 0:
-        Xr = []
-        for r in range(repeats):
-            nrng = np.random.default_rng([int(seed), 7, r])
-            Xr.append(_inputs(data, pca, force, add_image_noise(data.images, image_noise, nrng)))
-        Xb = np.repeat(np.stack(Xr), folds, axis=0)  # (B, n, c)
-        Xs = torch.as_tensor(mapminmax_apply(Xb, batch.x_lo, batch.x_hi), dtype=obj.X.dtype, device=obj.X.device)
-        obj = NetObjective(icfg.arch, Xs, obj.T, obj.w, obj.w_val, obj.w_test)
-    res = train_batch(algo, obj, batch.theta0, icfg, desc=f"{algo}-image {validate}")
-    wall = time.perf_counter() - t0
-    Ys = predict_scaled(res.theta, obj.X, icfg.arch)
-    Ts = obj.T.cpu().numpy()
-    Yp = _physical(mapminmax_reverse(Ys, batch.t_lo, batch.t_hi), log_e)
-    if log_e:  # scores on the linear scaling of (d, h, E) over each training fold
-        lo, hi = mapminmax_fit(np.broadcast_to(T, Yp.shape), batch.train)
-        Ys, Ts = mapminmax_apply(Yp, lo, hi), mapminmax_apply(np.broadcast_to(T, Yp.shape), lo, hi)
-    R = repeats
-    shp = (R, folds, n)
-    tm = test.reshape(shp)[..., None]
-    cnt = tm.sum(axis=(1, 2))
-    Tp = np.broadcast_to(T, Yp.shape)
-    per = {
-        "mse100": 100.0 * (((Ts - Ys) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
-        "mre": 100.0 * ((np.abs(Yp - Tp) / np.abs(Tp)).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
-        "rmse": np.sqrt((((Yp - Tp) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt),
-    }
-    pred = np.where(tm, Yp.reshape(*shp, 3), 0.0).sum(axis=1)  # (R, n, 3)
-    pred[~test.reshape(shp).any(axis=1)] = np.nan
-    # the deployed situation: ONE noisy image of each held-out lesion through every repeat's network
-    # (above, each repeat saw its own noise draw, so a mean over repeats would also average noise)
-    pred_shared = None
-    if image_noise > 0:
-        Xf = _inputs(data, pca, force, add_image_noise(data.images, image_noise, np.random.default_rng([int(seed), 9])))
-        Xf = torch.as_tensor(
-            mapminmax_apply(np.broadcast_to(Xf, (test.shape[0],) + Xf.shape), batch.x_lo, batch.x_hi),
-            dtype=obj.X.dtype,
-            device=obj.X.device,
-        )
-        Yf = _physical(mapminmax_reverse(predict_scaled(res.theta, Xf, icfg.arch), batch.t_lo, batch.t_hi), log_e)
-        pred_shared = np.where(tm, Yf.reshape(*shp, 3), 0.0).sum(axis=1)
-        pred_shared[~test.reshape(shp).any(axis=1)] = np.nan
-    trm = batch.train.reshape(shp)[..., None]
-    train_mse = 100.0 * ((((Ts - Ys) ** 2).reshape(*shp, 3) * trm).sum(axis=2) / trm.sum(axis=2)).mean(axis=1)
-    B = test.shape[0]
-    row = {
-        "algo": f"{algo}-image" + ("-lnE" if log_e else ""),
-        "validate": validate,
-        "repeats": R,
-        "n_samples": n,
-        "n_train": int(batch.train[0].sum()),
-        "n_test_per_repeat": int(cnt[0, 0]),
-        "trainings": B,
-        "hidden": ",".join(f"{s}" if a == "tansig" else f"{s}:{a}" for s, a in icfg.hidden),
-        "epochs": icfg.epochs,
-        "feature_noise": 0.0,
-        "image_noise": image_noise,
-        "pca_k": k,
-        "force": force,
-        "log_e": log_e,
-        "val_fraction": icfg.val_fraction,
-        "test_set": note,
-        "wall_s": round(wall, 3),
-        "trainings_per_s": round(B / wall, 3),
-        "mean_epochs_run": float(res.epochs.double().mean()),
-    }
-    for m in METRICS:
-        for j, t in enumerate(TARGETS):
-            for kk, v in summarize(per[m][:, j]).items():
-                row[f"{m}_{t}_{kk}"] = v
-    for j, t in enumerate(TARGETS):
-        row[f"train_mse100_{t}_mean"] = float(train_mse[:, j].mean())
-    stops: dict[str, int] = {}
-    for s in res.stop:
-        stops[s] = stops.get(s, 0) + 1
-    row["stops"] = ";".join(f"{a}:{b}" for a, b in sorted(stops.items()))
-    curves = {kk: v.numpy() for kk, v in res.history.items() if kk in ("train", "test", "val")}
-    return ValidationResult(
-        f"{algo}-image" + ("-lnE" if log_e else ""),
-        validate,
-        R,
-        row,
-        per,
-        curves,
-        stops,
-        wall,
-        extra={
-            "pred": pred,
-            "pred_shared_noise": pred_shared,
-            "test": test1 if validate == "hov" else np.ones(n, bool),
-        },
+        X_rep = np.stack([_noisy_inputs(data, pca, force, image_noise, int(seed), 7, r) for r in range(repeats)])
+        X_eval = _noisy_inputs(data, pca, force, image_noise, int(seed), 9)
+    vr = validate_inputs(
+        X0,
+        data.theta.astype(np.float64),
+        folds,
+        algo,
+        _image_cfg(cfg),
+        names=input_names(k, force),
+        label=_label(algo, log_e),
+        row_extra={"image_noise": image_noise, "pca_k": k, "force": force, "log_e": log_e},
+        X_repeats=X_rep,
+        train_targets=(lambda T: _train_targets(T, log_e)) if log_e else None,
+        to_physical=(lambda Y: _physical(Y, log_e)) if log_e else None,
+        X_eval=X_eval,
     )
+    vr.extra["pred_shared_noise"] = vr.extra.pop("pred_eval", None)
+    return vr
 
 
 # ----------------------------------------------------------------------------- the saved model
 @dataclass
 class ImageModel:
-    """An :class:`elastimap.training.model.Ensemble` over image inputs plus the PCA basis that makes them."""
+    """An :class:`elastimap.training.model.Ensemble` over image inputs plus the PCA basis that makes
+    them: an :class:`elastimap.training.model.InverseModel` whose input is the FEM difference image."""
+
+    input_kind: ClassVar[str] = "image"
 
     ensemble: Ensemble
     pca: ShapePCA
@@ -273,7 +181,20 @@ class ImageModel:
         return _physical(self.ensemble.predict(self.inputs(images, dforce, force_ref)), self.log_e)
 
     def in_range(self, images, dforce=None, force_ref=None) -> np.ndarray:
+        """``(n,)`` true where every image input (ln peak, shape scores) lies in the training range."""
         return self.ensemble.in_range(self.inputs(images, dforce, force_ref))
+
+    def outside_training(self, images) -> list[list[str]]:
+        """Per image, ``["image"]`` when its inputs leave the training range, else ``[]``."""
+        return [[] if ok else ["image"] for ok in np.asarray(self.in_range(images), bool)]
+
+    @property
+    def n_members(self) -> int:
+        return self.ensemble.n_members
+
+    @property
+    def target_range(self) -> np.ndarray:
+        return self.ensemble.target_range
 
     def save(self, directory: str) -> str:
         self.ensemble.save(directory)
@@ -326,39 +247,22 @@ def fit_image_model(
 ) -> ImageModel:
     """Train the saved ensemble on every row of ``data`` (``repeats`` initialisations)."""
     from elastimap.provenance import code_version
-    from elastimap.training.data import data_hash
 
-    cfg = cfg or TrainConfig(progress=False)
+    cfg = _image_cfg(cfg or TrainConfig(progress=False))
     pca = ShapePCA.fit(data.images, k)
     X0 = _inputs(data, pca, force)
-    icfg = ImageTrainConfig(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(TrainConfig)}, n_in=X0.shape[1])
-    icfg.feature_noise = 0.0
     T = data.theta.astype(np.float64)
-    rng, gen = rng_for(seed, "final")
-    batch = make_batch(X0, _train_targets(T, log_e), np.ones((repeats, data.n), bool), None, icfg, rng, gen)
-    obj = batch.obj
+    X_rep = None
     if image_noise > 0:
-        Xb = np.stack(
-            [
-                _inputs(
-                    data, pca, force, add_image_noise(data.images, image_noise, np.random.default_rng([seed, 8, r]))
-                )
-                for r in range(repeats)
-            ]
-        )
-        obj = NetObjective(
-            icfg.arch,
-            torch.as_tensor(mapminmax_apply(Xb, batch.x_lo, batch.x_hi), dtype=obj.X.dtype, device=obj.X.device),
-            obj.T,
-            obj.w,
-            obj.w_val,
-            obj.w_test,
-        )
-    res = train_batch(algo, obj, batch.theta0, icfg, desc=f"{algo}-image final")
+        X_rep = np.stack([_noisy_inputs(data, pca, force, image_noise, seed, 8, r) for r in range(repeats)])
+    res, batch = train_final(
+        X0, _train_targets(T, log_e), algo, repeats, cfg, seed, names=input_names(k, force), X_repeats=X_rep
+    )
+    icfg = dataclasses.replace(cfg, n_in=X0.shape[1])
     names = input_names(k, force)
     units = dict(UNITS, **{nm: "" for nm in names})
     meta = {
-        "algo": f"{algo}-image" + ("-lnE" if log_e else ""),
+        "algo": _label(algo, log_e),
         "log_e": log_e,
         "epochs": icfg.epochs,
         "repeats": repeats,

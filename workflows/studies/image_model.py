@@ -1,12 +1,18 @@
-"""Validation of the image-based inverse (image PCA -> the paper's MLP -> d, h, E), and the deployed model.
+"""Validation of the image model (image PCA -> the paper's MLP -> d, h, E), and the deployed one.
 
-    python -m elastimap.workflows.studies.imagenet --validate hov|loocv [--algo scg,lm] [--log-e] [--save-model DIR]
+    elastimap study image_model --validate hov|loocv [--algo scg,lm] [--log-e] [--save-model DIR]
+    elastimap study image_model --validate none --save-model models/image   # only the deployed model
 
-HOV (the 9 phantom rows) / LOOCV x repeats of :func:`elastimap.identify.imagenet.run_image_validation`,
+The problem: the paper's MLP sees three features (O1, O2, O3) of the elasticity image; the image
+model sees ln(peak) and the first k-1 shape-PCA scores of the whole FEM difference image
+(:mod:`elastimap.identify.image_model`).  How much better does it identify (d, h, E)?
+
+HOV (the 9 phantom rows) / LOOCV x repeats of :func:`elastimap.identify.image_model.run_image_validation`,
 with the same splits, seeds, metrics and table layout as ``train``; writes ``results.csv``,
 ``results.md`` and the held-out predictions ``pred-<algo>[-lnE]-<validation>.npz`` (read by the
 ``region_score`` and ``refine`` studies).  ``--save-model DIR`` also trains the ensemble on every
-row (:func:`elastimap.identify.imagenet.fit_image_model`) for ``infer --model DIR``.
+row (:func:`elastimap.identify.image_model.fit_image_model`) for ``infer --model DIR``.  A refused
+argument leaves nothing behind: ``--out`` is created only when results are written.
 """
 
 from __future__ import annotations
@@ -32,7 +38,13 @@ from elastimap.errors import UserError
 @click.option(
     "--validate", default="hov", show_default=True, help="hov, loocv, hov,loocv, or none (only --save-model)."
 )
-@click.option("--repeats", default=10, show_default=True, type=int)
+@click.option("--repeats", default=10, show_default=True, type=int, help="Random initialisations per validation.")
+@click.option(
+    "--hidden",
+    default="25,10",
+    show_default=True,
+    help="Hidden layers, e.g. 25,10 (tansig) or 12:logsig; as train's --hidden.",
+)
 @click.option(
     "--k",
     "k",
@@ -55,20 +67,36 @@ from elastimap.errors import UserError
     is_flag=True,
     help="The network learns ln E instead of E (metrics still on E; algo row '<algo>-image-lnE').",
 )
-@click.option("--epochs", default=100, show_default=True, type=int)
+@click.option("--epochs", default=100, show_default=True, type=int, help="Training epochs per network.")
 @click.option("--workers", default=0, show_default=True, type=int, help="Training processes (0 = one per core).")
 @click.option("--float32", "float32", is_flag=True, help="Single precision.")
-@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--seed", default=0, show_default=True, type=int, help="Seed of the splits, initialisations and noise.")
+@click.option("--no-progress", is_flag=True, help="No progress bars.")
 @click.option("--out", default="runs/image-inverse", show_default=True, help="Output directory.")
 @click.option(
     "--save-model",
     "save_model",
     default=None,
-    help="Also train on every row (first --algo, --repeats initialisations) and save the ensemble "
+    help="Also train on every row (first --algo, --repeats initialisations) and save the model "
     "here, for `infer --model DIR --fem-image ...` / camera frames.",
 )
 def main(
-    data_path, algo, validate, repeats, k, force, image_noise, log_e, epochs, workers, float32, seed, out, save_model
+    data_path,
+    algo,
+    validate,
+    repeats,
+    hidden,
+    k,
+    force,
+    image_noise,
+    log_e,
+    epochs,
+    workers,
+    float32,
+    seed,
+    no_progress,
+    out,
+    save_model,
 ):
     """Validate the image-based inverse (image PCA -> the paper's MLP -> d, h, E).
 
@@ -77,9 +105,11 @@ def main(
     """
     import torch
 
-    from elastimap.identify.imagenet import fit_image_model, run_image_validation
+    from elastimap.identify.image_model import fit_image_model, run_image_validation
     from elastimap.identify.measure import load
+    from elastimap.outputs import check_out_dir
     from elastimap.training.experiment import ALGOS, VALIDATIONS, TrainConfig
+    from elastimap.training.net import parse_hidden
     from elastimap.training.perf import set_threads, tune_malloc
     from elastimap.training.report import markdown, table
 
@@ -103,19 +133,27 @@ def main(
         raise UserError("--image-noise", f"must be in [0, 1) (got {image_noise:g})")
     if workers < 0:
         raise UserError("--workers", f"must be >= 0 (got {workers})")
+    layers = parse_hidden(hidden, param="--hidden")
+    if vals:
+        check_out_dir(out, "--out", allow_existing=True)
     tune_malloc()
     set_threads(1)
     data = load(data_path)
-    cfg = TrainConfig(epochs=epochs, progress=True, workers=workers, dtype=torch.float32 if float32 else torch.float64)
-    os.makedirs(out, exist_ok=True)
+    cfg = TrainConfig(
+        hidden=layers,
+        epochs=epochs,
+        progress=not no_progress,
+        workers=workers,
+        dtype=torch.float32 if float32 else torch.float64,
+    )
     results = []
     for v in vals:
         for a in algos:
             r = run_image_validation(
                 data, a, v, repeats, cfg, seed=seed, k=k, image_noise=image_noise, force=force, log_e=log_e
             )
-            r.row["dtype"] = str(cfg.dtype).replace("torch.", "")
             results.append(r)
+            os.makedirs(out, exist_ok=True)  # only now: a refused run leaves no empty --out
             # held-out predictions (repeats, rows, 3: d mm, h mm, E kPa; NaN where not a test row)
             extra = (
                 {}
@@ -134,7 +172,6 @@ def main(
         model = fit_image_model(
             data, algos[0], repeats, cfg, seed=seed, k=k, force=force, image_noise=image_noise, log_e=log_e
         )
-        os.makedirs(save_model, exist_ok=True)
         model.save(save_model)
         click.echo(f"saved {algos[0]}-image ensemble ({repeats} members, {data.n} rows) to {save_model}", err=True)
     if not results:
@@ -155,4 +192,4 @@ def main(
 
 
 if __name__ == "__main__":
-    run(main, prog_name="python -m elastimap.workflows.studies.imagenet")
+    run(main, prog_name="elastimap study image_model")
