@@ -107,12 +107,12 @@ def _model_kw(seed, noise_scale, bits, binning):
 
 
 @click.group(context_settings=CONTEXT_SETTINGS)
-def main():
+def cli():
     """Camera side of elastimap: SYNTHETIC TIR camera, camera features, calibration, inference, detection."""
 
 
 # -------------------------------------------------------------------- synth
-@main.command(context_settings=CONTEXT_SETTINGS)
+@cli.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--d", "d", type=float, required=True, help="Inclusion diameter, mm.")
 @click.option("--h", "h", type=float, required=True, help="Centre depth below the surface, mm.")
 @click.option("--E", "E", type=float, required=True, help="Inclusion modulus, kPa.")
@@ -164,7 +164,7 @@ def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, s
 
 
 # ----------------------------------------------------------------- features
-@main.command(context_settings=CONTEXT_SETTINGS)
+@cli.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--images", multiple=True, required=True, help="Lesion frames (files or globs; repeatable).")
 @click.option("--background", multiple=True, required=True, help="Background frames (files or globs).")
 @click.option("--sensor", "sensor_json", type=click.Path(dir_okay=False), help="Camera geometry (SensorModel JSON).")
@@ -188,7 +188,7 @@ def features(images, background, sensor_json, threshold, smooth_px, combine, as_
 
 
 # ---------------------------------------------------------------- calibrate
-@main.command(context_settings=CONTEXT_SETTINGS)
+@cli.command(context_settings=CONTEXT_SETTINGS)
 @click.option(
     "--phantoms",
     type=click.Path(dir_okay=False),
@@ -243,6 +243,8 @@ def calibrate(
     combine,
 ):
     """Fit O_FEM = a O_cam + b per feature on the nine calibration phantoms (paper 3.3)."""
+    from elastimap.dataset.phantoms import read_phantoms
+    from elastimap.dataset.schema import PHANTOMS_CSV
     from elastimap.outputs import check_out_dir, check_out_file
 
     from . import calibration as C
@@ -251,7 +253,7 @@ def calibrate(
     settings = _settings(threshold, smooth_px, combine)
     if frames < 1:
         raise UserError("--frames", f"must be >= 1 (got {frames})")
-    ph = C.load_phantoms(phantoms)
+    ph = read_phantoms(phantoms, min_rows=3, why="to fit a calibration line")
     # every input read and every output location checked before anything is solved or written
     fem_given = C.fem_features_from_csv(fem_features, ph) if fem_features else None
     check_out_file(out, "--out", create_parents=True)
@@ -294,7 +296,7 @@ def calibrate(
             "mesh": mesh,
             "delta": delta,
             "frames": frames,
-            "phantoms_file": str(phantoms or C.DEFAULT_PHANTOMS),
+            "phantoms_file": str(phantoms or PHANTOMS_CSV),
             "camera_csv": camera_csv,
             "fem_features": fem_features,
         },
@@ -310,7 +312,7 @@ def calibrate(
 
 
 # -------------------------------------------------------------------- infer
-@main.command(context_settings=CONTEXT_SETTINGS)
+@cli.command(context_settings=CONTEXT_SETTINGS)
 @click.option(
     "--model",
     "model_dir",
@@ -551,7 +553,7 @@ def _quantity(r: dict, q: str, unit: str) -> str:
 
 
 # ------------------------------------------------------------------- detect
-@main.command(context_settings=CONTEXT_SETTINGS)
+@cli.command(context_settings=CONTEXT_SETTINGS)
 @mesh_option()
 @click.option("--repeats", type=int, default=1, show_default=True, help="Scans per inclusion (and clean scans).")
 @click.option("--clutter-mm", type=float, default=None, help="Tissue heterogeneity sd, mm (default 0.002).")
@@ -617,10 +619,10 @@ def infer_main():
     run(infer, prog_name="infer")
 
 
-def camera_main():
-    run(main, prog_name="camera")
+def main(argv=None):
+    run(cli, argv, prog_name="camera")
 
 
 if __name__ == "__main__":
-    run(main, prog_name="python -m elastimap.camera.cli")
+    run(cli, prog_name="python -m elastimap.camera.cli")
     sys.exit(0)

@@ -41,8 +41,8 @@ STAGES = {
     "sweep": ("elastimap.sweep.cli:cli", "Batch sweeps of the forward model into Parquet datasets."),
     "dataset": ("elastimap.dataset.cli:cli", "Inspect, plot, export and compact sample datasets."),
     "train": ("elastimap.training.cli:cli", "Train and validate the inverse MLP (LM/SCG, HOV/LOOCV)."),
-    "camera": ("elastimap.camera.cli:main", "Camera side: synthetic frames, features, calibrate, infer, detect."),
-    "gap": ("elastimap.gap.cli:main_group", "Sim-to-real gap diagnosis (synth, diagnose, selftest)."),
+    "camera": ("elastimap.camera.cli:cli", "Camera side: synthetic frames, features, calibrate, infer, detect."),
+    "gap": ("elastimap.gap.cli:cli", "Sim-to-real gap diagnosis (synth, diagnose, selftest)."),
 }
 
 

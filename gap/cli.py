@@ -70,11 +70,11 @@ common = options(
 
 
 @click.group(context_settings=CONTEXT_SETTINGS)
-def main_group():
+def cli():
     """Sim-to-real gap diagnosis.  Synthetic data are labelled SYNTHETIC."""
 
 
-@main_group.command("effects", context_settings=CONTEXT_SETTINGS)
+@cli.command("effects", context_settings=CONTEXT_SETTINGS)
 def effects_cmd():
     """List the effects library."""
     for e in fx.EFFECTS.values():
@@ -86,7 +86,7 @@ def effects_cmd():
         click.echo(f"{f.name:14s} family    k = {f.n_params}: {', '.join(f.members)}  {f.description}")
 
 
-@main_group.command("synth", context_settings=CONTEXT_SETTINGS)
+@cli.command("synth", context_settings=CONTEXT_SETTINGS)
 @click.option(
     "--out",
     required=True,
@@ -183,7 +183,7 @@ def synth_cmd(
     return 0
 
 
-@main_group.command("diagnose", context_settings=CONTEXT_SETTINGS)
+@cli.command("diagnose", context_settings=CONTEXT_SETTINGS)
 @click.option(
     "--measured",
     "mpath",
@@ -286,7 +286,7 @@ def error_mesh_sim(error_mesh, sim, cache, backend, jobs, no_progress):
     return _sim(cache or default_cache(), level, backend, jobs, no_progress)
 
 
-@main_group.command("selftest", context_settings=CONTEXT_SETTINGS)
+@cli.command("selftest", context_settings=CONTEXT_SETTINGS)
 @click.option("--trials", type=int, default=30, show_default=True, help="Blind trials to run.")
 @click.option(
     "--out",
@@ -418,7 +418,7 @@ def selftest_cmd(
     return 0
 
 
-@main_group.command("bench", context_settings=CONTEXT_SETTINGS)
+@cli.command("bench", context_settings=CONTEXT_SETTINGS)
 @click.option("--n", "n", type=int, default=12, show_default=True, help="Phantoms of the SYNTHETIC data.")
 @mesh_option(default="coarse", help="Mesh level of the diagnosis.")
 @jobs_option(default=2, help="Worker processes for the solves.")
@@ -468,7 +468,7 @@ def bench_cmd(n, mesh, jobs, effect, data_mesh, data_interface, data_cache, inve
 
 
 def main(argv=None):
-    run_cli(main_group, argv, prog_name="gap")
+    run_cli(cli, argv, prog_name="gap")
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ regression per output on standardised ``(d, h, ln E)``, Matérn 5/2 ARD kernel).
 predicts ``ln O1, ln O2, ln O3``, ``ln peak`` and the shape scores of the image
 (:class:`elastimap.identify.measure.ShapePCA`) and the plate-force difference; images are reconstructed as
 ``peak * (mean + scores @ components)``.  The studies check it against the Jacobian from real
-forward solves (:func:`elastimap.workflows.studies.solves.fd_jacobian_solves`).
+forward solves (:func:`elastimap.workflows.solves.fd_jacobian_solves`).
 
 Fisher information with independent Gaussian noise ``sigma_i``: ``F = Jᵀ diag(1/sigma²) J``;
 Cramér–Rao bound ``C = F⁻¹``; relative standard deviations ``sqrt(C_dd)/d``, ``sqrt(C_hh)/h`` and

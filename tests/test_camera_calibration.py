@@ -11,6 +11,8 @@ import pytest
 from elastimap.camera import calibration as C
 from elastimap.camera.features import FeatureSettings
 from elastimap.camera.optics import SensorModel
+from elastimap.dataset.phantoms import read_phantoms
+from elastimap.dataset.schema import PHANTOMS_CSV
 from elastimap.errors import UserError
 from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 
@@ -34,8 +36,8 @@ hardness-3,hardness,8.0,8.0,120.0,5.0,20.0
 
 @pytest.fixture(scope="module")
 def phantoms_csv(tmp_path_factory):
-    if C.DEFAULT_PHANTOMS.exists():
-        return C.DEFAULT_PHANTOMS
+    if PHANTOMS_CSV.exists():
+        return PHANTOMS_CSV
     p = tmp_path_factory.mktemp("ph") / "phantoms.csv"
     p.write_text(PHANTOMS_FALLBACK)
     return p
@@ -46,7 +48,7 @@ def toy_fem(d, h, E, tissue_E=5.0, thickness=20.0):
 
 
 def test_phantom_spec(phantoms_csv):
-    ph = C.load_phantoms(phantoms_csv)
+    ph = read_phantoms(phantoms_csv, min_rows=3, why="to fit a calibration line")
     assert len(ph) == 9 and ph["name"].is_unique
     assert set(ph["phantom"]) == {"size", "depth", "hardness"}
     assert (ph["tissue_E"] == 5.0).all() and (ph["tissue_thickness"] == 20.0).all()
@@ -54,15 +56,15 @@ def test_phantom_spec(phantoms_csv):
 
 def test_phantom_spec_errors(tmp_path):
     with pytest.raises(UserError, match="no such file"):
-        C.load_phantoms(tmp_path / "nope.csv")
+        read_phantoms(tmp_path / "nope.csv", min_rows=3, why="to fit a calibration line")
     bad = tmp_path / "bad.csv"
     bad.write_text("name,d,h\na,1,2\nb,1,2\nc,1,2\n")
     with pytest.raises(UserError, match="missing column"):
-        C.load_phantoms(bad)
+        read_phantoms(bad, min_rows=3, why="to fit a calibration line")
     neg = tmp_path / "neg.csv"
     neg.write_text("name,d,h,E\na,1,2,3\nb,-1,2,3\nc,1,2,x\n")
     with pytest.raises(UserError, match="positive"):
-        C.load_phantoms(neg)
+        read_phantoms(neg, min_rows=3, why="to fit a calibration line")
 
 
 def test_fit_line_recovers_exact_line():
@@ -75,7 +77,7 @@ def test_fit_line_recovers_exact_line():
 
 
 def test_synthetic_calibration_roundtrip_and_plot(tmp_path, phantoms_csv):
-    ph = C.load_phantoms(phantoms_csv)
+    ph = read_phantoms(phantoms_csv, min_rows=3, why="to fit a calibration line")
     m = SensorModel(seed=1)
     fem, cam, _ = C.simulate_phantoms(ph, toy_fem, m, FeatureSettings(), frames=5, seed=1)
     cal = C.fit_calibration(ph, fem, cam, FeatureSettings().to_dict(), m.to_dict(), True)
@@ -102,7 +104,7 @@ def test_synthetic_calibration_roundtrip_and_plot(tmp_path, phantoms_csv):
 
 def test_calibration_from_user_images_matches_synthetic(tmp_path, phantoms_csv):
     """Write the phantom frames as files, list them in a camera CSV, and get the same camera features."""
-    ph = C.load_phantoms(phantoms_csv)
+    ph = read_phantoms(phantoms_csv, min_rows=3, why="to fit a calibration line")
     m = SensorModel(seed=2)
     frames_dir = tmp_path / "frames"
     fem, cam, _ = C.simulate_phantoms(
@@ -121,7 +123,7 @@ def test_calibration_from_user_images_matches_synthetic(tmp_path, phantoms_csv):
 
 
 def test_fem_features_from_csv(tmp_path, phantoms_csv):
-    ph = C.load_phantoms(phantoms_csv)
+    ph = read_phantoms(phantoms_csv, min_rows=3, why="to fit a calibration line")
     p = tmp_path / "fem.csv"
     p.write_text("name,O1,O2,O3\n" + "".join(f"{n},{i},{2 * i},{3 * i}\n" for i, n in enumerate(ph["name"])))
     f = C.fem_features_from_csv(p, ph)

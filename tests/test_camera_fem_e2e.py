@@ -15,11 +15,12 @@ import pandas as pd
 import pytest
 from scipy.stats import qmc
 
-from elastimap.camera.calibration import fit_calibration, load_phantoms, simulate_phantoms
+from elastimap.camera.calibration import fit_calibration, simulate_phantoms
 from elastimap.camera.features import FeatureSettings
 from elastimap.camera.frames import write_frames
 from elastimap.camera.infer import estimate_images
 from elastimap.camera.optics import SensorModel, render_pair
+from elastimap.dataset.phantoms import read_phantoms
 from elastimap.solver import solve
 from elastimap.solver.params import Discretisation, SolveParams
 
@@ -51,7 +52,7 @@ def estimate_of_truth(tmp_path_factory):
 
     sensor = SensorModel(seed=5)
     settings = FeatureSettings()
-    ph = load_phantoms()
+    ph = read_phantoms(None, min_rows=3, why="to fit a calibration line")
     fem, cam, _ = simulate_phantoms(ph, _fem, sensor, settings, frames=10, seed=1)
     cal = fit_calibration(
         ph, fem, cam, settings.to_dict() if hasattr(settings, "to_dict") else {}, sensor=sensor.to_dict()

@@ -30,7 +30,7 @@ TRUTH = (8.0, 7.0, 50.0)
 
 @pytest.fixture(scope="module")
 def solves(tmp_path_factory):
-    from elastimap.workflows.studies.solves import cached_solve
+    from elastimap.workflows.solves import cached_solve
 
     cache = str(tmp_path_factory.mktemp("solves"))
     lesion = cached_solve(*TRUTH, mesh="tiny", cache=cache)

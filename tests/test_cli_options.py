@@ -15,9 +15,17 @@ import click.testing
 import pytest
 
 #: room CLI modules that follow the convention (each has ``cli`` and ``main(argv=None)``)
-ROOMS = ("elastimap.dataset.cli", "elastimap.training.cli", "elastimap.training.bench")
+ROOMS = (
+    "elastimap.dataset.cli",
+    "elastimap.training.cli",
+    "elastimap.training.bench",
+    "elastimap.camera.cli",
+    "elastimap.gap.cli",
+)
 #: flags that mean the same as a shared one and must not come back
 RETIRED = {"--quiet": "--no-progress", "--progress": "--no-progress", "--csv": "--out"}
+#: where a retired spelling means something else: ``infer --csv`` reads a batch table (an input, not an output)
+ALLOWED = {("elastimap.camera.cli", "--csv")}
 
 
 def _commands(cmd: click.Command, path: tuple[str, ...] = ()):
@@ -44,7 +52,8 @@ def test_every_option_has_help_and_no_retired_flag(module):
             where = f"{module} {' '.join(path)} {p.opts[0]}"
             assert p.help and p.help.strip(), f"{where}: no help text"
             for flag in p.opts + p.secondary_opts:
-                assert flag not in RETIRED, f"{where}: {flag} is {RETIRED[flag]} everywhere else"
+                if (module, flag) not in ALLOWED:
+                    assert flag not in RETIRED, f"{where}: {flag} is {RETIRED[flag]} everywhere else"
 
 
 @pytest.mark.parametrize("module", ROOMS)

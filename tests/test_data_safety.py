@@ -98,14 +98,18 @@ def test_training_reads_what_inspect_reads(tmp_path):
 def test_foreign_parquet_is_refused_naming_it(tmp_path):
     import pandas as pd
 
-    from elastimap.camera.calibration import fem_features_from_csv, load_phantoms
+    from elastimap.camera.calibration import fem_features_from_csv
+    from elastimap.dataset.phantoms import read_phantoms
     from elastimap.training.data import load_samples
 
     ds = make_dataset(tmp_path / "ds", n=12)
     pd.DataFrame(
         {"O1": [1.0], "O2": [2.0], "O3": [3.0], "d": [1.0], "h": [1.0], "E": [1.0], "status": ["ok"]}
     ).to_parquet(ds / "zz-foreign.parquet")
-    for read in (lambda: load_samples(str(ds)), lambda: fem_features_from_csv(ds, load_phantoms(None))):
+    for read in (
+        lambda: load_samples(str(ds)),
+        lambda: fem_features_from_csv(ds, read_phantoms(None, min_rows=3, why="to fit a calibration line")),
+    ):
         with pytest.raises(UserError, match="zz-foreign.parquet"):
             read()
     code, _, err = invoke("dataset", ["inspect", str(ds)])

@@ -7,7 +7,7 @@ real FEM, about 20 s).
 
 import numpy as np
 
-from elastimap.workflows.studies.solves import cached_solve, fd_jacobian_solves, morph_reference
+from elastimap.workflows.solves import cached_solve, fd_jacobian_solves, morph_reference
 
 D, H, E = 6.5, 7.0, 50.0
 

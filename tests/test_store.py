@@ -211,7 +211,7 @@ def test_sweep_folder_serves_as_a_store(tmp_path):
 
 
 def test_identify_cached_solve_reads_through_the_store(tmp_path):
-    from elastimap.workflows.studies.solves import cached_solve, params_of
+    from elastimap.workflows.solves import cached_solve, params_of
 
     a = cached_solve(8.0, 7.0, 60.0, mesh="tiny", cache=str(tmp_path), solver=synthetic.solve)
     files = sorted(tmp_path.glob("*.parquet"))

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from elastimap.dataset.phantoms import TAG_PREFIX as PHANTOM_PREFIX  # noqa: F401  (experiment.py reads it here)
 from elastimap.dataset.phantoms import is_phantom, phantom_tag
 from elastimap.dataset.schema import FEATURES, TARGETS, UNITS  # noqa: F401  (UNITS: re-exported)
 from elastimap.errors import UserError

@@ -40,10 +40,11 @@ import numpy as np
 import torch
 
 from elastimap.constraints import InstanceOf, Interval, Options, Predicate, validate_params
+from elastimap.dataset.phantoms import is_phantom
 from elastimap.errors import UserError
 
 from . import net as _net
-from .data import FEATURES, PHANTOM_PREFIX, TARGETS, Samples
+from .data import FEATURES, TARGETS, Samples
 from .net import Arch
 from .optim import TrainResult, train_lm, train_scg
 from .problem import NetObjective, mapminmax_apply, mapminmax_fit, mapminmax_reverse
@@ -366,7 +367,7 @@ def split_rows(samples: Samples, validate: str, test_split: float | None, rng: n
         test = np.zeros(n, bool)
         test[rng.choice(n, size=k, replace=False)] = True
         return test, f"random {test_split:g} of the rows ({k})"
-    test = samples.df["tag"].str.startswith(PHANTOM_PREFIX).to_numpy()
+    test = is_phantom(samples.df["tag"])
     if test.any():
         return test, f"{int(test.sum())} calibration-phantom rows"
     k = max(1, int(round(0.1 * n)))

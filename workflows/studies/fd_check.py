@@ -15,7 +15,7 @@ import numpy as np
 
 from elastimap.cli_util import CONTEXT_SETTINGS, geometry_option, run
 from elastimap.identify.bounds import NoiseSpec, fd_relstd, stack
-from elastimap.workflows.studies.solves import fd_jacobian_solves
+from elastimap.workflows.solves import fd_jacobian_solves
 
 POINTS = ((8.0, 8.0, 30.0), (8.0, 8.0, 120.0))
 NOISE = NoiseSpec(feature=0.01, image=0.01, force=0.001)

@@ -3,8 +3,8 @@
     elastimap study fdgrid [--mesh default] [--geometry morph] [--out data/identify/fdgrid.npz]
 
 7 forward solves per grid point (centre and central differences in d, h, ln E with
-:data:`elastimap.workflows.studies.solves.FD_STEP`), on the morphed map with the reference mesh pinned at the
-point (``--geometry morph``, no remeshing jitter) or remeshed per solve (``remesh``); every solve is cached by :mod:`elastimap.workflows.studies.solves`, so an
+:data:`elastimap.workflows.solves.FD_STEP`), on the morphed map with the reference mesh pinned at the
+point (``--geometry morph``, no remeshing jitter) or remeshed per solve (``remesh``); every solve is cached by :mod:`elastimap.workflows.solves`, so an
 interrupted run resumes.  The result file holds the grid, the Jacobians and the geometry;
 ``python -m elastimap.workflows.studies.crbmap --fd-grid FILE`` scales the identifiability map with
 their Cramér–Rao bounds and ``python -m elastimap.workflows.studies.mapcheck --fdgrid FILE`` checks
@@ -42,7 +42,7 @@ def fd_grid_points(ds=FD_D, us=FD_U, Es=FD_E, thickness: float = THICKNESS) -> n
 
 
 def compute(out: str, mesh: str = "default", progress: bool = True, geometry: str = "morph") -> dict:
-    from elastimap.workflows.studies.solves import fd_jacobian_solves
+    from elastimap.workflows.solves import fd_jacobian_solves
 
     pts = fd_grid_points()
     res = {"theta": pts[:, :3], "u": pts[:, 3], "image": [], "lnF": [], "dF": [], "image0": [], "lnF0": [], "dF0": []}

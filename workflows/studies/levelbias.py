@@ -80,7 +80,7 @@ def main(n, seed, mesh, levels, coarse_sizes, cache, out):
     from elastimap.solver import geometry
     from elastimap.solver.params import MESH_LEVELS
     from elastimap.workflows.benchmarks.frames import draw_lesions
-    from elastimap.workflows.studies.solves import cached_solve
+    from elastimap.workflows.solves import cached_solve
 
     names = [v.strip() for v in levels.split(",") if v.strip()]
     bad = [v for v in names if v not in MESH_LEVELS]

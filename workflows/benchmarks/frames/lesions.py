@@ -106,7 +106,7 @@ def session_sensor(sensor, rng: np.random.Generator):
 
 
 def truth_solve(d, h, E, mesh: str, cache: str, sizing: str = "fixed") -> dict:
-    from elastimap.workflows.studies.solves import cached_solve
+    from elastimap.workflows.solves import cached_solve
 
     return cached_solve(float(d), float(h), float(E), mesh=mesh, cache=cache, sizing=sizing)
 
@@ -168,7 +168,7 @@ def lesions(n, seed, truth_mesh, truth_sizing, inside, outside, shard, first, ou
     """Solve the phantoms and the held-out lesions with the world's forward model (resumable)."""
     from tqdm import tqdm
 
-    from elastimap.camera.calibration import load_phantoms
+    from elastimap.dataset.phantoms import read_phantoms
     from elastimap.errors import UserError
 
     k, nsh = shard
@@ -177,7 +177,7 @@ def lesions(n, seed, truth_mesh, truth_sizing, inside, outside, shard, first, ou
     design = lesion_design(n, seed, inside, outside)  # before any folder is made: a bad draw is one line
     cache = os.path.join(out, "solves")
     os.makedirs(cache, exist_ok=True)
-    ph = load_phantoms()
+    ph = read_phantoms()
     todo = [(float(r["d"]), float(r["h"]), float(r["E"])) for _, r in ph.iterrows()]
     todo += [tuple(map(float, t)) for t in design[: first or n]]
     todo = todo[k::nsh]

@@ -13,6 +13,7 @@ import click
 import numpy as np
 
 from elastimap.cli_util import shard_option
+from elastimap.dataset.phantoms import read_phantoms
 from elastimap.identify.coords import COORDS
 from elastimap.identify.fit import FINE_MODES
 from elastimap.solver.params import MESH_LEVELS, SIZINGS
@@ -95,7 +96,7 @@ def calibrate(out: str, truth_mesh: str, forward, frames: int, seed: int, tag: s
 
             raise UserError("--out", f"{path} was made with another camera seed or world; use another --out")
         return cal
-    ph = C.load_phantoms()
+    ph = read_phantoms()
     rng = np.random.default_rng([seed, 0])
     pairs, cam = [], []
     for _, r in ph.iterrows():

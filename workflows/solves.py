@@ -131,7 +131,7 @@ def fd_jacobian_solves(theta, mesh: str = "default", cache: str | None = None, g
     """Jacobians from 7 real (cached) forward solves, central differences with :data:`FD_STEP`.
 
     ``geometry="morph"`` (default) takes all 7 on the smooth morphed map, the reference mesh
-    pinned at the centre's (:func:`elastimap.workflows.studies.solves.morph_reference`), so the
+    pinned at the centre's (:func:`elastimap.workflows.solves.morph_reference`), so the
     differences carry no remeshing jitter; ``"remesh"`` meshes each solve anew (the older maps).
     """
     d, h, E = (float(v) for v in theta)
