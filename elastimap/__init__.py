@@ -13,7 +13,7 @@ This folder itself is the core every room may import, and it imports no room:
 ``check_range``), ``cli_util`` (the CLI runner, shared options, lazy groups), ``outputs`` (output
 paths checked before any work), ``provenance`` (the code version and host stamped on results);
 plus the umbrella command ``elastimap`` (``cli.py``), which imports the rooms only when one runs.
-``tests/test_architecture.py`` checks this layering.
+``tests/contracts/test_architecture.py`` checks this layering.
 """
 
 __version__ = "0.1.0"

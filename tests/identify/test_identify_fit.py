@@ -347,7 +347,7 @@ def test_a_fit_map_morphs_from_the_reference_below_never_shrinks_by_more_than_a_
 
 
 def test_a_fits_morphed_maps_solve_to_the_fits_cg_tolerance():
-    """forward_map's morphed maps carry FIT_CG_RTOL to their solvers (tests/test_morph.py checks
+    """forward_map's morphed maps carry FIT_CG_RTOL to their solvers (tests/solver/test_morph.py checks
     that a MorphedForward passes it on), looser than the solver's default."""
     from elastimap.identify.forward_maps import FIT_CG_RTOL, forward_map
     from elastimap.solver.reduction import CG_RTOL

@@ -30,7 +30,7 @@ from elastimap.dataset.phantoms import read_phantoms
 # its module fixture is costly: under pytest-xdist (make test) this module runs on one worker
 pytestmark = pytest.mark.xdist_group("test_bad_inputs")
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
 
 

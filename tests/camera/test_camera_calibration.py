@@ -19,7 +19,7 @@ from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand
 # its module fixture is costly: under pytest-xdist (make test) this module runs on one worker
 pytestmark = pytest.mark.xdist_group("test_camera_calibration")
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 PHANTOMS_FALLBACK = """# temporary copy for tests
 name,phantom,d,h,E,tissue_E,tissue_thickness
 size-1,size,5.0,8.0,80.0,5.0,20.0

@@ -2,7 +2,7 @@
 sphere maps onto the new sphere, no inverted cells, smoothness in (d, h), agreement with remeshing.
 
 These compare the morphed forward map with the same code's remeshed one: they check the
-morph's own properties and its consistency, not the physics (tests/test_solver.py does that).
+morph's own properties and its consistency, not the physics (tests/solver/test_solver.py does that).
 """
 
 import numpy as np

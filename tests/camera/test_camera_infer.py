@@ -19,7 +19,7 @@ from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand
 # its module fixture is costly: under pytest-xdist (make test) this module runs on one worker
 pytestmark = pytest.mark.xdist_group("test_camera_infer")
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 PHANTOMS = [
     ("size-1", 5, 8, 80),
     ("size-2", 8, 8, 80),
@@ -263,7 +263,7 @@ def test_image_model_from_synthetic_camera_frames(chain, tmp_path):
     """Camera frames -> difference image on the FEM grid (inverse sensor response) -> image model.
     TOY forward model, SYNTHETIC camera; the image model is a small SCG ensemble (ln E target) on
     the toy table's images.  Tolerance 25 % on d and h (a 2-member, 8-neuron net).  The real-FEM
-    version of this chain is tests/test_camera_frames_fem.py."""
+    version of this chain is tests/camera/test_camera_frames_fem.py."""
     from elastimap.camera.infer import difference_of_frames
     from elastimap.identify.image_model import fit_image_model
     from elastimap.identify.measure import Data

@@ -15,7 +15,7 @@ from elastimap.workflows.benchmarks.frames import report as frep
 from elastimap.workflows.benchmarks.frames import run as frun
 
 #: the benchmark's script, as docs/camera.md runs it
-SCRIPT = Path(__file__).resolve().parent.parent / "workflows" / "frames_benchmark.py"
+SCRIPT = Path(__file__).resolve().parents[2] / "workflows" / "frames_benchmark.py"
 
 
 def test_session_sensor_drifts_only_leds_and_vignetting():

@@ -42,7 +42,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 #: rooms in layering order, bottom first (the core below all, the umbrella above all)
 LAYERS = ("solver", "dataset", "sweep", "training", "identify", "camera", "gap", "workflows")
 CORE, UMBRELLA = "elastimap", "elastimap.cli"

@@ -161,7 +161,7 @@ _R2 = _X.ravel() ** 2 + _Y.ravel() ** 2
 
 
 def bump(theta):
-    """SYNTHETIC difference image (mm), tests/test_identify_fit.py's: a bump whose width follows d and h, a
+    """SYNTHETIC difference image (mm), tests/identify/test_identify_fit.py's: a bump whose width follows d and h, a
     depth-damped amplitude and a halo whose share falls as E rises."""
     d, h, E = theta
     amp = 1e-2 * d**2 / h

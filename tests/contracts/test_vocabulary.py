@@ -9,7 +9,7 @@ from pathlib import Path
 
 from elastimap.dataset import schema
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 ROOMS = ("elastimap", "solver", "sweep", "dataset", "training", "camera", "gap", "identify", "workflows")
 HOME = {
     "FEATURES": "dataset/schema.py",

@@ -27,7 +27,7 @@ from elastimap.errors import UserError
 # its module fixture is costly: under pytest-xdist (make test) this module runs on one worker
 pytestmark = pytest.mark.xdist_group("test_data_safety")
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 ROOMS = ("solver", "sweep", "dataset", "training", "camera", "gap", "identify", "elastimap", "workflows")
 
 

@@ -18,7 +18,7 @@ from elastimap.gap.diagnose import diagnose
 from elastimap.gap.settings import Settings
 from elastimap.gap.simulate import Simulator
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

@@ -98,7 +98,7 @@ def test_one_phantom_reader():
     import ast
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     found = set()
     for room in ("elastimap", "solver", "dataset", "sweep", "training", "identify", "camera", "gap", "workflows"):
         for path in (root / room).rglob("*.py"):

@@ -27,7 +27,7 @@ from elastimap.workflows.studies import command_specs
 STUDIES = command_specs()
 
 BIN = Path(sys.executable).parent
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 
 # alias (console script) -> the `elastimap` path that runs the same click object

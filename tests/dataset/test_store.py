@@ -20,7 +20,7 @@ from elastimap.dataset.store import SolveStore, canonical_json, params_key
 from elastimap.solver import synthetic
 from elastimap.solver.params import Discretisation, SolveParams
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _p(d=8.0, h=7.0, E=50.0, **disc) -> SolveParams:
