@@ -37,7 +37,7 @@ from .errors import UserError
 
 #: The stages: subcommand -> ("module:attr" of its click object, the line ``elastimap --help`` shows).
 STAGES = {
-    "solve": ("elastimap.solver.cli:command", "One forward solve: features, force and image of one inclusion."),
+    "solve": ("elastimap.solver.cli:cli", "One forward solve: features, force and image of one inclusion."),
     "sweep": ("elastimap.sweep.cli:cli", "Batch sweeps of the forward model into Parquet datasets."),
     "dataset": ("elastimap.dataset.cli:cli", "Inspect, plot, export and compact sample datasets."),
     "train": ("elastimap.training.cli:cli", "Train and validate the inverse MLP (LM/SCG, HOV/LOOCV)."),

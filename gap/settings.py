@@ -8,10 +8,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from elastimap.solver.params import MESH_LEVELS, finer
+
 from . import effects as fx
 
-#: the next finer mesh level, the default error mesh of each diagnosis mesh
-FINER = {"tiny": "coarse", "coarse": "default", "default": "fine", "fine": None}
+#: the meshes a diagnosis runs on and each one's default error mesh, the next finer level; ``fine`` has
+#: none (its next level, ``finer``, is too costly to solve for every phantom and candidate)
+FINER = {level: finer(level) if level != "fine" else None for level in MESH_LEVELS if level != "finer"}
 
 
 @dataclass

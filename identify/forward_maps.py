@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from elastimap.errors import UserError
-from elastimap.solver.params import MESH_LEVELS, SIZINGS, SolveParams
+from elastimap.solver.params import MESH_LEVELS, SIZINGS, SolveParams, coarser, finer
 
 from .intervals import CALIBRATED_FOR
 
@@ -47,8 +47,7 @@ def neighbour_level(mesh: str) -> str:
     coarser level (the next finer for the coarsest)."""
     if mesh not in MESH_LEVELS:
         raise UserError("mesh", f"must be one of {', '.join(MESH_LEVELS)} (got {mesh!r})")
-    i = MESH_LEVELS.index(mesh)
-    return MESH_LEVELS[i - 1] if i > 0 else MESH_LEVELS[1]
+    return coarser(mesh) or finer(mesh)
 
 
 def default_geometry() -> str:

@@ -21,6 +21,8 @@ ROOMS = (
     "elastimap.training.bench",
     "elastimap.camera.cli",
     "elastimap.gap.cli",
+    "elastimap.sweep.cli",
+    "elastimap.solver.cli",
 )
 #: flags that mean the same as a shared one and must not come back
 RETIRED = {"--quiet": "--no-progress", "--progress": "--no-progress", "--csv": "--out"}

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from elastimap.solver.params import MESH_LEVELS, coarser, finer
 
-SOLVER = Path(__file__).resolve().parents[1] / "solver"
+SOLVER = Path(__file__).resolve().parents[2] / "solver"
 
 
 def test_finer_and_coarser_walk_the_levels():

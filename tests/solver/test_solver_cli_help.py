@@ -4,7 +4,7 @@ one progress switch is ``--no-progress``."""
 import click
 import pytest
 
-from elastimap.solver.cli import command as solve_cmd
+from elastimap.solver.cli import cli as solve_cmd
 from elastimap.solver.verify import command as verify_cmd
 from elastimap.solver.verify_morph import command as verify_morph_cmd
 from elastimap.sweep.cli import cli as sweep_cli
