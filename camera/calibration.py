@@ -31,40 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
-from elastimap.dataset.schema import FEATURES, PHANTOMS_CSV, THICKNESS, UNITS
+from elastimap.dataset.phantoms import is_phantom, phantom_name
+from elastimap.dataset.schema import FEATURES, THICKNESS, UNITS
 from elastimap.errors import UserError
 
 FEM_UNITS = {k: UNITS[k] for k in FEATURES}
-DEFAULT_PHANTOMS = PHANTOMS_CSV
 CALIBRATION_VERSION = 1
-
-
-def load_phantoms(path: str | os.PathLike | None = None):
-    """The calibration-phantom spec as a DataFrame (columns name, d, h, E, and optional
-    phantom, tissue_E, tissue_thickness).  Lines starting with ``#`` are comments."""
-    import pandas as pd
-
-    p = Path(path) if path is not None else DEFAULT_PHANTOMS
-    if not p.exists():
-        raise UserError("phantoms", f"{p}: no such file (a CSV with columns name,d,h,E)")
-    try:
-        df = pd.read_csv(p, comment="#", skipinitialspace=True)
-    except Exception as exc:  # pandas raises several types for bad CSV
-        raise UserError("phantoms", f"{p}: not a readable CSV ({exc})") from None
-    missing = [c for c in ("name", "d", "h", "E") if c not in df.columns]
-    if missing:
-        raise UserError("phantoms", f"{p}: missing column(s) {', '.join(missing)}")
-    if len(df) < 3:
-        raise UserError("phantoms", f"{p}: need at least 3 inclusions to fit a line (got {len(df)})")
-    if df["name"].duplicated().any():
-        raise UserError("phantoms", f"{p}: duplicate names {sorted(set(df['name'][df['name'].duplicated()]))}")
-    for c in ("d", "h", "E"):
-        v = pd.to_numeric(df[c], errors="coerce")
-        if v.isna().any() or (v <= 0).any():
-            raise UserError("phantoms", f"{p}: column {c} must be positive numbers")
-        df[c] = v.astype(float)
-    df["name"] = df["name"].astype(str)
-    return df.reset_index(drop=True)
 
 
 @dataclass
@@ -472,8 +444,8 @@ def fem_features_from_csv(path: str | os.PathLike, phantoms) -> np.ndarray:
             df = read_samples(p, columns=["tag", *FEATURES])
         except UserError as exc:
             raise UserError("fem-features", exc.message) from None
-        df = df[df["tag"].astype(str).str.startswith("phantom:")].copy()
-        df["name"] = df["tag"].str.slice(len("phantom:"))
+        df = df[is_phantom(df["tag"])].copy()
+        df["name"] = [phantom_name(t) for t in df["tag"]]
     else:
         df = pd.read_csv(p, comment="#", skipinitialspace=True)
     for c in ("name", "O1", "O2", "O3"):

@@ -73,12 +73,22 @@ def feature_options(f):
     for opt in reversed(
         [
             click.option(
-                "--threshold", type=float, default=None, help="O3 threshold, fraction of full scale (default 0.0012)."
+                "--o3-threshold",
+                "threshold",
+                type=float,
+                default=None,
+                help="O3 threshold on the camera difference image, fraction of full scale (default 0.0012).",
             ),
             click.option(
                 "--smooth-px", type=float, default=None, help="Gaussian denoising sigma, camera pixels (default 1.5)."
             ),
-            click.option("--combine", type=click.Choice(["mean-image", "mean-features"]), default=None),
+            click.option(
+                "--combine",
+                type=click.Choice(["mean-image", "mean-features"]),
+                default=None,
+                help="Combine a lesion's frames: features of the mean image, or the mean of each frame's "
+                "features (default mean-image).",
+            ),
         ]
     ):
         f = opt(f)
@@ -97,22 +107,24 @@ def _model_kw(seed, noise_scale, bits, binning):
 
 
 @click.group(context_settings=CONTEXT_SETTINGS)
-def main():
+def cli():
     """Camera side of elastimap: SYNTHETIC TIR camera, camera features, calibration, inference, detection."""
 
 
 # -------------------------------------------------------------------- synth
-@main.command(context_settings=CONTEXT_SETTINGS)
+@cli.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--d", "d", type=float, required=True, help="Inclusion diameter, mm.")
 @click.option("--h", "h", type=float, required=True, help="Centre depth below the surface, mm.")
 @click.option("--E", "E", type=float, required=True, help="Inclusion modulus, kPa.")
-@click.option("--tissue-E", type=float, default=5.0, show_default=True)
+@click.option("--tissue-E", type=float, default=5.0, show_default=True, help="Tissue modulus, kPa.")
 @click.option("--delta", type=float, default=3.0, show_default=True, help="Indentation, mm.")
 @mesh_option()
-@click.option("--frames", type=int, default=30, show_default=True)
-@click.option("--out", type=click.Path(file_okay=False), required=True)
+@click.option("--frames", type=int, default=30, show_default=True, help="Camera frames per press.")
+@click.option("--out", type=click.Path(file_okay=False), required=True, help="Folder for the frame files.")
 @click.option("--name", default=None, help="File-name stem (default d<d>_h<h>_E<E>).")
-@click.option("--format", "fmt", type=click.Choice(["png", "tiff"]), default="png", show_default=True)
+@click.option(
+    "--format", "fmt", type=click.Choice(["png", "tiff"]), default="png", show_default=True, help="Frame file format."
+)
 @sensor_options
 def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, seed, noise_scale, bits, binning):
     """Render SYNTHETIC camera frames of one inclusion and its background press (runs the FEM)."""
@@ -152,12 +164,12 @@ def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, s
 
 
 # ----------------------------------------------------------------- features
-@main.command(context_settings=CONTEXT_SETTINGS)
+@cli.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--images", multiple=True, required=True, help="Lesion frames (files or globs; repeatable).")
 @click.option("--background", multiple=True, required=True, help="Background frames (files or globs).")
 @click.option("--sensor", "sensor_json", type=click.Path(dir_okay=False), help="Camera geometry (SensorModel JSON).")
 @feature_options
-@click.option("--json", "as_json", is_flag=True)
+@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 def features(images, background, sensor_json, threshold, smooth_px, combine, as_json):
     """Camera features O1 (FS), O2 (FS mm^2), O3 (mm^2) of one lesion's frames."""
     from .features import features_from_files
@@ -176,7 +188,7 @@ def features(images, background, sensor_json, threshold, smooth_px, combine, as_
 
 
 # ---------------------------------------------------------------- calibrate
-@main.command(context_settings=CONTEXT_SETTINGS)
+@cli.command(context_settings=CONTEXT_SETTINGS)
 @click.option(
     "--phantoms",
     type=click.Path(dir_okay=False),
@@ -196,12 +208,14 @@ def features(images, background, sensor_json, threshold, smooth_px, combine, as_
     help="Take FEM features from a CSV/Parquet (name or tag 'phantom:<name>', O1,O2,O3) instead of solving.",
 )
 @mesh_option()
-@click.option("--delta", type=float, default=3.0, show_default=True)
-@click.option("--frames", type=int, default=30, show_default=True)
+@click.option("--delta", type=float, default=3.0, show_default=True, help="Indentation of the phantom presses, mm.")
+@click.option("--frames", type=int, default=30, show_default=True, help="Camera frames per synthetic press.")
 @click.option(
     "--write-frames", type=click.Path(file_okay=False), default=None, help="Also save the synthetic frames here."
 )
-@click.option("--format", "fmt", type=click.Choice(["png", "tiff"]), default="png")
+@click.option(
+    "--format", "fmt", type=click.Choice(["png", "tiff"]), default="png", help="Format of --write-frames' files."
+)
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="Calibration JSON to write.")
 @click.option(
     "--plot", type=click.Path(dir_okay=False), default=None, help="PNG of the three fits (default <out>.png)."
@@ -229,6 +243,8 @@ def calibrate(
     combine,
 ):
     """Fit O_FEM = a O_cam + b per feature on the nine calibration phantoms (paper 3.3)."""
+    from elastimap.dataset.phantoms import read_phantoms
+    from elastimap.dataset.schema import PHANTOMS_CSV
     from elastimap.outputs import check_out_dir, check_out_file
 
     from . import calibration as C
@@ -237,7 +253,7 @@ def calibrate(
     settings = _settings(threshold, smooth_px, combine)
     if frames < 1:
         raise UserError("--frames", f"must be >= 1 (got {frames})")
-    ph = C.load_phantoms(phantoms)
+    ph = read_phantoms(phantoms, min_rows=3, why="to fit a calibration line")
     # every input read and every output location checked before anything is solved or written
     fem_given = C.fem_features_from_csv(fem_features, ph) if fem_features else None
     check_out_file(out, "--out", create_parents=True)
@@ -280,7 +296,7 @@ def calibrate(
             "mesh": mesh,
             "delta": delta,
             "frames": frames,
-            "phantoms_file": str(phantoms or C.DEFAULT_PHANTOMS),
+            "phantoms_file": str(phantoms or PHANTOMS_CSV),
             "camera_csv": camera_csv,
             "fem_features": fem_features,
         },
@@ -296,14 +312,14 @@ def calibrate(
 
 
 # -------------------------------------------------------------------- infer
-@main.command(context_settings=CONTEXT_SETTINGS)
+@cli.command(context_settings=CONTEXT_SETTINGS)
 @click.option(
     "--model",
     "model_dir",
     type=click.Path(),
     required=True,
     help="Trained model directory: a feature ensemble (elastimap train) or an image model "
-    "(elastimap identify imagenet --save-model).",
+    "(elastimap study image_model --save-model DIR).",
 )
 @click.option(
     "--calibration",
@@ -333,11 +349,12 @@ def calibrate(
     "--identifiability",
     default="default",
     show_default=True,
-    help="Identifiability map (crb_grid.npz of elastimap identify crbmap), 'default' (shipped, "
+    help="Identifiability map (crb_grid.npz of elastimap study crbmap), 'default' (shipped, "
     "default 512-sample sweep) or 'none'.",
 )
 @click.option(
-    "--threshold",
+    "--crb-limit",
+    "threshold",
     default=0.10,
     show_default=True,
     type=float,
@@ -347,11 +364,11 @@ def calibrate(
     "--refine",
     is_flag=True,
     help="Image models (--fem-image, --images or --csv): refine each estimate by the maximum-likelihood fit of "
-    "the forward map (elastimap.identify.refine.fit_image: runs the solver, about 20-30 forward solves per "
+    "the forward map (elastimap.identify.fit.fit_image: runs the solver, about 20-30 forward solves per "
     "lesion); 95 % intervals from the Gauss-Newton covariance, for the default --mesh coarse corrected by fine "
     "scaled per class of each parameter's relative sd (and by whether the estimated inclusion's bottom lies "
     "within 3 mm of the slab's base) as calibrated on SYNTHETIC benchmark lesions "
-    "(elastimap.identify.intervals; docs/camera.md 4n).  From frames, every pixel is weighted by "
+    "(elastimap.identify.intervals; docs/camera.md, 'Inference').  From frames, every pixel is weighted by "
     "its own noise, measured from the frames' scatter, plus the forward map's error measured between two "
     "mesh levels.",
 )
@@ -375,7 +392,7 @@ def calibrate(
     metavar="LEVEL|auto|none",
     help="--refine: a finer mesh level (e.g. fine) whose solve corrects the forward map's defect at the start "
     "of each pass after the first; the fit then stands for that level and its error is measured against "
-    "that level's neighbour.  Removes most of the coarse map's bias in d and E (docs/camera.md 4e-4g) at "
+    "that level's neighbour.  Removes most of the coarse map's bias in d and E (docs/camera.md, 'Inference') at "
     "one or two solves of that level per lesion.  auto: fine for --mesh coarse (the benchmarked "
     "configuration), none for the other levels; none: the map alone.",
 )
@@ -401,22 +418,12 @@ def infer(
     """Estimate (d, h, E) with intervals; out-of-range inputs and non-identifiable outputs are flagged.
 
     An output the identifiability map calls non-identifiable at the estimate (Cramér–Rao relative
-    std above --threshold) is printed as its interval, not as a number.  From camera frames with an
+    std above --crb-limit) is printed as its interval, not as a number.  From camera frames with an
     image model the bound is the larger of the map's camera set (the nominal camera's noise, scaled
     by the frames' own scatter) and its 1 % image set (output column crb_set: frames), otherwise
     the 1 % set.
     """
-    from .calibration import Calibration
-    from .frames import expand
-    from .infer import (
-        _is_image_model,
-        estimate,
-        estimate_fem_images,
-        estimate_images,
-        estimate_lesions_csv,
-        load_identifiability,
-        load_model,
-    )
+    from .infer import load_identifiability, load_model
 
     given = sum(x for x in (feats is not None, bool(images), csv_path is not None, fem_image is not None))
     if given != 1:
@@ -425,28 +432,12 @@ def infer(
             "give exactly one of --features O1 O2 O3, --images ... --background ..., --csv FILE, --fem-image FILE.npy",
         )
     if not 0 < threshold < 10:
-        raise UserError("--threshold", f"must be in (0, 10) (got {threshold:g})")
+        raise UserError("--crb-limit", f"must be in (0, 10) (got {threshold:g})")
     if refine and feats is not None:
         raise UserError("--refine", "needs an image (--fem-image, --images or --csv) and an image model, not features")
     if refine and not 0 < image_noise < 1:
         raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
-    if correct not in ("auto", "none"):
-        from elastimap.identify.refine import check_correct
-
-        if not refine:
-            raise UserError("--refine-correct", "only applies with --refine")
-        try:
-            check_correct(mesh, correct)  # before any work
-        except UserError as exc:
-            raise UserError(
-                "--refine-correct", "must be auto, none or " + exc.message.removeprefix("must be ")
-            ) from None
-    elif refine:
-        from elastimap.identify.refine import default_correct
-
-        correct = default_correct(mesh) if correct == "auto" else None
-    else:
-        correct = None
+    correct = _refine_correct(refine, mesh, correct)
     if fem_image is not None and not os.path.isfile(fem_image):
         raise UserError("--fem-image", f"{fem_image}: no such file")
     if out:
@@ -455,34 +446,9 @@ def infer(
         check_out_file(out, "--out")
     idm = load_identifiability(None if identifiability == "none" else identifiability)
     model = load_model(model_dir)
-    if refine and fem_image is not None and not _is_image_model(model):
-        raise UserError(
-            "--refine",
-            "--fem-image needs an image model (python -m elastimap.workflows.studies.imagenet --save-model DIR)",
-        )
-    if fem_image is not None:
-        try:
-            arr = np.load(fem_image, allow_pickle=False)
-        except Exception as exc:
-            raise UserError("--fem-image", f"{fem_image}: not a .npy array ({exc})") from None
-        ests = estimate_fem_images(arr, model, identifiability=idm, threshold=threshold)
-        cal = None
-    else:
-        if calibration is None and not csv_path:
-            raise UserError("--calibration", "camera features and frames need the FEM<->camera calibration file")
-        cal = Calibration.load(calibration) if calibration is not None else None
-        if images:
-            if not background:
-                raise UserError("background", "--images needs --background frames (the same press without the lesion)")
-            ests = [
-                estimate_images(
-                    expand(list(images)), expand(list(background)), cal, model, "1", idm, threshold, keep_image=refine
-                )
-            ]
-        elif csv_path:
-            ests = estimate_lesions_csv(csv_path, cal, model, idm, threshold, keep_image=refine)
-        else:
-            ests = estimate(np.array([feats]), cal, model, ["1"], idm, threshold)
+    if refine and fem_image is not None and model.input_kind != "image":
+        raise UserError("--refine", "--fem-image needs an image model (elastimap study image_model --save-model DIR)")
+    ests, cal = _estimates(model, idm, threshold, refine, calibration, feats, images, background, csv_path, fem_image)
     if refine:
         from tqdm import tqdm
 
@@ -500,18 +466,7 @@ def infer(
             )
     rows = [e.to_dict() for e in ests]
     if out:
-        from elastimap.outputs import write_or_fallback
-
-        def _write(path):
-            if out.endswith(".json"):
-                with open(path, "w") as fh:
-                    json.dump(rows, fh, indent=2)
-            else:
-                import pandas as pd
-
-                pd.DataFrame(rows).to_csv(path, index=False)
-
-        write_or_fallback(_write, out, "--out")
+        _write_rows(rows, out)
     if as_json:
         click.echo(json.dumps(rows, indent=2))
     else:
@@ -526,6 +481,68 @@ def infer(
         click.echo("note: the calibration was made with the SYNTHETIC camera", err=True)
 
 
+def _refine_correct(refine: bool, mesh: str, correct: str) -> str | None:
+    """``--refine-correct`` checked before any work: the finer level that corrects the fit's map, or None."""
+    if correct not in ("auto", "none"):
+        from elastimap.identify.forward_maps import check_correct
+
+        if not refine:
+            raise UserError("--refine-correct", "only applies with --refine")
+        try:
+            check_correct(mesh, correct)
+        except UserError as exc:
+            raise UserError(
+                "--refine-correct", "must be auto, none or " + exc.message.removeprefix("must be ")
+            ) from None
+        return correct
+    if refine:
+        from elastimap.identify.forward_maps import default_correct
+
+        return default_correct(mesh) if correct == "auto" else None
+    return None
+
+
+def _estimates(model, idm, threshold, refine, calibration, feats, images, background, csv_path, fem_image):
+    """The estimates of the one input given (``infer``'s options), and the calibration used (or None)."""
+    from .calibration import Calibration
+    from .frames import expand
+    from .infer import estimate, estimate_fem_images, estimate_images, estimate_lesions_csv
+
+    if fem_image is not None:
+        try:
+            arr = np.load(fem_image, allow_pickle=False)
+        except Exception as exc:
+            raise UserError("--fem-image", f"{fem_image}: not a .npy array ({exc})") from None
+        return estimate_fem_images(arr, model, identifiability=idm, threshold=threshold), None
+    if calibration is None and not csv_path:
+        raise UserError("--calibration", "camera features and frames need the FEM<->camera calibration file")
+    cal = Calibration.load(calibration) if calibration is not None else None
+    if images:
+        if not background:
+            raise UserError("background", "--images needs --background frames (the same press without the lesion)")
+        im, bg = expand(list(images)), expand(list(background))
+        return [estimate_images(im, bg, cal, model, "1", idm, threshold, keep_image=refine)], cal
+    if csv_path:
+        return estimate_lesions_csv(csv_path, cal, model, idm, threshold, keep_image=refine), cal
+    return estimate(np.array([feats]), cal, model, ["1"], idm, threshold), cal
+
+
+def _write_rows(rows: list[dict], out: str) -> None:
+    """``--out``: the estimates as JSON (``.json``) or CSV."""
+    from elastimap.outputs import write_or_fallback
+
+    def _write(path):
+        if out.endswith(".json"):
+            with open(path, "w") as fh:
+                json.dump(rows, fh, indent=2)
+        else:
+            import pandas as pd
+
+            pd.DataFrame(rows).to_csv(path, index=False)
+
+    write_or_fallback(_write, out, "--out")
+
+
 def _quantity(r: dict, q: str, unit: str) -> str:
     lo, hi = r[f"{q}_lo"], r[f"{q}_hi"]
     if not r[f"{q}_reportable"]:
@@ -536,12 +553,14 @@ def _quantity(r: dict, q: str, unit: str) -> str:
 
 
 # ------------------------------------------------------------------- detect
-@main.command(context_settings=CONTEXT_SETTINGS)
+@cli.command(context_settings=CONTEXT_SETTINGS)
 @mesh_option()
 @click.option("--repeats", type=int, default=1, show_default=True, help="Scans per inclusion (and clean scans).")
 @click.option("--clutter-mm", type=float, default=None, help="Tissue heterogeneity sd, mm (default 0.002).")
-@click.option("--press-jitter", type=float, default=None)
-@click.option("--out", type=click.Path(file_okay=False), required=True)
+@click.option(
+    "--press-jitter", type=float, default=None, help="Relative sd of the press depth between scans (default 0.05)."
+)
+@click.option("--out", type=click.Path(file_okay=False), required=True, help="Folder for the ROC table and figure.")
 @click.option("--noise-scales", default=None, help="Comma list: also report AUC at these noise scales.")
 @sensor_options
 def detect(mesh, repeats, clutter_mm, press_jitter, out, noise_scales, sensor_json, seed, noise_scale, bits, binning):
@@ -600,10 +619,10 @@ def infer_main():
     run(infer, prog_name="infer")
 
 
-def camera_main():
-    run(main, prog_name="camera")
+def main(argv=None):
+    run(cli, argv, prog_name="camera")
 
 
 if __name__ == "__main__":
-    run(main, prog_name="python -m elastimap.camera.cli")
+    run(cli, prog_name="python -m elastimap.camera.cli")
     sys.exit(0)

@@ -32,7 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from elastimap.errors import UserError, check_range
+from elastimap.constraints import check_range
+from elastimap.errors import UserError
 from elastimap.solver.image import features as image_features
 
 COMBINE = ("mean-image", "mean-features")

@@ -2,11 +2,11 @@
 
 Python API (imports no solver and no DOLFINx)::
 
-    from elastimap.camera.infer import load_ensemble, estimate, estimate_images
+    from elastimap.camera.infer import load_model, estimate, estimate_images
     from elastimap.camera.calibration import Calibration
     cal = Calibration.load("cal.json")
-    ens = load_ensemble("models/run1")              # elastimap.training.model.Ensemble
-    est = estimate([[O1, O2, O3]], cal, ens)        # camera features (see elastimap.camera.features)
+    model = load_model("models/run1")               # any elastimap.training.model.InverseModel
+    est = estimate([[O1, O2, O3]], cal, model)      # camera features (see elastimap.camera.features)
     est[0].d, est[0].d_sd, est[0].flags
 
 Uncertainty: the ensemble's members (the networks of the training repeats)
@@ -16,16 +16,17 @@ never silently extrapolated: every estimate carries ``flags``:
 
 * ``outside_calibration:Ok`` - camera feature k outside the range spanned by
   the nine calibration phantoms (the linear map is extrapolated);
-* ``outside_training:Ok`` - the calibrated FEM feature k outside the
-  network's training range (``ensemble.feature_range``);
+* ``outside_training:<input>`` - an input of the model outside its training range
+  (:meth:`elastimap.training.model.InverseModel.outside_training`: the calibrated FEM feature
+  ``Ok`` for a feature model, ``image`` for an image model);
 * ``no_signal`` - O1 at or below zero, or (from frames) no pixel of the difference image
   :data:`DETECT_SIGMA` standard errors above zero: no inclusion visible, nothing is reportable,
   and the interval ``[q_lo, q_hi]`` is the whole design box (:func:`design_box_interval`): the
   model's number for an image it cannot see is an extrapolation, and its interval there held the
   centre depth of 1 of the 13 such lesions of the SYNTHETIC benchmark's seeds 2027–2038
-  (docs/camera.md 4m);
+  (docs/camera.md, 'Inference');
 * ``non_identifiable:q`` - at the estimate, the Cramér–Rao bound of the
-  identifiability map (:mod:`elastimap.identify.region`; by default the one shipped,
+  identifiability map (:mod:`elastimap.identify.idmap`; by default the one shipped,
   measured on the default 512-sample sweep) says ``q`` cannot be determined
   within 10 % from this measurement (three features for the feature MLP,
   the whole image for an image model).  Such a ``q`` is reported as its
@@ -50,7 +51,7 @@ line prints its interval (or nothing), never the number.
 Every estimate carries ``lo``/``hi``: the bound's approximate 95 % interval
 widened to the ensemble's 10-90 % range (a bound: real errors can be larger).
 
-Image models (``python -m elastimap.workflows.studies.imagenet --save-model DIR``) take a FEM
+Image models (``elastimap study image_model --save-model DIR``) take a FEM
 difference image (:func:`estimate_fem_images`) or camera frames (:func:`estimate_images`),
 which become the FEM-equivalent difference image and its per-pixel standard error by the
 inverse sensor response (:func:`difference_of_frames`, :mod:`elastimap.camera.deflection`).
@@ -93,7 +94,7 @@ class Estimate:
     input: str = "features"  # features | image | frames | ... +fem_refined
     image: np.ndarray | None = None  # the difference image estimated from (mm, FEM grid; image models)
     sigma: np.ndarray | None = None  # its per-pixel standard error (mm; from frames), else None
-    fit: object | None = None  # elastimap.identify.refine.FitResult after refine_estimates
+    fit: object | None = None  # elastimap.identify.fit.FitResult after refine_estimates
 
     d = property(lambda s: float(s.mean[0]))
     h = property(lambda s: float(s.mean[1]))
@@ -148,31 +149,11 @@ class Estimate:
         return out
 
 
-def load_ensemble(directory: str | os.PathLike):
-    """Load a trained ensemble (``elastimap.training.model.Ensemble.load``) with a clear error if impossible."""
-    d = str(directory)
-    if not os.path.isdir(d):
-        raise UserError("model", f"{d}: no such model directory")
-    try:
-        from elastimap.training.model import Ensemble
-    except ImportError as exc:
-        raise UserError("model", f"the training package is not available ({exc})") from None
-    return Ensemble.load(d)
-
-
-def _feature_range(ensemble) -> np.ndarray | None:
-    fr = getattr(ensemble, "feature_range", None)
-    if fr is None:
-        return None
-    fr = np.asarray(fr, dtype=float)
-    return fr if fr.shape == (2, 3) else None
-
-
 def load_identifiability(identifiability="default"):
-    """``"default"`` (the shipped map), a path, an :class:`elastimap.identify.region.IdentifiabilityMap`, or None."""
+    """``"default"`` (the shipped map), a path, an :class:`elastimap.identify.idmap.IdentifiabilityMap`, or None."""
     if identifiability is None:
         return None
-    from elastimap.identify.region import IdentifiabilityMap
+    from elastimap.identify.idmap import IdentifiabilityMap
 
     if isinstance(identifiability, IdentifiabilityMap):
         return identifiability
@@ -226,7 +207,9 @@ def _no_signal_box(ests: list[Estimate]) -> list[Estimate]:
     return ests
 
 
-def _assess(ests: list[Estimate], ensemble, idmap, mset: str, threshold: float, scale: float = 1.0) -> list[Estimate]:
+def _assess(ests: list[Estimate], model, idmap, mset: str, threshold: float, scale: float = 1.0) -> list[Estimate]:
+    """Intervals, ``non_identifiable`` and plausibility flags from the identifiability map's
+    measurement set ``mset`` (the model's ``input_kind``, or ``FRAMES``)."""
     if idmap is None:
         return _plausibility(_no_signal_box(ests))
     mean = np.array([e.mean for e in ests])
@@ -236,7 +219,7 @@ def _assess(ests: list[Estimate], ensemble, idmap, mset: str, threshold: float, 
         threshold,
         p10=np.array([e.p10 for e in ests]),
         p90=np.array([e.p90 for e in ests]),
-        target_range=getattr(ensemble, "target_range", None),
+        target_range=model.target_range,
         scale=scale,
     )
     for i, e in enumerate(ests):
@@ -250,21 +233,65 @@ def _members(Y: np.ndarray, n: int):
     if Y.ndim == 2:
         Y = Y[None]
     if Y.shape[1:] != (n, 3):
-        raise RuntimeError(f"ensemble.predict returned shape {Y.shape}, expected (members, {n}, 3)")
+        raise RuntimeError(f"model.predict returned shape {Y.shape}, expected (members, {n}, 3)")
     mean = Y.mean(axis=0)
     sd = Y.std(axis=0, ddof=1) if Y.shape[0] > 1 else np.full((n, 3), math.nan)
     return Y, mean, sd, np.percentile(Y, 10, axis=0), np.percentile(Y, 90, axis=0)
 
 
+#: The refusal when a model is given the other kind of input, by the input it was given.
+_WRONG_INPUT = {
+    "features": "this is an image model: give an image (--fem-image or camera frames), not features",
+    "image": "a feature model takes features or camera frames, not a FEM image; use an image model "
+    "(elastimap study image_model --save-model DIR)",
+}
+
+
+def _check_input(model, given: str) -> None:
+    """Refuse ``model`` (an :class:`elastimap.training.model.InverseModel`) unless it takes ``given``."""
+    if getattr(model, "input_kind", None) != given:
+        raise UserError("model", _WRONG_INPUT[given])
+
+
+def _ids(ids, n: int, what: str) -> list[str]:
+    ids = [str(i + 1) for i in range(n)] if ids is None else [str(i) for i in ids]
+    if len(ids) != n:
+        raise UserError("ids", f"{len(ids)} ids for {n} {what}")
+    return ids
+
+
+def _predict(
+    model, X: np.ndarray, ids: list[str], cam, fem, flags, no_signal, input="features", images=None, sigma=None
+) -> list[Estimate]:
+    """The one path of every inverse model: its members' predictions of the model inputs ``X``
+    -> one :class:`Estimate` per row, with the given ``flags`` (per row), ``outside_training:<input>``
+    for inputs outside the model's training range and ``no_signal`` first where ``no_signal[i]``.
+    ``images``/``sigma`` (per row, or None): the difference image the estimate keeps and its noise."""
+    n = len(ids)
+    Y, mean, sd, p10, p90 = _members(model.predict(X), n)
+    outside = model.outside_training(X)
+    ests = []
+    for i in range(n):
+        f = list(flags[i]) + [f"outside_training:{k}" for k in outside[i]]
+        if no_signal[i]:
+            f.insert(0, "no_signal")
+        e = Estimate(ids[i], cam[i], fem[i], mean[i], sd[i], p10[i], p90[i], Y.shape[0], f, input=input)
+        e.image = None if images is None else images[i]
+        e.sigma = None if sigma is None else sigma[i]
+        ests.append(e)
+    return ests
+
+
 def estimate(
     cam_features,
     calibration: Calibration,
-    ensemble,
+    model,
     ids: list[str] | None = None,
     identifiability="default",
     threshold: float = 0.10,
 ) -> list[Estimate]:
-    """(n, 3) camera features -> list of :class:`Estimate` (feature MLP ensemble).
+    """(n, 3) camera features -> list of :class:`Estimate` by a feature model (an
+    :class:`~elastimap.training.model.InverseModel` whose ``input_kind`` is ``"features"``).
 
     ``identifiability``: see :func:`load_identifiability`; its ``features`` set is used."""
     cam = np.atleast_2d(np.asarray(cam_features, dtype=float))
@@ -272,42 +299,27 @@ def estimate(
         raise UserError("features", f"need three camera features O1 O2 O3 per lesion (got shape {cam.shape})")
     if not np.all(np.isfinite(cam)):
         raise UserError("features", "camera features must be finite numbers")
-    n = cam.shape[0]
-    ids = [str(i + 1) for i in range(n)] if ids is None else [str(i) for i in ids]
-    if len(ids) != n:
-        raise UserError("ids", f"{len(ids)} ids for {n} lesions")
-    if _is_image_model(ensemble):
-        raise UserError("model", "this is an image model: give an image (--fem-image or camera frames), not features")
+    ids = _ids(ids, cam.shape[0], "lesions")
+    _check_input(model, "features")
     idmap = load_identifiability(identifiability)
     fem = calibration.apply(cam)
-    Y, mean, sd, p10, p90 = _members(ensemble.predict(fem), n)
     out_cal = calibration.outside(cam)
-    fr = _feature_range(ensemble)
-    out_train = ((fem < fr[0]) | (fem > fr[1])) if fr is not None else np.zeros_like(out_cal)
-    ests = []
-    for i in range(n):
-        flags = [f"outside_calibration:{k}" for j, k in enumerate(FEATURES) if out_cal[i, j]]
-        flags += [f"outside_training:{k}" for j, k in enumerate(FEATURES) if out_train[i, j]]
-        if cam[i, 0] <= 0:
-            flags.insert(0, "no_signal")
-        ests.append(Estimate(ids[i], cam[i], fem[i], mean[i], sd[i], p10[i], p90[i], Y.shape[0], flags))
-    return _assess(ests, ensemble, idmap, "features", threshold)
-
-
-def _is_image_model(model) -> bool:
-    return hasattr(model, "pca") and hasattr(model, "ensemble")
+    flags = [[f"outside_calibration:{k}" for j, k in enumerate(FEATURES) if row[j]] for row in out_cal]
+    ests = _predict(model, fem, ids, cam, fem, flags, cam[:, 0] <= 0)
+    return _assess(ests, model, idmap, model.input_kind, threshold)
 
 
 def load_model(directory: str | os.PathLike):
-    """A feature ensemble (``training``) or an image model (``elastimap.identify.imagenet``), by what the directory holds."""
+    """The :class:`~elastimap.training.model.InverseModel` a directory holds: an image model
+    (:mod:`elastimap.identify.image_model`, which adds its PCA file) or a feature ensemble
+    (:class:`elastimap.training.model.Ensemble`); any damage is one :class:`UserError`."""
+    from elastimap.identify.image_model import PCA_FILE, ImageModel
+    from elastimap.training.model import Ensemble
+
     d = str(directory)
-    from elastimap.identify.imagenet import PCA_FILE
-
-    if os.path.isfile(os.path.join(d, PCA_FILE)):
-        from elastimap.identify.imagenet import ImageModel
-
-        return ImageModel.load(d)
-    return load_ensemble(d)
+    if not os.path.isdir(d):
+        raise UserError("model", f"{d}: no such model directory")
+    return (ImageModel if os.path.isfile(os.path.join(d, PCA_FILE)) else Ensemble).load(d)
 
 
 def estimate_fem_images(
@@ -327,16 +339,11 @@ def estimate_fem_images(
     where measured (from frames; kept for the refinement).  ``identifiability``: the map's ``image``
     set (1 % of the peak per pixel), or, with ``sigma`` and a map that has a ``camera`` set, the
     larger of that set scaled by the frames' noise
-    (:meth:`elastimap.identify.region.IdentifiabilityMap.camera_scale`) and the ``image`` set
-    (``crb_set`` "frames", :data:`elastimap.identify.region.FRAMES`)."""
+    (:meth:`elastimap.identify.idmap.IdentifiabilityMap.camera_scale`) and the ``image`` set
+    (``crb_set`` "frames", :data:`elastimap.identify.idmap.FRAMES`)."""
     from elastimap.solver.image import features as image_features
 
-    if not _is_image_model(model):
-        raise UserError(
-            "model",
-            "a feature model takes features or camera frames, not a FEM image; "
-            "use an image model (python -m elastimap.workflows.studies.imagenet --save-model DIR)",
-        )
+    _check_input(model, "image")
     if model.force:
         raise UserError(
             "model",
@@ -348,53 +355,30 @@ def estimate_fem_images(
         imgs = imgs[None]
     imgs = imgs.reshape(imgs.shape[0], -1) if imgs.ndim >= 2 else np.atleast_2d(imgs)
     n = imgs.shape[0]
-    ids = [str(i + 1) for i in range(n)] if ids is None else [str(i) for i in ids]
-    if len(ids) != n:
-        raise UserError("ids", f"{len(ids)} ids for {n} images")
+    ids = _ids(ids, n, "images")
     idmap = load_identifiability(identifiability)
-    Y, mean, sd, p10, p90 = _members(model.predict(imgs), n)
-    inr = np.asarray(model.in_range(imgs), bool)
-    ests = []
-    for i in range(n):
-        if model.shape is not None and model.pixel:
-            fem = np.array(image_features(imgs[i].reshape(model.shape), model.pixel))  # as the sweep's O1..O3
-        else:
-            fem = np.full(3, math.nan)
-        f = list(flags[i]) if flags is not None else []
-        if not inr[i]:
-            f.append("outside_training:image")
-        if not np.abs(imgs[i]).max() > 0 or (
-            sigma is not None and not np.max(imgs[i] / np.asarray(sigma[i], float).ravel()) >= DETECT_SIGMA
-        ):
-            f.insert(0, "no_signal")
-        cam = np.asarray(cam_features[i], float) if cam_features is not None else np.full(3, math.nan)
-        sg = None if sigma is None else np.asarray(sigma[i], float).reshape(-1)
-        ests.append(
-            Estimate(
-                ids[i],
-                cam,
-                fem,
-                mean[i],
-                sd[i],
-                p10[i],
-                p90[i],
-                Y.shape[0],
-                f,
-                input="image",
-                image=imgs[i].copy(),
-                sigma=sg,
-            )
-        )
-    from elastimap.identify.region import FRAMES
+    if model.shape is not None and model.pixel:  # each image's own O1..O3, as the sweep's
+        fem = np.array([image_features(im.reshape(model.shape), model.pixel) for im in imgs], dtype=float)
+    else:
+        fem = np.full((n, 3), math.nan)
+    cam = np.asarray(cam_features, float) if cam_features is not None else np.full((n, 3), math.nan)
+    sg = None if sigma is None else np.asarray(sigma, float).reshape(n, -1)
+    no_signal = [
+        not np.abs(imgs[i]).max() > 0 or (sg is not None and not np.max(imgs[i] / sg[i]) >= DETECT_SIGMA)
+        for i in range(n)
+    ]
+    flags = flags if flags is not None else [[] for _ in range(n)]
+    ests = _predict(model, imgs, ids, cam, fem, flags, no_signal, "image", imgs.copy(), sg)
+    from elastimap.identify.idmap import FRAMES
 
     if sigma is not None and idmap is not None and "camera" in idmap.relstd and idmap.camera_sigma is not None:
         # measured per-pixel noise (frames): the camera set scaled by this camera's noise, never
         # below the 1 % image set (the forward model's own error; region.FRAMES)
         if idmap.camera_sigma.size == imgs.shape[1]:
             for e in ests:
-                _assess([e], model.ensemble, idmap, FRAMES, threshold, idmap.camera_scale(e.sigma, e.image))
+                _assess([e], model, idmap, FRAMES, threshold, idmap.camera_scale(e.sigma, e.image))
             return ests
-    return _assess(ests, model.ensemble, idmap, "image", threshold)
+    return _assess(ests, model, idmap, model.input_kind, threshold)
 
 
 def refine_estimates(
@@ -416,7 +400,7 @@ def refine_estimates(
     intervals: str | None = None,
 ) -> list[Estimate]:
     """Refine image-model estimates by the maximum-likelihood fit of the forward map
-    (:func:`elastimap.identify.refine.fit_image`).
+    (:func:`elastimap.identify.fit.fit_image`).
 
     ``images`` as given to :func:`estimate_fem_images` (FEM difference images, mm, on the model's
     grid; default: each estimate's own ``image``).  Pixel noise: where the frames measured it
@@ -424,28 +408,29 @@ def refine_estimates(
     image's peak (``--fem-image``); to it the fit adds the forward map's own error, measured as the
     difference of two mesh levels at the estimate (no assumed floor).  Forward map:
     ``forward``/``forward_alt`` (``(d, h, E) -> image``) or, by default, the solver's map at
-    ``mesh`` and its neighbouring level (:func:`elastimap.identify.refine.forward_map`, mesh
+    ``mesh`` and its neighbouring level (:func:`elastimap.identify.forward_maps.forward_map`, mesh
     morphing where available; runs DOLFINx); ``forward_fine``, or by default with ``correct`` (a mesh
     level finer than ``mesh``) the solver's map at that level: its defect corrects the map at the start
     of every pass after the first, and the model error is then measured between ``correct`` and its
-    neighbouring level (:func:`elastimap.identify.refine.fit_image`).  ``coords``: the fit's coordinate
-    of E (:class:`elastimap.identify.refine.FitCoords`); ``max_passes``: the fit's passes (corrected
-    ones with a finer level; :func:`~elastimap.identify.refine.fit_image`); ``fine``: how those passes
+    neighbouring level (:func:`elastimap.identify.fit.fit_image`).  ``coords``: the fit's coordinate
+    of E (:class:`elastimap.identify.coords.FitCoords`); ``max_passes``: the fit's passes (corrected
+    ones with a finer level; :func:`~elastimap.identify.fit.fit_image`); ``fine``: how those passes
     use the finer level, ``"correct"`` (defect correction) or ``"direct"`` (they fit it).  ``intervals``:
-    the fit's 95 % intervals (:func:`~elastimap.identify.refine.fit_image`); None: the calibrated ones
-    where all the maps are the solver's (:func:`~elastimap.identify.refine.fit_maps`) at the calibrated
-    levels (:func:`~elastimap.identify.refine.default_intervals`), else the Gauss–Newton ones.
+    the fit's 95 % intervals (:func:`~elastimap.identify.fit.fit_image`); None: the calibrated ones
+    where all the maps are the solver's (:func:`~elastimap.identify.forward_maps.fit_maps`) at the calibrated
+    levels (:func:`~elastimap.identify.forward_maps.default_intervals`), else the Gauss–Newton ones.
     ``progress(i, n)`` after each lesion.
 
     Each estimate's mean becomes the fitted (d, h, E), ``lo``/``hi`` its 95 % interval and ``sd``/``crb``
     the standard deviation that interval stands for (relative for ``crb``): the Gauss–Newton one times
-    the interval's scale (:attr:`~elastimap.identify.refine.FitResult.relstd_calibrated`; the scale is 1
+    the interval's scale (:attr:`~elastimap.identify.fit.FitResult.relstd_calibrated`; the scale is 1
     for the Gauss–Newton interval); ``non_identifiable:q`` is re-decided from it (``> threshold``), and
     ``model_mismatch`` added when the fit leaves a reduced chi² above ``chi2_limit`` (the forward
     model cannot reproduce the image at the stated noise), ``at_design_edge:q`` for each parameter
     the fit ended on the design box's edge with (then nothing is reportable); ``input`` gains
     ``+fem_refined``."""
-    from elastimap.identify.refine import check_correct, fit_image, fit_maps
+    from elastimap.identify.fit import fit_image
+    from elastimap.identify.forward_maps import check_correct, fit_maps
 
     if not 0 < image_noise < 1:
         raise UserError("image_noise", f"must be in (0, 1) (got {image_noise:g})")
@@ -572,7 +557,7 @@ def estimate_images(
     :func:`refine_estimates`).  Image model: :func:`difference_of_frames` -> the network; the
     estimate keeps the image and its per-pixel noise for :func:`refine_estimates`."""
     cf = features_of_images(images, background, calibration)
-    if not _is_image_model(model):
+    if model.input_kind == "features":
         e = estimate(cf.values[None], calibration, model, [id], identifiability, threshold)[0]
         if keep_image:
             di = difference_of_frames(images, background, calibration)
@@ -617,7 +602,7 @@ def estimate_lesions_csv(
     (each lesion's frames -> :func:`estimate_images`) or ``fem_image`` (a ``.npy`` FEM difference
     image, mm, no calibration needed).  ``progress(i, n)`` after each lesion."""
     ids, kind, rows = read_lesions_table(path)
-    image_model = _is_image_model(model)
+    image_model = model.input_kind == "image"
     if kind == "features":
         if image_model:
             raise UserError(

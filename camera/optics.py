@@ -59,7 +59,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from elastimap.errors import UserError, check_range
+from elastimap.constraints import check_range
+from elastimap.errors import UserError
 
 SENSOR_ROWS = 1042
 SENSOR_COLS = 1392
@@ -308,7 +309,7 @@ def deflection_noise_map(background: np.ndarray, pixel: float, frames: int = 30,
     (``frames`` each) are differenced (variance x 2 / frames) and the camera pixels falling in
     one image pixel averaged.  Returns an array of the image's shape (mm), usable as the
     ``sigma_map`` of :func:`elastimap.identify.measure.add_image_noise` and
-    :class:`elastimap.identify.local.NoiseSpec`.
+    :class:`elastimap.identify.bounds.NoiseSpec`.
     """
     s = (sensor or SensorModel()).validate()
     bg = np.asarray(background, dtype=float)

@@ -2,7 +2,7 @@
 
 elastimap dataset inspect sweeps/default-tied-lhs512-s0
 elastimap dataset plot sweeps/default-tied-lhs512-s0 --out figs/
-elastimap dataset export sweeps/default-tied-lhs512-s0 --csv table.csv
+elastimap dataset export sweeps/default-tied-lhs512-s0 --out table.csv
 elastimap dataset compact sweeps/default-tied-lhs512-s0
 """
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import click
 
-from elastimap.cli_util import CONTEXT_SETTINGS, out_option, param_flags
+from elastimap.cli_util import CONTEXT_SETTINGS, Choice, out_option, param_flags
 from elastimap.cli_util import run as run_cli
 from elastimap.errors import UserError
 
@@ -36,11 +36,11 @@ def inspect_cmd(path, as_json, top):
     return 0
 
 
-@param_flags({"n_images": "--images", "out_dir": "--out"})
+@param_flags({"n_images": "--n-images", "out_dir": "--out"})
 @cli.command("plot")
 @click.argument("path")
 @out_option(required=True, help="directory for the PNG figures")
-@click.option("--images", default=12, show_default=True, help="example images in the grid")
+@click.option("--n-images", "images", default=12, show_default=True, help="example images in the grid of images.png")
 def plot_cmd(path, out, images):
     """PNG figures: the paper's 3-D scatter per feature, features vs parameters, example images."""
     from .plot import plot_all
@@ -52,29 +52,31 @@ def plot_cmd(path, out, images):
 
 @cli.command("export")
 @click.argument("path")
+@out_option(help="CSV file to write (default: <PATH>.csv next to the dataset); '-' for stdout")
 @click.option(
-    "--csv",
-    "csv_path",
-    default=None,
-    help="CSV file to write (default: <PATH>.csv next to the dataset); '-' for stdout",
+    "--status",
+    type=Choice(["ok", "failed", "all"]),
+    default="all",
+    show_default=True,
+    help="Which samples to write: the solved ones, the failed ones or all.",
 )
-@click.option("--status", type=click.Choice(["ok", "failed", "all"]), default="all", show_default=True)
 @click.option(
-    "--images/--no-images",
+    "--image-column/--no-image-column",
+    "images",
     default=False,
     show_default=True,
-    help="include the image as one column of space-separated values",
+    help="include the elasticity image as one column of space-separated values (mm)",
 )
-def export_cmd(path, csv_path, status, images):
+def export_cmd(path, out, status, images):
     """One CSV table for spreadsheets (one row per sample, parameters, features, status, statistics)."""
     from elastimap.outputs import check_out_file
 
     from . import io
 
     src = Path(path).resolve()
-    target = csv_path or str(src.with_suffix(".csv") if src.is_file() else src.with_name(src.name + ".csv"))
+    target = out or str(src.with_suffix(".csv") if src.is_file() else src.with_name(src.name + ".csv"))
     if target != "-":
-        check_out_file(target, "--csv")  # before reading
+        check_out_file(target, "--out")  # before reading
     df = io.read_samples(path, status=None if status == "all" else status)
     if images:
         df["image"] = [" ".join(f"{x:.6g}" for x in v) if v is not None else "" for v in df["image"]]
@@ -85,7 +87,7 @@ def export_cmd(path, csv_path, status, images):
         return 0
     from elastimap.outputs import write_or_fallback
 
-    t = write_or_fallback(lambda f: df.to_csv(f, index=False), target, "--csv")
+    t = write_or_fallback(lambda f: df.to_csv(f, index=False), target, "--out")
     click.echo(f"wrote {len(df)} rows to {t}")
     return 0
 

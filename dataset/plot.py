@@ -1,10 +1,13 @@
 """``dataset plot``: PNG figures of a sample dataset (matplotlib, Agg backend).
 
 * ``scatter3d.png``  the paper's Fig. 5 style: one 3-D panel per feature, a circle at
-  (d, h, E) for every ok sample, area and colour from the feature rescaled to 0-255
+  (d, h, E) for every ok sample; colour (viridis) is the feature in its unit (colour bar), marker
+  area grows with it; calibration phantoms are marked x
 * ``features_vs_params.png``  each of O1, O2, O3, force against each of d, h, E
   (colour: log10 E in the d and h panels, d in the E panels)
-* ``images.png``  a grid of example difference elasticity images, chosen across the O1 range
+* ``images.png``  a grid of example difference elasticity images chosen across the O1 range,
+  x and y in mm, each panel on its own colour scale with its colour bar in mm (one common scale
+  left the small-O1 panels black: O1 spans two decades)
 """
 
 from __future__ import annotations
@@ -16,14 +19,8 @@ import numpy as np
 from elastimap.errors import UserError
 
 from . import io
+from .phantoms import is_phantom
 from .schema import COLUMNS, FEATURES, TARGETS
-
-
-def _rescale255(x: np.ndarray) -> np.ndarray:
-    lo, hi = np.nanmin(x), np.nanmax(x)
-    if not np.isfinite(lo) or hi <= lo:
-        return np.full_like(x, 128.0, dtype=float)
-    return 255.0 * (x - lo) / (hi - lo)
 
 
 def _label(c: str) -> str:
@@ -61,29 +58,9 @@ def plot_all(path, out_dir, n_images: int = 12) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     files = []
     d, h, E = (df[c].to_numpy(dtype=float) for c in TARGETS)
-    phantom = df["tag"].str.startswith("phantom").to_numpy()
+    phantom = is_phantom(df["tag"])
 
-    # 1. paper-style 3-D scatter
-    fig = plt.figure(figsize=(15, 5))
-    for i, feat in enumerate(FEATURES):
-        ax = fig.add_subplot(1, 3, i + 1, projection="3d")
-        v = _rescale255(df[feat].to_numpy(dtype=float))
-        sc = ax.scatter(
-            d, h, E, s=5 + v * 0.6, c=v, cmap="jet", vmin=0, vmax=255, alpha=0.75, edgecolors="k", linewidths=0.2
-        )
-        if phantom.any():
-            ax.scatter(d[phantom], h[phantom], E[phantom], s=60, marker="x", c="k", label="phantoms")
-            ax.legend(loc="upper left", fontsize=7)
-        ax.set_xlabel(_label("d"))
-        ax.set_ylabel(_label("h"))
-        ax.set_zlabel(_label("E"))
-        ax.set_title(f"{feat} rescaled to 0-255")
-        fig.colorbar(sc, ax=ax, shrink=0.6, pad=0.1)
-    fig.suptitle(f"{len(df)} samples: marker area and colour = feature (0-255)")
-    fig.tight_layout()
-    files.append(out / "scatter3d.png")
-    fig.savefig(files[-1], dpi=110)
-    plt.close(fig)
+    files.append(_scatter3d(plt, df, phantom, out / "scatter3d.png"))
 
     # 2. each feature against each parameter
     feats = (*FEATURES, "force")
@@ -106,7 +83,38 @@ def plot_all(path, out_dir, n_images: int = 12) -> list[Path]:
     fig.savefig(files[-1], dpi=100)
     plt.close(fig)
 
-    # 3. example images across the O1 range
+    files.append(_images(plt, df, path, n_images, out / "images.png"))
+    return files
+
+
+def _scatter3d(plt, df, phantom: np.ndarray, path: Path) -> Path:
+    """One 3-D panel per feature: a circle at (d, h, E) per sample, coloured by the feature (viridis,
+    colour bar in the feature's unit), marker area from 6 to 120 pt^2 across the feature's range."""
+    d, h, E = (df[c].to_numpy(dtype=float) for c in TARGETS)
+    fig = plt.figure(figsize=(15, 5.2))
+    for i, feat in enumerate(FEATURES):
+        ax = fig.add_subplot(1, 3, i + 1, projection="3d")
+        v = df[feat].to_numpy(dtype=float)
+        lo, hi = np.nanmin(v), np.nanmax(v)
+        area = 6 + 114 * ((v - lo) / (hi - lo) if hi > lo else np.full_like(v, 0.5))
+        sc = ax.scatter(d, h, E, s=area, c=v, cmap="viridis", alpha=0.85, edgecolors="k", linewidths=0.2)
+        if phantom.any():
+            ax.scatter(d[phantom], h[phantom], E[phantom], s=60, marker="x", c="r", label="calibration phantoms")
+            ax.legend(loc="upper left", fontsize=7)
+        ax.set_xlabel(_label("d"))
+        ax.set_ylabel(_label("h"))
+        ax.set_zlabel(_label("E"))
+        ax.set_title(f"{feat}: {COLUMNS[feat][2]}", fontsize=9)
+        fig.colorbar(sc, ax=ax, shrink=0.6, pad=0.12, label=_label(feat))
+    fig.suptitle(f"{len(df)} solved samples: colour and marker area = the feature (h: depth of the inclusion centre)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _images(plt, df, path, n_images: int, out: Path) -> Path:
+    """Example difference images across the O1 range, each on its own colour scale (colour bar in mm)."""
     shape, pixel = io.read_image_meta(path)
     order = np.argsort(df["O1"].to_numpy(dtype=float))
     k = min(n_images, len(df))
@@ -114,19 +122,31 @@ def plot_all(path, out_dir, n_images: int = 12) -> list[Path]:
     imgs = io.stack_images(df.iloc[pick], shape)
     ncol = min(4, len(pick))
     nrow = int(np.ceil(len(pick) / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(3.2 * ncol, 3.0 * nrow), squeeze=False)
-    vmax = float(np.nanmax(imgs)) if np.isfinite(np.nanmax(imgs)) else 1.0
-    half = shape[1] * pixel / 2
+    fig, axes = plt.subplots(nrow, ncol, figsize=(3.6 * ncol, 3.1 * nrow), squeeze=False)
+    half_x, half_y = shape[1] * pixel / 2, shape[0] * pixel / 2
     for ax in axes.flat:
         ax.axis("off")
-    for ax, img, (_, r) in zip(axes.flat, imgs, df.iloc[pick].iterrows()):
-        im = ax.imshow(img, origin="lower", extent=(-half, half, -half, half), cmap="magma", vmin=0, vmax=vmax)
-        ax.set_title(f"d={r.d:.3g} h={r.h:.3g} E={r.E:.3g}\nO1={r.O1:.3g} mm", fontsize=8)
+    for n, (ax, img, (_, r)) in enumerate(zip(axes.flat, imgs, df.iloc[pick].iterrows())):
+        finite = img[np.isfinite(img)]
+        vmax = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+        vmin = min(0.0, float(finite.min())) if finite.size else 0.0
+        extent = (-half_x, half_x, -half_y, half_y)
+        im = ax.imshow(img, origin="lower", extent=extent, cmap="magma", vmin=vmin, vmax=vmax)
+        ax.set_title(f"d={r.d:.3g} mm h={r.h:.3g} mm E={r.E:.3g} kPa\nO1={r.O1:.3g} mm", fontsize=8)
         ax.axis("on")
         ax.tick_params(labelsize=6)
-    fig.colorbar(im, ax=axes.ravel().tolist(), shrink=0.8, label="difference image [mm]")
-    fig.suptitle(f"example elasticity images ({shape[0]}x{shape[1]} px, {pixel:g} mm), ordered by O1")
-    files.append(out / "images.png")
-    fig.savefig(files[-1], dpi=100)
+        if n % ncol == 0:
+            ax.set_ylabel("y [mm]", fontsize=7)
+        if n >= len(pick) - ncol:
+            ax.set_xlabel("x [mm]", fontsize=7)
+        cb = fig.colorbar(im, ax=ax, shrink=0.85, pad=0.03)
+        cb.ax.tick_params(labelsize=6)
+        cb.set_label("mm", fontsize=7)
+    fig.suptitle(
+        f"example difference elasticity images ({shape[0]}x{shape[1]} px, {pixel:g} mm), ordered by O1; "
+        "each panel on its own colour scale"
+    )
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
     plt.close(fig)
-    return files
+    return out

@@ -24,7 +24,8 @@ import pyarrow as pa
 
 from elastimap.solver.params import DESIGN_BOX, THICKNESS, depth_range  # noqa: F401  (vocabulary, re-exported)
 
-#: the nine calibration-phantom inclusions (shipped with the package)
+#: the shipped calibration-phantom table (installed with the package); read it with
+#: :func:`elastimap.dataset.phantoms.read_phantoms`
 PHANTOMS_CSV = Path(__file__).resolve().parent / "phantoms.csv"
 
 SCHEMA_VERSION = 1

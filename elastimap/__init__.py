@@ -1,11 +1,19 @@
-"""elastimap: shared, dependency-free pieces used by every stage.
+"""elastimap: elasticity imaging of a tissue inclusion, from forward model to inference.
 
-The stages themselves live in the top-level packages ``solver`` (geometry and
-FEM solve), ``sweep`` (batch runs), ``dataset`` (Parquet schema and tools),
-``training`` (MLP inverse), ``camera`` (optical sensor side) and ``gap``
-(sim-to-real diagnosis).  This package only holds what all of them share:
-the user-error type and the CLI wrapper that turns it into a one-line message
-with exit code 2, and the code version stamped into provenance.
+``elastimap`` is the only top-level name the project installs; every stage ("room") is a
+subpackage installed from its own top-level folder (README, "Layout"):
+``elastimap.solver`` (gmsh geometry, DOLFINx solve, image and features), ``elastimap.dataset``
+(Parquet schema, reading, plots, the calibration-phantom table), ``elastimap.sweep`` (batch runs),
+``elastimap.training`` (the MLP inverse), ``elastimap.identify`` (identifiability, the image model,
+the FEM fit), ``elastimap.camera`` (optical sensor side), ``elastimap.gap`` (sim-to-real diagnosis)
+and ``elastimap.workflows`` (pipelines and the identifiability studies).
+
+This folder itself is the core every room may import, and it imports no room:
+``errors`` (:class:`~elastimap.errors.UserError`), ``constraints`` (declared parameter rules,
+``check_range``), ``cli_util`` (the CLI runner, shared options, lazy groups), ``outputs`` (output
+paths checked before any work), ``provenance`` (the code version and host stamped on results);
+plus the umbrella command ``elastimap`` (``cli.py``), which imports the rooms only when one runs.
+``tests/contracts/test_architecture.py`` checks this layering.
 """
 
 __version__ = "0.1.0"

@@ -6,7 +6,7 @@
     elastimap train --algo lm --validate loocv  the inverse MLP
     elastimap camera calibrate|infer|...        the camera side
     elastimap gap diagnose ...                  sim-to-real diagnosis
-    elastimap identify crbmap ...               the identifiability studies
+    elastimap study crbmap ...                  the studies (maps, image model, intervals)
     elastimap demo                              the whole pipeline on a small default
 
 The stage commands are also installed under their own names (``solve``, ``sweep``,
@@ -37,59 +37,28 @@ from .errors import UserError
 
 #: The stages: subcommand -> ("module:attr" of its click object, the line ``elastimap --help`` shows).
 STAGES = {
-    "solve": ("elastimap.solver.cli:command", "One forward solve: features, force and image of one inclusion."),
+    "solve": ("elastimap.solver.cli:cli", "One forward solve: features, force and image of one inclusion."),
     "sweep": ("elastimap.sweep.cli:cli", "Batch sweeps of the forward model into Parquet datasets."),
     "dataset": ("elastimap.dataset.cli:cli", "Inspect, plot, export and compact sample datasets."),
-    "train": ("elastimap.training.cli:train", "Train and validate the inverse MLP (LM/SCG, HOV/LOOCV)."),
-    "camera": ("elastimap.camera.cli:main", "Camera side: synthetic frames, features, calibrate, infer, detect."),
-    "gap": ("elastimap.gap.cli:main_group", "Sim-to-real gap diagnosis (synth, diagnose, selftest)."),
+    "train": ("elastimap.training.cli:cli", "Train and validate the inverse MLP (LM/SCG, HOV/LOOCV)."),
+    "camera": ("elastimap.camera.cli:cli", "Camera side: synthetic frames, features, calibrate, infer, detect."),
+    "gap": ("elastimap.gap.cli:cli", "Sim-to-real gap diagnosis (synth, diagnose, selftest)."),
 }
 
-#: The identifiability studies behind the shipped map and the docs' tables:
-#: ``elastimap identify <study>`` -> ("module:attr", help line).  One row per study, named as its module.
-STUDIES = {
-    "crbmap": (
-        "elastimap.workflows.studies.crbmap:main",
-        "Cramér–Rao identifiability maps and the map inference uses.",
-    ),
-    "cameramap": (
-        "elastimap.workflows.studies.cameramap:main",
-        "The camera-frames set of the identifiability map (nominal camera's noise).",
-    ),
-    "levelbias": (
-        "elastimap.workflows.studies.levelbias:main",
-        "Each mesh level's image error against a finer world and the (d, h, E) shift it causes.",
-    ),
-    "valleyfit": (
-        "elastimap.workflows.studies.valleyfit:main",
-        "Re-fit frames-benchmark lesions with one ingredient changed (image, start, sizing, levels).",
-    ),
-    "fdgrid": (
-        "elastimap.workflows.studies.fdgrid:main",
-        "Real finite-difference Jacobians on a grid of design points.",
-    ),
-    "fd_check": (
-        "elastimap.workflows.studies.fd_check:main",
-        "Cramér–Rao bounds from real FD Jacobians at two points.",
-    ),
-    "mapcheck": (
-        "elastimap.workflows.studies.mapcheck:main",
-        "Compare the identifiability map with the real-FD bounds.",
-    ),
-    "global_cv": (
-        "elastimap.workflows.studies.global_cv:main",
-        "Cross-validated error of d, h, E per measurement set.",
-    ),
-    "imagenet": ("elastimap.workflows.studies.imagenet:main", "Validate the image-based inverse (image PCA -> MLP)."),
-    "region_score": (
-        "elastimap.workflows.studies.region_score:main",
-        "Score the identifiable region on held-out predictions.",
-    ),
-    "refine": (
-        "elastimap.workflows.studies.refine:main",
-        "Refine image-network estimates by a FEM maximum-likelihood fit.",
-    ),
-}
+
+class StudyGroup(LazyGroup):
+    """``elastimap study``: its subcommands are the one registry of studies
+    (:data:`elastimap.workflows.studies.STUDIES`), read when the group first lists or runs one."""
+
+    @property
+    def lazy(self) -> dict[str, tuple[str, str]]:
+        from elastimap.workflows.studies import command_specs
+
+        return command_specs()
+
+    @lazy.setter
+    def lazy(self, value) -> None:  # LazyGroup.__init__ assigns it; the registry is the only source
+        pass
 
 
 @click.group(cls=LazyGroup, lazy=STAGES, context_settings=CONTEXT_SETTINGS)
@@ -104,13 +73,14 @@ def cli():
 
 
 @cli.group(
-    cls=LazyGroup,
-    lazy=STUDIES,
+    cls=StudyGroup,
     context_settings=CONTEXT_SETTINGS,
-    short_help="Identifiability studies (crbmap, fdgrid, imagenet, refine, ...).",
+    short_help="The studies behind the shipped map, model and intervals (crbmap, image_model, ...).",
 )
-def identify():
-    """Identifiability studies: the maps, bounds and tables behind docs/identifiability.md."""
+def study():
+    """The studies: how the shipped identifiability map, the deployed image model, the calibrated
+    intervals and the docs' tables were made (each also runs as python -m
+    elastimap.workflows.studies.NAME)."""
 
 
 def _step(title: str, argv: list[str]) -> None:

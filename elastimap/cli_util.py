@@ -1,5 +1,10 @@
 """The command-line layer shared by every command: one runner, the shared options, lazy groups.
 
+Naming, the same in every room: a room's ``cli.py`` names its click root (group or command) ``cli``
+and its console-script entry ``main(argv=None)``, which calls :func:`run`; the umbrella's stage
+table points at ``elastimap.<room>.cli:cli``.  A room with more than one console script names the
+extra entries ``<script>_main`` (``calibrate_main``).
+
 Every console script and ``python -m`` entry of the project goes through :func:`run`:
 
 * :class:`elastimap.errors.UserError` and click usage errors print
@@ -12,7 +17,8 @@ Every console script and ``python -m`` entry of the project goes through :func:`
 * anything else is a bug and keeps its traceback.
 
 The options several commands share are defined once here (:func:`mesh_option`,
-:func:`out_option`, :func:`data_option`, :func:`jobs_option`, :func:`shard_option`), and :class:`LazyGroup`
+:func:`out_option`, :func:`data_option`, :func:`jobs_option`, :func:`shard_option`,
+:func:`no_progress_option`), and :class:`LazyGroup`
 imports a subcommand's module only when that subcommand runs, so ``elastimap --help``
 or a mistyped flag answers without importing torch, DOLFINx, dask or pandas.
 
@@ -108,6 +114,12 @@ def data_option(
     return click.option(
         "--data", "data", default=default, required=required, show_default=default is not None, help=help, **kw
     )
+
+
+def no_progress_option(help: str = "Hide the progress bars (the results do not change).", **kw):
+    """``--no-progress``: the one progress switch of every command; the value (``no_progress``) is
+    ``True`` when given, so a library takes ``progress=not no_progress``."""
+    return click.option("--no-progress", "no_progress", is_flag=True, default=False, help=help, **kw)
 
 
 def jobs_option(default: int = 1, help: str = "Worker processes.", **kw):

@@ -33,7 +33,7 @@ from typing import Any
 
 from .errors import UserError
 
-__all__ = ["Interval", "Options", "InstanceOf", "Predicate", "validate_params", "describe"]
+__all__ = ["Interval", "Options", "InstanceOf", "Predicate", "validate_params", "describe", "check_range"]
 
 
 class Constraint:
@@ -177,3 +177,27 @@ def validate_params(values: Mapping[str, Any], constraints: Mapping[str, list], 
         if any(r is not None and r.is_satisfied_by(v) for r in rules):
             continue
         raise UserError(prefix + name, f"must be {describe(rules)} (got {_show(v)})")
+
+
+def check_range(
+    param: str,
+    value: float,
+    lo: float | None = None,
+    hi: float | None = None,
+    *,
+    lo_open: bool = False,
+    hi_open: bool = False,
+    unit: str = "",
+) -> float:
+    """Return ``value`` as a float if it lies in the interval, else raise :class:`UserError`.
+
+    ``lo_open``/``hi_open`` make the bound strict.  NaN and ±inf are always rejected.  Meant for bounds
+    that depend on other parameters; fixed rules belong in a declared table (:func:`validate_params`),
+    whose messages are worded the same way.
+    """
+    closed = {(False, False): "both", (False, True): "left", (True, False): "right", (True, True): "neither"}
+    rule = Interval(float, lo, hi, closed=closed[lo_open, hi_open], unit=unit)
+    v = float(value)
+    if not rule.is_satisfied_by(v):
+        raise UserError(param, f"must be {rule} (got {value:g})")
+    return v

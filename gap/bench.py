@@ -12,9 +12,14 @@ from __future__ import annotations
 
 import os
 import platform
+import resource
 import time
 
 from . import effects as fx
+from .diagnose import diagnose
+from .settings import FINER, Settings
+from .simulate import Simulator
+from .synth import phantom_design, synthesize
 
 
 def run(
@@ -30,10 +35,6 @@ def run(
     seed: int = 0,
     log=print,
 ) -> dict:
-    from .diagnose import FINER, Settings, diagnose
-    from .simulate import Simulator
-    from .synth import phantom_design, synthesize
-
     dhe = phantom_design(n, seed)
     dc = os.path.join(data_cache, f"fem-{data_mesh}") if data_cache else None
     sim_data = Simulator(dc, data_mesh, "fem", jobs)
@@ -66,7 +67,6 @@ def run(
     sim = Simulator(None, mesh, "fem", jobs, progress=progress(mesh))
     fine = Simulator(None, FINER[mesh], "fem", jobs, progress=progress(FINER[mesh])) if FINER.get(mesh) else None
     st = Settings(inverse=inverse, adaptive=adaptive, seed=seed)
-    import resource
 
     def cpu():
         a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -106,8 +106,19 @@ def run(
         "best": ev["best"],
         "machine": f"{platform.node()} {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}",
     }
+    L = _lines(out, res, len(res["candidates"]), ev, sbe)
+    if log:
+        log("\n".join(L))
+    out["text"] = "\n".join(L)
+    return out
+
+
+def _lines(out: dict, res: dict, n_cands: int, ev: dict, sbe: dict) -> list[str]:
+    """The printed summary of one bench run."""
+    n, mesh, jobs, adaptive, inverse = out["n"], out["mesh"], out["jobs"], out["adaptive"], out["inverse"]
+    wall, cpu_s = out["wall_seconds"], out["cpu_seconds"]
     L = [
-        f"first diagnosis: {n} phantoms, {len(res['candidates'])} default candidates, mesh {mesh} "
+        f"first diagnosis: {n} phantoms, {n_cands} default candidates, mesh {mesh} "
         f"(model error vs {out['error_mesh']}), --jobs {jobs}, no cache, "
         f"{'adaptive magnitudes' if adaptive else 'full grids'}, inverse {'on' if inverse else 'off'}",
         f"  wall {wall:.0f} s, CPU {cpu_s:.0f} s (main process and workers; CPU / {jobs} = the wall time "
@@ -123,19 +134,4 @@ def run(
         f"  verdict: {ev['outcome']} {ev['ambiguous_set'] or ''} (best {ev['best']})",
         f"  machine: {out['machine']}",
     ]
-    if log:
-        log("\n".join(L))
-    out["text"] = "\n".join(L)
-    return out
-
-
-def main(argv=None) -> None:
-    from .cli import main as gap_main
-
-    gap_main(["bench", *(argv or [])])
-
-
-if __name__ == "__main__":
-    import sys
-
-    main(sys.argv[1:])
+    return L

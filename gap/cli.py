@@ -1,68 +1,80 @@
-"""``elastimap gap`` (alias ``gap``): synth, diagnose, selftest, effects.
+"""``elastimap gap`` (alias ``gap``): synth, diagnose, selftest, bench, effects (docs/gap.md, 'Usage').
 
     elastimap gap synth --out M --effect friction=0.3 [--mesh tiny] [--n 12]
     elastimap gap diagnose --measured M --out DIR [--effects a,b] [--no-inverse] [--error-mesh default]
     elastimap gap selftest --trials 30 --out DIR [--mesh tiny] [--data-mesh coarse] [--data-interface contact]
                            [--data-sizing by_d]
+    elastimap gap bench [--n 12] [--mesh coarse] [--out bench.json]
     elastimap gap effects
 
 User errors print one ``error:`` line and exit 2.  Solves are cached under ``--cache``
-(default ``$ELASTIMAP_GAP_CACHE`` or ``~/.cache/elastimap/gap``).
+(default ``$ELASTIMAP_GAP_CACHE`` or ``~/.cache/elastimap/gap``); ``--no-progress`` silences the
+solve progress.  The library modules (numpy, scipy, matplotlib, torch) are imported inside the
+commands, so that ``--help`` starts fast.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 import click
 
 from elastimap.cli_util import CONTEXT_SETTINGS, jobs_option, mesh_option, options
 from elastimap.cli_util import run as run_cli
+from elastimap.dataset.phantoms import read_phantoms
 from elastimap.errors import UserError
+from elastimap.outputs import check_out_dir, check_out_file, staged_dir
 
 from . import effects as fx
+from .settings import FINER, Settings
 
 
 def default_cache() -> str:
     return os.environ.get("ELASTIMAP_GAP_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "elastimap", "gap")
 
 
-def _sim(cache, mesh, backend, jobs, quiet):
+def _sim(cache, mesh, backend, jobs, no_progress):
     from .simulate import Simulator
 
     if jobs < 1:
         raise UserError("jobs", f"must be >= 1 (got {jobs})")
 
     def prog(i, n):
-        if not quiet:
+        if not no_progress:
             click.echo(f"\rsolves {i}/{n}", nl=(i == n), err=True)
 
     return Simulator(None if cache == "none" else os.path.join(cache, f"{backend}-{mesh}"), mesh, backend, jobs, prog)
 
 
 common = options(
-    click.option("--cache", default=None, help="solve cache folder ('none' = no cache)"),
+    click.option(
+        "--cache",
+        default=None,
+        help="Solve cache folder ('none' = no cache; default $ELASTIMAP_GAP_CACHE or ~/.cache/elastimap/gap).",
+    ),
     click.option(
         "--backend",
         type=click.Choice(["fem", "toy"]),
         default="fem",
         show_default=True,
-        help="fem = DOLFINx forward model; toy = analytic TOY stand-in (tests only)",
+        help="fem = DOLFINx forward model; toy = analytic TOY stand-in (tests only).",
     ),
-    jobs_option(default=1, help="worker processes for missing solves"),
-    click.option("--quiet", is_flag=True),
+    jobs_option(default=1, help="Worker processes for missing solves."),
+    click.option("--no-progress", is_flag=True, help="Print no solve progress (stderr)."),
 )
 
 
 @click.group(context_settings=CONTEXT_SETTINGS)
-def main_group():
+def cli():
     """Sim-to-real gap diagnosis.  Synthetic data are labelled SYNTHETIC."""
 
 
-@main_group.command("effects", context_settings=CONTEXT_SETTINGS)
+@cli.command("effects", context_settings=CONTEXT_SETTINGS)
 def effects_cmd():
     """List the effects library."""
     for e in fx.EFFECTS.values():
@@ -74,36 +86,47 @@ def effects_cmd():
         click.echo(f"{f.name:14s} family    k = {f.n_params}: {', '.join(f.members)}  {f.description}")
 
 
-@main_group.command("synth", context_settings=CONTEXT_SETTINGS)
+@cli.command("synth", context_settings=CONTEXT_SETTINGS)
 @click.option(
     "--out",
     required=True,
     type=click.Path(file_okay=False),
-    help="new folder for the SYNTHETIC measured dataset (an existing one only with --overwrite)",
+    help="New folder for the SYNTHETIC measured dataset (an existing one only with --overwrite).",
 )
 @click.option(
     "--overwrite",
     is_flag=True,
-    help="replace an earlier SYNTHETIC dataset in --out (real measured data is never replaced)",
+    help="Replace an earlier SYNTHETIC dataset in --out (real measured data is never replaced).",
 )
-@click.option("--effect", "effect", default="", help="NAME=MAGNITUDE[,NAME=MAGNITUDE] (empty: baseline only)")
+@click.option("--effect", "effect", default="", help="NAME=MAGNITUDE[,NAME=MAGNITUDE] (empty: baseline only).")
 @click.option(
-    "--phantoms", type=click.Path(), default=None, help="CSV with id (or name), d, h, E; default an LHS design"
+    "--phantoms", type=click.Path(), default=None, help="CSV with id (or name), d, h, E (default: an LHS design)."
 )
-@click.option("--n", "n", type=int, default=12, show_default=True)
-@mesh_option(default="coarse")
-@click.option("--frames", type=int, default=10, show_default=True)
-@click.option("--noise-scale", type=float, default=1.0, show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--format", "fmt", type=click.Choice(["csv", "parquet"]), default="csv", show_default=True)
+@click.option(
+    "--n", "n", type=int, default=12, show_default=True, help="Phantoms of the LHS design (ignored with --phantoms)."
+)
+@mesh_option(default="coarse", help="Mesh level of the data's forward model (tiny is for tests only).")
+@click.option("--frames", type=int, default=10, show_default=True, help="Camera frames per phantom (and background).")
+@click.option("--noise-scale", type=float, default=1.0, show_default=True, help="Multiplies the camera's frame noise.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seeds the phantom design and the frame noise.")
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(["csv", "parquet"]),
+    default="csv",
+    show_default=True,
+    help="File format of the measured table.",
+)
 @click.option(
     "--interface",
     type=click.Choice(["tied", "contact", "bonded"]),
     default="tied",
     show_default=True,
-    help="probe-tissue interface of the data's forward model",
+    help="Probe-tissue interface of the data's forward model.",
 )
-@click.option("--force-noise", type=float, default=None, help="also 'measure' the plate force with this relative error")
+@click.option(
+    "--force-noise", type=float, default=None, help="Also 'measure' the plate force with this relative error."
+)
 @common
 def synth_cmd(
     out,
@@ -121,11 +144,9 @@ def synth_cmd(
     cache,
     backend,
     jobs,
-    quiet,
+    no_progress,
 ):
     """Generate a SYNTHETIC measured dataset (truth sealed in SEALED_truth.json)."""
-    from elastimap.outputs import staged_dir
-
     from . import measured, synth
 
     synth.check_out(out, overwrite)
@@ -134,12 +155,13 @@ def synth_cmd(
         raise UserError("frames", f"must be >= 1 (got {frames})")
     ids = None
     if phantoms:
-        dhe, ids = synth.load_phantoms(phantoms)
+        table = read_phantoms(phantoms, min_rows=4, why="for a diagnosis")
+        dhe, ids = table[["d", "h", "E"]].to_numpy(float), list(table["name"])
     else:
         if n < 4:
             raise UserError("n", f"need at least 4 phantoms (got {n})")
         dhe = synth.phantom_design(n, seed)
-    sim = _sim(cache or default_cache(), mesh, backend, jobs, quiet)
+    sim = _sim(cache or default_cache(), mesh, backend, jobs, no_progress)
     if force_noise is not None and not force_noise > 0:
         raise UserError("force-noise", "must be > 0")
     meas, truth = synth.synthesize(
@@ -161,28 +183,45 @@ def synth_cmd(
     return 0
 
 
-@main_group.command("diagnose", context_settings=CONTEXT_SETTINGS)
-@click.option("--measured", "mpath", required=True, type=click.Path())
-@click.option("--out", required=True, type=click.Path(file_okay=False))
-@click.option("--effects", default=None, help="comma-separated candidate effects (default: all but offaxis)")
-@mesh_option(default=None, help="override the sidecar's mesh level")
-@click.option("--no-inverse", is_flag=True, help="skip the (d, h, E) retraining step")
-@click.option("--n-train", type=int, default=40, show_default=True, help="simulations per inverse training set")
+@cli.command("diagnose", context_settings=CONTEXT_SETTINGS)
+@click.option(
+    "--measured",
+    "mpath",
+    required=True,
+    type=click.Path(),
+    help="Measured dataset: a folder (or its table) as written by 'gap synth' (docs/gap.md, 'Measured-data format').",
+)
+@click.option(
+    "--out",
+    required=True,
+    type=click.Path(file_okay=False),
+    help="Folder for report.md, report.html, diagnosis.json and the PNG figures.",
+)
+@click.option("--effects", default=None, help="Comma-separated candidate effects (default: all but offaxis).")
+@mesh_option(default=None, help="Mesh level of the diagnosis (default: the measured sidecar's).")
+@click.option("--no-inverse", is_flag=True, help="Skip the (d, h, E) retraining step.")
+@click.option("--n-train", type=int, default=40, show_default=True, help="Simulations per inverse training set.")
 @click.option(
     "--error-mesh",
     default=None,
-    help="finer mesh level for the measured model error (default: the next finer level; 'none': assumed floor)",
+    help="Finer mesh level for the measured model error (default: the next finer level; 'none': assumed floor).",
 )
 @click.option(
     "--model-floor",
     type=float,
     default=0.005,
     show_default=True,
-    help="relative model error used only with --error-mesh none",
+    help="Relative model error used only with --error-mesh none.",
 )
-@click.option("--alpha", type=float, default=0.01, show_default=True, help="level of the calibrated chi-square tests")
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--json", "as_json", is_flag=True, help="print the summary as JSON")
+@click.option("--alpha", type=float, default=0.01, show_default=True, help="Level of the calibrated chi-square tests.")
+@click.option(
+    "--seed",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Seeds the folds, the bootstrap, the proposed phantoms and the inverse training.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON (stdout).")
 @common
 def diagnose_cmd(
     mpath,
@@ -199,16 +238,11 @@ def diagnose_cmd(
     cache,
     backend,
     jobs,
-    quiet,
+    no_progress,
 ):
     """Diagnose the sim-to-real gap of a measured dataset: report.md, PNG figures, diagnosis.json."""
-    import math
-    import tempfile
-
-    from elastimap.outputs import check_out_dir
-
     from . import measured, report
-    from .diagnose import Settings, diagnose
+    from .diagnose import diagnose
 
     if not 0 < alpha < 0.5:
         raise UserError("alpha", "must be in (0, 0.5)")
@@ -220,8 +254,8 @@ def diagnose_cmd(
     meas = measured.load(mpath)
     cands = fx.parse_list(effects)
     st = Settings(model_floor=model_floor, alpha=alpha, seed=seed, inverse=not no_inverse, n_train=n_train)
-    sim = _sim(cache or default_cache(), mesh or meas.mesh, backend, jobs, quiet)
-    fine = error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet)
+    sim = _sim(cache or default_cache(), mesh or meas.mesh, backend, jobs, no_progress)
+    fine = error_mesh_sim(error_mesh, sim, cache, backend, jobs, no_progress)
     res = diagnose(meas, cands, sim, st, fine)
     try:
         doc = report.write(res, out)
@@ -240,10 +274,8 @@ def diagnose_cmd(
     return 0
 
 
-def error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet):
+def error_mesh_sim(error_mesh, sim, cache, backend, jobs, no_progress):
     """The simulator of the finer mesh level for the model error (None: assumed floor)."""
-    from .diagnose import FINER
-
     level = FINER.get(sim.mesh) if error_mesh is None else (None if error_mesh == "none" else error_mesh)
     if level is None:
         return None
@@ -251,45 +283,53 @@ def error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet):
         raise UserError(
             "error-mesh", f"must be a mesh level other than {sim.mesh} (tiny, coarse, default, fine) or none"
         )
-    return _sim(cache or default_cache(), level, backend, jobs, quiet)
+    return _sim(cache or default_cache(), level, backend, jobs, no_progress)
 
 
-@main_group.command("selftest", context_settings=CONTEXT_SETTINGS)
-@click.option("--trials", type=int, default=30, show_default=True)
-@click.option("--out", type=click.Path(file_okay=False), default=None)
-@mesh_option(default="tiny", help="the diagnosis's mesh level")
-@click.option("--error-mesh", default=None, help="model-error mesh level (default: next finer; 'none': assumed floor)")
-@click.option("--data-mesh", default=None, help="mesh level of the measured data (default: the next finer level)")
+@cli.command("selftest", context_settings=CONTEXT_SETTINGS)
+@click.option("--trials", type=int, default=30, show_default=True, help="Blind trials to run.")
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Folder for selftest.md and selftest.json, rewritten after every trial (default: print only).",
+)
+@mesh_option(default="tiny", help="Mesh level of the diagnosis.")
+@click.option("--error-mesh", default=None, help="Model-error mesh level (default: next finer; 'none': assumed floor).")
+@click.option("--data-mesh", default=None, help="Mesh level of the measured data (default: the next finer level).")
 @click.option(
     "--data-interface",
     type=click.Choice(["tied", "contact", "bonded"]),
     default="contact",
     show_default=True,
-    help="probe-tissue interface of the measured data (the diagnosis uses tied)",
+    help="Probe-tissue interface of the measured data (the diagnosis uses tied).",
 )
 @click.option(
     "--data-sizing",
     type=click.Choice(["fixed", "by_d"]),
     default="by_d",
     show_default=True,
-    help="element sizing of the measured data's mesh (the diagnosis and its error mesh use fixed)",
+    help="Element sizing of the measured data's mesh (the diagnosis and its error mesh use fixed).",
 )
-@click.option("--effects", default=None, help="candidates (default: all defaults but the outside ones)")
+@click.option("--effects", default=None, help="Candidates (default: all defaults but the outside ones).")
 @click.option(
     "--outside",
     default="aspect,skin,led_imbalance,stray_light",
     show_default=True,
-    help="effects drawn for out-of-library trials (never candidates)",
+    help="Effects drawn for out-of-library trials (never candidates).",
 )
-@click.option("--n-phantoms", type=int, default=12, show_default=True)
-@click.option("--frames", type=int, default=10, show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True, help="draws the trials (effects, magnitudes, noise)")
+@click.option("--n-phantoms", type=int, default=12, show_default=True, help="Phantoms per trial.")
+@click.option("--frames", type=int, default=10, show_default=True, help="Camera frames per phantom.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Draws the trials (effects, magnitudes, noise).")
 @click.option(
-    "--phantom-seed", type=int, default=None, help="draws the phantom set (default: --seed); keep it to reuse the cache"
+    "--phantom-seed",
+    type=int,
+    default=None,
+    help="Draws the phantom set (default: --seed); keep it to reuse the cache.",
 )
-@click.option("--inverse", is_flag=True, help="also retrain the inverse in every trial (slow)")
+@click.option("--inverse", is_flag=True, help="Also retrain the inverse in every trial (slow).")
 @click.option(
-    "--start", type=int, default=0, show_default=True, help="first trial to run (resume a cut run: same draws)"
+    "--start", type=int, default=0, show_default=True, help="First trial to run (resume a cut run: same draws)."
 )
 @common
 def selftest_cmd(
@@ -311,11 +351,10 @@ def selftest_cmd(
     cache,
     backend,
     jobs,
-    quiet,
+    no_progress,
 ):
     """Blind benchmark with model-form error: no-effect, in-library and out-of-library trials (SYNTHETIC)."""
     from . import selftest
-    from .diagnose import FINER, Settings
 
     if trials < 1:
         raise UserError("trials", f"must be >= 1 (got {trials})")
@@ -326,8 +365,6 @@ def selftest_cmd(
     if frames < 1:
         raise UserError("frames", f"must be >= 1 (got {frames})")
     if out:
-        from elastimap.outputs import check_out_dir
-
         check_out_dir(out, "out", allow_existing=True)
     if out and Path(out).exists() and any(Path(out).iterdir()):
         raise UserError("out", f"{out} exists and is not empty (not overwritten)")
@@ -335,12 +372,12 @@ def selftest_cmd(
     cands = selftest.default_candidates([e.name for e in outs]) if effects is None else fx.parse_list(effects)
     if {e.name for e in cands} & {e.name for e in outs}:
         raise UserError("outside", "an outside effect is also a candidate")
-    sim = _sim(cache or default_cache(), mesh, backend, jobs, quiet)
-    fine = error_mesh_sim(error_mesh, sim, cache, backend, jobs, quiet)
+    sim = _sim(cache or default_cache(), mesh, backend, jobs, no_progress)
+    fine = error_mesh_sim(error_mesh, sim, cache, backend, jobs, no_progress)
     dm = data_mesh or FINER.get(mesh) or mesh
     if dm not in FINER:
         raise UserError("data-mesh", "must be tiny, coarse, default or fine")
-    sim_data = sim if dm == mesh else _sim(cache or default_cache(), dm, backend, jobs, quiet)
+    sim_data = sim if dm == mesh else _sim(cache or default_cache(), dm, backend, jobs, no_progress)
 
     def write(res):
         if not out:
@@ -371,7 +408,7 @@ def selftest_cmd(
             k: v for k, v in (("interface", data_interface), ("sizing", data_sizing)) if v not in ("tied", "fixed")
         }
         or None,
-        log=None if quiet else lambda s: click.echo(s, err=True),
+        log=None if no_progress else lambda s: click.echo(s, err=True),
         on_trial=write,  # the scores so far after every trial (marked PARTIAL until the last)
         start=start,
         phantom_seed=phantom_seed,
@@ -381,26 +418,36 @@ def selftest_cmd(
     return 0
 
 
-@main_group.command("bench", context_settings=CONTEXT_SETTINGS)
-@click.option("--n", "n", type=int, default=12, show_default=True, help="phantoms")
-@mesh_option(default="coarse", help="the diagnosis's mesh level")
-@jobs_option(default=2, help="worker processes for the solves")
+@cli.command("bench", context_settings=CONTEXT_SETTINGS)
+@click.option("--n", "n", type=int, default=12, show_default=True, help="Phantoms of the SYNTHETIC data.")
+@mesh_option(default="coarse", help="Mesh level of the diagnosis.")
+@jobs_option(default=2, help="Worker processes for the solves.")
 @click.option(
-    "--effect", default="background_E=6.5", show_default=True, help="effect in the SYNTHETIC data ('' = none)"
+    "--effect", default="background_E=6.5", show_default=True, help="Effect in the SYNTHETIC data ('' = none)."
 )
-@click.option("--data-mesh", default="default", show_default=True, help="mesh level of the SYNTHETIC data")
+@click.option("--data-mesh", default="default", show_default=True, help="Mesh level of the SYNTHETIC data.")
 @click.option(
-    "--data-interface", type=click.Choice(["tied", "contact", "bonded"]), default="contact", show_default=True
+    "--data-interface",
+    type=click.Choice(["tied", "contact", "bonded"]),
+    default="contact",
+    show_default=True,
+    help="Probe-tissue interface of the SYNTHETIC data's forward model.",
 )
 @click.option(
-    "--data-cache", default=None, help="solve cache of the data (default: the gap cache); the diagnosis uses none"
+    "--data-cache", default=None, help="Solve cache of the data (default: the gap cache); the diagnosis uses none."
 )
-@click.option("--inverse", is_flag=True, help="include the inverse retraining step")
-@click.option("--full-grid", is_flag=True, help="solve every grid magnitude (the method before adaptive refinement)")
-@click.option("--json", "as_json", type=click.Path(dir_okay=False), default=None, help="also write the figures here")
-def bench_cmd(n, mesh, jobs, effect, data_mesh, data_interface, data_cache, inverse, full_grid, as_json):
+@click.option("--inverse", is_flag=True, help="Include the inverse retraining step.")
+@click.option("--full-grid", is_flag=True, help="Solve every grid magnitude (the method before adaptive refinement).")
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Also write the benchmark's numbers to this JSON file (default: print only).",
+)
+def bench_cmd(n, mesh, jobs, effect, data_mesh, data_interface, data_cache, inverse, full_grid, out):
     """Time a first diagnosis (no solve cache) of SYNTHETIC data: solves, seconds, where the time goes."""
     from . import bench
+    from .report import _jsonable
 
     if n < 4:
         raise UserError("n", f"need at least 4 phantoms (got {n})")
@@ -410,22 +457,18 @@ def bench_cmd(n, mesh, jobs, effect, data_mesh, data_interface, data_cache, inve
         fx.parse_spec(effect)
     if data_mesh not in ("tiny", "coarse", "default", "fine"):
         raise UserError("data-mesh", f"must be tiny, coarse, default or fine (got {data_mesh!r})")
-    if as_json:
-        from elastimap.outputs import check_out_file
-
-        check_out_file(as_json, "json")
+    if out:
+        check_out_file(out, "out")
     res = bench.run(
         n, mesh, jobs, effect, data_mesh, data_interface, data_cache or default_cache(), inverse, not full_grid
     )
-    if as_json:
-        from .report import _jsonable
-
-        Path(as_json).write_text(json.dumps(_jsonable(res), indent=2) + "\n")
+    if out:
+        Path(out).write_text(json.dumps(_jsonable(res), indent=2) + "\n")
     return 0
 
 
 def main(argv=None):
-    run_cli(main_group, argv, prog_name="gap")
+    run_cli(cli, argv, prog_name="gap")
 
 
 if __name__ == "__main__":

@@ -116,7 +116,7 @@ class Effect:
     def own_model_error(self) -> bool:
         """Whether the baseline's discretisation error does not carry over to this effect's
         magnitudes, so the diagnosis measures the model error at its refined magnitudes
-        (:func:`elastimap.gap.diagnose.refine`): the effects that remesh, and the tissue's
+        (:func:`elastimap.gap.adaptive.refine`): the effects that remesh, and the tissue's
         Poisson ratio (the error of nearly incompressible elements grows as ν → 0.5)."""
         return self.stage == "mechanics" and self.name in OWN_ERROR
 
@@ -199,7 +199,8 @@ EFFECTS: dict[str, Effect] = {
             # the response is far from linear in β: on coarse (phantom 0 of the bench, d/h/E
             # 5.3/11.4/37.5) O1 rises 0.0200 → 0.0281 → 0.0318 mm at β = 0, 0.3, 0.53, peaks
             # near 0.8 (0.0336) and falls to 0.0327 at 1, the force drops 5 % from 0.94 to 1;
-            # the secant 0 → 1 put a β = 0.325 fit at 0.53 (seed-7 blind run), 0 → 0.5 is closer
+            # the secant 0 → 1 put a β = 0.325 fit at 0.53 (docs/history/gap.md,
+            # 'Blind benchmark, seed 7'), 0 → 0.5 is closer
             sensitivity_at=0.5,
         ),
         Effect(

@@ -36,9 +36,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
+from elastimap.camera.features import FeatureSettings
+from elastimap.camera.frames import expand, read_stack
+from elastimap.camera.optics import SensorModel
 from elastimap.dataset.schema import FEATURES
 from elastimap.errors import UserError
+
+from .views import from_frames as views_from_frames
+from .views import profile_se, radial_profile
 
 KIND = "elastimap.gap.measured"
 VERSION = 1
@@ -87,13 +94,9 @@ class Measured:
         return len(self.ids)
 
     def sensor_model(self):
-        from elastimap.camera.optics import SensorModel
-
         return SensorModel.from_dict(self.sensor) if self.sensor else SensorModel()
 
     def settings(self):
-        from elastimap.camera.features import FeatureSettings
-
         return FeatureSettings.from_dict(self.feature_settings or {})
 
     def subset(self, idx) -> Measured:
@@ -132,8 +135,6 @@ def _table_path(path: Path) -> Path:
 
 def load(path: str | os.PathLike) -> Measured:
     """Read and validate a measured dataset; every problem is a one-line :class:`UserError`."""
-    import pandas as pd
-
     tp = _table_path(Path(path))
     base = tp.parent
     try:
@@ -173,8 +174,6 @@ def load(path: str | os.PathLike) -> Measured:
     sensor = side.get("sensor")
     settings = side.get("feature_settings", {})
     if sensor is not None:
-        from elastimap.camera.optics import SensorModel
-
         SensorModel.from_dict(sensor)
     n = len(df)
     has_feat = all(k in df.columns for k in FEATURES)
@@ -198,12 +197,6 @@ def load(path: str | os.PathLike) -> Measured:
     if has_img:
         # frames given: features (where not in the table), the difference image and its
         # per-pixel noise always come from the frames, so the residual map is never lost
-        from elastimap.camera.features import FeatureSettings
-        from elastimap.camera.frames import expand, read_stack
-        from elastimap.camera.optics import SensorModel
-
-        from .views import from_frames as views_from_frames
-
         sm = SensorModel.from_dict(sensor) if sensor else SensorModel()
         fs = FeatureSettings.from_dict(settings or {})
         for i in range(n):
@@ -295,8 +288,6 @@ def load(path: str | os.PathLike) -> Measured:
 
 def write(m: Measured, folder: str | os.PathLike, fmt: str = "csv") -> Path:
     """Write a dataset in the format above (difference images as ``.npy`` next to the table)."""
-    import pandas as pd
-
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     prefix = "synthetic_" if m.synthetic else ""
@@ -337,3 +328,22 @@ def write(m: Measured, folder: str | os.PathLike, fmt: str = "csv") -> Path:
     }
     (out / SIDECAR).write_text(json.dumps(side, indent=2) + "\n")
     return tp
+
+
+def measured_views(meas: Measured, sensor, settings) -> dict:
+    """{view: (values (n,q), standard errors (n,q))} of the measured data."""
+    out = {"features": (meas.y, meas.se)}
+    if meas.has_images:
+        P, Pse = [], []
+        for D, Dse in zip(meas.difference, meas.difference_se):
+            P.append(radial_profile(D, sensor.pixel_mm))
+            if Dse is None:  # no per-pixel noise given: the window's outer ring's scatter, uniform
+                ring = np.zeros(D.shape, bool)
+                w = max(2, D.shape[0] // 10)
+                ring[:w, :] = ring[-w:, :] = ring[:, :w] = ring[:, -w:] = True
+                Dse = np.full(D.shape, float(np.std(D[ring])))
+            Pse.append(profile_se(Dse, sensor.pixel_mm, settings.smooth_px))
+        out["profile"] = (np.asarray(P), np.asarray(Pse))
+    if meas.has_force:
+        out["force"] = (meas.force[:, None], meas.force_se[:, None])
+    return out

@@ -7,11 +7,15 @@ import base64
 import html
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
 from .measured import FEATURES
+from .views import EDGES
 
 
 def _jsonable(o):
@@ -159,42 +163,59 @@ def markdown(res: dict, figs: list[str]) -> str:
         f"candidates within Δscore ≤ {res['settings']['ambiguity_margin']:g} of a passing best cannot be told apart."
     )
     if ev["outcome"] == "ambiguous" and res.get("proposal"):
-        p = res["proposal"]
-        cols = (
-            ["now (these phantoms)"]
-            + (["plate force"] if p["force"] else [])
-            + (["second depth"] if p["second_depth"] else [])
+        L += _md_proposal(res["proposal"])
+    L += _md_ranking(ev)
+    L += _md_where(wh)
+    L += _md_shrink(res)
+    L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figs]
+    L += ["", "Method and equations: docs/gap.md, 'Method'.", ""]
+    return "\n".join(L)
+
+
+def _md_proposal(p: dict) -> list[str]:
+    """The report's lines on what would separate an ambiguous set."""
+    L: list[str] = []
+    cols = (
+        ["now (these phantoms)"]
+        + (["plate force"] if p["force"] else [])
+        + (["second depth"] if p["second_depth"] else [])
+    )
+    L += [
+        "",
+        "### Cannot be told apart with these phantoms — what would separate them",
+        "",
+        "Predicted separation of each pair in noise units, sqrt(Σ ((f_a − f_b)/S)²):",
+        "",
+        "| pair | " + " | ".join(cols) + " |",
+        "|---" * (len(cols) + 1) + "|",
+    ]
+    for k, v in p["now"].items():
+        vals = [v] + ([p["force"][k]] if p["force"] else []) + ([p["second_depth"][k]] if p["second_depth"] else [])
+        L.append(f"| {k} | " + " | ".join(f"{x:.3g}" for x in vals) + " |")
+    L += [""]
+    if p.get("force_note") and p["force"]:
+        L.append(f"* plate force: {p['force_note']}.")
+    if p.get("second_depth_note"):
+        L.append(f"* second depth: {p['second_depth_note']}.")
+    for ph in p["phantoms"]:
+        sv = ph.get("solved_pair_separation")
+        L.append(
+            f"* new phantom d {ph['d']:.3g} mm, h {ph['h']:.3g} mm, E {ph['E']:.3g} kPa: emulated min pair "
+            f"separation {ph['predicted_min_pair_separation']:.3g}"
+            + (f"; solved: {', '.join(f'{k} {v:.3g}' for k, v in sv.items())}" if sv else "")
         )
-        L += [
-            "",
-            "### Cannot be told apart with these phantoms — what would separate them",
-            "",
-            "Predicted separation of each pair in noise units, sqrt(Σ ((f_a − f_b)/S)²):",
-            "",
-            "| pair | " + " | ".join(cols) + " |",
-            "|---" * (len(cols) + 1) + "|",
-        ]
-        for k, v in p["now"].items():
-            vals = [v] + ([p["force"][k]] if p["force"] else []) + ([p["second_depth"][k]] if p["second_depth"] else [])
-            L.append(f"| {k} | " + " | ".join(f"{x:.3g}" for x in vals) + " |")
-        L += [""]
-        if p.get("force_note") and p["force"]:
-            L.append(f"* plate force: {p['force_note']}.")
-        if p.get("second_depth_note"):
-            L.append(f"* second depth: {p['second_depth_note']}.")
-        for ph in p["phantoms"]:
-            sv = ph.get("solved_pair_separation")
-            L.append(
-                f"* new phantom d {ph['d']:.3g} mm, h {ph['h']:.3g} mm, E {ph['E']:.3g} kPa: emulated min pair "
-                f"separation {ph['predicted_min_pair_separation']:.3g}"
-                + (f"; solved: {', '.join(f'{k} {v:.3g}' for k, v in sv.items())}" if sv else "")
-            )
-        L += [
-            f"* ({p['phantoms_note']}.)",
-            "",
-            f"**Recommended next measurement: {p['recommendation']['measurement']}** "
-            f"(smallest pair separation {p['recommendation']['min_pair_separation_noise_units']:.3g} noise units).",
-        ]
+    L += [
+        f"* ({p['phantoms_note']}.)",
+        "",
+        f"**Recommended next measurement: {p['recommendation']['measurement']}** "
+        f"(smallest pair separation {p['recommendation']['min_pair_separation_noise_units']:.3g} noise units).",
+    ]
+    return L
+
+
+def _md_ranking(ev: dict) -> list[str]:
+    """The report's ranking table and its table of every view."""
+    L: list[str] = []
     L += [
         "",
         "## Which effect (cross-validated ranking)",
@@ -229,6 +250,12 @@ def markdown(res: dict, figs: list[str]) -> str:
             f"{'yes' if b['significant'] else 'no'} | {', '.join(f'{100 * x:.2g} %' for x in b['model_error_relative_median'])} | "
             f"{', '.join(f'{100 * x:.2g} %' for x in b['noise_relative_median'])} |"
         )
+    return L
+
+
+def _md_where(wh: dict) -> list[str]:
+    """The report's lines on where the gap lies (feature, region, stage, image)."""
+    L: list[str] = []
     L += [
         "",
         "## Where the gap lies",
@@ -284,28 +311,41 @@ def markdown(res: dict, figs: list[str]) -> str:
             f"features d {100 * mea['d']:.1f} %, h {100 * mea['h']:.1f} %, E {100 * mea['E']:.1f} %."
         )
     if "image" in wh:
-        im = wh["image"]
-        L += [
-            "",
-            "### By image region",
-            "",
-            f"Mean residual (measured − baseline) of the camera difference images over {im['n']} phantoms "
-            f"(`residual_map.png`); noise band = noise of the mean ({im['noise_kind']}) and the model error per pixel; "
-            f"largest |mean residual| = {im['max_abs_z']:.3g} × its band.",
-            "",
-            "| annulus (mm) | mean residual (FS) | band (FS) | noise units |"
-            + (" after |" if "image_after" in wh else ""),
-            "|---|---|---|---|" + ("---|" if "image_after" in wh else ""),
-        ]
-        after = {tuple(r["r_mm"]): r for r in wh["image_after"]["rings"]} if "image_after" in wh else {}
-        for r in im["rings"]:
-            a = after.get(tuple(r["r_mm"]))
-            L.append(
-                f"| {r['r_mm'][0]:g} – {r['r_mm'][1]:g} | {r['mean_residual']:.3g} | {r['band']:.3g} | {r['noise_units']:+.2f} |"
-                + (f" {a['noise_units']:+.2f} |" if a else "")
-            )
-        if "image_after" in wh:
-            L.append(f"\n(after: residual once `{wh['image_after']['effect']}` at its fitted magnitude is added.)")
+        L += _md_image(wh)
+    return L
+
+
+def _md_image(wh: dict) -> list[str]:
+    """The report's lines on the image residual by annulus."""
+    im = wh["image"]
+    L: list[str] = []
+    L += [
+        "",
+        "### By image region",
+        "",
+        f"Mean residual (measured − baseline) of the camera difference images over {im['n']} phantoms "
+        f"(`residual_map.png`); noise band = noise of the mean ({im['noise_kind']}) and the model error per pixel; "
+        f"largest |mean residual| = {im['max_abs_z']:.3g} × its band.",
+        "",
+        "| annulus (mm) | mean residual (FS) | band (FS) | noise units |" + (" after |" if "image_after" in wh else ""),
+        "|---|---|---|---|" + ("---|" if "image_after" in wh else ""),
+    ]
+    after = {tuple(r["r_mm"]): r for r in wh["image_after"]["rings"]} if "image_after" in wh else {}
+    for r in im["rings"]:
+        a = after.get(tuple(r["r_mm"]))
+        L.append(
+            f"| {r['r_mm'][0]:g} – {r['r_mm'][1]:g} | {r['mean_residual']:.3g} | {r['band']:.3g} | {r['noise_units']:+.2f} |"
+            + (f" {a['noise_units']:+.2f} |" if a else "")
+        )
+    if "image_after" in wh:
+        L.append(f"\n(after: residual once `{wh['image_after']['effect']}` at its fitted magnitude is added.)")
+    return L
+
+
+def _md_shrink(res: dict) -> list[str]:
+    """The report's lines on how far the gap shrinks (withheld phantoms, retrained inverse)."""
+    ev = res["evaluation"]
+    L: list[str] = []
     L += ["", "## How far it shrinks (withheld phantoms)", ""]
     sf = res.get("shrink_features")
     if sf:
@@ -344,14 +384,11 @@ def markdown(res: dict, figs: list[str]) -> str:
                 f"{100 * np.mean(list(e.values())):.1f} % |"
             )
         L += ["", f"(d, h, E) error shrink: **{100 * si['shrink']:.1f} %**."]
-    L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figs]
-    L += ["", "Method and equations: docs/gap.md.", ""]
-    return "\n".join(L)
+    return L
 
 
 def to_html(md: str, folder: Path) -> str:
     """A plain self-contained HTML page from the Markdown (tables, headings, lists, images inlined)."""
-    import re
 
     def inline(t: str) -> str:
         t = html.escape(t)
@@ -407,12 +444,13 @@ def to_html(md: str, folder: Path) -> str:
     )
 
 
+def _subplots(*shape, figsize):
+    """A figure and its axes, without pyplot (no global figure state, no backend switch)."""
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots(*shape)
+
+
 def _figures(res: dict, out: Path) -> list[str]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     syn = "SYNTHETIC — " if res["measured"]["synthetic"] else ""
     figs = []
     ev, wh = res["evaluation"], res["where"]
@@ -422,7 +460,7 @@ def _figures(res: dict, out: Path) -> list[str]:
     y0 = res["_V0"]["features"]
     yv, se = res["_views"]["features"]
     band = np.sqrt(se**2 + me["sigma"]["features"] ** 2) / np.abs(y0)
-    fig, axes = plt.subplots(3, 3, figsize=(11, 9))
+    fig, axes = _subplots(3, 3, figsize=(11, 9))
     for q, name in enumerate(("d (mm)", "h (mm)", "E (kPa)")):
         for j, k in enumerate(FEATURES):
             ax = axes[j, q]
@@ -442,11 +480,10 @@ def _figures(res: dict, out: Path) -> list[str]:
     fig.suptitle(f"{syn}measured − simulated (baseline), relative, per phantom")
     fig.tight_layout()
     fig.savefig(out / "gap_by_region.png", dpi=80)
-    plt.close(fig)
     figs.append("gap_by_region.png")
 
     rows = ev["ranking"]
-    fig, ax = plt.subplots(figsize=(7, 0.32 * len(rows) + 1.6))
+    fig, ax = _subplots(figsize=(7, 0.32 * len(rows) + 1.6))
     names = [r["effect"] for r in rows][::-1]
     setn = {v["_row"]["effect"] for v in ev.get("reported", {}).values()} if ev["ambiguous_set"] else set()
     ax.barh(names, [r["ssr_cv"] for r in rows][::-1], color=["C2" if r["effect"] in setn else "C0" for r in rows][::-1])
@@ -458,66 +495,115 @@ def _figures(res: dict, out: Path) -> list[str]:
     ax.set_title(f"{syn}candidates (green: reported set)")
     fig.tight_layout()
     fig.savefig(out / "candidates.png", dpi=80)
-    plt.close(fig)
     figs.append("candidates.png")
 
     if "profile" in res["_views"]:
-        P, Pse = res["_views"]["profile"]
-        P0 = res["_V0"]["profile"]
-        Pme = me["sigma"]["profile"]
-        from .views import EDGES
-
-        rc = 0.5 * (np.asarray(EDGES[:-1]) + np.asarray(EDGES[1:]))
-        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-        S = np.sqrt(Pse**2 + Pme**2)
-        z = (P - P0) / S
-        for i in range(len(P)):
-            axes[0].plot(rc, P[i], "o-", ms=3, lw=0.8, color=f"C{i % 10}")
-            axes[0].plot(rc, P0[i], "--", lw=0.8, color=f"C{i % 10}")
-            axes[1].plot(rc, z[i], "o-", ms=3, lw=0.6, color=f"C{i % 10}", alpha=0.7)
-        best = next((r for r in rows if r["effect"] == ev["best"]), None)
-        if best is not None and "profile" in ev["views"]:
-            f = best["_model"].predict(best["_theta"], ["profile"])
-            za = (P - f) / np.sqrt(Pse**2 + Pme**2)
-            axes[1].plot(rc, np.sqrt(np.mean(za**2, axis=0)), "k-", lw=2, label=f"RMS after {ev['best']}")
-            axes[1].plot(rc, np.sqrt(np.mean(z**2, axis=0)), "k:", lw=2, label="RMS baseline")
-        axes[1].axhspan(-1, 1, color="0.85", label="±1 (noise + model error)")
-        axes[0].set_xlabel("r (mm)")
-        axes[0].set_ylabel("radial profile (FS): measured o, model --")
-        axes[1].set_xlabel("r (mm)")
-        axes[1].set_ylabel("(measured − baseline) / band")
-        axes[1].legend(fontsize=7)
-        fig.suptitle(f"{syn}radial profile of the camera difference images")
-        fig.tight_layout()
-        fig.savefig(out / "profile.png", dpi=80)
-        plt.close(fig)
+        _profile_figure(res, rows, syn, out)
         figs.append("profile.png")
-
     if "image" in wh:
-        im = wh["image"]
-        panels = [
-            ("mean measured", im["mean_measured"], "FS"),
-            ("mean simulated (baseline)", im["mean_simulated"], "FS"),
-            ("mean residual", im["mean_residual"], "FS"),
-            ("residual / noise band", im["z"], "band units"),
-        ]
-        if "image_after" in wh:
-            panels.append((f"after `{wh['image_after']['effect']}` / band", wh["image_after"]["z"], "band units"))
-        fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.6))
-        vr = max(float(np.max(np.abs(im["mean_residual"]))), 1e-12)
-        for ax, (t, a, u) in zip(axes, panels):
-            if "band" in t:
-                kw = dict(cmap="RdBu_r", vmin=-3, vmax=3)
-            elif "residual" in t:
-                kw = dict(cmap="RdBu_r", vmin=-vr, vmax=vr)
-            else:
-                kw = dict(cmap="viridis")
-            h = ax.imshow(a, origin="lower", **kw)
-            ax.set_title(t, fontsize=9)
-            fig.colorbar(h, ax=ax, shrink=0.8, label=u)
-        fig.suptitle(f"{syn}camera difference images (band: noise of the mean + model error; ±3 shown)")
-        fig.tight_layout()
-        fig.savefig(out / "residual_map.png", dpi=80)
-        plt.close(fig)
+        _residual_map_figure(res, syn, out)
         figs.append("residual_map.png")
     return figs
+
+
+def _profile_figure(res: dict, rows: list[dict], syn: str, out: Path) -> None:
+    """profile.png: left, each phantom's radial profile of the difference image, measured
+    (markers) and baseline model (dashed), one colour per phantom; right, the normalised residual
+    (measured − baseline) / S per annulus with the RMS over the phantoms before and after the best
+    candidate, S = sqrt(se² + σ_model²)."""
+    ev = res["evaluation"]
+    me = res["_model_error"]
+    P, Pse = res["_views"]["profile"]
+    P0 = res["_V0"]["profile"]
+    S = np.sqrt(Pse**2 + me["sigma"]["profile"] ** 2)
+    z = (P - P0) / S
+    rc = 0.5 * (np.asarray(EDGES[:-1]) + np.asarray(EDGES[1:]))
+    ids = res["measured"]["ids"]
+    fig, axes = _subplots(1, 2, figsize=(12, 4.6))
+    for i in range(len(P)):
+        c = f"C{i % 10}"
+        axes[0].plot(rc, P[i], "o-", ms=4, lw=0.8, color=c, label=f"phantom {ids[i]}")
+        axes[0].plot(rc, P0[i], "--", lw=1.0, color=c)
+        axes[1].plot(rc, z[i], "o-", ms=3, lw=0.6, color=c, alpha=0.7)
+    style = [
+        Line2D([], [], color="0.3", marker="o", ms=4, lw=0.8, label="measured"),
+        Line2D([], [], color="0.3", ls="--", lw=1.0, label="baseline model"),
+    ]
+    handles, _ = axes[0].get_legend_handles_labels()
+    axes[0].legend(handles=style + handles, fontsize=7, ncol=2, loc="upper right")
+    best = next((r for r in rows if r["effect"] == ev["best"]), None)
+    if best is not None and "profile" in ev["views"]:
+        f = best["_model"].predict(best["_theta"], ["profile"])
+        za = (P - f) / S
+        axes[1].plot(rc, np.sqrt(np.mean(z**2, axis=0)), "k:", lw=2, label="RMS over phantoms, baseline")
+        axes[1].plot(rc, np.sqrt(np.mean(za**2, axis=0)), "k-", lw=2, label=f"RMS over phantoms, with {ev['best']}")
+    axes[1].axhspan(-1, 1, color="0.85", label="±1 S (noise + model error)")
+    axes[1].axhline(0, color="k", lw=0.5)
+    axes[0].set_title("radial profile of the difference image", fontsize=10)
+    axes[0].set_xlabel("r, distance from the probe axis (mm)")
+    axes[0].set_ylabel("annulus mean of D (fraction of full scale)")
+    axes[1].set_title("normalised residual, one line per phantom", fontsize=10)
+    axes[1].set_xlabel("r, distance from the probe axis (mm)")
+    axes[1].set_ylabel("(measured − baseline) / S")
+    axes[1].legend(fontsize=7)
+    fig.suptitle(f"{syn}radial profile of the camera difference images ({len(P)} phantoms)")
+    fig.tight_layout()
+    fig.savefig(out / "profile.png", dpi=150)
+
+
+def _residual_map_figure(res: dict, syn: str, out: Path) -> None:
+    """residual_map.png: the mean difference images over the phantoms, measured and simulated
+    (viridis, one colour scale), their mean residual (diverging, symmetric) and the residual in
+    units of its band (noise of the mean + model error; diverging, one symmetric scale for before
+    and after the best candidate).  Axes in mm from the probe axis."""
+    wh = res["where"]
+    im = wh["image"]
+    ny, nx = np.shape(im["mean_residual"])
+    pix = im["pixel_mm"]
+    ext = [-nx / 2 * pix, nx / 2 * pix, -ny / 2 * pix, ny / 2 * pix]  # pixel edges, centre on the axis
+    zs = [im["z"]] + ([wh["image_after"]["z"]] if "image_after" in wh else [])
+    zr = max(3.0, float(np.percentile(np.abs(im["z"]), 99)))
+    vr = max(float(np.max(np.abs(im["mean_residual"]))), 1e-12)
+    lo = float(min(np.min(im["mean_measured"]), np.min(im["mean_simulated"])))
+    hi = float(max(np.max(im["mean_measured"]), np.max(im["mean_simulated"])))
+    panels = [
+        ("mean measured D", im["mean_measured"], "D (fraction of full scale)", dict(cmap="viridis", vmin=lo, vmax=hi)),
+        (
+            "mean simulated D (baseline)",
+            im["mean_simulated"],
+            "D (fraction of full scale)",
+            dict(cmap="viridis", vmin=lo, vmax=hi),
+        ),
+        (
+            "mean residual",
+            im["mean_residual"],
+            "measured − simulated (fraction of full scale)",
+            dict(cmap="RdBu_r", vmin=-vr, vmax=vr),
+        ),
+        ("residual / band, baseline", zs[0], "(measured − simulated) / band", dict(cmap="RdBu_r", vmin=-zr, vmax=zr)),
+    ]
+    if len(zs) > 1:
+        panels.append(
+            (
+                f"residual / band, with {wh['image_after']['effect']}",
+                zs[1],
+                "(measured − simulated) / band",
+                dict(cmap="RdBu_r", vmin=-zr, vmax=zr),
+            )
+        )
+    fig, axes = _subplots(2, 3, figsize=(12.5, 8.0))
+    for ax, (t, a, u, kw) in zip(axes.flat, panels):
+        h = ax.imshow(a, origin="lower", extent=ext, **kw)
+        ax.set_title(t, fontsize=9)
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        cb = fig.colorbar(h, ax=ax, shrink=0.85)
+        cb.set_label(u, fontsize=8)
+    for ax in list(axes.flat)[len(panels) :]:
+        ax.set_axis_off()
+    fig.suptitle(
+        f"{syn}camera difference images, mean over {im['n']} phantoms "
+        f"(band: noise of the mean + model error; residual/band shown to ±{zr:.3g})"
+    )
+    fig.tight_layout()
+    fig.savefig(out / "residual_map.png", dpi=150)

@@ -36,7 +36,9 @@ import numpy as np
 from elastimap.errors import UserError
 
 from . import effects as fx
-from .diagnose import Settings, common_factor, diagnose, isolated_member
+from .diagnose import diagnose
+from .selection import common_factor, isolated_member
+from .settings import Settings
 from .simulate import Simulator
 from .synth import phantom_design, synthesize
 
@@ -131,19 +133,8 @@ def run(
 
     for t in range(trials):
         kind = KINDS[t % len(KINDS)]
-        pool = candidates if kind == "in" else outside
-        if kind == "none":
-            truth = {"kind": "none", "effect": "none", "magnitude": None}
-            effs = []
-        else:
-            if kind == "out":
-                e = pool[int(order[n_out % len(pool)])]
-                n_out += 1
-            else:
-                e = pool[int(rng.integers(len(pool)))]
-            m = _sig(rng.uniform(*e.blind))
-            truth = {"kind": kind, "effect": e.name, "magnitude": m}
-            effs = [(e, m)]
+        truth, effs = _draw(kind, candidates, outside, order, n_out, rng)
+        n_out += kind == "out"
         sealed = Sealed(truth, salt=f"{seed}-{t}-{rng.integers(1 << 30)}")
         if t < start:  # resumed run: the draws of the earlier trials are replayed, not their work
             continue
@@ -163,7 +154,6 @@ def run(
         res = diagnose(meas, candidates, sim, st, sim_fine)
         ev = res["evaluation"]
         answer = ev["winner"] if ev["outcome"] == "explained" else ev["outcome"]
-        rows = {r["effect"]: r for r in ev["ranking"]}
         rec = {
             "trial": t,
             "commitment": sealed.commitment,
@@ -178,44 +168,69 @@ def run(
         }
         truth = sealed.open(prediction_recorded=True)
         rec.update(kind=truth["kind"], true_effect=truth["effect"], true_magnitude=truth["magnitude"])
-        if truth["kind"] == "none":
-            rec["right"] = ev["outcome"] == "no significant gap"
-        elif truth["kind"] == "in":
-            rec["right"] = truth["effect"] in ev["ambiguous_set"]
-            rec["via"] = ev["reported"][truth["effect"]]["via"] if rec["right"] else None
-            rec["family_member_right"] = rec["right"] or any(
-                family_isolates(rows[n], truth["effect"]) for n in ev["ambiguous_set"] if n in rows
-            )
-            # the magnitude scored: the reported one (a family's member fit when reported via it)
-            r = ev["reported"][truth["effect"]] if rec["right"] else rows.get(truth["effect"])
-            if r is not None:
-                rec["fitted_magnitude"], rec["fitted_ci"] = r["magnitude"][0], r["magnitude_ci"][0]
-                rec["ci_covers_truth"] = bool(r["magnitude_ci"][0][0] <= truth["magnitude"] <= r["magnitude_ci"][0][1])
-                eff = fx.get(truth["effect"])
-                rec["magnitude_error_rel_effect"] = abs(r["magnitude"][0] - truth["magnitude"]) / abs(
-                    truth["magnitude"] - eff.nominal
-                )
-        else:
-            rec["confident_wrong"] = ev["outcome"] in ("explained", "ambiguous")
-            rec["right"] = not rec["confident_wrong"]
+        _score(rec, truth, ev)
         out_trials.append(rec)
         if log:
-            log(
-                f"trial {t + 1}/{trials} [{truth['kind']}] true {truth['effect']}"
-                + (f"={truth['magnitude']:g}" if truth["magnitude"] is not None else "")
-                + f" -> {answer}"
-                + (f" {rec['set']}" if ev["outcome"] == "ambiguous" else "")
-                + f" (baseline red.chi2 {ev['reduced_chi2_baseline']:.3g}, best {ev['best']} "
-                f"red.chi2 {rec['best_reduced_chi2_cv']:.3g})  [{time.perf_counter() - t0:.0f} s]"
-            )
+            log(_trial_line(t, trials, truth, answer, rec, ev, time.perf_counter() - t0))
         if on_trial is not None:
             on_trial(summary(out_trials))
     return summary(out_trials)
 
 
+def _draw(kind: str, candidates, outside, order, n_out: int, rng) -> tuple[dict, list]:
+    """A trial's label and effects: none; an in-library effect drawn from the candidates; or the
+    next outside effect in the seeded ``order``; magnitude uniform over the effect's blind range."""
+    if kind == "none":
+        return {"kind": "none", "effect": "none", "magnitude": None}, []
+    if kind == "out":
+        e = outside[int(order[n_out % len(outside)])]
+    else:
+        e = candidates[int(rng.integers(len(candidates)))]
+    m = _sig(rng.uniform(*e.blind))
+    return {"kind": kind, "effect": e.name, "magnitude": m}, [(e, m)]
+
+
+def _score(rec: dict, truth: dict, ev: dict) -> None:
+    """Score a trial's answer against its opened label (in place): right or wrong, and for an
+    in-library effect the reported magnitude, its interval's coverage and its error."""
+    rows = {r["effect"]: r for r in ev["ranking"]}
+    if truth["kind"] == "none":
+        rec["right"] = ev["outcome"] == "no significant gap"
+    elif truth["kind"] == "in":
+        rec["right"] = truth["effect"] in ev["ambiguous_set"]
+        rec["via"] = ev["reported"][truth["effect"]]["via"] if rec["right"] else None
+        rec["family_member_right"] = rec["right"] or any(
+            family_isolates(rows[n], truth["effect"]) for n in ev["ambiguous_set"] if n in rows
+        )
+        # the magnitude scored: the reported one (a family's member fit when reported via it)
+        r = ev["reported"][truth["effect"]] if rec["right"] else rows.get(truth["effect"])
+        if r is not None:
+            rec["fitted_magnitude"], rec["fitted_ci"] = r["magnitude"][0], r["magnitude_ci"][0]
+            rec["ci_covers_truth"] = bool(r["magnitude_ci"][0][0] <= truth["magnitude"] <= r["magnitude_ci"][0][1])
+            eff = fx.get(truth["effect"])
+            rec["magnitude_error_rel_effect"] = abs(r["magnitude"][0] - truth["magnitude"]) / abs(
+                truth["magnitude"] - eff.nominal
+            )
+    else:
+        rec["confident_wrong"] = ev["outcome"] in ("explained", "ambiguous")
+        rec["right"] = not rec["confident_wrong"]
+
+
+def _trial_line(t: int, trials: int, truth: dict, answer: str, rec: dict, ev: dict, seconds: float) -> str:
+    """The log line of one scored trial."""
+    return (
+        f"trial {t + 1}/{trials} [{truth['kind']}] true {truth['effect']}"
+        + (f"={truth['magnitude']:g}" if truth["magnitude"] is not None else "")
+        + f" -> {answer}"
+        + (f" {rec['set']}" if ev["outcome"] == "ambiguous" else "")
+        + f" (baseline red.chi2 {ev['reduced_chi2_baseline']:.3g}, best {ev['best']} "
+        f"red.chi2 {rec['best_reduced_chi2_cv']:.3g})  [{seconds:.0f} s]"
+    )
+
+
 def family_isolates(row: dict, effect: str) -> bool:
     """Whether a family (a ranking row with several members) names ``effect`` alone
-    (:func:`elastimap.gap.diagnose.isolated_member`, :func:`elastimap.gap.diagnose.common_factor`)."""
+    (:func:`elastimap.gap.selection.isolated_member`, :func:`elastimap.gap.selection.common_factor`)."""
     cf = common_factor(row)
     return isolated_member(row) == effect or (cf is not None and cf[0] == effect)
 

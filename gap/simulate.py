@@ -19,18 +19,25 @@ unquantised frames of the SYNTHETIC camera model: lesion press and background pr
 
 from __future__ import annotations
 
+import atexit
+import dataclasses
 import json
+import multiprocessing as mp
 import os
 import time
 import warnings
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 
 import numpy as np
 
+from elastimap.camera.features import camera_features
+from elastimap.camera.optics import background_deflection, render_pair
 from elastimap.dataset.store import SolveStore, params_key, solver_label
 from elastimap.errors import UserError
 from elastimap.solver import synthetic
+from elastimap.solver.batch import group_by_geometry, solve_group
 from elastimap.solver.params import Discretisation, SolveParams, SolveResult
 
 BACKENDS = ("fem", "toy")
@@ -57,13 +64,14 @@ class Record:
 def base_params(mesh: str, d: float, h: float, E: float, tissue_E: float | None = None) -> SolveParams:
     p = SolveParams(disc=Discretisation(mesh=mesh)).with_inclusion(d=float(d), h=float(h), E=float(E))
     if tissue_E is not None and np.isfinite(tissue_E) and tissue_E != p.tissue.E:
-        p = p.replace(tissue=__import__("dataclasses").replace(p.tissue, E=float(tissue_E)))
+        p = p.replace(tissue=dataclasses.replace(p.tissue, E=float(tissue_E)))
     return p
 
 
 # ------------------------------------------------------------------ backends
 def fem_solve(p: SolveParams) -> SolveResult:
     """:func:`elastimap.solver.solve` with its RuntimeWarnings silenced."""
+    # DOLFINx and gmsh load only in a process that solves with the FEM backend (seconds)
     from elastimap.solver import solve
 
     with warnings.catch_warnings():
@@ -83,8 +91,6 @@ def _solve_one(args) -> tuple[str, SolveResult | None, str, float]:
 
 def _solve_group(args) -> list[tuple[str, SolveResult | None, str, float]]:
     """One geometry's samples on one mesh and model (:func:`elastimap.solver.batch.solve_group`)."""
-    from elastimap.solver.batch import solve_group
-
     keys, pdicts = args
     ps = [SolveParams.from_dict(d) for d in pdicts]
     out = []
@@ -151,10 +157,6 @@ class Simulator:
         """The worker processes (started once, kept for the simulator's life: each start costs
         the imports of DOLFINx in every worker)."""
         if getattr(self, "_pool", None) is None:
-            import atexit
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor
-
             self._pool = ProcessPoolExecutor(self.jobs, mp_context=mp.get_context("spawn"))
             atexit.register(self.close)
         return self._pool
@@ -217,16 +219,12 @@ class Simulator:
 
             try:
                 if self.batched:
-                    from elastimap.solver.batch import group_by_geometry
-
                     items = list(todo.items())
                     groups = group_by_geometry([p for _, p in items])
                     groups.sort(key=len, reverse=True)  # largest first: better balance over workers
                     gargs = [([items[i][0] for i in g], [items[i][1].to_dict() for i in g]) for g in groups]
                     self.stats["geometries"] = self.stats.get("geometries", 0) + len(groups)
                     if self.jobs > 1 and len(gargs) > 1:
-                        from concurrent.futures import as_completed
-
                         futs = [self.pool().submit(_solve_group, a) for a in gargs]
                         for f in as_completed(futs):
                             for r in f.result():
@@ -236,9 +234,6 @@ class Simulator:
                             for r in _solve_group(a):
                                 land(*r)
                 elif self.jobs > 1 and self.label == "fem" and len(args) > 1:
-                    import multiprocessing as mp
-                    from concurrent.futures import ProcessPoolExecutor, as_completed
-
                     with ProcessPoolExecutor(self.jobs, mp_context=mp.get_context("spawn")) as ex:
                         futs = [ex.submit(_solve_one, a) for a in args]
                         for f in as_completed(futs):
@@ -277,9 +272,6 @@ def camera_features_of(rec: Record, sensor, settings=None) -> tuple[np.ndarray, 
 
 
 def _camera_features(rec: Record, sensor, settings=None) -> tuple[np.ndarray, np.ndarray]:
-    from elastimap.camera.features import camera_features
-    from elastimap.camera.optics import background_deflection
-
     F = sensor.expected(rec.image_raw, rec.pixel)
     B = sensor.expected(background_deflection(rec.image_raw, rec.image), rec.pixel)
     with warnings.catch_warnings():
@@ -291,9 +283,6 @@ def _camera_features(rec: Record, sensor, settings=None) -> tuple[np.ndarray, np
 def measure(rec: Record, sensor, settings, frames: int, rng: np.random.Generator):
     """Noisy SYNTHETIC measurement: ``frames`` lesion and background frames through the camera
     model; returns (features (3,), standard error (3,), difference image)."""
-    from elastimap.camera.features import camera_features
-    from elastimap.camera.optics import render_pair
-
     L, B = render_pair(sensor, rec.image_raw, rec.image, rec.pixel, frames, rng)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

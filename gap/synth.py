@@ -12,17 +12,23 @@ diagnosis).
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 import os
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import qmc
 
+from elastimap.camera.features import FeatureSettings
+from elastimap.camera.optics import SensorModel, render_pair
 from elastimap.errors import UserError
+from elastimap.outputs import check_out_dir, is_empty_dir
 
 from . import effects as fx
 from .measured import SEALED, SIDECAR, Measured
 from .simulate import Simulator, base_params
+from .views import from_frames
 
 DEFAULT_N = 12
 
@@ -34,8 +40,6 @@ def check_out(out: str | os.PathLike, overwrite: bool = False) -> Path:
     SYNTHETIC measured dataset (its ``measured.json`` says ``"synthetic": true``); real
     measured data (``"synthetic": false``, or no readable sidecar) and any other content are
     never replaced by a generator, with or without ``overwrite``."""
-    from elastimap.outputs import check_out_dir, is_empty_dir
-
     p = Path(out)
     if p.is_dir() and not is_empty_dir(p):
         side = p / SIDECAR
@@ -62,38 +66,9 @@ def check_out(out: str | os.PathLike, overwrite: bool = False) -> Path:
     return check_out_dir(p, "out", overwrite=overwrite)
 
 
-def load_phantoms(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
-    """``(dhe (n, 3), ids)`` of a phantom table: the calibration-phantom CSV (name, d, h, E) or
-    a CSV with id, d, h, E."""
-    import pandas as pd
-
-    p = Path(path)
-    if not p.is_file():
-        raise UserError("phantoms", f"{p}: no such file (a CSV with columns id or name, d, h, E)")
-    try:
-        df = pd.read_csv(p, comment="#", skipinitialspace=True)
-    except Exception as exc:  # pandas raises several types for a bad CSV
-        raise UserError("phantoms", f"{p}: not a readable CSV ({type(exc).__name__})") from None
-    df = df.rename(columns={"id": "name"})
-    missing = [c for c in ("name", "d", "h", "E") if c not in df.columns]
-    if missing:
-        raise UserError("phantoms", f"{p}: missing column(s) {', '.join(missing)} (need id or name, d, h, E)")
-    if len(df) < 4:
-        raise UserError("phantoms", f"{p}: need at least 4 phantoms (got {len(df)})")
-    ids = [str(x) for x in df["name"]]
-    if len(set(ids)) != len(ids):
-        raise UserError("phantoms", f"{p}: duplicate names/ids")
-    dhe = df[["d", "h", "E"]].apply(pd.to_numeric, errors="coerce").to_numpy(float)
-    if not (np.isfinite(dhe).all() and (dhe > 0).all()):
-        raise UserError("phantoms", f"{p}: d, h and E must be positive numbers")
-    return dhe, ids
-
-
 def phantom_design(n: int = DEFAULT_N, seed: int = 0) -> np.ndarray:
     """(n, 3) phantom (d, h, E): LHS over d 5-12 mm, E 30-150 kPa (log), depth valid for every
     effect of the library (ellipsoid up to aspect 1.25, 1 mm skin layer)."""
-    from scipy.stats import qmc
-
     u = qmc.LatinHypercube(d=3, rng=np.random.default_rng(seed)).random(n)
     d = 5.0 + 7.0 * u[:, 0]
     half = 1.25 * d / 2
@@ -119,9 +94,6 @@ def synthesize(
     """``disc`` overrides fields of the solver's ``Discretisation`` (e.g. ``{"interface": "contact"}``)
     so that the data come from another formulation than the diagnosis; ``force_noise`` (relative
     standard error) adds a measured plate force."""
-    from elastimap.camera.features import FeatureSettings
-    from elastimap.camera.optics import SensorModel
-
     if int(frames) < 1:
         raise UserError("frames", f"must be >= 1 (got {frames})")
     if not (np.isfinite(noise_scale) and noise_scale >= 0):
@@ -133,8 +105,6 @@ def synthesize(
     for row in dhe:
         p = base_params(sim.mesh, *row)
         if disc:
-            import dataclasses
-
             p = p.replace(disc=dataclasses.replace(p.disc, **disc))
         for e, m in effects:
             if e.stage == "mechanics":
@@ -144,10 +114,6 @@ def synthesize(
         plist.append(p)
     recs = sim.run(plist)
     rng = np.random.default_rng(seed)
-    from elastimap.camera.optics import render_pair
-
-    from .views import from_frames
-
     y, se, D, Dse = [], [], [], []
     bad = [i for i, r in enumerate(recs) if not np.isfinite(r.O1)]
     if bad:

@@ -27,6 +27,10 @@ import warnings
 import numpy as np
 from scipy import ndimage
 
+from elastimap.camera.features import camera_features
+
+from .simulate import camera_features_of
+
 EDGES = (0.0, 1.0, 2.0, 3.0, 4.5, 6.0, 8.0, 10.0, 12.5)  # mm from the probe axis
 VIEWS = ("features", "profile", "force")
 
@@ -86,8 +90,6 @@ def difference_se(
 def from_frames(frames: np.ndarray, background: np.ndarray, sensor, settings, full_scale: float | None = None) -> dict:
     """Features, their standard errors, the denoised difference image and its per-pixel standard
     error from lesion and background frames (arrays in DN; ``full_scale`` defaults to the sensor's)."""
-    from elastimap.camera.features import camera_features
-
     fs = float(full_scale or sensor.full_scale)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -111,3 +113,41 @@ def from_frames(frames: np.ndarray, background: np.ndarray, sensor, settings, fu
         "difference": cf.difference,
         "difference_se": difference_se(frames, background, fs, sensor.window, settings.smooth_px),
     }
+
+
+# The views of a diagnosis: simulated (from solve records; the measured ones: measured.measured_views)
+# and the decision's view list.
+def sim_views(recs, sensor, settings) -> tuple[dict, np.ndarray]:
+    """Views {"features" (n,3), "profile" (n,K), "force" (n,1)} and difference images of records."""
+    F, P, D, Fo = [], [], [], []
+    for r in recs:
+        v, d = camera_features_of(r, sensor, settings)
+        F.append(v)
+        D.append(d)
+        P.append(radial_profile(d, sensor.pixel_mm) if np.all(np.isfinite(d)) else np.full(len(EDGES) - 1, np.nan))
+        Fo.append([r.force])
+    return {"features": np.asarray(F), "profile": np.asarray(P), "force": np.asarray(Fo, float)}, np.asarray(D)
+
+
+def decision_views(mv: dict) -> list[str]:
+    """The views the verdict uses: the image profile when every phantom has an image, else the
+    features; plus the force when measured (the features are always reported as a view)."""
+    names = ["profile"] if "profile" in mv else ["features"]
+    if "force" in mv:
+        names.append("force")
+    return names
+
+
+def cat(d: dict, names) -> np.ndarray:
+    """The views ``names`` of ``d`` side by side (last axis)."""
+    return np.concatenate([d[k] for k in names], axis=-1)
+
+
+def slices(V: dict, names) -> dict:
+    """{view: the slice of its columns in :func:`cat` of ``names``}."""
+    out, a = {}, 0
+    for k in names:
+        q = V[k].shape[-1]
+        out[k] = slice(a, a + q)
+        a += q
+    return out

@@ -1,10 +1,10 @@
-r"""Calibrated 95 % intervals of the physics fit (:func:`elastimap.identify.refine.fit_image`): the
+r"""Calibrated 95 % intervals of the physics fit (:class:`elastimap.identify.fit.ImageFit`): the
 Gauss–Newton interval with its half-width scaled per class of the fit's own relative standard
 deviation and per stratum of the estimate (near the slab's base or not), the scales set by
 split-conformal prediction on benchmark lesions.
 
 Why.  On the SYNTHETIC camera-frame benchmark (world `fine` sized by d, drifting camera, 30 frames;
-docs/camera.md 4l–4n) the Gauss–Newton standard deviation ``sd`` misstates the spread of the fit's
+docs/camera.md, 'Inference') the Gauss–Newton standard deviation ``sd`` misstates the spread of the fit's
 errors, and how depends on how well the image tells the parameter and on where the inclusion lies.
 Over 1317 lesions of seeds 2027–2041 the 95 % quantile of ``|θ̂ − θ| / sd`` for d is about 2.4 where
 the fit's relative sd is under 3 % and the inclusion is far from the base, 8.7 where it is near the
@@ -23,8 +23,8 @@ interval is
 
 clipped to the design box, as the Gauss–Newton one (``k = 1``).
 
-Why the second axis (docs/camera.md 4m, 4n).  Large stiff inclusions close to the fixed base have d
-and E errors of up to 13–14 sd at a small relative sd: there the world's and the fit's
+Why the second axis (docs/history/camera.md, 'A second axis for the intervals: near the slab's
+base or not').  Large stiff inclusions close to the fixed base have d and E errors of up to 13–14 sd at a small relative sd: there the world's and the fit's
 discretisations differ in a way that moves the estimate along the d–E valley.  Pooled with the rest
 of their class they set its scale, so the interval over-covered elsewhere (E's region: 80 of 80) and
 still under-covered them (leave one seed out: d 91.8, h 89.6, E 92.3 % of 183).  The stratum is
@@ -39,14 +39,20 @@ same world, camera, fit and design -- the interval then holds the truth with pro
 95 % within each cell.  A cell with fewer than :data:`MIN_CLASS` lesions takes its class's scale over
 both strata, and a class with fewer than that keeps ``k = 1``.  A real sensor is *not*
 exchangeable with the synthetic world: recompute the scales from its own phantoms
-(``python -m elastimap.workflows.studies.interval_calibration``, which made :data:`SCALES`).
+(``python -m elastimap.workflows.studies.interval_calibration FOLDERS --install``, which writes them).
+
+The scales and the fit they were calibrated for are data, read from :data:`INTERVALS_FILE`
+(``identify/maps/intervals.json``, with its provenance: date, commit, folders, seeds, lesion
+counts, method), which that study writes; nothing edits them in code.
 
 Plain numbers in and out; no DOLFINx.
 """
 
 from __future__ import annotations
 
+import json
 import math
+import os
 
 import numpy as np
 
@@ -68,23 +74,66 @@ MIN_CLASS = 19
 NEAR_BASE_MM = 3.0
 #: the strata of :func:`near_base`, in the order of each parameter's rows in :data:`SCALES`
 STRATA = ("far", "near")
-#: the scales per parameter, stratum (:data:`STRATA`) and class (:data:`CLASS_EDGES`), from
-#: ``python -m elastimap.workflows.studies.interval_calibration runs/fb27 runs/fb28Ec runs/fb29 ... runs/fb41E``
-#: (SYNTHETIC: 1317 lesions with a signal, seeds 2027–2041, world `fine` by_d, drifting camera,
-#: 30 frames, fit `coarse` corrected by `fine`; docs/camera.md 4n); cells with fewer than MIN_CLASS
-#: lesions hold their class's scale (d near r > 30 %, h near 3–10 %, E near r ≤ 3 %) or, where the
-#: class had fewer too, 1 (h above 10 %)
-SCALES = {
-    "d": ((1.214, 1.076, 0.613, 0.293), (4.428, 0.304, 0.407, 0.271)),
-    "h": ((0.909, 0.742, 1.0, 1.0), (1.721, 0.706, 1.0, 1.0)),
-    "E": ((1.389, 1.472, 1.482, 0.608), (1.559, 7.074, 3.538, 0.387)),
-}
 PARAMS = TARGETS  # (d, h, E): the rows of SCALES
+#: the calibrated scales, with their provenance (written by
+#: ``python -m elastimap.workflows.studies.interval_calibration --install``)
+INTERVALS_FILE = os.path.join(os.path.dirname(__file__), "maps", "intervals.json")
+
+
+def load_scales(path: str | os.PathLike = INTERVALS_FILE) -> dict:
+    """The calibration file at ``path``: ``scales`` (per parameter the two strata's four class
+    scales, as tuples), ``calibrated_for`` (fit level, correcting level) and ``provenance``.  Refuses
+    a file made with other class edges, strata or base distance than this module's."""
+    try:
+        with open(path) as fh:
+            z = json.load(fh)
+        scales = {q: tuple(tuple(float(v) for v in row) for row in z["scales"][q]) for q in PARAMS}
+        cal = z["calibrated_for"]
+        calibrated_for = (str(cal["mesh"]), None if cal["correct"] is None else str(cal["correct"]))
+        same = (
+            tuple(z["class_edges"]) == CLASS_EDGES
+            and tuple(z["strata"]) == STRATA
+            and float(z["near_base_mm"]) == NEAR_BASE_MM
+        )
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise UserError("intervals", f"{path}: not an interval calibration ({exc})") from None
+    shapes = {len(scales[q]) for q in PARAMS} | {len(r) for q in PARAMS for r in scales[q]}
+    if not same or shapes - {len(STRATA), len(CLASS_EDGES) + 1} or len(scales["d"]) != len(STRATA):
+        raise UserError("intervals", f"{path}: made with other classes or strata than {__name__}")
+    return {"scales": scales, "calibrated_for": calibrated_for, "provenance": z.get("provenance", {})}
+
+
+def write_scales(path: str | os.PathLike, scales: dict, calibrated_for: tuple, provenance: dict) -> None:
+    """Write a calibration file :func:`load_scales` reads, atomically (a temporary file beside
+    ``path``, then renamed over it): ``scales`` per parameter (strata x classes), the fit it was
+    calibrated for (fit level, correcting level) and its ``provenance``."""
+    doc = {
+        "calibrated_for": {"mesh": calibrated_for[0], "correct": calibrated_for[1]},
+        "class_edges": list(CLASS_EDGES),
+        "level": LEVEL,
+        "min_class": MIN_CLASS,
+        "near_base_mm": NEAR_BASE_MM,
+        "scales": {q: [[float(v) for v in row] for row in scales[q]] for q in PARAMS},
+        "strata": list(STRATA),
+        "provenance": provenance,
+    }
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w") as fh:
+        json.dump(doc, fh, indent=2)
+        fh.write("\n")
+    os.replace(tmp, path)
+    load_scales(path)  # what was written reads back
+
+
+_CALIBRATION = load_scales()
+#: the scales per parameter, stratum (:data:`STRATA`) and class (:data:`CLASS_EDGES`), read from
+#: :data:`INTERVALS_FILE` (SYNTHETIC; its ``provenance`` says which benchmark lesions made them)
+SCALES = _CALIBRATION["scales"]
 #: the fit the scales were calibrated on: (fit level, correcting level) of
-#: :func:`elastimap.identify.refine.fit_forward` (morphed maps, the fixed sizing, the d-bin below,
+#: :func:`elastimap.identify.fit.fit_forward` (morphed maps, the fixed sizing, the d-bin below,
 #: model error against `default`); other fits report the Gauss–Newton interval by default
-#: (:func:`elastimap.identify.refine.default_intervals`)
-CALIBRATED_FOR = ("coarse", "fine")
+#: (:func:`elastimap.identify.forward_maps.default_intervals`)
+CALIBRATED_FOR = _CALIBRATION["calibrated_for"]
 
 
 def conformal_quantile(scores, level: float = LEVEL) -> float:

@@ -26,19 +26,15 @@ the shape (measured: see docs/identifiability.md).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
+from elastimap.dataset.io import read_image_meta, read_samples
+from elastimap.dataset.phantoms import is_phantom
 from elastimap.errors import UserError
 
-SETS = ("features", "image", "image+force")
-SET_LABEL = {
-    "features": "(a) O1, O2, O3",
-    "image": "(b) whole image",
-    "image+force": "(c) image + plate force",
-    "two-depths": "(d) images at δ = 1.5 and 3 mm",
-}
 PEAK_FLOOR = 1e-7  # mm; peaks below this are clipped before the log (no visible inclusion)
 
 
@@ -79,10 +75,6 @@ class Data:
 
 def load(data_path: str, design_only: bool = False) -> Data:
     """Read a sweep (Parquet directory) with its images; rows sorted by ``sample_id``."""
-    import os
-
-    from elastimap.dataset.io import read_image_meta, read_samples
-
     path = data_path
     if not os.path.exists(path):
         raise UserError("data_path", f"no such file or directory: {path}")
@@ -92,7 +84,7 @@ def load(data_path: str, design_only: bool = False) -> Data:
     shape, pixel = read_image_meta(path)
     df = df.sort_values("sample_id", kind="stable").reset_index(drop=True)
     if design_only:
-        df = df[~df["tag"].astype(str).str.startswith("phantom:")].reset_index(drop=True)
+        df = df[~is_phantom(df["tag"])].reset_index(drop=True)
     if len(df) < 10:
         raise UserError("data_path", f"{path}: only {len(df)} usable rows; need at least 10")
     images = np.stack(df["image"].to_numpy()).astype(np.float64)

@@ -112,7 +112,7 @@ def _check_outputs(image_png: str | None, image_npy: str | None, vtx: str | None
     default=None,
     help="Write the displacement field of the inclusion solve for ParaView (ADIOS2 .bp folder).",
 )
-def command(
+def cli(
     d,
     h,
     E,
@@ -206,7 +206,7 @@ def command(
 
 
 def main(argv: list[str] | None = None) -> None:
-    run(command, argv, prog_name="solve")
+    run(cli, argv, prog_name="solve")
 
 
 if __name__ == "__main__":

@@ -25,7 +25,6 @@ not, so a larger Sobol sweep extends a smaller one with the same ids).
 
 from __future__ import annotations
 
-import csv
 import hashlib
 import json
 import math
@@ -35,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from elastimap.dataset.schema import DESIGN_BOX, PHANTOMS_CSV, TARGETS, THICKNESS, depth_range
+from elastimap.dataset.schema import DESIGN_BOX, TARGETS, THICKNESS, depth_range
 from elastimap.errors import UserError
 
 NAMES = TARGETS
@@ -219,26 +218,6 @@ def design_points(n: int, design: str, seed: int, ranges: dict[str, Range], thic
         }
         for i in range(n)
     ]
-
-
-def load_phantoms(path: str | Path = PHANTOMS_CSV) -> list[dict]:
-    """The nine calibration-phantom inclusions of ``dataset/phantoms.csv`` as samples."""
-    rows = []
-    with open(path, newline="") as fh:
-        lines = [ln for ln in fh if ln.strip() and not ln.lstrip().startswith("#")]
-    for r in csv.DictReader(lines):
-        rows.append(
-            {
-                "sample_id": f"phantom-{r['name']}",
-                "tag": f"phantom:{r['name']}",
-                "d": float(r["d"]),
-                "h": float(r["h"]),
-                "E": float(r["E"]),
-                "tissue_E": float(r["tissue_E"]),
-                "tissue_thickness": float(r["tissue_thickness"]),
-            }
-        )
-    return rows
 
 
 def load_samples(path: str) -> list[dict]:

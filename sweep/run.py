@@ -45,6 +45,7 @@ from pathlib import Path
 
 from elastimap.constraints import Interval, Options, Predicate, validate_params
 from elastimap.dataset import io, store
+from elastimap.dataset.phantoms import phantom_samples
 from elastimap.errors import UserError
 from elastimap.provenance import code_version, host
 from elastimap.solver.params import GEOMETRIES, INTERFACES, MESH_LEVELS, SIZINGS, Discretisation, SolveParams
@@ -162,7 +163,7 @@ def make_plan(cfg: SweepConfig) -> Plan:
     if cfg.samples:
         samples += dsg.load_samples(cfg.samples)
     if cfg.phantoms:
-        samples += dsg.load_phantoms()
+        samples += phantom_samples()
     if not samples:
         raise UserError("n", "nothing to run (n = 0, and no samples table or phantoms)")
     seen: dict[str, dict] = {}

@@ -19,7 +19,7 @@ import time
 import click
 import numpy as np
 
-from elastimap.cli_util import run
+from elastimap.cli_util import CONTEXT_SETTINGS, no_progress_option, run
 from elastimap.errors import UserError
 
 
@@ -29,29 +29,29 @@ def _cpu() -> float:
     return t.user + t.system + t.children_user + t.children_system
 
 
-@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--n", "n", default=512, show_default=True, help="Samples in the SYNTHETIC toy table.")
-@click.option("--repeats", default=10, show_default=True)
+@click.option("--repeats", default=10, show_default=True, help="Independent random initialisations per fold.")
 @click.option("--folds", default=0, help="LOOCV folds actually trained (0 = all n); the rest is projected.")
 @click.option("--algo", default="scg,lm", show_default=True, help="Comma-separated: scg, lm.")
-@click.option("--epochs", default=100, show_default=True)
-@click.option("--hidden", default="25,10", show_default=True)
-@click.option("--device", default=None)
+@click.option("--epochs", default=100, show_default=True, help="Training epochs per network (the most).")
+@click.option("--hidden", default="25,10", show_default=True, help="Hidden layer sizes, as train --hidden.")
+@click.option("--device", default=None, help="cpu or cuda (default: cuda when available).")
 @click.option(
     "--threads",
     default=1,
     show_default=True,
     help="Torch CPU threads (0 = torch default); more threads were slower on the shared 2-core machine.",
 )
-@click.option("--float32", "float32", is_flag=True)
+@click.option("--float32", "float32", is_flag=True, help="Single precision (as train --float32).")
 @click.option(
     "--workers",
     default=1,
     show_default=True,
     help="CPU processes sharing the networks (0 = one per core); each uses one thread.",
 )
-@click.option("--quiet", is_flag=True)
-def bench(n, repeats, folds, algo, epochs, hidden, device, threads, float32, workers, quiet):
+@no_progress_option()
+def cli(n, repeats, folds, algo, epochs, hidden, device, threads, float32, workers, no_progress):
     """Time batched LOOCV training on the SYNTHETIC toy table."""
     import torch
 
@@ -80,7 +80,7 @@ def bench(n, repeats, folds, algo, epochs, hidden, device, threads, float32, wor
         epochs=epochs,
         device=device,
         dtype=torch.float32 if float32 else torch.float64,
-        progress=not quiet,
+        progress=not no_progress,
         workers=workers,
     )
     df = synthetic_table(n, seed=0)
@@ -136,8 +136,8 @@ def bench(n, repeats, folds, algo, epochs, hidden, device, threads, float32, wor
     return 0
 
 
-def main() -> None:
-    run(bench, prog_name="python -m elastimap.training.bench")
+def main(argv: list[str] | None = None) -> None:
+    run(cli, argv, prog_name="python -m elastimap.training.bench")
 
 
 if __name__ == "__main__":

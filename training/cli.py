@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import click
 
-from elastimap.cli_util import CONTEXT_SETTINGS, Choice, data_option, out_option, run
+from elastimap.cli_util import CONTEXT_SETTINGS, Choice, data_option, no_progress_option, out_option, run
 from elastimap.errors import UserError
 from elastimap.outputs import check_out_dir, staged_dir
 
@@ -53,7 +53,7 @@ VALIDATE_CHOICES = ("hov", "loocv", "all")
     help="Hold-out (the phantom rows), leave-one-out or both.",
 )
 @click.option("--repeats", default=10, show_default=True, type=int, help="Independent random initialisations.")
-@click.option("--epochs", default=100, show_default=True, type=int)
+@click.option("--epochs", default=100, show_default=True, type=int, help="Training epochs per network (the most).")
 @click.option(
     "--hidden",
     default="25,10",
@@ -76,7 +76,13 @@ VALIDATE_CHOICES = ("hov", "loocv", "all")
     type=float,
     help="Validation rows per network for early stopping (6 failures); 0 = none.",
 )
-@click.option("--seed", default=0, show_default=True, type=int)
+@click.option(
+    "--seed",
+    default=0,
+    show_default=True,
+    type=int,
+    help="Seed of the initial weights, the splits and the feature noise (and of --synthetic's table).",
+)
 @out_option(default="runs/train", help="Output directory (one run; an existing one only with --overwrite).")
 @click.option(
     "--overwrite", is_flag=True, help="Replace an existing --out folder whole (after the new run has finished)."
@@ -104,8 +110,8 @@ VALIDATE_CHOICES = ("hov", "loocv", "all")
     "Results do not depend on it.",
 )
 @click.option("--no-model", is_flag=True, help="Skip training the saved ensemble.")
-@click.option("--quiet", is_flag=True, help="No progress bars.")
-def train(
+@no_progress_option()
+def cli(
     data,
     synthetic,
     algo,
@@ -125,7 +131,7 @@ def train(
     float32,
     workers,
     no_model,
-    quiet,
+    no_progress,
 ):
     """Train and validate the inverse MLP (O1, O2, O3) -> (d, h, E)."""
     import torch
@@ -149,7 +155,7 @@ def train(
         val_fraction=val_fraction,
         device=device,
         dtype=torch.float32 if float32 else torch.float64,
-        progress=not quiet,
+        progress=not no_progress,
         workers=workers,
     ).validate()
     if device and device.startswith("cuda") and not torch.cuda.is_available():
@@ -220,7 +226,7 @@ def _run(samples, cfg, spec: RunSpec, out: str, final: str) -> int:
         for a in spec.algos:
             r = run_validation(samples, a, v, spec.repeats, cfg, seed=spec.seed, test_split=spec.test_split)
             results.append(r)
-            plot_curves(r, os.path.join(out, f"curves-{a}-{v}.png"))
+            plot_curves(r, os.path.join(out, f"curves-{a}-{v}.png"), label=f", {samples.source}")
             click.echo(
                 f"{a} {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s "
                 f"({r.row['trainings_per_s']:.2f}/s); stops {r.row['stops']}",
@@ -298,8 +304,8 @@ def _run(samples, cfg, spec: RunSpec, out: str, final: str) -> int:
     return 0
 
 
-def main() -> None:
-    run(train, prog_name="train")
+def main(argv: list[str] | None = None) -> None:
+    run(cli, argv, prog_name="train")
 
 
 if __name__ == "__main__":

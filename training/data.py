@@ -13,11 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from elastimap.dataset.phantoms import is_phantom, phantom_tag
 from elastimap.dataset.schema import FEATURES, TARGETS, UNITS  # noqa: F401  (UNITS: re-exported)
 from elastimap.errors import UserError
 
 OPTIONAL = ("sample_id", "tag", "status")
-PHANTOM_PREFIX = "phantom:"
 
 
 @dataclass
@@ -37,7 +37,7 @@ class Samples:
         s = f"{self.n} usable samples from {self.source}"
         if self.n_failed:
             s += f" ({self.n_failed} failed sample(s) excluded)"
-        n_ph = int(self.df["tag"].str.startswith(PHANTOM_PREFIX).sum())
+        n_ph = int(is_phantom(self.df["tag"]).sum())
         if n_ph:
             s += f"; {n_ph} calibration-phantom row(s)"
         return s
@@ -162,7 +162,7 @@ def synthetic_table(n: int = 512, seed: int = 0, phantoms: bool = True, n_failed
     if phantoms:
         ph = np.array(list(SYNTH_PHANTOMS.values()))
         d, h, E = np.r_[d, ph[:, 0]], np.r_[h, ph[:, 1]], np.r_[E, ph[:, 2]]
-        tags += [PHANTOM_PREFIX + k for k in SYNTH_PHANTOMS]
+        tags += [phantom_tag(k) for k in SYNTH_PHANTOMS]
     O1, O2, O3 = synthetic_features(d, h, E)
     df = pd.DataFrame(
         {

@@ -30,6 +30,7 @@ the standard deviation and a Student-t 95 % confidence interval of the mean
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -39,10 +40,11 @@ import numpy as np
 import torch
 
 from elastimap.constraints import InstanceOf, Interval, Options, Predicate, validate_params
+from elastimap.dataset.phantoms import is_phantom
 from elastimap.errors import UserError
 
 from . import net as _net
-from .data import FEATURES, PHANTOM_PREFIX, TARGETS, Samples
+from .data import FEATURES, TARGETS, Samples
 from .net import Arch
 from .optim import TrainResult, train_lm, train_scg
 from .problem import NetObjective, mapminmax_apply, mapminmax_fit, mapminmax_reverse
@@ -67,6 +69,7 @@ class TrainConfig:
     mem_bytes: int | None = None  # memory budget for one chunk of networks
     progress: bool = True
     workers: int = 1  # CPU processes training chunks of networks in parallel (0 = one per core)
+    n_in: int = len(FEATURES)  # network inputs: the three features, or an image model's K inputs
 
     #: What each setting must be (the command line shows the names as its flags).
     _parameter_constraints = {
@@ -90,6 +93,7 @@ class TrainConfig:
         "dtype": [Options((torch.float32, torch.float64))],
         "mem_bytes": [None, Interval(int, 1, None)],
         "workers": [Interval(int, 0, None)],
+        "n_in": [Interval(int, 1, None)],
     }
 
     def validate(self) -> TrainConfig:
@@ -99,7 +103,7 @@ class TrainConfig:
 
     @property
     def arch(self) -> Arch:
-        return Arch(len(FEATURES), tuple(self.hidden), len(TARGETS))
+        return Arch(self.n_in, tuple(self.hidden), len(TARGETS))
 
     def resolved_device(self) -> torch.device:
         if self.device:
@@ -156,18 +160,20 @@ def make_batch(
     cfg: TrainConfig,
     rng: np.random.Generator,
     gen: torch.Generator,
+    names: tuple[str, ...] = FEATURES,
 ) -> Batch:
-    """Build the batched problem.  ``fit_rows``/``test_rows``: ``(B, n)`` bool."""
+    """Build the batched problem.  ``fit_rows``/``test_rows``: ``(B, n)`` bool; ``names``: the
+    columns of ``X`` (for the error naming a constant one)."""
     arch = cfg.arch
     dev = cfg.resolved_device()
     B, n = fit_rows.shape
     x_lo, x_hi = mapminmax_fit(np.broadcast_to(X, (B, n, X.shape[1])), fit_rows)
     t_lo, t_hi = mapminmax_fit(np.broadcast_to(T, (B, n, T.shape[1])), fit_rows)
-    for lo, hi, names in ((x_lo, x_hi, FEATURES), (t_lo, t_hi, TARGETS)):
+    for lo, hi, cols in ((x_lo, x_hi, names), (t_lo, t_hi, TARGETS)):
         const = ~(hi > lo)
         if const.any():
             j = int(np.nonzero(const.any(axis=0))[0][0])
-            raise UserError("data", f"column {names[j]} is constant over a training fold; cannot scale it")
+            raise UserError("data", f"column {cols[j]} is constant over a training fold; cannot scale it")
     if cfg.feature_noise > 0:
         Xp = X[None] * (1.0 + cfg.feature_noise * rng.standard_normal((B, n, X.shape[1])))
     else:
@@ -361,7 +367,7 @@ def split_rows(samples: Samples, validate: str, test_split: float | None, rng: n
         test = np.zeros(n, bool)
         test[rng.choice(n, size=k, replace=False)] = True
         return test, f"random {test_split:g} of the rows ({k})"
-    test = samples.df["tag"].str.startswith(PHANTOM_PREFIX).to_numpy()
+    test = is_phantom(samples.df["tag"])
     if test.any():
         return test, f"{int(test.sum())} calibration-phantom rows"
     k = max(1, int(round(0.1 * n)))
@@ -378,6 +384,37 @@ def rng_for(seed: int, validate: str):
     return rng, gen
 
 
+@dataclass
+class Folds:
+    """Which rows each of the ``B = repeats x folds`` networks of one validation run tests on."""
+
+    validate: str
+    repeats: int
+    folds: int  # 1 (HOV) or n (LOOCV)
+    test: np.ndarray  # (B, n) bool
+    held_out: np.ndarray  # (n,) bool: the rows some network tests on (HOV: the test set; LOOCV: all)
+    note: str  # how the test rows were chosen
+    rng: np.random.Generator  # the run's random streams (after choosing the test rows)
+    gen: torch.Generator
+
+
+def plan_folds(samples: Samples, validate: str, repeats: int, seed: int = 0, test_split: float | None = None) -> Folds:
+    """The test rows of HOV (``split_rows``) or LOOCV for ``repeats`` repeats, and the random
+    streams the training that follows draws from (the same for every algorithm: paired comparisons)."""
+    validate_params(dict(validate=validate, repeats=repeats, seed=seed, test_split=test_split), RUN_CONSTRAINTS)
+    n = samples.n
+    rng, gen = rng_for(seed, validate)
+    test1, note = split_rows(samples, validate, test_split, rng)
+    if validate == "hov":
+        if test1.all():
+            raise UserError("data", "every row is a test (phantom) row; nothing left to train on")
+        return Folds(validate, repeats, 1, np.broadcast_to(test1, (repeats, n)).copy(), test1, note, rng, gen)
+    if n < 3:
+        raise UserError("data", f"LOOCV needs at least 3 samples (got {n})")
+    test = np.tile(np.eye(n, dtype=bool), (repeats, 1))
+    return Folds(validate, repeats, n, test, np.ones(n, bool), f"{n} folds", rng, gen)
+
+
 def run_validation(
     samples: Samples,
     algo: str,
@@ -387,53 +424,89 @@ def run_validation(
     seed: int = 0,
     test_split: float | None = None,
 ) -> ValidationResult:
-    """Train and score ``algo`` under ``validate`` with ``repeats`` random initialisations."""
-    validate_params(
-        dict(algo=algo, validate=validate, repeats=repeats, seed=seed, test_split=test_split), RUN_CONSTRAINTS
-    )
-    cfg.validate()
-    df = samples.df
-    X = df[list(FEATURES)].to_numpy(np.float64)
-    T = df[list(TARGETS)].to_numpy(np.float64)
-    n = len(df)
-    rng, gen = rng_for(seed, validate)
-    test1, note = split_rows(samples, validate, test_split, rng)
-    if validate == "hov":
-        if test1.all():
-            raise UserError("data", "every row is a test (phantom) row; nothing left to train on")
-        test = np.broadcast_to(test1, (repeats, n)).copy()
-        folds = 1
-    else:
-        if n < 3:
-            raise UserError("data", f"LOOCV needs at least 3 samples (got {n})")
-        test = np.tile(np.eye(n, dtype=bool), (repeats, 1))
-        folds = n
-        note = f"{n} folds"
+    """Train and score the feature MLP (O1, O2, O3 -> d, h, E) under ``validate`` with ``repeats``
+    random initialisations (:func:`validate_inputs` on the sample table's features)."""
+    validate_params(dict(algo=algo), {"algo": RUN_CONSTRAINTS["algo"]})
+    folds = plan_folds(samples, validate, repeats, seed, test_split)
+    X = samples.df[list(FEATURES)].to_numpy(np.float64)
+    T = samples.df[list(TARGETS)].to_numpy(np.float64)
+    return validate_inputs(X, T, folds, algo, cfg)
+
+
+def validate_inputs(
+    X: np.ndarray,
+    T: np.ndarray,
+    folds: Folds,
+    algo: str,
+    cfg: TrainConfig,
+    *,
+    names: tuple[str, ...] = FEATURES,
+    label: str | None = None,
+    row_extra: dict | None = None,
+    X_repeats: np.ndarray | None = None,
+    train_targets=None,
+    to_physical=None,
+    X_eval: np.ndarray | None = None,
+) -> ValidationResult:
+    """Train and score ``algo`` on any input matrix ``X`` ``(n, c)`` (columns ``names``) against the
+    targets ``T`` ``(n, 3)`` (d mm, h mm, E kPa) over ``folds`` (:func:`plan_folds`).
+
+    ``X_repeats`` ``(repeats, n, c)``: the inputs each repeat's networks see instead of ``X`` (e.g.
+    one noise draw per repeat, shared by its LOOCV folds); the scaling is fitted on the noise-free
+    ``X`` either way.  ``train_targets``/``to_physical``: a transform of the targets the networks
+    learn (e.g. ln E) and its inverse; the metrics are computed on ``T`` itself, MSE x 100 on the
+    linear [-1, 1] mapminmax scaling of ``T`` over each training fold, so rows stay comparable.
+    ``X_eval`` ``(n, c)``: one more input matrix whose held-out rows every network predicts
+    (``extra['pred_eval']``, as ``extra['pred']``).  ``label``: the table's ``algo`` (default
+    ``algo``); ``row_extra``: more columns, after ``feature_noise``.
+
+    ``extra['pred']``: the held-out predictions ``(repeats, n, 3)`` (physical units; NaN where a row
+    was no network's test row in that repeat); ``extra['test']``: ``folds.held_out``."""
+    validate_params(dict(algo=algo), {"algo": RUN_CONSTRAINTS["algo"]})
+    X = np.asarray(X, dtype=np.float64)
+    T = np.asarray(T, dtype=np.float64)
+    cfg = dataclasses.replace(cfg, n_in=X.shape[1]).validate()
+    test, R, nf, n = folds.test, folds.repeats, folds.folds, X.shape[0]
     fit = ~test
     check_trainable(int(fit[0].sum()) - int(round(cfg.val_fraction * fit[0].sum())), cfg.arch)
+    Tt = T if train_targets is None else train_targets(T)
     t0 = time.perf_counter()
-    batch = make_batch(X, T, fit, test, cfg, rng, gen)
-    res = train_batch(algo, batch.obj, batch.theta0, cfg, desc=f"{algo} {validate}")
+    batch = make_batch(X, Tt, fit, test, cfg, folds.rng, folds.gen, names)
+    obj = _with_inputs(batch, cfg, None if X_repeats is None else np.repeat(np.asarray(X_repeats), nf, axis=0))
+    res = train_batch(algo, obj, batch.theta0, cfg, desc=f"{label or algo} {folds.validate}")
     wall = time.perf_counter() - t0
-    Ys = predict_scaled(res.theta, batch.obj.X, cfg.arch)  # (B, n, 3) scaled
-    Ts = batch.obj.T.cpu().numpy()
-    Yp = mapminmax_reverse(Ys, batch.t_lo, batch.t_hi)
-    B = test.shape[0]
-    R = repeats
-    shp = (R, folds, n)
-    tm = test.reshape(shp)[..., None]
-    cnt = tm.sum(axis=(1, 2))  # (R, 1)
+
+    def physical(Xs_t: torch.Tensor):
+        Ys = predict_scaled(res.theta, Xs_t, cfg.arch)
+        Yp = mapminmax_reverse(Ys, batch.t_lo, batch.t_hi)
+        return Ys, (Yp if to_physical is None else to_physical(Yp))
+
+    Ys, Yp = physical(obj.X)
+    Ts = obj.T.cpu().numpy()
     Tp = np.broadcast_to(T, Yp.shape)
-    per = {
-        "mse100": 100.0 * (((Ts - Ys) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
-        "mre": 100.0 * ((np.abs(Yp - Tp) / np.abs(Tp)).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
-        "rmse": np.sqrt((((Yp - Tp) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt),
-    }
-    trm = batch.train.reshape(shp)[..., None]
-    train_mse = 100.0 * ((((Ts - Ys) ** 2).reshape(*shp, 3) * trm).sum(axis=2) / trm.sum(axis=2)).mean(axis=1)
+    if to_physical is not None:  # score on the linear scaling of (d, h, E) over each training fold
+        lo, hi = mapminmax_fit(Tp, batch.train)
+        Ys, Ts = mapminmax_apply(Yp, lo, hi), mapminmax_apply(Tp, lo, hi)
+    shp = (R, nf, n)
+    per, cnt, train_mse = _metrics(Ts, Ys, Yp, Tp, test, batch.train, shp)
+    tm = test.reshape(shp)[..., None]
+    tested = test.reshape(shp).any(axis=1)  # (R, n)
+
+    def held_out(Y: np.ndarray) -> np.ndarray:
+        pred = np.where(tm, Y.reshape(*shp, 3), 0.0).sum(axis=1)  # (R, n, 3)
+        pred[~tested] = np.nan
+        return pred
+
+    extra = {"pred": held_out(Yp), "test": folds.held_out}
+    if X_eval is not None:
+        Xe = mapminmax_apply(
+            np.broadcast_to(np.asarray(X_eval, np.float64), (test.shape[0], *np.shape(X_eval))), batch.x_lo, batch.x_hi
+        )
+        extra["pred_eval"] = held_out(physical(torch.as_tensor(Xe, dtype=obj.X.dtype, device=obj.X.device))[1])
+    B = test.shape[0]
     row = {
-        "algo": algo,
-        "validate": validate,
+        "algo": label or algo,
+        "validate": folds.validate,
         "repeats": R,
         "n_samples": n,
         "n_train": int(batch.train[0].sum()),
@@ -442,14 +515,48 @@ def run_validation(
         "hidden": ",".join(f"{s}" if a == "tansig" else f"{s}:{a}" for s, a in cfg.hidden),
         "epochs": cfg.epochs,
         "feature_noise": cfg.feature_noise,
+        **(row_extra or {}),
         "val_fraction": cfg.val_fraction,
-        "test_set": note,
+        "test_set": folds.note,
         "wall_s": round(wall, 3),
         "trainings_per_s": round(B / wall, 3),
         "mean_epochs_run": float(res.epochs.double().mean()),
         "dtype": str(cfg.dtype).replace("torch.", ""),
         "workers": res.workers,
     }
+    stops = _summarise_into(row, per, train_mse, res.stop)
+    curves = {k: v.numpy() for k, v in res.history.items() if k in ("train", "test", "val")}
+    return ValidationResult(label or algo, folds.validate, R, row, per, curves, stops, wall, extra)
+
+
+def _with_inputs(batch: Batch, cfg: TrainConfig, X_b: np.ndarray | None) -> NetObjective:
+    """The batch's objective with its inputs replaced by ``X_b`` ``(B, n, c)`` (scaled as the
+    batch's, fitted on the noise-free inputs); ``X_b`` None: the batch's own."""
+    obj = batch.obj
+    if X_b is None:
+        return obj
+    Xs = mapminmax_apply(np.asarray(X_b, np.float64), batch.x_lo, batch.x_hi)
+    Xs = torch.as_tensor(Xs, dtype=obj.X.dtype, device=obj.X.device)
+    return NetObjective(cfg.arch, Xs, obj.T, obj.w, obj.w_val, obj.w_test)
+
+
+def _metrics(Ts, Ys, Yp, Tp, test: np.ndarray, train: np.ndarray, shp: tuple):
+    """Per repeat over its test predictions (module docstring): ``{metric: (R, 3)}``, the test
+    counts ``(R, 1)`` and the training MSE x 100 ``(R, 3)``; ``shp`` = (repeats, folds, n)."""
+    tm = test.reshape(shp)[..., None]
+    cnt = tm.sum(axis=(1, 2))
+    per = {
+        "mse100": 100.0 * (((Ts - Ys) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
+        "mre": 100.0 * ((np.abs(Yp - Tp) / np.abs(Tp)).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt,
+        "rmse": np.sqrt((((Yp - Tp) ** 2).reshape(*shp, 3) * tm).sum(axis=(1, 2)) / cnt),
+    }
+    trm = train.reshape(shp)[..., None]
+    train_mse = 100.0 * ((((Ts - Ys) ** 2).reshape(*shp, 3) * trm).sum(axis=2) / trm.sum(axis=2)).mean(axis=1)
+    return per, cnt, train_mse
+
+
+def _summarise_into(row: dict, per: dict, train_mse: np.ndarray, stop: list[str]) -> dict[str, int]:
+    """Add each metric's summary over repeats, the mean training MSE and the stop reasons to ``row``."""
     for m in METRICS:
         for j, tname in enumerate(TARGETS):
             for k, v in summarize(per[m][:, j]).items():
@@ -457,8 +564,29 @@ def run_validation(
     for j, tname in enumerate(TARGETS):
         row[f"train_mse100_{tname}_mean"] = float(train_mse[:, j].mean())
     stops: dict[str, int] = {}
-    for s in res.stop:
+    for s in stop:
         stops[s] = stops.get(s, 0) + 1
     row["stops"] = ";".join(f"{k}:{v}" for k, v in sorted(stops.items()))
-    curves = {k: v.numpy() for k, v in res.history.items() if k in ("train", "test", "val")}
-    return ValidationResult(algo, validate, R, row, per, curves, stops, wall)
+    return stops
+
+
+def train_final(
+    X: np.ndarray,
+    T: np.ndarray,
+    algo: str,
+    repeats: int,
+    cfg: TrainConfig,
+    seed: int = 0,
+    *,
+    names: tuple[str, ...] = FEATURES,
+    X_repeats: np.ndarray | None = None,
+) -> tuple[TrainResult, Batch]:
+    """Train ``repeats`` networks (independent initialisations) on every row of ``X`` ``(n, c)``
+    -> targets ``T`` (as the networks learn them); ``X_repeats`` as in :func:`validate_inputs`.
+    Returns the optimiser's result and the batch (its scaling) for building the saved ensemble."""
+    X = np.asarray(X, dtype=np.float64)
+    cfg = dataclasses.replace(cfg, n_in=X.shape[1]).validate()
+    rng, gen = rng_for(seed, "final")
+    batch = make_batch(X, np.asarray(T, np.float64), np.ones((repeats, X.shape[0]), bool), None, cfg, rng, gen, names)
+    obj = _with_inputs(batch, cfg, X_repeats)
+    return train_batch(algo, obj, batch.theta0, cfg, desc=f"{algo} final"), batch

@@ -1,4 +1,5 @@
-"""A trained ensemble of MLPs: the inverse map (O1, O2, O3) -> (d, h, E).
+"""A trained ensemble of MLPs: the inverse map (O1, O2, O3) -> (d, h, E), and the protocol
+(:class:`InverseModel`) every inverse model that inference takes implements.
 
 On disk a model is a directory with
 
@@ -23,6 +24,7 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass, field
+from typing import ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -38,6 +40,43 @@ WEIGHTS_FILE = "ensemble.safetensors"
 META_FILE = "model.json"
 
 
+@runtime_checkable
+class InverseModel(Protocol):
+    """What inference (:mod:`elastimap.camera.infer`) needs of any inverse model: the feature
+    ensemble (:class:`Ensemble`) and the image model (:class:`elastimap.identify.image_model.ImageModel`).
+
+    ``input_kind`` names what ``X`` is, and so the identifiability map's measurement set:
+    ``"features"`` (calibrated FEM features O1..O3, ``(n, 3)``) or ``"image"`` (FEM difference
+    images, mm, ``(n, ny*nx)``)."""
+
+    input_kind: ClassVar[str]
+
+    @property
+    def n_members(self) -> int: ...
+
+    @property
+    def target_range(self) -> np.ndarray:
+        """``(2, 3)`` min, max of (d, h, E) over the training rows."""
+        ...
+
+    def predict(self, X) -> np.ndarray:
+        """Every member's ``(d mm, h mm, E kPa)``: ``(members, n, 3)``."""
+        ...
+
+    def in_range(self, X) -> np.ndarray:
+        """``(n,)`` true where the input lies inside the training range."""
+        ...
+
+    def outside_training(self, X) -> list[list[str]]:
+        """Per row, the names of the inputs outside the training range (flags ``outside_training:<name>``)."""
+        ...
+
+    def save(self, directory: str) -> str: ...
+
+    @classmethod
+    def load(cls, directory: str) -> InverseModel: ...
+
+
 def _act_np(z, name):
     if name == "tansig":
         return np.tanh(z)
@@ -48,7 +87,10 @@ def _act_np(z, name):
 
 @dataclass
 class Ensemble:
-    """``M`` networks sharing one architecture and one input/target scaling."""
+    """``M`` networks sharing one architecture and one input/target scaling: the feature
+    :class:`InverseModel` (O1, O2, O3 -> d, h, E)."""
+
+    input_kind: ClassVar[str] = "features"
 
     arch: Arch
     theta: np.ndarray  # (M, P) flat parameters, layout of elastimap.training.net
@@ -121,6 +163,12 @@ class Ensemble:
         """``(n,)`` true where every feature lies inside the training range."""
         X = np.atleast_2d(np.asarray(X, dtype=np.float64))
         return ((X >= self.feature_range[0]) & (X <= self.feature_range[1])).all(axis=1)
+
+    def outside_training(self, X) -> list[list[str]]:
+        """Per row, the features outside the training range (:attr:`feature_range`)."""
+        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
+        out = (X < self.feature_range[0]) | (X > self.feature_range[1])
+        return [[k for j, k in enumerate(self.feature_names) if row[j]] for row in out]
 
     # ------------------------------------------------------------------ I/O
     def to_json(self) -> dict:

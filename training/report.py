@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import textwrap
 
 import numpy as np
 import pandas as pd
@@ -49,14 +50,30 @@ def markdown(df: pd.DataFrame, title: str | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
+def curve_names(res: ValidationResult) -> dict[str, str]:
+    """What each curve of ``res`` is measured on, for the legend: the training rows, the early-stopping
+    validation rows, and the test set named as the validation chose it (HOV: e.g. the calibration-phantom
+    rows; LOOCV: each network's one left-out row)."""
+    n_test = res.row.get("n_test_per_repeat")
+    if res.validate == "loocv":
+        test = f"test: each network's left-out row ({res.row.get('test_set', '')})"
+    else:
+        test = f"test: {res.row.get('test_set') or f'{n_test} held-out rows'}"
+    return {"train": "training rows", "val": "validation rows (early stopping)", "test": test}
+
+
 def plot_curves(res: ValidationResult, path: str, label: str = "") -> str:
-    """Median and 10–90 % band over networks of the training (and test) MSE per epoch."""
+    """Median (line) and 10–90 % band (shaded) over the networks of the MSE per epoch on the training
+    rows, the validation rows (when any) and the test set, which the legend names; ``label`` is appended
+    to the title (the data source, e.g. "SYNTHETIC toy table (n=60)")."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
+    names = curve_names(res)
+    n_nets = res.curves["train"].shape[0]
+    fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=110)
     for name, color in (("train", "C0"), ("val", "C2"), ("test", "C3")):
         c = res.curves.get(name)
         if c is None or np.isnan(c).all():
@@ -66,17 +83,15 @@ def plot_curves(res: ValidationResult, path: str, label: str = "") -> str:
             med = np.nanmedian(c, axis=0)
             lo, hi = np.nanpercentile(c, 10, axis=0), np.nanpercentile(c, 90, axis=0)
         ep = np.arange(c.shape[1])
-        what = {"train": "training", "val": "validation", "test": "test"}[name]
-        ax.plot(ep, med, color=color, label=f"{what} (median)")
+        ax.plot(ep, med, color=color, label=names[name])
         ax.fill_between(ep, lo, hi, color=color, alpha=0.2, lw=0)
     ax.set_yscale("log")
     ax.set_xlabel("epoch")
-    ax.set_ylabel("MSE on [-1, 1]-scaled targets")
-    ax.set_title(
-        f"{res.algo.upper()} / {res.validate.upper()}, {res.curves['train'].shape[0]} networks{label}", fontsize=9
-    )
+    ax.set_ylabel("MSE on [-1, 1]-scaled targets (d, h, E)")
+    title = textwrap.fill(f"{res.algo.upper()} / {res.validate.upper()}, {n_nets} networks{label}", 80)
+    ax.set_title(f"{title}\nline: median over the networks; shaded band: 10–90 % of the networks", fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     fig.tight_layout()
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     fig.savefig(path)

@@ -96,7 +96,7 @@ def main(out, n, jobs, mesh, repeats, lm_loocv_repeats, lm_loocv_float32, worker
                             data,
                             "--out",
                             run_dir,
-                            "--quiet",
+                            "--no-progress",
                             "--no-model",
                             "--workers",
                             str(workers),

@@ -1,7 +1,7 @@
 """The ``camera`` set of the identifiability map: Cramér–Rao bounds from camera frames (SYNTHETIC camera).
 
-    python -m elastimap.workflows.studies.cameramap compute --shard 0/2 --out runs/cameramap   # and 1/2 beside it
-    python -m elastimap.workflows.studies.cameramap install --out runs/cameramap
+    elastimap study cameramap compute --shard 0/2 --out runs/cameramap   # and 1/2 beside it
+    elastimap study cameramap install --out runs/cameramap
 
 The map's other sets assume white image noise of 1 % of each image's peak.  A camera's noise is
 not relative to the peak: per pixel it is the shot and read noise of the frames, turned into
@@ -9,25 +9,25 @@ deflection through the optics' slope at the background press (``deflection_noise
 for a large and a small lesion.  So a large shallow lesion is measured far better than 1 % and a
 small deep one far worse.  This study gives the bound for what a camera actually measures:
 
-* at every point θ = (d, h, E) of the map's grid (:func:`elastimap.identify.local.grid`), the
+* at every point θ = (d, h, E) of the map's grid (:func:`elastimap.identify.bounds.grid`), the
   difference image's exact derivative J = ∂I/∂(d, h, ln E) on the morphed forward map at
-  ``--mesh`` (:meth:`elastimap.identify.refine.ForwardMap.tangent`, one solve and three
+  ``--mesh`` (:meth:`elastimap.identify.forward_maps.ForwardMap.tangent`, one solve and three
   back-solves; no surrogate, no finite differences);
 * σ_p (mm) of every image pixel p: the nominal SYNTHETIC camera
   (:class:`elastimap.camera.optics.SensorModel`) with ``--frames`` lesion and as many background
   frames, linearised at that point's background press
   (:func:`elastimap.camera.optics.deflection_noise_map`);
 * Fisher information F = Jᵀ diag(σ⁻²) J, Cramér–Rao relative std r = (√C_dd / d, √C_hh / h,
-  √C_lnE,lnE), C = F⁻¹ (:func:`camera_bound`, with :func:`elastimap.identify.local.crb_relstd`).
+  √C_lnE,lnE), C = F⁻¹ (:func:`camera_bound`, with :func:`elastimap.identify.bounds.crb_relstd`).
 
 ``install`` adds the set ``camera`` (and the nominal noise map ``camera_sigma``, mm per pixel, and
-``camera_frames``) to the shipped map (:data:`elastimap.identify.region.DEFAULT_MAP`) through
+``camera_frames``) to the shipped map (:data:`elastimap.identify.idmap.DEFAULT_MAP`) through
 :func:`elastimap.workflows.studies.crbmap.install_map`, keeping every other entry of the file
 (its sets and crbmap's raw surrogate bounds and FD scales).  Inference from
 frames scales the set by the frames' own noise against ``camera_sigma``
-(:meth:`elastimap.identify.region.IdentifiabilityMap.camera_scale`).  ``crbmap --install`` writes
+(:meth:`elastimap.identify.idmap.IdentifiabilityMap.camera_scale`).  ``crbmap --install`` writes
 a map without this set: run ``install`` again after it.  The bound holds for the model's physics
-alone: the forward model's own error is not in it (docs/identifiability.md (7) measures how far
+alone: the forward model's own error is not in it (docs/identifiability.md, 'What camera frames identify', measures how far
 that error reaches).
 """
 
@@ -49,7 +49,7 @@ def camera_bound(J: np.ndarray, sigma: np.ndarray, theta) -> np.ndarray:
     """Cramér–Rao relative std (d, h, E) at ``theta`` (d mm, h mm, E kPa) from the image's derivative
     ``J`` (3, ny, nx) = ∂I/∂(d mm, h mm, E kPa) (mm per unit) and the per-pixel noise ``sigma`` (mm,
     image-shaped): F = Jᵀ diag(σ⁻²) J in (d, h, ln E)."""
-    from elastimap.identify.local import crb_relstd
+    from elastimap.identify.bounds import crb_relstd
 
     theta = np.asarray(theta, float)
     Jp = np.asarray(J, float).reshape(3, -1).T * np.array([1.0, 1.0, theta[2]])  # ∂I/∂ln E = E ∂I/∂E
@@ -72,8 +72,8 @@ def compute_cmd(mesh, frames, shard, out):
     from tqdm import tqdm
 
     from elastimap.camera.optics import background_deflection, deflection_noise_map
-    from elastimap.identify.local import grid
-    from elastimap.identify.refine import forward_map
+    from elastimap.identify.bounds import grid
+    from elastimap.identify.forward_maps import forward_map
 
     if frames < 1:
         raise UserError("--frames", f"must be >= 1 (got {frames})")
@@ -103,8 +103,8 @@ def compute_cmd(mesh, frames, shard, out):
 @click.option("--map", "map_path", default=None, help="Map file to add the set to (default: the shipped map).")
 def install_cmd(out, map_path):
     """Add the ``camera`` set to the map (every column must be there)."""
-    from elastimap.identify.local import grid
-    from elastimap.identify.region import DEFAULT_MAP, IdentifiabilityMap
+    from elastimap.identify.bounds import grid
+    from elastimap.identify.idmap import DEFAULT_MAP, IdentifiabilityMap
 
     from .crbmap import install_map
 
@@ -128,7 +128,7 @@ def install_cmd(out, map_path):
     dest = map_path or DEFAULT_MAP
     m = IdentifiabilityMap.load(dest)
     if not (np.allclose(m.d, ds) and np.allclose(m.u, us) and np.allclose(m.E, Es)):
-        raise UserError("--map", f"{dest}: not on the grid of elastimap.identify.local.grid")
+        raise UserError("--map", f"{dest}: not on the grid of elastimap.identify.bounds.grid")
     # every entry of the file stays (crbmap's raw surrogate bounds and FD scales, which
     # ``crbmap --surrogate-from`` reads, are not part of IdentifiabilityMap); the camera ones are added
     with np.load(dest, allow_pickle=False) as z:
@@ -151,4 +151,4 @@ def install_cmd(out, map_path):
 if __name__ == "__main__":
     import sys
 
-    run(main, sys.argv[1:], prog_name="python -m elastimap.workflows.studies.cameramap")
+    run(main, sys.argv[1:], prog_name="elastimap study cameramap")

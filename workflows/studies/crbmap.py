@@ -1,14 +1,14 @@
 """Cramér–Rao maps over (d, h, E) from the GP surrogate, checked against real FD Jacobians.
 
-    python -m elastimap.workflows.studies.crbmap [--data data/sweep512] [--out docs/figures]
+    elastimap study crbmap [--data data/sweep512] [--out docs/figures]
 
-Fits :class:`elastimap.identify.local.Surrogate` (one GP per output) to the sweep, takes central-difference
-Jacobians of the surrogate on :func:`elastimap.identify.local.grid` (14 d x 5 depth fractions x 15 E),
+Fits :class:`elastimap.identify.bounds.Surrogate` (one GP per output) to the sweep, takes central-difference
+Jacobians of the surrogate on :func:`elastimap.identify.bounds.grid` (14 d x 5 depth fractions x 15 E),
 computes Cramér–Rao relative standard deviations for each measurement set (noise: O1..O3 1 %
 relative, image 1 % of its peak per pixel, force 0.1 % per reading) and writes
 ``identifiability_crb_<set>.png`` (fraction of the 5 depths at which each quantity is
 identifiable within 10 %, i.e. CRB relative std <= 10 %, over (d, E)) and ``crb_grid.npz``
-(the identifiability map read by :mod:`elastimap.identify.region` and used by inference).
+(the identifiability map read by :mod:`elastimap.identify.idmap` and used by inference).
 
 It also computes the real-FD CRB at the points of :mod:`elastimap.workflows.studies.fd_check` (14 cached solves,
 about a minute when not cached) and, when ``--fd-grid`` exists (``python -m elastimap.workflows.studies.fdgrid``,
@@ -21,14 +21,14 @@ bound at nine points in ten.  The unscaled surrogate bounds are kept in the file
 ``--surrogate-from MAP`` skips the sweep and the GP fits: the raw surrogate bounds are read from
 the ``<set>_surrogate`` entries of an earlier map file made by this study on the same grid (e.g. the
 shipped map), and the surrogate's bound at an FD point is that grid interpolated there as inference
-interpolates a map (:meth:`elastimap.identify.region.IdentifiabilityMap.bound`) instead of the GP
+interpolates a map (:meth:`elastimap.identify.idmap.IdentifiabilityMap.bound`) instead of the GP
 evaluated there.  Use it to re-scale a map with new finite differences when the sweep is not at
 hand; the new file records where its surrogate came from.
 
 ``--install`` also writes the map to the file inference reads when no map is given,
-:data:`elastimap.identify.region.DEFAULT_MAP` (``identify/maps/default.npz`` in the repository),
+:data:`elastimap.identify.idmap.DEFAULT_MAP` (``identify/maps/default.npz`` in the repository),
 through :func:`install_map`: the new file is read back as an
-:class:`~elastimap.identify.region.IdentifiabilityMap` first and then swapped in atomically.  That
+:class:`~elastimap.identify.idmap.IdentifiabilityMap` first and then swapped in atomically.  That
 file is the shipped map; regenerate it this way, never by hand.
 """
 
@@ -55,7 +55,7 @@ def fd_interpolate(
     theta_fd: np.ndarray, r_fd: np.ndarray, theta: np.ndarray, thickness: float = THICKNESS
 ) -> np.ndarray:
     """Bound ``r`` (n, 3) at ``theta`` from FD bounds at scattered points: linear in (d, u, ln E) of ln r
-    (``u`` the depth fraction of :func:`elastimap.identify.local.grid`), nearest FD point outside their hull."""
+    (``u`` the depth fraction of :func:`elastimap.identify.bounds.grid`), nearest FD point outside their hull."""
     from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
     from elastimap.solver.params import depth_range
@@ -82,7 +82,7 @@ def fd_grid_geometry(path: str) -> str:
 def install_map(src: str, dest: str | None = None) -> str:
     """Copy the map file ``src`` to ``dest`` (default: the shipped map inference reads) after checking
     that it loads as an identifiability map; the destination is replaced atomically."""
-    from elastimap.identify.region import DEFAULT_MAP, IdentifiabilityMap
+    from elastimap.identify.idmap import DEFAULT_MAP, IdentifiabilityMap
 
     dest = dest or DEFAULT_MAP
     IdentifiabilityMap.load(src)
@@ -101,7 +101,7 @@ def install_map(src: str, dest: str | None = None) -> str:
 
 def check_install_target(dest: str | None = None) -> str:
     """The install destination, checked before any work: its folder must exist and be writable."""
-    from elastimap.identify.region import DEFAULT_MAP
+    from elastimap.identify.idmap import DEFAULT_MAP
 
     dest = dest or DEFAULT_MAP
     folder = os.path.dirname(os.path.abspath(dest))
@@ -117,11 +117,11 @@ def check_install_target(dest: str | None = None) -> str:
 def stored_surrogate(path: str):
     """The raw surrogate bounds of an earlier map file of this study: ``(map, where they came from)``.
 
-    ``map`` is an :class:`~elastimap.identify.region.IdentifiabilityMap` holding the file's
+    ``map`` is an :class:`~elastimap.identify.idmap.IdentifiabilityMap` holding the file's
     ``<set>_surrogate`` entries (every set of :data:`SETS`), on the grid of
-    :func:`elastimap.identify.local.grid`; ``map.bound(theta, set)`` interpolates them."""
-    from elastimap.identify.local import grid
-    from elastimap.identify.region import IdentifiabilityMap
+    :func:`elastimap.identify.bounds.grid`; ``map.bound(theta, set)`` interpolates them."""
+    from elastimap.identify.bounds import grid
+    from elastimap.identify.idmap import IdentifiabilityMap
 
     if not os.path.isfile(path):
         raise UserError("--surrogate-from", f"{path}: no such map file")
@@ -159,7 +159,7 @@ def compute(
     recorded in the map's ``source``.  Returns ``{set: (n_grid, 3)}`` relative std."""
     if install:
         check_install_target(install)
-    from elastimap.identify.local import Surrogate, crb_relstd, fisher, grid
+    from elastimap.identify.bounds import Surrogate, crb_relstd, fisher, grid
 
     from .fd_check import NOISE as noise
     from .fd_check import POINTS, fd_crb
@@ -319,9 +319,9 @@ def compute(
 )
 def main(data_path, out, no_fd_scale, fd_grid, surrogate_from, install):
     """Cramér–Rao identifiability maps (local evidence) and the map inference uses."""
-    from elastimap.identify.region import DEFAULT_MAP
+    from elastimap.identify.idmap import DEFAULT_MAP
 
-    cmd = ["elastimap identify crbmap"]
+    cmd = ["elastimap study crbmap"]
     if surrogate_from:
         cmd.append(f"--surrogate-from {surrogate_from}")
     else:
@@ -342,4 +342,4 @@ def main(data_path, out, no_fd_scale, fd_grid, surrogate_from, install):
 if __name__ == "__main__":
     import sys
 
-    run(main, sys.argv[1:], prog_name="python -m elastimap.workflows.studies.crbmap")
+    run(main, sys.argv[1:], prog_name="elastimap study crbmap")

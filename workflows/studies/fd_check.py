@@ -1,6 +1,6 @@
 """Cramér–Rao bounds from REAL finite-difference Jacobians at two points (7 cached solves each).
 
-    python -m elastimap.workflows.studies.fd_check
+    elastimap study fd_check
 
 Noise: O1, O2, O3 1 % relative each; image 1 % of its peak per pixel (iid); plate force 0.1 % per
 reading.  "two-depths" is 2 x the image Fisher matrix: the forward model is linear, so the image
@@ -14,7 +14,8 @@ import click
 import numpy as np
 
 from elastimap.cli_util import CONTEXT_SETTINGS, geometry_option, run
-from elastimap.identify.local import NoiseSpec, fd_jacobian_solves, fd_relstd, stack
+from elastimap.identify.bounds import NoiseSpec, fd_relstd, stack
+from elastimap.workflows.solves import fd_jacobian_solves
 
 POINTS = ((8.0, 8.0, 30.0), (8.0, 8.0, 120.0))
 NOISE = NoiseSpec(feature=0.01, image=0.01, force=0.001)
@@ -43,4 +44,4 @@ def main(geometry):
 
 
 if __name__ == "__main__":
-    run(main, prog_name="python -m elastimap.workflows.studies.fd_check")
+    run(main, prog_name="elastimap study fd_check")

@@ -1,10 +1,10 @@
 """Real finite-difference Jacobians on a coarse (d, depth fraction, E) grid (cached solves).
 
-    python -m elastimap.workflows.studies.fdgrid [--mesh default] [--geometry morph] [--out data/identify/fdgrid.npz]
+    elastimap study fdgrid [--mesh default] [--geometry morph] [--out data/identify/fdgrid.npz]
 
 7 forward solves per grid point (centre and central differences in d, h, ln E with
-:data:`elastimap.identify.local.FD_STEP`), on the morphed map with the reference mesh pinned at the
-point (``--geometry morph``, no remeshing jitter) or remeshed per solve (``remesh``); every solve is cached by :mod:`elastimap.identify.solves`, so an
+:data:`elastimap.workflows.solves.FD_STEP`), on the morphed map with the reference mesh pinned at the
+point (``--geometry morph``, no remeshing jitter) or remeshed per solve (``remesh``); every solve is cached by :mod:`elastimap.workflows.solves`, so an
 interrupted run resumes.  The result file holds the grid, the Jacobians and the geometry;
 ``python -m elastimap.workflows.studies.crbmap --fd-grid FILE`` scales the identifiability map with
 their Cramér–Rao bounds and ``python -m elastimap.workflows.studies.mapcheck --fdgrid FILE`` checks
@@ -42,7 +42,7 @@ def fd_grid_points(ds=FD_D, us=FD_U, Es=FD_E, thickness: float = THICKNESS) -> n
 
 
 def compute(out: str, mesh: str = "default", progress: bool = True, geometry: str = "morph") -> dict:
-    from elastimap.identify.local import fd_jacobian_solves
+    from elastimap.workflows.solves import fd_jacobian_solves
 
     pts = fd_grid_points()
     res = {"theta": pts[:, :3], "u": pts[:, 3], "image": [], "lnF": [], "dF": [], "image0": [], "lnF0": [], "dF0": []}
@@ -68,7 +68,9 @@ def compute(out: str, mesh: str = "default", progress: bool = True, geometry: st
     default="morph",
     help="morph: the smooth morphed map, reference pinned per point; remesh: gmsh per solve.",
 )
-@click.option("--out", default="data/identify/fdgrid.npz", show_default=True)
+@click.option(
+    "--out", default="data/identify/fdgrid.npz", show_default=True, help="The Jacobians file to write (.npz)."
+)
 def main(mesh, geometry, out):
     """Finite-difference Jacobians from real solves on the coarse study grid."""
     compute(out, mesh, geometry=geometry)
@@ -76,4 +78,4 @@ def main(mesh, geometry, out):
 
 
 if __name__ == "__main__":
-    run(main, sys.argv[1:], prog_name="python -m elastimap.workflows.studies.fdgrid")
+    run(main, sys.argv[1:], prog_name="elastimap study fdgrid")

@@ -1,6 +1,6 @@
 """Global identifiability evidence: cross-validated error of a strong regressor per measurement set.
 
-    python -m elastimap.workflows.studies.global_cv --data data/sweep512 [--noise 0.01]
+    elastimap study global_cv --data data/sweep512 [--noise 0.01]
 
 Measurement sets: (a) the paper's features O1, O2, O3; (b) the whole difference image (PCA);
 (c) image + plate-force difference (force − force_ref).  Regressor: scikit-learn
@@ -74,4 +74,4 @@ def main(data, noise):
 
 
 if __name__ == "__main__":
-    run(main, sys.argv[1:], prog_name="python -m elastimap.workflows.studies.global_cv")
+    run(main, sys.argv[1:], prog_name="elastimap study global_cv")

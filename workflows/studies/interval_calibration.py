@@ -2,26 +2,29 @@
 records of camera-frame benchmark folders, and the coverage they give, seed by seed.
 
     python -m elastimap.workflows.studies.interval_calibration runs/fb27 runs/fb28Ec ... runs/fb41E \\
-        [--check runs/fb42E] [--loso]
+        [--check runs/fb42E] [--loso] [--install | --out FILE]
 
 Each FOLDER is a ``workflows/frames_benchmark.py`` output (SYNTHETIC lesions; its fits in
 ``fits-morph-coarse-corr-fine-drift``, the calibrated configuration
 :data:`~elastimap.identify.intervals.CALIBRATED_FOR`).  Per lesion with a signal and per parameter q
 the score is ``|x̂_q − x_q| / sd_q`` in the fit's coordinate (d mm, h mm, e = ln c(E) of
-:class:`~elastimap.identify.refine.FitCoords`) with the fit's Gauss–Newton sd (records before
+:class:`~elastimap.identify.coords.FitCoords`) with the fit's Gauss–Newton sd (records before
 2026-11-27 hold it as ``sd``/``crb_rel``, later ones as ``fit_relstd_gauss``).  Prints the scales per
 stratum of the estimate (far from or near the slab's base, :func:`~elastimap.identify.intervals.near_base`)
-and class of the relative sd (:func:`~elastimap.identify.intervals.calibrate`, the table to copy into
-``SCALES``), then the coverage of the Gauss–Newton and of the calibrated interval inside and
+and class of the relative sd (:func:`~elastimap.identify.intervals.calibrate`), then the coverage of the Gauss–Newton and of the calibrated interval inside and
 outside the shipped identifiability map's region (``frames`` set, 10 %, at the truth; the
 benchmark's own split) and near the base: of the calibration folders themselves (in-sample: says
 only that the scales do what they were set to), with ``--loso`` of each folder with the scales of the others (leave one
 seed out: an honest estimate of held-out coverage), and of the ``--check`` folders (never used for
-the scales).  A study: the scales it prints are what ``SCALES`` holds, nothing else reads it.
+the scales).  ``--install`` writes the scales, with their provenance (date, commit, folders, seeds,
+lesions per cell, method), to the file inference reads (``identify/maps/intervals.json``,
+:data:`~elastimap.identify.intervals.INTERVALS_FILE`; atomically, and only after every folder was
+read); ``--out FILE`` writes the same file elsewhere.  Nothing edits the scales in code.
 """
 
 from __future__ import annotations
 
+import datetime
 import glob
 import json
 import os
@@ -30,6 +33,21 @@ import click
 import numpy as np
 
 from elastimap.cli_util import run
+from elastimap.errors import UserError
+from elastimap.identify.coords import FitCoords
+from elastimap.identify.intervals import (
+    CALIBRATED_FOR,
+    INTERVALS_FILE,
+    NEAR_BASE_MM,
+    PARAMS,
+    Z95,
+    calibrate,
+    near_base,
+    scales_for,
+    write_scales,
+)
+from elastimap.outputs import check_out_file
+from elastimap.provenance import code_version
 
 FITS = "fits-morph-coarse-corr-fine-drift"
 
@@ -38,20 +56,18 @@ def read_folder(folder: str) -> dict:
     """Arrays of one benchmark folder's lesions with a signal: ``truth`` (n, 3) in (d, h, E),
     ``x_true``/``x_fit`` (n, 3) in the fit's coordinates (d, h, e), ``sd`` (n, 3) the Gauss–Newton sd in
     those coordinates, ``relstd`` (n, 3) the Gauss–Newton relative sds (d, h; ln E), ``theta_fit``
-    (n, 3) the estimate (d, h, E)."""
-    from elastimap.errors import UserError
-    from elastimap.identify.refine import FitCoords
-
+    (n, 3) the estimate (d, h, E), ``seeds`` the lesion designs' seeds (None where a record has none)."""
     paths = sorted(glob.glob(os.path.join(folder, FITS, "lesion-*.json")))
     if not paths:
         raise UserError("FOLDER", f"{folder} holds no {FITS}/lesion-*.json")
     X = FitCoords()
-    rows = []
+    rows, seeds = [], set()
     for path in paths:
         with open(path) as fh:
             r = json.load(fh)
         if "no_signal" in r["network"]["flags"] or r.get("fit_message", "") == "":
             continue
+        seeds.add((r.get("design") or {}).get("seed"))
         f = r["fit"]
         th = np.array([f["d"], f["h"], f["E"]])
         rel = r.get("fit_relstd_gauss") or [f["d_crb_rel"], f["h_crb_rel"], f["E_crb_rel"]]
@@ -63,7 +79,9 @@ def read_folder(folder: str) -> dict:
         xt, xf = X.x(t), X.x(th)
         rows.append((t, np.array([t[0], t[1], xt[2]]), np.array([th[0], th[1], xf[2]]), sd, rel, th))
     cols = list(zip(*rows))
-    return {k: np.array(v) for k, v in zip(("truth", "x_true", "x_fit", "sd", "relstd", "theta_fit"), cols)}
+    out = {k: np.array(v) for k, v in zip(("truth", "x_true", "x_fit", "sd", "relstd", "theta_fit"), cols)}
+    out["seeds"] = sorted(seeds, key=lambda v: (v is None, v))
+    return out
 
 
 def scores(data: dict) -> np.ndarray:
@@ -73,8 +91,6 @@ def scores(data: dict) -> np.ndarray:
 
 def scales_of(datas: list[dict]) -> tuple[dict, dict]:
     """The scales and cell sizes per parameter (stratum × class) from the pooled lesions of ``datas``."""
-    from elastimap.identify.intervals import PARAMS, calibrate, near_base
-
     rel = np.concatenate([d["relstd"] for d in datas])
     sc = np.concatenate([scores(d) for d in datas])
     nb = near_base(np.concatenate([d["theta_fit"] for d in datas]))
@@ -91,8 +107,7 @@ def coverage(data: dict, table: dict | None) -> dict:
     (:func:`~elastimap.identify.intervals.near_base`), per parameter of ``x̂ ± 1.96 k sd`` (``table``:
     the scales, None: the Gauss–Newton interval, k = 1): (held, n) for each of the three.  The truth lies in the box, so clipping the
     interval to the box does not change whether it holds it."""
-    from elastimap.identify.intervals import PARAMS, Z95, near_base, scales_for
-    from elastimap.workflows.frames_benchmark import identifiable_at
+    from elastimap.workflows.benchmarks.frames import identifiable_at  # the benchmark's region rule
 
     reg = identifiable_at(data["truth"])
     k = (
@@ -125,10 +140,23 @@ def _sum(covs: list[dict]) -> dict:
 @click.argument("folders", nargs=-1, required=True)
 @click.option("--check", "checks", multiple=True, help="A folder scored with the scales, never used for them.")
 @click.option("--loso", is_flag=True, help="Also score each folder with the scales of the others.")
-def main(folders, checks, loso):
+@click.option(
+    "--install",
+    is_flag=True,
+    help="Write the scales, with their provenance, to the file inference reads (identify/maps/intervals.json).",
+)
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write the scales, with their provenance, to this JSON file (the format --install writes).",
+)
+def main(folders, checks, loso, install, out):
     """Interval scales from benchmark FOLDERS (SYNTHETIC lesions) and the coverage they give."""
-    from elastimap.identify.intervals import NEAR_BASE_MM
-
+    if install and out:
+        raise UserError("--out", "give --install or --out, not both")
+    if out:
+        check_out_file(out, "--out")
     datas = {f: read_folder(f) for f in folders}
     table, sizes = scales_of(list(datas.values()))
     click.echo(f"SYNTHETIC calibration: {sum(len(d['truth']) for d in datas.values())} lesions of {len(datas)} folders")
@@ -157,6 +185,28 @@ def main(folders, checks, loso):
         click.echo(f"\ncheck folder {f} (not used for the scales):")
         click.echo(_row("  gauss", coverage(d, None)))
         click.echo(_row("  calibrated", coverage(d, table)))
+    if install or out:
+        dest = INTERVALS_FILE if install else out
+        write_scales(dest, table, CALIBRATED_FOR, provenance(datas, sizes))
+        click.echo(f"\nwrote {dest}")
+
+
+def provenance(datas: dict, sizes: dict) -> dict:
+    """What the scales were made from and how: date, code version, folders, seeds, lesions (in all
+    and per parameter's cell, stratum × class), the records' fits and the method."""
+    return {
+        "command": "python -m elastimap.workflows.studies.interval_calibration " + " ".join(datas),
+        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "git_commit": code_version(),
+        "folders": list(datas),
+        "fits": FITS,
+        "seeds": sorted({s for d in datas.values() for s in d["seeds"] if s is not None}),
+        "lesions": int(sum(len(d["truth"]) for d in datas.values())),
+        "lesions_per_cell": {q: [list(row) for row in sizes[q]] for q in sizes},
+        "method": "Mondrian split-conformal prediction per parameter, stratum (near_base) and class of the fit's "
+        "relative sd: k = the ceil((n + 1) level)-th smallest of |x_fit - x_true| / sd_gauss, divided by "
+        "1.959964 (elastimap.identify.intervals.calibrate); SYNTHETIC benchmark lesions",
+    }
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """How far each mesh level of the morphed forward map is from a finer world, and where it moves (d, h, E).
 
-    elastimap identify levelbias --n 10 --seed 99 --world fine --levels coarse,default,fine
-    elastimap identify levelbias --n 10 --seed 99 --world fine --levels coarse \\
+    elastimap study levelbias --n 10 --seed 99 --world fine --levels coarse,default,fine
+    elastimap study levelbias --n 10 --seed 99 --world fine --levels coarse \\
         --coarse-sizes 1.1,14,0.45,10
 
 Calibration lesions (SYNTHETIC; a Latin hypercube over the design box like the frames benchmark's,
@@ -9,7 +9,7 @@ with another seed, so none of them is a benchmark lesion).  At each lesion θ = 
 
 * the world's difference image w (mm): the remeshing solver at ``--world`` (gmsh mesh at θ itself);
 * each level's morphed map m_L(θ) and its exact derivative J = ∂m/∂(d, h, E) (one solve and three
-  back-solves on the bin's reference mesh, :meth:`elastimap.identify.refine.ForwardMap.tangent`);
+  back-solves on the bin's reference mesh, :meth:`elastimap.identify.forward_maps.ForwardMap.tangent`);
 * the image error rms(w − m_L) / peak(w) and the relative parameter shift s that it causes to first
   order, the unweighted least-squares solution of (J diag θ) s = w − m_L: a fit on m_L of the
   noise-free world image lands near θ (1 + s).  The shift runs along the d–h–E valley, so its E part
@@ -17,7 +17,7 @@ with another seed, so none of them is a benchmark lesion).  At each lesion θ = 
 
 ``--coarse-sizes h0,h_max,grading,per_d`` replaces the ``coarse`` level's sizes (mm; see
 :data:`elastimap.solver.geometry.LEVELS`) for this process only: which part of a finer level removes
-the coarse level's bias (docs/camera.md 4e).  Prints one row per lesion and level and a summary;
+the coarse level's bias (docs/camera.md, 'Inference').  Prints one row per lesion and level and a summary;
 ``--out FILE.json`` keeps the rows.
 """
 
@@ -34,7 +34,7 @@ from elastimap.cli_util import MeshLevel, run
 
 
 def level_errors(theta: np.ndarray, world: np.ndarray, fmap) -> dict:
-    """Image error of the map ``fmap`` (a :class:`~elastimap.identify.refine.ForwardMap`) at ``theta``
+    """Image error of the map ``fmap`` (a :class:`~elastimap.identify.forward_maps.ForwardMap`) at ``theta``
     against the world's image ``world`` (mm) and the first-order relative shift it causes."""
     d, h, E = (float(v) for v in theta)
     t = time.process_time()
@@ -76,11 +76,11 @@ def level_errors(theta: np.ndarray, world: np.ndarray, fmap) -> dict:
 def main(n, seed, mesh, levels, coarse_sizes, cache, out):
     """Image error of each morphed level against the remeshing world and the (d, h, E) shift it causes."""
     from elastimap.errors import UserError
-    from elastimap.identify.refine import forward_map
-    from elastimap.identify.solves import cached_solve
+    from elastimap.identify.forward_maps import forward_map
     from elastimap.solver import geometry
     from elastimap.solver.params import MESH_LEVELS
-    from elastimap.workflows.frames_benchmark import draw_lesions
+    from elastimap.workflows.benchmarks.frames import draw_lesions
+    from elastimap.workflows.solves import cached_solve
 
     names = [v.strip() for v in levels.split(",") if v.strip()]
     bad = [v for v in names if v not in MESH_LEVELS]
@@ -132,4 +132,4 @@ def main(n, seed, mesh, levels, coarse_sizes, cache, out):
 if __name__ == "__main__":
     import sys
 
-    run(main, sys.argv[1:], prog_name="python -m elastimap.workflows.studies.levelbias")
+    run(main, sys.argv[1:], prog_name="elastimap study levelbias")

@@ -1,7 +1,7 @@
 """Check the identifiability map against Cramér–Rao bounds from REAL finite differences on a grid.
 
-    python -m elastimap.workflows.studies.fdgrid                      # 40 points x 7 cached solves (~20 min, resumable)
-    python -m elastimap.workflows.studies.mapcheck [--fdgrid data/identify/fdgrid.npz] [--map default]
+    elastimap study fdgrid                      # 40 points x 7 cached solves (~20 min, resumable)
+    elastimap study mapcheck [--fdgrid data/identify/fdgrid.npz] [--map default]
 
 At every point of the FD grid (:mod:`elastimap.workflows.studies.fdgrid`: d 4/7/10/13 mm, two depth fractions,
 E 12/25/50/100/190 kPa) the bound from the real FD Jacobian (same noise as the map) is compared
@@ -27,7 +27,7 @@ SETS = ("features", "image", "two-depths")
 
 def fd_bounds(path: str) -> tuple[np.ndarray, dict]:
     """``theta`` (n, 3) and ``{set: (n, 3)}`` CRB relative std from an fdgrid file."""
-    from elastimap.identify.local import fd_relstd
+    from elastimap.identify.bounds import fd_relstd
 
     from .fd_check import NOISE
 
@@ -64,10 +64,17 @@ def compare(map_r: np.ndarray, fd_r: np.ndarray, threshold: float = 0.10) -> dic
     help="Output of elastimap.workflows.studies.fdgrid.",
 )
 @click.option("--map", "map_path", default="default", show_default=True, help="Map file or 'default' (shipped).")
-@click.option("--threshold", default=0.10, show_default=True, type=float)
+@click.option(
+    "--crb-limit",
+    "threshold",
+    default=0.10,
+    show_default=True,
+    type=float,
+    help="Cramér–Rao relative std limit of the identifiability call.",
+)
 def main(fdgrid, map_path, threshold):
     """Compare the identifiability map with real-FD Cramér–Rao bounds on the FD grid."""
-    from elastimap.identify.region import IdentifiabilityMap
+    from elastimap.identify.idmap import IdentifiabilityMap
 
     theta, fd = fd_bounds(fdgrid)
     idm = IdentifiabilityMap.load(None if map_path == "default" else map_path)
@@ -93,4 +100,4 @@ def main(fdgrid, map_path, threshold):
 
 
 if __name__ == "__main__":
-    run(main, sys.argv[1:], prog_name="python -m elastimap.workflows.studies.mapcheck")
+    run(main, sys.argv[1:], prog_name="elastimap study mapcheck")

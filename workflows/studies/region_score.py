@@ -1,16 +1,16 @@
 """Score held-out inverse predictions inside and outside the locally identifiable region.
 
-    python -m elastimap.workflows.studies.region_score --pred runs/image-inverse-loocv/pred-scg-loocv.npz [--set image]
+    elastimap study region_score --pred runs/image-inverse-loocv/pred-scg-loocv.npz [--set image]
 
-For every row of the prediction file (written by ``python -m elastimap.workflows.studies.imagenet``) the Cramér–Rao
-bound of the identifiability map (:mod:`elastimap.identify.region`; default: the shipped map, the one
+For every row of the prediction file (written by ``elastimap study image_model``) the Cramér–Rao
+bound of the identifiability map (:mod:`elastimap.identify.idmap`; default: the shipped map, the one
 inference uses) is evaluated at the row's true (d, h, E) for the chosen measurement set.  A row is
 *identifiable for output q* when the bound's relative standard deviation of q is at most
-``--threshold`` (default 10 %).  Printed: the mean relative error of each output over all
+``--crb-limit`` (default 10 %).  Printed: the mean relative error of each output over all
 held-out rows, over the identifiable rows and over the rest, with counts.
 
 It then checks the *intervals inference would report*: for every row the estimate is the mean
-held-out prediction over the repeats, its interval :meth:`elastimap.identify.region.IdentifiabilityMap.assess`
+held-out prediction over the repeats, its interval :meth:`elastimap.identify.idmap.IdentifiabilityMap.assess`
 at that estimate (widened to the repeats' 10–90 % range, clipped to the data's range), and the
 coverage is the fraction of rows whose true value lies inside, separately for the rows flagged
 ``non_identifiable`` at the estimate and the rest.
@@ -25,7 +25,7 @@ import numpy as np
 
 from elastimap.cli_util import run
 from elastimap.errors import UserError
-from elastimap.identify.region import SETS
+from elastimap.identify.idmap import SETS
 
 
 def score(pred: np.ndarray, theta: np.ndarray, crb: np.ndarray, threshold: float = 0.10) -> dict:
@@ -45,7 +45,7 @@ def score(pred: np.ndarray, theta: np.ndarray, crb: np.ndarray, threshold: float
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option(
-    "--pred", "pred_path", required=True, help="pred-<algo>-<validation>.npz from elastimap.workflows.studies.imagenet."
+    "--pred", "pred_path", required=True, help="pred-<algo>-<validation>.npz from elastimap study image_model."
 )
 @click.option(
     "--map",
@@ -55,15 +55,15 @@ def score(pred: np.ndarray, theta: np.ndarray, crb: np.ndarray, threshold: float
     help="Identifiability map (crb_grid.npz of python -m elastimap.workflows.studies.crbmap) or 'default' (shipped).",
 )
 @click.option("--set", "mset", default="image", show_default=True, help="Measurement set: " + ", ".join(SETS) + ".")
-@click.option("--threshold", default=0.10, show_default=True, type=float, help="CRB relative std limit.")
+@click.option("--crb-limit", "threshold", default=0.10, show_default=True, type=float, help="CRB relative std limit.")
 def main(pred_path, map_path, mset, threshold):
     """MRE of held-out predictions inside / outside the identifiable region of the map."""
-    from elastimap.identify.region import IdentifiabilityMap
+    from elastimap.identify.idmap import IdentifiabilityMap
 
     if mset not in SETS:
         raise UserError("--set", f"must be one of {', '.join(SETS)} (got {mset!r})")
     if not 0 < threshold < 10:
-        raise UserError("--threshold", f"must be in (0, 10) (got {threshold:g})")
+        raise UserError("--crb-limit", f"must be in (0, 10) (got {threshold:g})")
     if not os.path.isfile(pred_path):
         raise UserError("--pred", f"no such file: {pred_path}")
     try:
@@ -72,7 +72,7 @@ def main(pred_path, map_path, mset, threshold):
         shared = z["pred_shared_noise"] if "pred_shared_noise" in z.files else None
     except Exception as exc:
         raise UserError(
-            "--pred", f"{pred_path}: not a prediction file of elastimap.workflows.studies.imagenet ({exc})"
+            "--pred", f"{pred_path}: not a prediction file of elastimap study image_model ({exc})"
         ) from None
     idm = IdentifiabilityMap.load(None if map_path == "default" else map_path)
     crb, _ = idm.bound(theta, mset)
@@ -149,4 +149,4 @@ def coverage(pred: np.ndarray, theta: np.ndarray, idm, mset: str, threshold: flo
 
 
 if __name__ == "__main__":
-    run(main, prog_name="python -m elastimap.workflows.studies.region_score")
+    run(main, prog_name="elastimap study region_score")

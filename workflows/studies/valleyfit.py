@@ -1,16 +1,16 @@
 """Where a camera-frame fit's pull along the d–E valley comes from: re-fit chosen lesions of a frames
 benchmark folder with one ingredient changed at a time.
 
-    python -m elastimap.workflows.studies.valleyfit --out runs/fb29 --n 120 --seed 2029 --lesions 2,60 \\
+    elastimap study valleyfit --out runs/fb29 --n 120 --seed 2029 --lesions 2,60 \\
         --image world --start truth --maps fixed --fit corrected
 
 A lesion of the benchmark (``workflows/frames_benchmark.py``; SYNTHETIC: its world solve in
 ``OUT/solves``, its calibration ``OUT/cal-morph-coarse-corr-fine.json``, the start network
 ``--model``; ``--n`` and ``--seed`` must be the benchmark's, checked against its records) is
-re-fitted by :func:`elastimap.identify.refine.fit_image` with:
+re-fitted by :func:`elastimap.identify.fit.fit_image` with:
 
 * ``--image frames``: the difference image recovered from the lesion's drifting-camera frames (the
-  benchmark's own, :func:`~elastimap.workflows.frames_benchmark.lesion_inputs`: same noise seeds)
+  benchmark's own, :func:`~elastimap.workflows.benchmarks.frames.lesion_inputs`: same noise seeds)
   and its per-pixel noise; ``world``: the world's noise-free difference image with the same
   per-pixel noise (what the fit would do without camera noise);
 * ``--start network``: the network's estimate and the E scan (the shipped fit); ``truth``: the true
@@ -46,7 +46,7 @@ FITS = ("corrected", "fine")
 
 def _maps(sizing: str) -> dict:
     """The morphed maps of the three levels with element sizing ``sizing``."""
-    from elastimap.identify.refine import forward_map
+    from elastimap.identify.forward_maps import forward_map
 
     return {v: forward_map(v, "morph", sizing=sizing) for v in ("coarse", "default", "fine")}
 
@@ -67,8 +67,8 @@ def main(out, n, seed, lesions, model, image, start, maps, fit):
     from elastimap.camera.infer import load_identifiability, load_model
     from elastimap.camera.optics import SensorModel
     from elastimap.errors import UserError
-    from elastimap.identify.refine import fit_image
-    from elastimap.workflows.frames_benchmark import draw_lesions, lesion_inputs, run_tags
+    from elastimap.identify.fit import fit_image
+    from elastimap.workflows.benchmarks.frames import draw_lesions, lesion_inputs, run_tags
 
     try:
         idx = [int(v) for v in lesions.split(",") if v.strip()]
@@ -126,4 +126,4 @@ def main(out, n, seed, lesions, model, image, start, maps, fit):
 if __name__ == "__main__":
     import sys
 
-    run(main, sys.argv[1:], prog_name="python -m elastimap.workflows.studies.valleyfit")
+    run(main, sys.argv[1:], prog_name="elastimap study valleyfit")

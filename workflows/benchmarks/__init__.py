@@ -1,0 +1,2 @@
+"""Benchmarks that score the whole chain on SYNTHETIC data: ``frames`` (camera frames -> image
+network -> physics fit)."""
