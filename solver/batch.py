@@ -62,10 +62,11 @@ def solve_group(
     The first result's ``seconds`` and ``timings`` carry the mesh and the model setup.
     ``errors="return"`` puts the :class:`~elastimap.solver.errors.SolverError` of a failed
     sample in its place instead of raising (a failed mesh fails every sample of the group)."""
-    from .api import run_sample, sample_tag, solve
+    from .api import solve
     from .errors import SolverError
     from .fem import Model
     from .geometry import MeshError, build_mesh
+    from .sample import run_sample, sample_tag
 
     ps = [p.validate() for p in params_list]
     if len({geometry_key(p) for p in ps}) > 1:

@@ -456,10 +456,10 @@ class MorphedForward:
 
     def _reference_press(self, e: _Entry, p: SolveParams, with_tangent: bool):
         """The reference press (E_inc = E_tissue) on the entry's mesh where it is now: the tuple
-        :func:`~elastimap.solver.api.run_sample` takes and, with ``with_tangent``, its image's
+        :func:`~elastimap.solver.sample.run_sample` takes and, with ``with_tangent``, its image's
         derivatives in d and h (:meth:`_Entry.tangent`); kept while the mesh stays."""
-        from .api import _solve_at, sample_tag
         from .errors import SolverError
+        from .sample import sample_tag, solve_at
 
         here = e.at
         have = e.reference_solve and e.reference_solve[:2] == here
@@ -467,7 +467,7 @@ class MorphedForward:
             return e.reference_solve[2], (e.reference_tangent[2] if with_tangent else None)
         model = e.model
         try:
-            sol_r, diag_r, delta_r, force_r = _solve_at(model, p.tissue.E, p)
+            sol_r, diag_r, delta_r, force_r = solve_at(model, p.tissue.E, p)
         except SolverError as exc:
             raise SolverError(f"solve failed for {sample_tag(p)} (reference press): {exc}") from exc
         ref = (sol_r, diag_r, delta_r, force_r, model.probe_bottom_w(sol_r, delta_r))
@@ -538,8 +538,8 @@ class MorphedForward:
         return not self.template.nonlinear and self.template.loading.force is None
 
     def _solve(self, d, h, E, reference, linearise_at, tangent: bool):
-        from .api import run_sample
         from .image import mirror_quarter
+        from .sample import run_sample
 
         if (tangent or linearise_at is not None) and not self.has_tangent:
             raise UserError(
