@@ -21,6 +21,20 @@ from elastimap.constraints import Interval, Options, validate_params
 from elastimap.errors import UserError, check_range
 
 MESH_LEVELS = ("tiny", "coarse", "default", "fine", "finer")
+
+
+def finer(level: str) -> str | None:
+    """The mesh level one step finer than ``level`` (None for the finest)."""
+    i = MESH_LEVELS.index(level)
+    return MESH_LEVELS[i + 1] if i + 1 < len(MESH_LEVELS) else None
+
+
+def coarser(level: str) -> str | None:
+    """The mesh level one step coarser than ``level`` (None for the coarsest)."""
+    i = MESH_LEVELS.index(level)
+    return MESH_LEVELS[i - 1] if i > 0 else None
+
+
 INTERFACES = ("tied", "contact", "bonded")
 SYMMETRIES = ("quarter", "full")
 #: how the mesh of a sample is made: gmsh for every (d, h), or a reference mesh morphed to (d, h)
