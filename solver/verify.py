@@ -159,7 +159,13 @@ def check_speed(n: int = 6, seed: int = 1) -> str:
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--checks", default=",".join(CHECKS), show_default=True, help="Comma-separated subset of checks.")
-@click.option("--speed-samples", type=click.IntRange(1, 100), default=6, show_default=True)
+@click.option(
+    "--speed-samples",
+    type=click.IntRange(1, 100),
+    default=6,
+    show_default=True,
+    help="Samples (drawn over the design box) the speed check times.",
+)
 def command(checks, speed_samples):
     """Run the forward-model verification checks and print Markdown tables."""
     from elastimap.errors import UserError

@@ -234,7 +234,13 @@ def _csv(text: str, name: str, cast=float) -> tuple:
 @click.option("--checks", default=",".join(CHECKS), show_default=True, help="Comma-separated subset of checks.")
 @click.option("--levels", default="coarse,default,fine,finer", show_default=True, help="mesh levels (convergence)")
 @click.option("--diameters", default=",".join(f"{d:g}" for d in DIAMETERS), show_default=True, help="d (mm)")
-@click.option("--sizing", type=click.Choice(SIZINGS), default="by_d", show_default=True)
+@click.option(
+    "--sizing",
+    type=click.Choice(SIZINGS),
+    default="by_d",
+    show_default=True,
+    help="Element size near the inclusion: fixed or by_d (scaled with d).",
+)
 @click.option("--mesh", type=click.Choice(MESH_LEVELS), default="default", show_default=True, help="smoothness, edges")
 @click.option(
     "--points", default=",".join(f"{d:g}:{h:g}" for d, h in POINTS), show_default=True, help="d:h pairs (smoothness)"

@@ -68,7 +68,13 @@ _common = options(
     ),
     # for tests and dry runs only (docs/sweep.md): 'synthetic[:KEY=VALUE,...]' runs the
     # SYNTHETIC stand-in of elastimap.solver.synthetic instead of the forward model
-    click.option("--solver", "solver_spec", default="fem", hidden=True),
+    click.option(
+        "--solver",
+        "solver_spec",
+        default="fem",
+        hidden=True,
+        help="fem (the forward model) or synthetic[:KEY=VALUE,...] (the SYNTHETIC stand-in; tests and dry runs)",
+    ),
 )
 
 
