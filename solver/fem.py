@@ -49,7 +49,7 @@ from .interface import Friction, Interface, active_set
 from .materials import CellMaterials, psi_blended
 from .newton import Newton
 from .params import SolveParams
-from .reduction import CG_RTOL, LU, Recycled, Reduction, Solution
+from .reduction import CG_RTOL, LU, Recycled, Reduction, Solution, ptap
 from .sampler import ImageSampler
 from .space import Space
 
@@ -120,9 +120,7 @@ class Model:
         self._K_at = None  # (version, active-set key, inclusion modulus) of the reduced K
         self._unit = None  # (version, A_1, {active-set key: Pᵀ A_1 P}) for the unit-modulus inclusion
         self._reference = None  # (version, key, δ, tilt, ū) of the last reference press (linear, no friction)
-        #: False: every press assembles and reduces its whole matrix and factorises for itself, the
-        #: inclusion press first (the path before the shared presses; ``solve(presses="separate")``)
-        self.share_presses = True
+        self._share = True
         self.timings = {"setup": time.perf_counter() - t0}
 
     def set_params(self, p: SolveParams) -> None:
@@ -132,6 +130,18 @@ class Model:
         self.materials.set_params(p)
         self.reduction.tilt = float(p.loading.tilt)
         self.moved()
+
+    @property
+    def share_presses(self) -> bool:
+        """False: every press assembles and reduces its whole matrix (by PETSc's default PᵀAP) and
+        factorises for itself, the inclusion press first: the path before the shared presses
+        (``solve(presses="separate")``, the baseline of ``sweep bench --compare``)."""
+        return self._share
+
+    @share_presses.setter
+    def share_presses(self, on: bool) -> None:
+        self._share = bool(on)
+        self.reduction.ptap_via = "rap" if on else None
 
     def moved(self) -> None:
         """Say that the moduli, ν or the mesh's coordinates changed (:mod:`elastimap.solver.morph`
@@ -248,7 +258,7 @@ class Model:
             return A1
         if key not in reduced:
             reduced.clear()  # one active set at a time
-            reduced[key] = A1.ptap(Pm)
+            reduced[key] = ptap(A1, Pm)
         return reduced[key]
 
     def _assemble_unit_inclusion(self):
