@@ -66,14 +66,13 @@ RECYCLE_MAX_RATIO = 2.0
 #: iterations
 BORROW_MAX_RATIO = 20.0
 BORROW_MAX_IT = 50
-#: the inclusion press right after the reference press on the same mesh, active set and plate
-#: travel (every sample's second press): CG on the reference press's factors for the difference
+#: the inclusion press right after the reference press was factorised on the same mesh, active set
+#: and plate travel (every sample's second press): CG on the reference press's factors for the difference
 #: of the two presses, K(E) v = f − K(E) ū_ref (``Recycled.borrow(start=)``), on any mesh size,
 #: for moduli within PRESS_MAX_RATIO of the tissue's, to PRESS_RTOL relative to that residual, in
 #: at most PRESS_MAX_IT iterations (about what a factorisation costs on the `default` mesh; else
-#: the inclusion's own factorisation).  Measured at d/h 8/7 on `default` (docs/sweep.md,
-#: "Speed of one sample"): E 10-200 kPa in 7-24 iterations, the features within 2e-8 of the
-#: factorised press's
+#: the inclusion's own factorisation).  Measured on `default` (docs/forward-model.md, "Shared
+#: presses"): E 10-200 kPa in 6-20 iterations, O1 and O2 within 5e-7 of the factorised press's
 PRESS_MAX_RATIO = 100.0
 PRESS_MAX_IT = 32
 PRESS_RTOL = 1e-6
@@ -119,7 +118,9 @@ class Model:
         self._A_at = None  # (version, inclusion modulus) of the values in A
         self._K_at = None  # (version, active-set key, inclusion modulus) of the reduced K
         self._unit = None  # (version, A_1, {active-set key: Pᵀ A_1 P}) for the unit-modulus inclusion
-        self._reference = None  # (version, key, δ, tilt, ū) of the last reference press (linear, no friction)
+        # (version, key, δ, tilt, ū, whether the reference solver holds its own factors) of the last
+        # reference press (linear, no friction)
+        self._reference = None
         self._share = True
         self.timings = {"setup": time.perf_counter() - t0}
 
@@ -206,7 +207,9 @@ class Model:
             if kind == "reference" and self.newton is None:
                 if self._reference is not None:
                     self._reference[4].destroy()
-                self._reference = (self._version, key, float(delta), self.reduction.tilt, ubar.copy())
+                # the factors are this very matrix's when the solve did not run CG on older ones
+                own = rec.last[0] == 0
+                self._reference = (self._version, key, float(delta), self.reduction.tilt, ubar.copy(), own)
         else:
             self.lu = self.lu or LU("linear", "spd")
             self.last_linear = self.lu
@@ -224,9 +227,10 @@ class Model:
 
     def _borrow(self, rec: Recycled, K, f, key: bytes, E_inclusion: float, delta: float):
         """The inclusion press by CG on the reference press's factors (``Recycled.borrow``) where
-        that is cheaper than factorising, else None: right after the reference press on the same
-        matrix pattern and loading, for the difference of the two presses (PRESS_*); otherwise on a
-        large mesh, moduli within BORROW_MAX_RATIO."""
+        that is cheaper than factorising, else None: right after the reference press factorised
+        this mesh position, moduli, pattern and loading, for the difference of the two presses
+        (PRESS_*; on older factors, e.g. a batch's next variant, its tolerance would not bound the
+        features' error alike); otherwise on a large mesh, moduli within BORROW_MAX_RATIO."""
         donor = self.recycled.get("reference")
         if donor is None or donor.tag is None:
             return None
@@ -235,6 +239,7 @@ class Model:
         if (
             ref is not None
             and ref[:4] == (self._version, key, float(delta), self.reduction.tilt)
+            and ref[5]
             and ratio <= PRESS_MAX_RATIO
         ):
             rtol = max(PRESS_RTOL, self.cg_rtol)

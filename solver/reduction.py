@@ -178,8 +178,8 @@ class Reduction:
 def ptap(A: PETSc.Mat, P: PETSc.Mat, via: str | None = "rap") -> PETSc.Mat:
     """PᵀAP (a new matrix), by default by PETSc's ``rap`` product (Pᵀ formed, then Pᵀ·A·P): for
     this 0/1 reduction about 2.5× faster than PETSc's default algorithm (``via=None``; 0.07
-    against 0.19 s of CPU on the `default` quarter model, 2.1 M entries; docs/sweep.md,
-    'Benchmark'), the same matrix."""
+    against 0.19 s of CPU on the `default` quarter model, 2.1 M entries; docs/forward-model.md,
+    'Shared presses'), the same matrix."""
     if via is None:
         return A.ptap(P)
     opts = PETSc.Options()
