@@ -23,9 +23,11 @@ its own module, with its equations next to its UFL:
 :mod:`~elastimap.solver.sampler`            w = u_z + δ on the pixel grid of the probe bottom
 ==========================================  ==================================================
 
-:class:`Model` builds them once per sample and runs the inclusion solve and the
-reference solve on them (same mesh, same forms, same sparsity, same symbolic
-factorisation when the interface set does not change).
+:class:`Model` builds them once per sample and runs the reference solve and the
+inclusion solve on them (same mesh, same forms, same sparsity): the reference press is
+factorised, and the inclusion press, which differs from it by the inclusion's cells only, is
+updated by those cells and solved as the difference of the two presses by CG on the reference
+press's factors (docs/forward-model.md, "Shared presses").
 """
 
 from __future__ import annotations

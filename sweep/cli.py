@@ -4,6 +4,7 @@
     elastimap sweep run --n 64 --mesh tiny --phantoms    # + the nine calibration-phantom inclusions
     elastimap sweep run --samples table.csv --out sweeps/mine
     elastimap sweep bench --n 16 --mesh tiny             # samples/min at --jobs 1 and 2, driver overhead
+    elastimap sweep bench --compare --n 64 --jobs-list 2 # the presses before vs as shipped, side by side
 
 Rerunning the same command resumes: only samples with no landed row run.
 """
