@@ -190,18 +190,27 @@ def ptap(A: PETSc.Mat, P: PETSc.Mat, via: str | None = "rap") -> PETSc.Mat:
         opts.delValue("matptap_via")
 
 
-def mumps_ksp(prefix: str, ksp_type: str, factor: str) -> PETSc.KSP:
+def mumps_ksp(prefix: str, ksp_type: str, factor: str, workspace: bool = True) -> PETSc.KSP:
     """A serial KSP of ``ksp_type`` whose preconditioner is MUMPS's ``factor`` ("lu" or
-    "cholesky") factorisation, with a 80 % workspace margin (ICNTL(14))."""
+    "cholesky") factorisation, with a 80 % workspace margin (ICNTL(14); ``workspace=False``: the
+    caller sets it, with :func:`mumps_workspace`, before its first factorisation)."""
     ksp = PETSc.KSP().create(MPI.COMM_SELF)
     ksp.setType(ksp_type)
     pc = ksp.getPC()
     pc.setType(factor)
     pc.setFactorSolverType("mumps")
     ksp.setOptionsPrefix(prefix)
-    PETSc.Options()[f"{prefix}mat_mumps_icntl_14"] = 80
+    if workspace:
+        mumps_workspace(prefix)
     ksp.setFromOptions()
     return ksp
+
+
+def mumps_workspace(prefix: str) -> None:
+    """MUMPS's 80 % workspace margin (ICNTL(14)) for the solver of ``prefix``, read at its next
+    symbolic factorisation.  Set only where a factorisation follows: PETSc prints every option
+    left unread at exit, on stdout (where a ``--json`` answer goes)."""
+    PETSc.Options()[f"{prefix}mat_mumps_icntl_14"] = 80
 
 
 class LU:
@@ -306,7 +315,9 @@ class Recycled:
         blr_tol: float = BLR_TOLERANCE,
     ):
         self.prefix = f"elastimap_{id(self)}_{name}_"
-        self.ksp = mumps_ksp(self.prefix, "cg", "cholesky")
+        # no option before the first factorisation: a solver that only borrows (the inclusion press
+        # of a shared sample) leaves none unread
+        self.ksp = mumps_ksp(self.prefix, "cg", "cholesky", workspace=False)
         self.ksp.setTolerances(rtol=rtol, atol=0.0, max_it=max_it)
         self.blr_min, self.blr_tol = blr_min, float(blr_tol)
         self.blr = False  # whether the factors of K₀ are block low-rank (approximate)
@@ -330,6 +341,7 @@ class Recycled:
             self.K0 = K.duplicate(copy=True)
             self.blr = self.blr_min is not None and K.getSize()[0] >= self.blr_min
             opts = PETSc.Options()
+            mumps_workspace(self.prefix)
             opts[f"{self.prefix}mat_mumps_icntl_35"] = 2 if self.blr else 0  # read at the symbolic factorisation
             opts[f"{self.prefix}mat_mumps_cntl_7"] = self.blr_tol if self.blr else 0.0
         self.K0.setOption(PETSc.Mat.Option.SYMMETRIC, True)

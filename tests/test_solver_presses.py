@@ -97,3 +97,24 @@ def test_presses_is_checked():
     with pytest.raises(UserError) as err:
         solve(TINY, presses="both")
     assert err.value.param == "presses"
+
+
+def test_a_process_that_keeps_its_models_prints_only_its_own_output():
+    """A morphed map kept to the end of the process (``shared_forward``, as ``infer --refine``
+    keeps it) whose inclusion solver only borrowed leaves no PETSc option unread: PETSc would print
+    them on stdout at exit, after a ``--json`` answer."""
+    import subprocess
+    import sys
+
+    code = (
+        "from elastimap.solver.params import Discretisation, SolveParams\n"
+        "from elastimap.solver.morph import shared_forward\n"
+        "p = SolveParams(disc=Discretisation(mesh='tiny', geometry='morph'))\n"
+        "f = shared_forward(p)\n"
+        "f.solve(8.0, 7.0, 50.0)\n"
+        "assert next(iter(f._entries.values())).model.recycled['inclusion'].borrowed == 1\n"
+        "print('ok')\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip() == "ok", r.stdout[-500:]
