@@ -14,11 +14,23 @@ import time
 from .params import SolveParams, SolveResult
 from .sample import run_sample, sample_tag
 
+#: how a sample's two presses share their work (:class:`~elastimap.solver.fem.Model`):
+#: ``shared`` -- the reference press is factorised, the inclusion press is the difference of the two
+#: by CG on those factors, assembled and reduced by the inclusion's cells only; ``separate`` -- each
+#: press assembles, reduces and factorises for itself (the path before; the baseline ``sweep bench
+#: --compare`` times against)
+PRESSES = ("shared", "separate")
 
-def solve(params: SolveParams) -> SolveResult:
+
+def solve(params: SolveParams, presses: str = "shared") -> SolveResult:
     """Run one sample.  Raises :class:`elastimap.errors.UserError` for bad input and
-    :class:`solver.SolverError` (message carries d, h, E) when the solve fails."""
-    return _solve(params)
+    :class:`solver.SolverError` (message carries d, h, E) when the solve fails.  ``presses``: one
+    of ``PRESSES`` (the remeshed path; a morphed one shares its presses always)."""
+    if presses not in PRESSES:
+        from elastimap.errors import UserError
+
+        raise UserError("presses", f"must be one of {', '.join(PRESSES)} (got {presses!r})")
+    return _solve(params, presses=presses)
 
 
 def solve_with_fields(params: SolveParams, vtx_path: str) -> SolveResult:
@@ -27,7 +39,7 @@ def solve_with_fields(params: SolveParams, vtx_path: str) -> SolveResult:
     return _solve(params, vtx_path)
 
 
-def _solve(params: SolveParams, vtx_path: str | None = None) -> SolveResult:
+def _solve(params: SolveParams, vtx_path: str | None = None, presses: str = "shared") -> SolveResult:
     from .errors import SolverError
     from .fem import Model
     from .geometry import MeshError, build_mesh
@@ -46,6 +58,7 @@ def _solve(params: SolveParams, vtx_path: str | None = None) -> SolveResult:
     try:
         raw = build_mesh(p)
         model = Model(raw, p)
+        model.share_presses = presses == "shared"
     except (MeshError, SolverError) as exc:
         raise SolverError(f"mesh/setup failed for {sample_tag(p)}: {exc}") from exc
     try:

@@ -13,7 +13,9 @@ symbolic LU factorisation stay.
 ``solve_batch`` groups the parameters by :func:`geometry_key`, builds each group's mesh and
 :class:`~elastimap.solver.fem.Model` once, and runs every variant of the group on it (both
 solves of each variant: with the inclusion and the reference).  The numbers are those of
-``solve`` (same operations on the same mesh; equal within round-off, tested to 1e-10).
+``solve`` (the same mesh; equal within the solves' tolerances: a variant's presses run by CG on
+the factors of the one before, a single sample's inclusion press as the difference of its two
+presses to 1e-6 of that difference, docs/forward-model.md "Shared presses"; tested to 1e-6).
 """
 
 from __future__ import annotations

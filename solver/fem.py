@@ -23,9 +23,11 @@ its own module, with its equations next to its UFL:
 :mod:`~elastimap.solver.sampler`            w = u_z + δ on the pixel grid of the probe bottom
 ==========================================  ==================================================
 
-:class:`Model` builds them once per sample and runs the inclusion solve and the
-reference solve on them (same mesh, same forms, same sparsity, same symbolic
-factorisation when the interface set does not change).
+:class:`Model` builds them once per sample and runs the reference solve and the
+inclusion solve on them (same mesh, same forms, same sparsity): the reference press is
+factorised, and the inclusion press, which differs from it by the inclusion's cells only, is
+updated by those cells and solved as the difference of the two presses by CG on the reference
+press's factors (docs/forward-model.md, "Shared presses").
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ from .interface import Friction, Interface, active_set
 from .materials import CellMaterials, psi_blended
 from .newton import Newton
 from .params import SolveParams
-from .reduction import CG_RTOL, LU, Recycled, Reduction, Solution
+from .reduction import CG_RTOL, LU, Recycled, Reduction, Solution, ptap
 from .sampler import ImageSampler
 from .space import Space
 
@@ -66,6 +68,16 @@ RECYCLE_MAX_RATIO = 2.0
 #: iterations
 BORROW_MAX_RATIO = 20.0
 BORROW_MAX_IT = 50
+#: the inclusion press right after the reference press was factorised on the same mesh, active set
+#: and plate travel (every sample's second press): CG on the reference press's factors for the difference
+#: of the two presses, K(E) v = f − K(E) ū_ref (``Recycled.borrow(start=)``), on any mesh size,
+#: for moduli within PRESS_MAX_RATIO of the tissue's, to PRESS_RTOL relative to that residual, in
+#: at most PRESS_MAX_IT iterations (about what a factorisation costs on the `default` mesh; else
+#: the inclusion's own factorisation).  Measured on `default` (docs/forward-model.md, "Shared
+#: presses"): E 10-200 kPa in 6-20 iterations, O1 and O2 within 5e-7 of the factorised press's
+PRESS_MAX_RATIO = 100.0
+PRESS_MAX_IT = 32
+PRESS_RTOL = 1e-6
 
 
 class Model:
@@ -102,6 +114,16 @@ class Model:
         self.last_linear: LU | Recycled | None = None  # what the last linear solve used (``resolve``)
         self.newton = self._finite_strain() if self.materials.beta is not None else None
         self._warm = None  # (prescribed-values key, u) of the last Newton solution
+        # what the matrices hold, so that a press that differs from the last one by the inclusion's
+        # modulus only updates them by the inclusion's cells (``_assemble``, ``_reduce``)
+        self._version = 0  # bumped when the moduli, ν or the mesh's coordinates change
+        self._A_at = None  # (version, inclusion modulus) of the values in A
+        self._K_at = None  # (version, active-set key, inclusion modulus) of the reduced K
+        self._unit = None  # (version, A_1, {active-set key: Pᵀ A_1 P}) for the unit-modulus inclusion
+        # (version, key, δ, tilt, ū, whether the reference solver holds its own factors) of the last
+        # reference press (linear, no friction)
+        self._reference = None
+        self._share = True
         self.timings = {"setup": time.perf_counter() - t0}
 
     def set_params(self, p: SolveParams) -> None:
@@ -110,6 +132,31 @@ class Model:
         self.p = p
         self.materials.set_params(p)
         self.reduction.tilt = float(p.loading.tilt)
+        self.moved()
+
+    @property
+    def share_presses(self) -> bool:
+        """False: every press assembles and reduces its whole matrix (by PETSc's default PᵀAP) and
+        factorises for itself, the inclusion press first: the path before the shared presses
+        (``solve(presses="separate")``, the baseline of ``sweep bench --compare``)."""
+        return self._share
+
+    @share_presses.setter
+    def share_presses(self, on: bool) -> None:
+        self._share = bool(on)
+        self.reduction.ptap_via = "rap" if on else None
+
+    def moved(self) -> None:
+        """Say that the moduli, ν or the mesh's coordinates changed (:mod:`elastimap.solver.morph`
+        moves the mesh): the next press assembles the whole matrix again."""
+        self._version += 1
+        if self._unit is not None:
+            for M in (self._unit[1], *self._unit[2].values()):
+                if M is not None:
+                    M.destroy()
+        if self._reference is not None:
+            self._reference[4].destroy()
+        self._A_at = self._K_at = self._unit = self._reference = None
 
     def _finite_strain(self) -> Newton:
         """Residual R(u; v) = D_u Ψ[v] and Jacobian of Ψ = ∫ ψ dx (:func:`psi_blended`)."""
@@ -135,15 +182,14 @@ class Model:
         """One linear solve with the pairs in ``active`` closed (all pairs when None)."""
         t = time.perf_counter()
         active = self._all_closed() if active is None else active
+        key = active.tobytes()
         self.materials.set_inclusion_modulus(E_inclusion)
-        self.A.zeroEntries()
-        fpetsc.assemble_matrix(self.A, self.a)
-        self.A.assemble()
+        A_before = self._assemble(E_inclusion)
         t = self._tick("assemble", t)
 
         Pm, Psp, uD, new_pattern = self.reduction.operator(delta, active)
         friction = self.friction.matrices(active, Psp) if self.friction is not None else None
-        K, f, new_pattern = self.reduction.reduce(self.A, Pm, Psp, uD, new_pattern, friction)
+        K, f = self._reduce(E_inclusion, A_before, key, Pm, Psp, uD, new_pattern, friction)
         t = self._tick("ptap", t)
 
         if friction is None:
@@ -157,9 +203,15 @@ class Model:
             far = max(E_inclusion / E0, E0 / E_inclusion) > RECYCLE_MAX_RATIO
             ubar = None
             if (far or rec.K0 is None) and kind == "inclusion":
-                ubar = self._borrow(rec, K, f, active.tobytes(), E_inclusion)
+                ubar = self._borrow(rec, K, f, key, E_inclusion, delta)
             if ubar is None:
-                ubar = rec.solve(K, f, active.tobytes(), fresh=far, tag=E_inclusion)
+                ubar = rec.solve(K, f, key, fresh=far, tag=E_inclusion)
+            if kind == "reference" and self.newton is None:
+                if self._reference is not None:
+                    self._reference[4].destroy()
+                # the factors are this very matrix's when the solve did not run CG on older ones
+                own = rec.last[0] == 0
+                self._reference = (self._version, key, float(delta), self.reduction.tilt, ubar.copy(), own)
         else:
             self.lu = self.lu or LU("linear", "spd")
             self.last_linear = self.lu
@@ -175,15 +227,97 @@ class Model:
         self._tick("post", t)
         return Solution(u=u, reaction=r, iterations=1)
 
-    def _borrow(self, rec: Recycled, K, f, key: bytes, E_inclusion: float):
+    def _borrow(self, rec: Recycled, K, f, key: bytes, E_inclusion: float, delta: float):
         """The inclusion press by CG on the reference press's factors (``Recycled.borrow``) where
-        that is cheaper than factorising: a large mesh, moduli within BORROW_MAX_RATIO; else None."""
+        that is cheaper than factorising, else None: right after the reference press factorised
+        this mesh position, moduli, pattern and loading, for the difference of the two presses
+        (PRESS_*; on older factors, e.g. a batch's next variant, its tolerance would not bound the
+        features' error alike); otherwise on a large mesh, moduli within BORROW_MAX_RATIO."""
         donor = self.recycled.get("reference")
-        if donor is None or donor.tag is None or rec.blr_min is None or K.getSize()[0] < rec.blr_min:
+        if donor is None or donor.tag is None:
             return None
-        if max(E_inclusion / donor.tag, donor.tag / E_inclusion) > BORROW_MAX_RATIO:
+        ratio = max(E_inclusion / donor.tag, donor.tag / E_inclusion)
+        ref = self._reference if self.share_presses else None
+        if (
+            ref is not None
+            and ref[:4] == (self._version, key, float(delta), self.reduction.tilt)
+            and ref[5]
+            and ratio <= PRESS_MAX_RATIO
+        ):
+            rtol = max(PRESS_RTOL, self.cg_rtol)
+            return rec.borrow(donor, K, f, key, PRESS_MAX_IT, tag=E_inclusion, start=ref[4], rtol=rtol)
+        if rec.blr_min is None or K.getSize()[0] < rec.blr_min or ratio > BORROW_MAX_RATIO:
             return None
         return rec.borrow(donor, K, f, key, BORROW_MAX_IT, tag=E_inclusion)
+
+    # ------------------------------------------------------------------ matrices
+    def _unit_inclusion(self, key: bytes | None = None, Pm=None):
+        r"""A₁, the stiffness of the inclusion's cells at unit modulus (its ν),
+        $a_1(u, v) = \int_{\Omega_{inc}} \sigma(u; E{=}1, \nu_{inc}) : \varepsilon(v)\,{\rm d}x$,
+        so that A(E) = A(E') + (E − E') A₁ exactly (σ is linear in E at fixed ν); with ``key``, its
+        reduced Pᵀ A₁ P for that active set.  Made once per mesh position and moduli; None when the
+        mesh has no inclusion cells."""
+        if self._unit is None or self._unit[0] != self._version:
+            A1 = self._assemble_unit_inclusion()
+            self._unit = (self._version, A1, {})
+        _v, A1, reduced = self._unit
+        if A1 is None or key is None:
+            return A1
+        if key not in reduced:
+            reduced.clear()  # one active set at a time
+            reduced[key] = ptap(A1, Pm)
+        return reduced[key]
+
+    def _assemble_unit_inclusion(self):
+        from .geometry import INCLUSION
+        from .materials import epsilon, sigma
+
+        cells = np.flatnonzero(self.space.markers == INCLUSION).astype(np.int32)
+        if cells.size == 0:
+            return None
+        if getattr(self, "_a1", None) is None:
+            from dolfinx import mesh as dmesh
+
+            tags = dmesh.meshtags(self.mesh, 3, cells, np.full(cells.size, INCLUSION, dtype=np.int32))
+            dx = ufl.Measure("dx", domain=self.mesh, subdomain_data=tags)
+            u, v = ufl.TrialFunction(self.V), ufl.TestFunction(self.V)
+            self._a1 = fem.form(ufl.inner(sigma(u, 1.0, self.materials.nu), epsilon(v)) * dx(INCLUSION))
+        A1 = fpetsc.assemble_matrix(self._a1)
+        A1.assemble()
+        return A1
+
+    def _assemble(self, E_inclusion: float) -> float | None:
+        """A := A(E_inclusion): by the inclusion's cells, A += (E − E_A) A₁, when A holds this mesh's
+        matrix at another inclusion modulus E_A; else assembled afresh.  Returns E_A (None: afresh)."""
+        at = self._A_at
+        if self.share_presses and at is not None and at[0] == self._version and self._unit_inclusion() is not None:
+            if E_inclusion != at[1]:
+                self.A.axpy(E_inclusion - at[1], self._unit_inclusion(), PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+            self._A_at = (self._version, E_inclusion)
+            return at[1]
+        self.A.zeroEntries()
+        fpetsc.assemble_matrix(self.A, self.a)
+        self.A.assemble()
+        self._A_at = (self._version, E_inclusion)
+        return None
+
+    def _reduce(self, E_inclusion: float, A_before, key: bytes, Pm, Psp, uD, new_pattern: bool, friction):
+        """The reduced (K, f) of A(E_inclusion): K updated by the inclusion's cells when it holds
+        Pᵀ A P of this mesh at another modulus on the same active set (``Reduction.increment``),
+        else K = PᵀAP afresh (``Reduction.reduce``)."""
+        at = self._K_at
+        if (
+            friction is None
+            and not new_pattern
+            and A_before is not None
+            and at is not None
+            and at[:2] == (self._version, key)
+        ):
+            K, f = self.reduction.increment(self.A, Pm, Psp, uD, self._unit_inclusion(key, Pm), E_inclusion - at[2])
+        else:
+            K, f, _new = self.reduction.reduce(self.A, Pm, Psp, uD, new_pattern, friction)
+        self._K_at = (self._version, key, E_inclusion) if friction is None else None
+        return K, f
 
     def solve_nonlinear(
         self,
@@ -276,6 +410,7 @@ class Model:
         return w
 
     def destroy(self) -> None:
+        self.moved()  # drops the unit-modulus matrices and the reference solution
         for part in (self.lu, *self.recycled.values(), self.reduction, self.friction, self.newton):
             if part is not None:
                 part.destroy()

@@ -298,6 +298,7 @@ class _Entry:
         if self.at == (d, h):
             return
         self.model.mesh.geometry.x[:, :] = x[self.igi]
+        self.model.moved()
         self.model.space.X = self.model.V.tabulate_dof_coordinates()
         self.at = (d, h)
         self.reference_solve = None

@@ -40,7 +40,7 @@ from dolfinx.fem import petsc as fpetsc
 from petsc4py import PETSc
 
 from .errors import SolverError
-from .reduction import LU, Solution
+from .reduction import LU, Solution, ptap
 
 _DEBUG = bool(os.environ.get("ELASTIMAP_NEWTON_DEBUG"))
 
@@ -74,7 +74,7 @@ class Newton:
         if self._KJ is None or self._KJ_key != key or Sm is not None:
             if self._KJ is not None:
                 self._KJ.destroy()
-            self._KJ = self.Jmat.ptap(Pm)
+            self._KJ = ptap(self.Jmat, Pm)
             new_pattern = True
         else:
             self.Jmat.ptap(Pm, result=self._KJ)

@@ -104,13 +104,20 @@ def run_sample(
     tag = sample_tag(p)
     model.timings = {"setup": model.timings.get("setup", 0.0)}
     try:
-        sol, diag, delta, force = solve_at(model, p.inclusion.E, p)
-        w = model.probe_bottom_w(sol, delta)
+        # the reference press first: the inclusion press then starts from its solution and solves
+        # the difference of the two on its factors (:meth:`~elastimap.solver.fem.Model.solve_linear`);
+        # a model that does not share them (``share_presses``) runs the inclusion press first, as before
+        first = getattr(model, "share_presses", True) or reference is not None
+        if not first:
+            sol, diag, delta, force = solve_at(model, p.inclusion.E, p)
         if reference is None:
             sol_ref, diag_ref, delta_ref, force_ref = solve_at(model, p.tissue.E, p)
             w_ref = model.probe_bottom_w(sol_ref, delta_ref)
             reference = (sol_ref, diag_ref, delta_ref, force_ref, w_ref)
         sol_ref, diag_ref, delta_ref, force_ref, w_ref = reference
+        if first:
+            sol, diag, delta, force = solve_at(model, p.inclusion.E, p)
+        w = model.probe_bottom_w(sol, delta)
         if vtx_path:
             write_vtx(model, vtx_path, {"u": sol.u, "u_ref": sol_ref.u})
     except SolverError as exc:

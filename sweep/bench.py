@@ -1,4 +1,5 @@
-"""``sweep bench``: the same sweep at several worker counts, timed.
+"""``sweep bench``: the same sweep at several worker counts, timed; ``--compare``: the same sweep
+by the path before the shared presses and by today's, side by side.
 
 Each count runs the identical sample list into a fresh dataset directory, so
 every run solves everything (nothing is skipped).  Figures per run:
@@ -10,17 +11,49 @@ every run solves everything (nothing is skipped).  Figures per run:
   the local dask scheduler) during fan-out, per sample
 * driver overhead per sample: wall * jobs / n - mean solve time, i.e. worker
   time per sample not spent solving (start-up, idle, scheduling, landing)
+
+With ``--compare`` (:func:`compare`) each worker count runs the sample list twice, into fresh
+directories: first with every press factorised for itself (:class:`SeparatePresses`, the path
+before the shared presses), then with the forward model as shipped; it prints both, the ratio
+of samples/min and of the workers' CPU seconds per sample (less sensitive to other load on the
+machine than wall time), the load average before each run, the largest peak memory of a
+sample, and how far the shipped path's features are from the baseline's, sample by sample.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
+from elastimap.dataset import store
 from elastimap.errors import UserError
 
 from .run import SweepConfig, make_plan, run
+
+#: the features and the force :func:`compare` checks between the two paths
+COMPARED = ("O1", "O2", "O3", "force")
+
+
+class SeparatePresses:
+    """The forward model with each press assembled, reduced and factorised for itself, the
+    inclusion press first (``elastimap.solver.api.solve(presses="separate")``): the baseline of
+    :func:`compare`.  A module-level class, so it pickles by module path to the workers."""
+
+    solver_name = store.FEM
+
+    def __call__(self, p):
+        from elastimap.solver.api import solve
+
+        return solve(p, presses="separate")
+
+    def warmup(self, p) -> None:
+        from elastimap.solver import warmup
+
+        warmup(p)
 
 
 def bench(counts: list[int], out: str | None = None, **kw) -> dict:
@@ -88,6 +121,119 @@ def format_bench(res: dict) -> str:
                 f"speed-up jobs {r['jobs']} vs {r0['jobs']}: {r['samples_per_min'] / r0['samples_per_min']:.2f}x "
                 f"(fan-out only {r['fan_out_samples_per_min'] / r0['fan_out_samples_per_min']:.2f}x)"
             )
+    if res.get("out"):
+        lines.append(f"datasets kept under {res['out']}")
+    return "\n".join(lines)
+
+
+def _timed_run(cfg: SweepConfig, plan) -> dict:
+    """One sweep run with the load average before it and its workers' CPU seconds (the local
+    cluster's worker processes are this process's children, counted once they have exited)."""
+    load = os.getloadavg()[0]
+    t0 = os.times()
+    s = run(cfg, plan)
+    t1 = os.times()
+    if s["interrupted"]:
+        raise KeyboardInterrupt
+    s["load_before"] = load
+    s["worker_cpu_s"] = (t1.children_user + t1.children_system) - (t0.children_user + t0.children_system)
+    return s
+
+
+def feature_deviation(a, b) -> dict:
+    """Largest |b / a − 1| over the samples both datasets hold as ok, per quantity of ``COMPARED``
+    (a pair of zeros counts as equal, a zero against a non-zero as 1), and how many were compared."""
+    from elastimap.dataset import io
+
+    cols = ["sample_id", "status", *COMPARED]
+    ta, tb = (io.read_table(p, cols).set_index("sample_id") for p in (a, b))
+    both = ta.index[(ta["status"] == "ok")].intersection(tb.index[tb["status"] == "ok"])
+    out = {"samples": int(len(both))}
+    for k in COMPARED:
+        x, y = ta.loc[both, k].to_numpy(float), tb.loc[both, k].to_numpy(float)
+        zero = x == 0
+        dev = np.where(zero, (y != 0).astype(float), np.abs(y - x) / np.where(zero, 1.0, np.abs(x)))
+        out[k] = float(dev.max()) if dev.size else math.nan
+    return out
+
+
+def compare(counts: list[int], out: str | None = None, **kw) -> dict:
+    """The same sweep by :class:`SeparatePresses` and by the shipped forward model at each worker
+    count in ``counts`` (``kw`` as :class:`~elastimap.sweep.run.SweepConfig`'s, without ``solver``)."""
+    if not counts:
+        raise UserError("counts", "give at least one worker count")
+    if kw.get("solver") is not None:
+        raise UserError("solver", "--compare times the forward model; leave --solver out")
+    kw.pop("solver", None)
+    tmp = None
+    if out is None:
+        tmp = tempfile.TemporaryDirectory(prefix="sweep-compare-")
+        root = Path(tmp.name)
+    else:
+        root = Path(out)
+        if root.exists() and any(root.iterdir()):
+            raise UserError("out", f"{root} is not empty (the benchmark needs fresh directories)")
+    plans = []
+    for k in counts:  # check everything before running anything
+        for path, solver in (("separate", SeparatePresses()), ("shared", None)):
+            cfg = SweepConfig(jobs=k, out=str(root / f"{path}-jobs{k}"), progress=False, solver=solver, **kw)
+            plans.append((k, path, cfg, make_plan(cfg)))
+    rows = []
+    try:
+        for k, path, cfg, plan in plans:
+            s = _timed_run(cfg, plan)
+            rows.append(
+                {
+                    "jobs": k,
+                    "presses": path,
+                    "samples": s["done"],
+                    "failed": s["failed"],
+                    "wall_s": s["wall_s"],
+                    "samples_per_min": s["samples_per_min"],
+                    "mean_solve_s": s.get("mean_solve_s", math.nan),
+                    "worker_cpu_s_per_sample": s["worker_cpu_s"] / s["done"] if s["done"] else math.nan,
+                    "peak_memory_mb": _peak_memory(cfg.out),
+                    "load_before": s["load_before"],
+                    "out": cfg.out,
+                }
+            )
+        devs = {k: feature_deviation(root / f"separate-jobs{k}", root / f"shared-jobs{k}") for k in counts}
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    return {"rows": rows, "deviation": devs, "mesh": kw.get("mesh"), "out": None if tmp else str(root)}
+
+
+def _peak_memory(path) -> float:
+    from elastimap.dataset import io
+
+    mem = io.read_table(path, ["sample_id", "peak_memory_mb"])["peak_memory_mb"].to_numpy(float)
+    return float(np.nanmax(mem)) if mem.size else math.nan
+
+
+def format_compare(res: dict) -> str:
+    head = (
+        f"{'jobs':>4} {'presses':>8} {'samples':>7} {'failed':>6} {'wall s':>8} {'samples/min':>11} "
+        f"{'worker CPU s/sample':>19} {'solve s':>8} {'peak MiB':>8} {'load before':>11}"
+    )
+    lines = [f"sweep bench --compare (mesh {res['mesh']}): separate = each press factorised, shared = as shipped", head]
+    for r in res["rows"]:
+        lines.append(
+            f"{r['jobs']:>4} {r['presses']:>8} {r['samples']:>7} {r['failed']:>6} {r['wall_s']:>8.1f} "
+            f"{r['samples_per_min']:>11.2f} {r['worker_cpu_s_per_sample']:>19.2f} {r['mean_solve_s']:>8.2f} "
+            f"{r['peak_memory_mb']:>8.0f} {r['load_before']:>11.2f}"
+        )
+    by = {(r["jobs"], r["presses"]): r for r in res["rows"]}
+    for k, dev in res["deviation"].items():
+        a, b = by[(k, "separate")], by[(k, "shared")]
+        lines.append(
+            f"jobs {k}: shared vs separate {b['samples_per_min'] / a['samples_per_min']:.2f}x samples/min, "
+            f"{a['worker_cpu_s_per_sample'] / b['worker_cpu_s_per_sample']:.2f}x less worker CPU per sample"
+        )
+        lines.append(
+            f"        features over {dev['samples']} samples, largest |shared/separate - 1|: "
+            + ", ".join(f"{q} {dev[q]:.1e}" for q in COMPARED)
+        )
     if res.get("out"):
         lines.append(f"datasets kept under {res['out']}")
     return "\n".join(lines)

@@ -4,6 +4,7 @@
     elastimap sweep run --n 64 --mesh tiny --phantoms    # + the nine calibration-phantom inclusions
     elastimap sweep run --samples table.csv --out sweeps/mine
     elastimap sweep bench --n 16 --mesh tiny             # samples/min at --jobs 1 and 2, driver overhead
+    elastimap sweep bench --compare --n 64 --jobs-list 2 # the presses before vs as shipped, side by side
 
 Rerunning the same command resumes: only samples with no landed row run.
 """
@@ -192,10 +193,17 @@ def run_cmd(
 @cli.command("bench", context_settings=CONTEXT_SETTINGS)
 @_common
 @click.option("--jobs-list", default="1,2", show_default=True, help="comma-separated worker counts to time")
-@out_option(help="keep the datasets under OUT/jobs<k> (default: a temporary dir)")
-def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solver_spec, jobs_list, out):
+@click.option(
+    "--compare",
+    is_flag=True,
+    help="run each count twice, each press factorised for itself (the path before) and as shipped: "
+    "both timings, the ratio and the largest feature deviation (docs/sweep.md, 'Benchmark')",
+)
+@out_option(help="keep the datasets under OUT/jobs<k> (with --compare OUT/<presses>-jobs<k>; default: a temporary dir)")
+def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solver_spec, jobs_list, compare, out):
     """Time the same sweep at several --jobs: samples/min, speed-up, driver overhead per sample."""
-    from .bench import bench, format_bench
+    from .bench import bench, format_bench, format_compare
+    from .bench import compare as compare_paths
     from .jobs import resolve_solver
 
     try:
@@ -204,7 +212,8 @@ def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solve
         from elastimap.errors import UserError
 
         raise UserError("jobs_list", f"expected integers like 1,2 (got {jobs_list!r})") from None
-    res = bench(
+    run_bench, show = (compare_paths, format_compare) if compare else (bench, format_bench)
+    res = run_bench(
         counts,
         n=16 if n is None and not samples else n,
         seed=seed,
@@ -217,7 +226,7 @@ def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solve
         out=out,
         solver=resolve_solver(solver_spec),
     )
-    click.echo(format_bench(res))
+    click.echo(show(res))
     return 0
 
 

@@ -37,7 +37,9 @@ def test_solve_batch_equals_solve():
     for p, b in zip(ps, rb):
         a = solve(p)
         for k in ("O1", "O2", "O3", "force", "force_ref", "delta"):
-            assert getattr(b, k) == pytest.approx(getattr(a, k), rel=1e-10, abs=1e-14), k
+            # the inclusion press of a single sample is the difference of its two presses to 1e-6 of
+            # that difference (docs/forward-model.md "Shared presses"); a variant's runs on other factors
+            assert getattr(b, k) == pytest.approx(getattr(a, k), rel=1e-6, abs=1e-14), k
         for k in ("image", "image_raw"):
             x, y = getattr(a, k).astype(float), getattr(b, k).astype(float)
             assert np.max(np.abs(x - y)) <= 1e-6 * np.max(np.abs(x))  # float32 images

@@ -223,10 +223,13 @@ def test_sweep_and_verify_reject_bad_switches():
 
 
 def test_inclusion_press_on_the_reference_press_factors(monkeypatch):
-    """Large meshes solve an inclusion press whose own factors are missing or far by CG on the
-    reference press's factors (``Model._borrow``).  Forced on the tiny mesh (every size borrows):
-    the image and its tangent (whose back-solves factorise the inclusion's matrix first) equal
-    those of a model that factorises, and the inclusion solver made no factorisation for the image."""
+    """An inclusion press whose own factors are missing or far is solved by CG on the reference
+    press's factors.  Right after the reference press on the same mesh (every sample's second
+    press) it solves for the difference of the two presses, on any mesh size (``fem.PRESS_*``);
+    otherwise only large meshes borrow (``Model._borrow``), here forced on the tiny mesh (every size
+    borrows).  Either way the image and its tangent (whose back-solves factorise the inclusion's
+    matrix first) equal those of a model that factorises, and the inclusion solver made no
+    factorisation for the image; a modulus beyond ``PRESS_MAX_RATIO`` of the tissue's factorises."""
     import functools
 
     import elastimap.solver.fem as fem
@@ -234,21 +237,34 @@ def test_inclusion_press_on_the_reference_press_factors(monkeypatch):
     from elastimap.solver.reduction import Recycled
 
     theta = (8.3, 7.2, 40.0)
-    with MorphedForward(TINY) as f:
-        plain = f.solve(*theta).image.astype(float)
-        plain_J = f.solve_tangent(*theta)[1]
-        assert next(iter(f._entries.values())).model.recycled["inclusion"].borrowed == 0
-    monkeypatch.setattr(fem, "Recycled", functools.partial(Recycled, blr_min=1))
-    with MorphedForward(TINY) as f:
+
+    def inclusion_solver(f):
+        return next(iter(f._entries.values())).model.recycled["inclusion"]
+
+    with monkeypatch.context() as m:
+        m.setattr(fem, "PRESS_MAX_RATIO", 0.0)  # no difference press: the tiny mesh factorises
+        with MorphedForward(TINY) as f:
+            plain = f.solve(*theta).image.astype(float)
+            plain_J = f.solve_tangent(*theta)[1]
+            assert inclusion_solver(f).borrowed == 0
+        m.setattr(fem, "Recycled", functools.partial(Recycled, blr_min=1))  # every size borrows
+        with MorphedForward(TINY) as f:
+            img = f.solve(*theta).image.astype(float)
+            rec = inclusion_solver(f)
+            assert rec.borrowed == 1 and rec.factorisations == 0
+            np.testing.assert_allclose(img, plain, rtol=0, atol=1e-6 * np.abs(plain).max())
+            f.solve(theta[0], theta[1], 300.0)  # beyond BORROW_MAX_RATIO of the tissue: its own factors
+            assert rec.borrowed == 1 and rec.factorisations == 1
+    with MorphedForward(TINY) as f:  # the difference press (the shipped rule)
         img = f.solve(*theta).image.astype(float)
-        rec = next(iter(f._entries.values())).model.recycled["inclusion"]
+        rec = inclusion_solver(f)
         assert rec.borrowed == 1 and rec.factorisations == 0
         np.testing.assert_allclose(img, plain, rtol=0, atol=1e-6 * np.abs(plain).max())
-        f.solve(theta[0], theta[1], 300.0)  # beyond BORROW_MAX_RATIO of the tissue: its own factors
+        f.solve(theta[0], theta[1], 1.2 * fem.PRESS_MAX_RATIO * TINY.tissue.E)  # beyond PRESS_MAX_RATIO
         assert rec.borrowed == 1 and rec.factorisations == 1
     with MorphedForward(TINY) as f:
         _res, J = f.solve_tangent(*theta)
-        rec = next(iter(f._entries.values())).model.recycled["inclusion"]
+        rec = inclusion_solver(f)
         assert rec.borrowed == 1 and rec.factorisations == 1  # the tangent's back-solves factorised it
         np.testing.assert_allclose(J, plain_J, rtol=0, atol=1e-6 * np.abs(plain_J).max())
 
@@ -265,6 +281,7 @@ def test_a_looser_cg_tolerance_reaches_the_solvers_and_keeps_the_image(monkeypat
     from elastimap.solver.reduction import CG_RTOL, Recycled
 
     monkeypatch.setattr(fem, "Recycled", functools.partial(Recycled, blr_min=1))
+    monkeypatch.setattr(fem, "PRESS_MAX_RATIO", 0.0)  # the full press by CG, not the difference of the two
     theta = (8.3, 7.2, 40.0)
     out = {}
     for rtol in (None, 1e-9):

@@ -1,0 +1,120 @@
+"""A sample's two presses share their work (``solve(presses="shared")``, issue 41): the inclusion
+press is the difference of the two presses by CG on the reference press's factors, its matrix
+updated by the inclusion's cells.  Checked against each press factorised for itself
+(``presses="separate"``, the path before) on tiny meshes."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from elastimap.errors import UserError
+from elastimap.solver.params import Discretisation, Loading, SolveParams
+
+TINY = SolveParams(disc=Discretisation(mesh="tiny"))
+
+
+@pytest.mark.parametrize(
+    "p",
+    [
+        TINY.with_inclusion(d=8.0, h=7.0, E=50.0),
+        TINY.with_inclusion(d=3.0, h=12.0, E=200.0),  # small, deep, stiff: a tiny difference image
+        TINY.with_inclusion(d=12.0, h=9.0, E=10.0),
+        TINY.replace(loading=Loading(force=1200.0)).with_inclusion(d=8.0, h=7.0, E=50.0),
+    ],
+    ids=["8-7-50", "3-12-200", "12-9-10", "force"],
+)
+def test_shared_presses_give_the_separate_presses_numbers(p):
+    from elastimap.solver.api import solve
+
+    a, b = solve(p, presses="separate"), solve(p, presses="shared")
+    for k in ("O1", "O2", "O3"):
+        assert getattr(b, k) == pytest.approx(getattr(a, k), rel=1e-5, abs=1e-12), k
+    for k in ("force", "force_ref", "delta"):
+        assert getattr(b, k) == pytest.approx(getattr(a, k), rel=1e-9), k
+    assert np.abs(b.image.astype(float) - a.image).max() <= 1e-5 * np.abs(a.image).max()
+    assert np.abs(b.image_raw.astype(float) - a.image_raw).max() <= 1e-6 * np.abs(a.image_raw).max()
+
+
+def _model(p):
+    from elastimap.solver.fem import Model
+    from elastimap.solver.geometry import build_mesh
+
+    return Model(build_mesh(p), p)
+
+
+def test_the_inclusion_press_updates_the_matrices_and_borrows_the_factors():
+    """After the reference press, the inclusion press neither assembles nor reduces the whole
+    matrix (A += (E − E_t) A₁ equals a fresh assembly at E to round-off, K likewise) and makes no
+    factorisation of its own; the separate path factorises both presses."""
+    from dolfinx.fem import petsc as fpetsc
+
+    p = TINY.with_inclusion(d=8.0, h=7.0, E=80.0)
+    for share in (True, False):
+        model = _model(p)
+        model.share_presses = share
+        try:
+            model.solve(p.tissue.E, 3.0)
+            model.solve(p.inclusion.E, 3.0)
+            inc = model.recycled["inclusion"]
+            assert (inc.factorisations, inc.borrowed) == ((0, 1) if share else (1, 0))
+            A = model.A.copy()
+            model.A.zeroEntries()
+            fpetsc.assemble_matrix(model.A, model.a)
+            model.A.assemble()
+            A.axpy(-1.0, model.A)
+            assert A.norm() <= 1e-13 * model.A.norm()
+        finally:
+            model.destroy()
+
+
+def test_new_moduli_or_a_moved_mesh_assemble_afresh():
+    """``Model.set_params`` (another tissue modulus: the batch's variants) and ``Model.moved`` (the
+    morphed mesh) drop what the matrices held: the next presses equal a fresh model's."""
+    from elastimap.solver.sample import run_sample
+
+    p = TINY.with_inclusion(d=8.0, h=7.0, E=50.0)
+    q = p.replace(tissue=dataclasses.replace(p.tissue, E=6.5))
+    model = _model(p)
+    try:
+        run_sample(model, p, 0.0, {})
+        model.set_params(q)
+        got = run_sample(model, q, 0.0, {})[0]
+    finally:
+        model.destroy()
+    fresh = _model(q)
+    try:
+        want = run_sample(fresh, q, 0.0, {})[0]
+    finally:
+        fresh.destroy()
+    for k in ("O1", "O2", "force", "force_ref"):
+        assert getattr(got, k) == pytest.approx(getattr(want, k), rel=1e-5), k
+
+
+def test_presses_is_checked():
+    from elastimap.solver.api import solve
+
+    with pytest.raises(UserError) as err:
+        solve(TINY, presses="both")
+    assert err.value.param == "presses"
+
+
+def test_a_process_that_keeps_its_models_prints_only_its_own_output():
+    """A morphed map kept to the end of the process (``shared_forward``, as ``infer --refine``
+    keeps it) whose inclusion solver only borrowed leaves no PETSc option unread: PETSc would print
+    them on stdout at exit, after a ``--json`` answer."""
+    import subprocess
+    import sys
+
+    code = (
+        "from elastimap.solver.params import Discretisation, SolveParams\n"
+        "from elastimap.solver.morph import shared_forward\n"
+        "p = SolveParams(disc=Discretisation(mesh='tiny', geometry='morph'))\n"
+        "f = shared_forward(p)\n"
+        "f.solve(8.0, 7.0, 50.0)\n"
+        "assert next(iter(f._entries.values())).model.recycled['inclusion'].borrowed == 1\n"
+        "print('ok')\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip() == "ok", r.stdout[-500:]
