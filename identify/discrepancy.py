@@ -75,8 +75,13 @@ PRIOR_SCALE = {"amplitude": 0.02, "width": 0.02, "tail": 0.02, "remainder": 0.01
 #: ``ν₀``: how many phantoms' worth the prior scale weighs against the lab's phantoms
 PRIOR_WEIGHT = 2.0
 #: the remainder's correlation lengths (mm) :func:`learn` chooses from by the calibration phantoms'
-#: likelihood (0: white)
-ELL_GRID = (0.0, 1.0, 2.0, 4.0)
+#: likelihood (0: white).  At most 2 mm, about the element size under the probe: with 4 mm allowed the
+#: likelihood chose it on the variant world (elastimap's remeshing `default` level, sized by d, contact,
+#: against the morphed `coarse` map; ``python -m elastimap.workflows.studies.modelform --world-level
+#: default --model-mesh coarse --alt-mesh tiny``), and the generalised least squares then trusted the
+#: image's fine scale, where the map's own mesh is wrong: coverage of d/h/E 57/55/57 % against
+#: 100/100/100 % with ℓ ≤ 2 mm (docs/model-form.md, 'Choosing the settings')
+ELL_GRID = (0.0, 1.0, 2.0)
 #: the pixels the choice of ℓ looks at: envelope at least this fraction of its peak
 SUPPORT = 0.05
 
@@ -433,11 +438,17 @@ class LinearFit:
     dof: int
 
 
-def linear_fit(image, m0, J, sigma, pixel: float, disc: Discrepancy | None = None) -> LinearFit:
+def linear_fit(
+    image, m0, J, sigma, pixel: float, disc: Discrepancy | None = None, systematic=(), birge: bool = False
+) -> LinearFit:
     """The fit of ``image`` (mm) linearised at a point whose forward image is ``m0`` and Jacobian ``J``
     ``(p, n)`` (mm per unit of the fit's coordinates), pixel noise ``sigma`` (mm): the generalised
     least-squares step ``dx`` under the discrepancy ``disc`` (None: noise alone, the closed world).
-    What :mod:`elastimap.workflows.studies.modelform` scores; a fit's passes do the same at each start."""
+    ``systematic``: images (mm) of a known-size error that moves every pixel together (the map's
+    discretisation error, the difference of two mesh levels), each propagated through the estimator as
+    a shift ``b`` added as ``b bᵀ`` to the covariance -- as :func:`elastimap.identify.refine.fit_image`
+    does; ``birge``: the covariance widened by ``max(1, χ²/dof)``.  What
+    :mod:`elastimap.workflows.studies.modelform` scores; a fit's passes do the same at each start."""
     m0 = np.asarray(m0, float)
     I = np.asarray(image, float).ravel()
     J = np.asarray(J, float).reshape(I.size, -1)
@@ -446,11 +457,16 @@ def linear_fit(image, m0, J, sigma, pixel: float, disc: Discrepancy | None = Non
     r_w = W(m0.ravel() - I)
     P_w = W(disc.basis(m0, pixel))
     r_a, J_a, keep = augment(r_w, W(J) if J.shape[1] else J, P_w, disc)
-    H = J_a.T @ J_a
     step = -np.linalg.lstsq(J_a, r_a, rcond=None)[0]
-    cov = np.linalg.pinv(H)
+    Hi = np.linalg.pinv(J_a.T @ J_a)
     n = J.shape[1]
     r_after = r_a + J_a @ step
+    chi2, dof = float(r_after @ r_after), max(I.size - n, 1)
+    cov = Hi * (max(1.0, chi2 / dof) if birge else 1.0)
+    for dl in systematic:
+        rhs = np.concatenate([W(np.asarray(dl, float).ravel()), np.zeros(J_a.shape[0] - I.size)])
+        b = Hi @ (J_a.T @ rhs)
+        cov = cov + np.outer(b, b)
     beta = disc.mean.copy()
     beta[keep] = beta[keep] + step[n:]
-    return LinearFit(step[:n], cov[:n, :n], beta, float(r_after @ r_after), max(I.size - n, 1))
+    return LinearFit(step[:n], cov[:n, :n], beta, chi2, dof)
