@@ -470,3 +470,53 @@ def linear_fit(
     beta = disc.mean.copy()
     beta[keep] = beta[keep] + step[n:]
     return LinearFit(step[:n], cov[:n, :n], beta, chi2, dof)
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """One calibration phantom scored by the discrepancy learnt from the others: ``chi2_px`` the residual's
+    ``rᵀ Σ⁻¹ r / p`` under that budget (about 1 when the budget is the right size; residual less the
+    learnt mean), ``z`` its modes' coefficients in units of their predicted sd and ``covered`` whether
+    each lies within 1.96 of them."""
+
+    chi2_px: float
+    z: np.ndarray
+    covered: np.ndarray
+
+
+def leave_one_out(residuals, models, sigmas, pixel: float, **kw) -> list[HeldOut]:
+    """Leave-one-phantom-out check of :func:`learn` (``kw`` passed on): each calibration phantom's
+    residual scored by the discrepancy learnt from the others (:class:`HeldOut`).  What a lab's
+    recalibration reports beside the learnt scales."""
+    residuals, models, sigmas = list(residuals), list(models), list(sigmas)
+    n = len(residuals)
+    if n < 3:
+        raise UserError("phantoms", f"a leave-one-out check needs at least 3 calibration phantoms (got {n})")
+    out = []
+    for i in range(n):
+        rest = [j for j in range(n) if j != i]
+        d = learn([residuals[j] for j in rest], [models[j] for j in rest], [sigmas[j] for j in rest], pixel, **kw)
+        m = np.asarray(models[i], float)
+        R = np.asarray(residuals[i], float)
+        held = linear_fit(m + R, m, np.zeros((m.size, 0)), sigmas[i], pixel, d)
+        f = project(R, m, np.hypot(_sigma(sigmas[i], m.shape), d.remainder_sd(m)).reshape(m.shape), pixel, d.modes)
+        sd = np.sqrt(np.diag(d.prior_cov) + np.diag(f.cov))
+        z = (f.beta - d.mean) / sd
+        out.append(HeldOut(held.chi2 / m.size, z, np.abs(z) <= 1.96))
+    return out
+
+
+def calibrate(measured, sigmas, thetas, forward, pixel: float, **kw) -> tuple[Discrepancy, list[HeldOut]]:
+    """The model-form error of a lab's calibration phantoms from their measured difference images
+    (mm, e.g. recovered from camera frames), pixel noise (mm) and known ``thetas`` (d mm, h mm, E kPa),
+    with ``forward(d, h, E)`` elastimap's image at a design (an array, or a result with ``.image``):
+    the learnt :class:`Discrepancy` (:func:`learn`, ``kw`` passed on) and its leave-one-phantom-out check
+    (:func:`leave_one_out`; empty for fewer than 3 phantoms)."""
+    models = []
+    for th in thetas:
+        out = forward(*(float(v) for v in th))
+        models.append(np.asarray(getattr(out, "image", out), dtype=float))
+    residuals = [np.asarray(I, float) - m for I, m in zip(measured, models, strict=True)]
+    d = learn(residuals, models, sigmas, pixel, **kw)
+    loo = leave_one_out(residuals, models, sigmas, pixel, **kw) if len(models) >= 3 else []
+    return d, loo
