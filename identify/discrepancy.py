@@ -72,6 +72,9 @@ ENVELOPE_PX = 2.0
 #: its finest refinement by ≤ 0.7 %).  A prior's scale only, never a correction: the lab's phantoms
 #: decide (:func:`learn`)
 PRIOR_SCALE = {"amplitude": 0.02, "width": 0.02, "tail": 0.02, "remainder": 0.01}
+#: a learnt term beyond this many times its prior scale is no model-form difference (:meth:`Discrepancy.beyond`);
+#: fixed in advance (a 3-sigma rule on the prior scale), not fitted to any data set
+BEYOND = 3.0
 #: ``ν₀``: how many phantoms' worth the prior scale weighs against the lab's phantoms
 PRIOR_WEIGHT = 2.0
 #: the remainder's correlation lengths (mm) :func:`learn` chooses from by the calibration phantoms'
@@ -211,6 +214,20 @@ class Discrepancy:
         """No model-form error (the closed world: elastimap's own solver made the data)."""
         k = len(MODES)
         return cls(MODES, np.zeros(k), np.zeros(k), np.zeros((k, k)), 0.0, 0, "none (closed world)", 0.0)
+
+    def beyond(self, factor: float = BEYOND) -> list[str]:
+        """The terms whose learnt size exceeds ``factor`` times their prior scale (:data:`PRIOR_SCALE`): a
+        mode's mean or spread, or the remainder.  Non-empty: the phantoms differ from elastimap by more
+        than a model-form difference of two faithful models -- a physical effect (run ``gap diagnose``)
+        or a mislabelled phantom, which a fit should not absorb as model-form error."""
+        out = []
+        for k, w in enumerate(self.modes):
+            lim = factor * PRIOR_SCALE[w]
+            if abs(self.mean[k]) > lim or self.tau[k] > lim:
+                out.append(w)
+        if self.rho > factor * PRIOR_SCALE["remainder"]:
+            out.append("remainder")
+        return out
 
     @property
     def prior_cov(self) -> np.ndarray:

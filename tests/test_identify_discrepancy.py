@@ -175,3 +175,10 @@ def test_calibrate_learns_from_measured_phantoms_and_scores_each_left_out():
     assert 0.3 < np.median([h.chi2_px for h in loo]) < 3
     with pytest.raises(UserError, match="at least 3"):
         dy.leave_one_out(measured[:2], [forward(*t) for t in thetas[:2]], sigmas[:2], PIX)
+
+
+def test_a_learnt_difference_far_beyond_the_prior_scale_is_flagged():
+    small = dy.Discrepancy(mean=np.array([0.012, 0.0]), tau=np.array([0.014, 0.009]), rho=0.005)
+    assert small.beyond() == []
+    big = dy.Discrepancy(mean=np.array([-0.17, 0.0]), tau=np.array([0.014, 0.009]), rho=0.06)
+    assert big.beyond() == ["amplitude", "remainder"]
