@@ -442,6 +442,15 @@ def augment(r_w, J_w, P_w, disc: Discrepancy, beta=None):
     return r_a, J_a, keep
 
 
+def _inverse(H: np.ndarray, rcond: float = 1e-12) -> np.ndarray:
+    """``H⁻¹`` of a symmetric information matrix with its eigenvalues floored at ``rcond`` x the largest: a
+    direction the data (and the prior) do not inform gets a variance ``1/rcond`` times the best-told one's
+    -- not identifiable -- where a pseudo-inverse would give it none."""
+    lam, V = np.linalg.eigh(0.5 * (H + H.T))
+    lam = np.clip(lam, rcond * max(float(lam.max()), 1e-300), None)
+    return (V / lam) @ V.T
+
+
 @dataclass(frozen=True)
 class LinearFit:
     """One Gauss–Newton step of a fit linearised at ``x0``: the step ``dx``, its covariance ``cov``
@@ -475,7 +484,7 @@ def linear_fit(
     P_w = W(disc.basis(m0, pixel))
     r_a, J_a, keep = augment(r_w, W(J) if J.shape[1] else J, P_w, disc)
     step = -np.linalg.lstsq(J_a, r_a, rcond=None)[0]
-    Hi = np.linalg.pinv(J_a.T @ J_a)
+    Hi = _inverse(J_a.T @ J_a)
     n = J.shape[1]
     r_after = r_a + J_a @ step
     chi2, dof = float(r_after @ r_after), max(I.size - n, 1)
