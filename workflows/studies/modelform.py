@@ -292,14 +292,18 @@ def fit_nonlinear(I, sigma, th0, fmap, disc, systematic=(), max_iter: int = 8) -
         lf = dy.linear_fit(I, m, Jx, sigma, PIXEL, disc, systematic, birge=True)
         cost0 = dy.linear_fit(I, m, np.zeros((m.size, 0)), sigma, PIXEL, disc).chi2
         sd = np.sqrt(np.clip(np.diag(lf.cov), 0, None))
-        step = lf.dx
+        step, better = lf.dx, False
         for _ in range(4):
             xn = np.clip(x + step, lb, ub)
             thn, mn, Jn = at(xn)
             n_solves += 1
             if dy.linear_fit(I, mn, np.zeros((m.size, 0)), sigma, PIXEL, disc).chi2 <= cost0:
+                better = True
                 break
             step = step / 2
+        if not better:  # no step along the Gauss–Newton direction lowers the misfit: stop here
+            converged = True
+            break
         moved = np.abs(xn - x) > 0.2 * sd
         x, th, m, J = xn, thn, mn, Jn
         if not moved.any():
