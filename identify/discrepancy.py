@@ -446,6 +446,8 @@ def _inverse(H: np.ndarray, rcond: float = 1e-12) -> np.ndarray:
     """``H⁻¹`` of a symmetric information matrix with its eigenvalues floored at ``rcond`` x the largest: a
     direction the data (and the prior) do not inform gets a variance ``1/rcond`` times the best-told one's
     -- not identifiable -- where a pseudo-inverse would give it none."""
+    if H.size == 0:
+        return np.zeros_like(H)
     lam, V = np.linalg.eigh(0.5 * (H + H.T))
     lam = np.clip(lam, rcond * max(float(lam.max()), 1e-300), None)
     return (V / lam) @ V.T

@@ -124,6 +124,9 @@ def test_record_round_trips_and_refuses_bad_shapes():
     none = dy.Discrepancy.none()
     m = bump()
     assert np.allclose(none.sd_image(m, PIX), 0)
+    # the misfit alone (no parameters, no discrepancy): χ² of the whitened residual
+    lf = dy.linear_fit(m + 1e-4, m, np.zeros((m.size, 0)), 1e-4, PIX)
+    assert lf.chi2 == pytest.approx(m.size) and lf.dx.size == 0
 
 
 def test_learn_tells_a_smooth_remainder_from_a_white_one():
