@@ -467,7 +467,15 @@ class LinearFit:
 
 
 def linear_fit(
-    image, m0, J, sigma, pixel: float, disc: Discrepancy | None = None, systematic=(), birge: bool = False
+    image,
+    m0,
+    J,
+    sigma,
+    pixel: float,
+    disc: Discrepancy | None = None,
+    systematic=(),
+    birge: bool = False,
+    basis_image=None,
 ) -> LinearFit:
     """The fit of ``image`` (mm) linearised at a point whose forward image is ``m0`` and Jacobian ``J``
     ``(p, n)`` (mm per unit of the fit's coordinates), pixel noise ``sigma`` (mm): the generalised
@@ -475,15 +483,20 @@ def linear_fit(
     ``systematic``: images (mm) of a known-size error that moves every pixel together (the map's
     discretisation error, the difference of two mesh levels), each propagated through the estimator as
     a shift ``b`` added as ``b bᵀ`` to the covariance -- as :func:`elastimap.identify.refine.fit_image`
-    does; ``birge``: the covariance widened by ``max(1, χ²/dof)``.  What
+    does; ``birge``: the covariance widened by ``max(1, χ²/dof)``.  ``basis_image``: the image (mm) the
+    discrepancy's modes and envelope are built from (default ``m0``).  A fit that compares misfits
+    at several points must hold it fixed (e.g. the measured image, smoothed): a covariance that
+    grows with the trial image lowers ``rᵀΣ⁻¹r`` where the image is larger, and the fit drifts there
+    (the log-determinant that would balance it is not in a least-squares misfit).  What
     :mod:`elastimap.workflows.studies.modelform` scores; a fit's passes do the same at each start."""
     m0 = np.asarray(m0, float)
     I = np.asarray(image, float).ravel()
     J = np.asarray(J, float).reshape(I.size, -1)
     disc = disc or Discrepancy.none()
-    W = disc.whitener(m0, pixel, sigma)
+    mb = m0 if basis_image is None else np.asarray(basis_image, float).reshape(m0.shape)
+    W = disc.whitener(mb, pixel, sigma)
     r_w = W(m0.ravel() - I)
-    P_w = W(disc.basis(m0, pixel))
+    P_w = W(disc.basis(mb, pixel))
     r_a, J_a, keep = augment(r_w, W(J) if J.shape[1] else J, P_w, disc)
     step = -np.linalg.lstsq(J_a, r_a, rcond=None)[0]
     Hi = _inverse(J_a.T @ J_a)

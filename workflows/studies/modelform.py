@@ -271,10 +271,16 @@ def fit_nonlinear(I, sigma, th0, fmap, disc, systematic=(), max_iter: int = 8) -
     least-squares step of :func:`elastimap.identify.discrepancy.linear_fit` under ``disc`` (None: the
     closed budget), halved until the misfit falls (at most 3 times); stops when no parameter moves by
     more than 0.2 sd.  Returns the estimate, its covariance in x, the box flags and the solves."""
+    from scipy import ndimage
+
     from elastimap.dataset.schema import DESIGN_BOX
     from elastimap.identify import discrepancy as dy
 
     X = fit_jacobian(th0, np.zeros((3, 1)))[1]
+    # the discrepancy's modes and envelope from the measured image (smoothed over 1 pixel), fixed for
+    # the whole fit: built from each trial image they grow with it and the misfit drifts toward larger
+    # images (docs/model-form.md, 'The nonlinear check')
+    Ib = ndimage.gaussian_filter(np.asarray(I, float), 1.0, mode="nearest")
     lb, ub = X.box(DESIGN_BOX["d"], DESIGN_BOX["E"])
     pad = 1e-3 * (ub - lb)
     x = np.clip(X.x(th0), lb + pad, ub - pad)
@@ -289,15 +295,15 @@ def fit_nonlinear(I, sigma, th0, fmap, disc, systematic=(), max_iter: int = 8) -
     n_solves += 1
     for _ in range(max_iter):
         Jx, _ = fit_jacobian(th, J)
-        lf = dy.linear_fit(I, m, Jx, sigma, PIXEL, disc, systematic, birge=True)
-        cost0 = dy.linear_fit(I, m, np.zeros((m.size, 0)), sigma, PIXEL, disc).chi2
+        lf = dy.linear_fit(I, m, Jx, sigma, PIXEL, disc, systematic, birge=True, basis_image=Ib)
+        cost0 = dy.linear_fit(I, m, np.zeros((m.size, 0)), sigma, PIXEL, disc, basis_image=Ib).chi2
         sd = np.sqrt(np.clip(np.diag(lf.cov), 0, None))
         step, better = lf.dx, False
         for _ in range(4):
             xn = np.clip(x + step, lb, ub)
             thn, mn, Jn = at(xn)
             n_solves += 1
-            if dy.linear_fit(I, mn, np.zeros((m.size, 0)), sigma, PIXEL, disc).chi2 <= cost0:
+            if dy.linear_fit(I, mn, np.zeros((m.size, 0)), sigma, PIXEL, disc, basis_image=Ib).chi2 <= cost0:
                 better = True
                 break
             step = step / 2
@@ -310,7 +316,7 @@ def fit_nonlinear(I, sigma, th0, fmap, disc, systematic=(), max_iter: int = 8) -
             converged = True
             break
     Jx, _ = fit_jacobian(th, J)
-    lf = dy.linear_fit(I, m, Jx, sigma, PIXEL, disc, systematic, birge=True)
+    lf = dy.linear_fit(I, m, Jx, sigma, PIXEL, disc, systematic, birge=True, basis_image=Ib)
     tol = 1e-3 * (ub - lb)
     at_bound = ((x <= lb + tol) | (x >= ub - tol)).tolist()
     return {
