@@ -1,7 +1,7 @@
 r"""Model-form error: the discrepancy between elastimap's forward image and the world's, learned from
 a lab's calibration phantoms and carried into a fit as an informative prior.
 
-Why a term of its own.  The fit's error budget (:mod:`elastimap.identify.refine`) holds the pixel
+Why a term of its own.  The fit's error budget (:mod:`elastimap.identify.fit`) holds the pixel
 noise and elastimap's own discretisation (the difference of two of its mesh levels).  Another faithful
 model of the same sensor -- and every real sensor -- differs from elastimap by more: 1–3 % of the
 difference image, structured (larger for small, stiff, deep inclusions), smooth over the image.  Left
@@ -482,7 +482,7 @@ def linear_fit(
     least-squares step ``dx`` under the discrepancy ``disc`` (None: noise alone, the closed world).
     ``systematic``: images (mm) of a known-size error that moves every pixel together (the map's
     discretisation error, the difference of two mesh levels), each propagated through the estimator as
-    a shift ``b`` added as ``b bᵀ`` to the covariance -- as :func:`elastimap.identify.refine.fit_image`
+    a shift ``b`` added as ``b bᵀ`` to the covariance -- as :func:`elastimap.identify.fit.fit_image`
     does; ``birge``: the covariance widened by ``max(1, χ²/dof)``.  ``basis_image``: the image (mm) the
     discrepancy's modes and envelope are built from (default ``m0``).  A fit that compares misfits
     at several points must hold it fixed (e.g. the measured image, smoothed): a covariance that

@@ -19,12 +19,12 @@ calibration phantom with a discrepancy learnt from the other eight, and phantoms
 learnt from the nine.  For each, a measured image (the world's difference image plus Gaussian pixel
 noise of ``--frames`` frames of the nominal camera, :func:`elastimap.camera.optics.deflection_noise_map`,
 ``--draws`` draws) is fitted **linearised at the truth** (one generalised least-squares step in the
-fit's coordinates (d, u, e), :class:`elastimap.identify.refine.FitCoords`, from the map's exact
+fit's coordinates (d, u, e), :class:`elastimap.identify.coords.FitCoords`, from the map's exact
 derivative; :func:`elastimap.identify.discrepancy.linear_fit`):
 
 * ``closed``: the error budget the fit carries today -- the pixel noise and the map's discretisation
   error, the difference from ``--alt-mesh`` as a per-pixel sd (3x3 local rms) and one systematic image
-  (``b bᵀ`` in the covariance), as :func:`elastimap.identify.refine.fit_image` does;
+  (``b bᵀ`` in the covariance), as :func:`elastimap.identify.fit.fit_image` does;
 * ``open``: the same (per-pixel sd, systematic image, Birge factor) plus the learnt discrepancy (its
   modes marginalised, its remainder correlated).
 
@@ -75,10 +75,10 @@ def read_world(folder: str, name: str) -> list[dict]:
 
 def variant_designs(seed: int = 99) -> np.ndarray:
     """elastimap's nine calibration-phantom designs and three Latin-hypercube lesions (seed ``seed``)."""
-    from elastimap.camera.calibration import load_phantoms
-    from elastimap.workflows.frames_benchmark import draw_lesions
+    from elastimap.dataset.phantoms import read_phantoms
+    from elastimap.workflows.benchmarks.frames.lesions import draw_lesions
 
-    ph = load_phantoms()
+    ph = read_phantoms()
     return np.vstack([ph[["d", "h", "E"]].to_numpy(float), draw_lesions(3, seed)])
 
 
@@ -108,7 +108,7 @@ def variant_world(level: str, cache: str, seed: int = 99) -> list[dict]:
 def model_at(thetas, mesh: str, cache: str) -> dict:
     """elastimap's morphed map at ``mesh``: ``{key: (image, J)}`` at each design (J ``(3, ny, nx)`` =
     ∂image/∂(d, h, E)), each with its reference press re-solved at the design (cached in ``cache``)."""
-    from elastimap.identify.refine import shared_map
+    from elastimap.identify.forward_maps import shared_map
 
     os.makedirs(cache, exist_ok=True)
     out, f = {}, None
@@ -131,7 +131,7 @@ def key(th) -> str:
 
 def fit_jacobian(th, J) -> tuple[np.ndarray, object]:
     """∂m/∂x ``(p, 3)`` in the fit's coordinates x = (d, u, e) at ``th`` and the coordinates."""
-    from elastimap.identify.refine import FitCoords
+    from elastimap.identify.coords import FitCoords
 
     X = FitCoords()
     x = X.x(th)
@@ -335,7 +335,7 @@ def nonlinear_check(world, model_mesh, alt, cache, frames, seed, which, prior_we
     truth under both budgets (the discrepancy learnt as in :func:`score_set`)."""
     from elastimap.camera.optics import deflection_noise_map
     from elastimap.identify import discrepancy as dy
-    from elastimap.identify.refine import shared_map
+    from elastimap.identify.forward_maps import shared_map
 
     rng = np.random.default_rng(seed)
     model = model_at([ph["theta"] for ph in world], model_mesh, cache)
