@@ -43,8 +43,9 @@ the uncertainty of ``μ``), with mean ``Φ μ``.  Equivalently (what :func:`augm
 residuals whitened by ``D``'s Cholesky factor, :meth:`Discrepancy.whitener`) the
 fit estimates ``β`` beside θ with the prior as ``K`` extra residual rows ``L⁻¹(β − μ)``: the
 Gauss–Newton covariance of θ is then the marginal one, so a parameter confounded with a mode (a stiff
-inclusion's E with the amplitude) gets the interval the prior allows, and an estimate is no longer
-pushed to the design edge to absorb a model-form difference the prior explains.  The informativeness
+inclusion's E with the amplitude) gets the interval the prior allows -- to first order: a nonlinear fit
+carrying this term walked along the d–E valley on the dev set (docs/model-form.md, 'The nonlinear
+check'), so no product fit uses it yet.  The informativeness
 is what Brynjarsdóttir & O'Hagan ask for: ``τ`` is the spread over the lab's own phantoms, not a
 free function.
 
