@@ -23,6 +23,7 @@ STUDIES = {
     "levelbias": "Each mesh level's image error against a finer world and the (d, h, E) shift it causes.",
     "valleyfit": "Re-fit frames-benchmark lesions with one ingredient changed (image, start, maps, fit).",
     "interval_calibration": "The calibrated interval scales of the physics fit from frames-benchmark records.",
+    "modelform": "The fit's error budget with and without the learnt model-form error, on another model's phantoms.",
 }
 
 
