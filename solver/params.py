@@ -50,7 +50,10 @@ THICKNESS = 20.0
 DESIGN_BOX = {"d": (2.0, 15.0), "E": (10.0, 200.0)}
 
 _POSITIVE_MM = Interval(float, 0, None, closed="neither", unit="mm")
-_POSITIVE_KPA = Interval(float, 0, None, closed="neither", unit="kPa")
+#: moduli from 1 Pa to 10 GPa: beyond them the linear solve loses every digit (1e308 kPa gave NaN)
+_POSITIVE_KPA = Interval(float, 1e-3, 1e7, unit="kPa")
+#: an inclusion below 0.1 mm is smaller than any mesh level resolves (gmsh failed at 1e-300 mm)
+_INCLUSION_MM = Interval(float, 0.1, None, unit="mm")
 _POISSON = Interval(float, -1, 0.5, closed="neither")
 
 #: What each solve parameter alone must be, under the name errors report (``d``, ``tissue.E``, ...).
@@ -61,7 +64,7 @@ PARAMETER_CONSTRAINTS = {
     "tissue.nu": [_POISSON],
     "tissue.skin_E": [_POSITIVE_KPA],
     "tissue.nonlinearity": [Interval(float, 0, 1)],
-    "d": [_POSITIVE_MM],
+    "d": [_INCLUSION_MM],
     "E": [_POSITIVE_KPA],
     "inclusion.nu": [_POISSON],
     "inclusion.aspect": [Interval(float, 0.2, 5.0)],
