@@ -136,10 +136,12 @@ class Calibration:
         }
 
     def save(self, path: str | os.PathLike) -> None:
+        """Write the calibration JSON whole (:func:`elastimap.outputs.write_text`: an existing file
+        is replaced only by a complete new one)."""
+        from elastimap.outputs import write_text
+
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "w") as fh:
-            json.dump(self.to_dict(), fh, indent=2)
-            fh.write("\n")
+        write_text(path, json.dumps(self.to_dict(), indent=2) + "\n", "out")
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Calibration:
@@ -164,11 +166,13 @@ class Calibration:
             fem = np.array([[r[f"fem_{k}"] for k in FEATURES] for r in ph], dtype=float)
             cam = np.array([[r[f"cam_{k}"] for k in FEATURES] for r in ph], dtype=float)
             phantoms = [{k: r[k] for k in r if not k.startswith(("fem_", "cam_"))} for r in ph]
-        except (KeyError, TypeError) as exc:
-            raise UserError("calibration", f"{p}: malformed calibration file (missing {exc})") from None
+            names = [str(r["name"]) for r in phantoms]
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise UserError("calibration", f"{p}: malformed calibration file ({type(exc).__name__}: {exc})") from None
+        _check_loaded(p, fits, fem, cam, d)
         return cls(
             fits,
-            [str(r["name"]) for r in phantoms],
+            names,
             phantoms,
             fem,
             cam,
@@ -211,6 +215,33 @@ class Calibration:
                 "with an image model or --refine",
             )
         return np.asarray(self.deflection["reference"], float), float(self.deflection["pixel"])
+
+
+def _check_loaded(p: str, fits: dict, fem: np.ndarray, cam: np.ndarray, d: dict) -> None:
+    """What a calibration file must hold beyond its keys: finite, non-zero slopes, finite
+    intercepts and phantom features, and settings of the right types (else the fault showed up
+    later, blamed on the features given to ``infer``)."""
+
+    def bad(what: str):
+        return UserError("calibration", f"{p}: damaged calibration file ({what})")
+
+    for k, f in fits.items():
+        for name in ("slope", "intercept"):
+            v = getattr(f, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+                raise bad(f"{k} {name} is {v!r}, not a finite number")
+        if f.slope == 0:
+            raise bad(f"{k} slope is 0")
+    if fem.ndim != 2 or fem.shape != cam.shape or len(fem) < 2:
+        raise bad(f"phantom feature tables of shapes {fem.shape} and {cam.shape}")
+    if not (np.all(np.isfinite(fem)) and np.all(np.isfinite(cam))):
+        raise bad("non-finite phantom features")
+    if not isinstance(d.get("feature_settings", {}), dict):
+        raise bad("feature_settings is not a JSON object")
+    if d.get("sensor") is not None and not isinstance(d["sensor"], dict):
+        raise bad("sensor is not a JSON object")
+    if d.get("deflection") is not None and not isinstance(d["deflection"], dict):
+        raise bad("deflection is not a JSON object")
 
 
 def deflection_calibration(results, pairs, sensor=None) -> dict:
@@ -389,49 +420,65 @@ def simulate_phantoms(
 
 
 def camera_features_from_csv(
-    path: str | os.PathLike, phantoms, sensor=None, settings=None, frames_out: list | None = None
+    path: str | os.PathLike,
+    phantoms,
+    sensor=None,
+    settings=None,
+    frames_out: list | None = None,
+    allow_outside: bool = False,
 ):
     """Camera features of the phantoms from the user's images.
 
     The CSV has columns ``name`` (matching the phantom spec), ``images`` and
     ``background`` (each a ';'-separated list of files or glob patterns,
-    relative to the CSV's folder).  Returns (n, 3) in the phantom order; ``frames_out`` (a list)
+    relative to the CSV's folder and inside it unless ``allow_outside``).  Returns (n, 3) in the phantom order; ``frames_out`` (a list)
     receives each phantom's (lesion, background) frame stacks (DN).
     """
-    import pandas as pd
+    from elastimap.tables import read_csv
 
     from .features import features_from_files
     from .frames import expand
 
     p = Path(path)
-    if not p.exists():
-        raise UserError("camera-csv", f"{p}: no such file")
-    df = pd.read_csv(p, comment="#", skipinitialspace=True)
-    for c in ("name", "images", "background"):
-        if c not in df.columns:
-            raise UserError("camera-csv", f"{p}: missing column {c!r} (need name, images, background)")
+    df = read_csv(p, "camera-csv", required=("name", "images", "background"))
     df["name"] = df["name"].astype(str)
     rows = {r["name"]: r for _, r in df.iterrows()}
-    out = []
-    for name in phantoms["name"]:
+
+    def files(r, col: str) -> list[str]:
+        try:
+            found = expand(str(r[col]), p.parent, param="camera-csv", allow_outside=allow_outside)
+            for f in found:
+                if not os.path.isfile(f):
+                    raise UserError("camera-csv", f"{f}: no such file")
+            return found
+        except UserError as exc:
+            raise UserError("camera-csv", f"{p}, {r['name']!r}, column {col}: {exc.message}") from None
+
+    listed = []
+    for name in phantoms["name"]:  # every phantom's files first: a bad name costs nothing
         if name not in rows:
             raise UserError("camera-csv", f"{p}: no images for phantom {name!r}")
-        r = rows[name]
-        imgs = expand(str(r["images"]), p.parent)
-        bg = expand(str(r["background"]), p.parent)
-        out.append(features_from_files(imgs, bg, sensor, settings).values)
+        listed.append((files(rows[name], "images"), files(rows[name], "background")))
+    out = []
+    for imgs, bg in listed:
+        out.append(features_from_files(imgs, bg, sensor, settings, ("camera-csv", "camera-csv")).values)
         if frames_out is not None:
             from .frames import read_stack
             from .optics import SensorModel
 
             m = sensor or SensorModel()
-            frames_out.append((read_stack(imgs, m.shape, m.window)[0], read_stack(bg, m.shape, m.window)[0]))
+            frames_out.append(
+                (
+                    read_stack(imgs, m.shape, m.window, "camera-csv")[0],
+                    read_stack(bg, m.shape, m.window, "camera-csv")[0],
+                )
+            )
     return np.array(out)
 
 
 def fem_features_from_csv(path: str | os.PathLike, phantoms) -> np.ndarray:
     """FEM features of the phantoms from a CSV (name, O1, O2, O3), e.g. from the sweep's phantom rows."""
-    import pandas as pd
+    from elastimap.tables import numbers, read_csv
 
     p = Path(path)
     if not p.exists():
@@ -447,11 +494,14 @@ def fem_features_from_csv(path: str | os.PathLike, phantoms) -> np.ndarray:
         df = df[is_phantom(df["tag"])].copy()
         df["name"] = [phantom_name(t) for t in df["tag"]]
     else:
-        df = pd.read_csv(p, comment="#", skipinitialspace=True)
-    for c in ("name", "O1", "O2", "O3"):
+        df = read_csv(p, "fem-features", required=("name", *FEATURES))
+    for c in ("name", *FEATURES):
         if c not in df.columns:
             raise UserError("fem-features", f"{p}: missing column {c!r}")
     df["name"] = df["name"].astype(str)
+    df = df[df["name"].isin(set(phantoms["name"]))].reset_index(drop=True)
+    for k in FEATURES:
+        df[k] = numbers(df, k, "fem-features", str(p))
     rows = {r["name"]: r for _, r in df.iterrows()}
     out = []
     for name in phantoms["name"]:

@@ -42,8 +42,14 @@ def _sensor(sensor_json: str | None, **overrides):
             raise UserError("sensor", f"{sensor_json}: not valid JSON ({exc})") from None
         if not isinstance(base, dict):
             raise UserError("sensor", f"{sensor_json}: must hold a JSON object of SensorModel parameters")
-    base.update({k: v for k, v in overrides.items() if v is not None})
-    return SensorModel.from_dict(base)
+    given = {k: v for k, v in overrides.items() if v is not None}
+    base.update(given)
+    try:
+        return SensorModel.from_dict(base)
+    except UserError as exc:
+        if sensor_json and exc.param not in given:  # the value came from the file: name the file
+            raise UserError("sensor", f"{sensor_json}: {exc.param}: {exc.message}") from None
+        raise
 
 
 def sensor_options(f):
@@ -137,6 +143,10 @@ def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, s
     model = _sensor(sensor_json, **_model_kw(seed, noise_scale, bits, binning))
     if frames < 1:
         raise UserError("frames", f"must be >= 1 (got {frames})")
+    if name is not None:
+        from elastimap.tables import check_name
+
+        check_name(name, "--name", "--name")  # it names the frame files: checked before the solve
     check_out_dir(out, "--out", allow_existing=True)
     res = default_fem(mesh, delta)(d, h, E, tissue_E=tissue_e)
     F, B = render_pair(model, res.image_raw, res.image, res.pixel, frames)
@@ -155,8 +165,10 @@ def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, s
     }
     pl = write_frames(F, out, f"synthetic_{stem}", fmt, dict(meta, frame="lesion"))
     pb = write_frames(B, out, f"synthetic_{stem}_background", fmt, dict(meta, frame="background"))
-    with open(os.path.join(out, f"synthetic_{stem}.json"), "w") as fh:
-        json.dump(dict(meta, synthetic=True, lesion_frames=pl, background_frames=pb), fh, indent=2)
+    from elastimap.outputs import write_text
+
+    doc = dict(meta, synthetic=True, lesion_frames=pl, background_frames=pb)
+    write_text(os.path.join(out, f"synthetic_{stem}.json"), json.dumps(doc, indent=2), "--out")
     click.echo(
         f"{model.describe()}\nwrote {len(pl)} lesion + {len(pb)} background SYNTHETIC frames to {out}/ "
         f"(FEM O1={res.O1:.4g} mm O2={res.O2:.4g} mm O3={res.O3:.4g} mm^2)"
@@ -176,7 +188,10 @@ def features(images, background, sensor_json, threshold, smooth_px, combine, as_
     from .frames import expand
 
     cf = features_from_files(
-        expand(list(images)), expand(list(background)), _sensor(sensor_json), _settings(threshold, smooth_px, combine)
+        expand(list(images)),
+        expand(list(background), param="background"),
+        _sensor(sensor_json),
+        _settings(threshold, smooth_px, combine),
     )
     if as_json:
         click.echo(json.dumps(cf.to_dict(), indent=2))
@@ -202,10 +217,16 @@ def features(images, background, sensor_json, threshold, smooth_px, combine, as_
     help="CSV name,images,background of YOUR phantom images; without it the camera is SYNTHETIC.",
 )
 @click.option(
+    "--allow-outside",
+    is_flag=True,
+    help="Let --camera-csv name frames outside its own folder (absolute paths, '..').",
+)
+@click.option(
     "--fem-features",
-    type=click.Path(dir_okay=False),
+    type=click.Path(),
     default=None,
-    help="Take FEM features from a CSV/Parquet (name or tag 'phantom:<name>', O1,O2,O3) instead of solving.",
+    help="Take FEM features from a CSV, a sweep's folder or Parquet file (name or tag 'phantom:<name>', "
+    "O1,O2,O3) instead of solving.",
 )
 @mesh_option()
 @click.option("--delta", type=float, default=3.0, show_default=True, help="Indentation of the phantom presses, mm.")
@@ -225,6 +246,7 @@ def features(images, background, sensor_json, threshold, smooth_px, combine, as_
 def calibrate(
     phantoms,
     camera_csv,
+    allow_outside,
     fem_features,
     mesh,
     delta,
@@ -251,14 +273,16 @@ def calibrate(
 
     model = _sensor(sensor_json, **_model_kw(seed, noise_scale, bits, binning))
     settings = _settings(threshold, smooth_px, combine)
-    if frames < 1:
-        raise UserError("--frames", f"must be >= 1 (got {frames})")
+    from .deflection import MIN_FRAMES
+
+    if frames < MIN_FRAMES:  # the deflection calibration measures the noise from the frames' scatter
+        raise UserError("--frames", f"must be >= {MIN_FRAMES} (got {frames})")
     ph = read_phantoms(phantoms, min_rows=3, why="to fit a calibration line")
     # every input read and every output location checked before anything is solved or written
     fem_given = C.fem_features_from_csv(fem_features, ph) if fem_features else None
-    check_out_file(out, "--out", create_parents=True)
+    check_out_file(out, "--out")
     png = plot or os.path.splitext(out)[0] + ".png"
-    check_out_file(png, "--plot", create_parents=True)
+    check_out_file(png, "--plot")
     if write_frames:
         check_out_dir(write_frames, "--write-frames", allow_existing=True)
     synthetic = camera_csv is None
@@ -277,7 +301,10 @@ def calibrate(
         if fem_given is not None:
             fem = fem_given
     else:
-        cam = C.camera_features_from_csv(camera_csv, ph, model, settings, frames_out=pairs)
+        cam = C.camera_features_from_csv(camera_csv, ph, model, settings, frames_out=pairs, allow_outside=allow_outside)
+        few = [str(n) for n, (F, B) in zip(ph["name"], pairs) if min(len(F), len(B)) < MIN_FRAMES]
+        if few:  # the deflection calibration after the solves needs them: say so before
+            raise UserError("--camera-csv", f"{camera_csv}: fewer than {MIN_FRAMES} frames for {', '.join(few[:5])}")
         if fem_given is not None:
             fem = fem_given
         else:
@@ -396,6 +423,9 @@ def calibrate(
     "one or two solves of that level per lesion.  auto: fine for --mesh coarse (the benchmarked "
     "configuration), none for the other levels; none: the map alone.",
 )
+@click.option(
+    "--allow-outside", is_flag=True, help="Let --csv name files outside its own folder (absolute paths, '..')."
+)
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also write .csv or .json here.")
 def infer(
@@ -412,6 +442,7 @@ def infer(
     image_noise,
     mesh,
     correct,
+    allow_outside,
     as_json,
     out,
 ):
@@ -433,6 +464,8 @@ def infer(
         )
     if not 0 < threshold < 10:
         raise UserError("--crb-limit", f"must be in (0, 10) (got {threshold:g})")
+    if not identifiability.strip():
+        raise UserError("--identifiability", "must be a crb_grid.npz file, 'default' or 'none' (got '')")
     if refine and feats is not None:
         raise UserError("--refine", "needs an image (--fem-image, --images or --csv) and an image model, not features")
     if refine and not 0 < image_noise < 1:
@@ -448,7 +481,9 @@ def infer(
     model = load_model(model_dir)
     if refine and fem_image is not None and model.input_kind != "image":
         raise UserError("--refine", "--fem-image needs an image model (elastimap study image_model --save-model DIR)")
-    ests, cal = _estimates(model, idm, threshold, refine, calibration, feats, images, background, csv_path, fem_image)
+    ests, cal = _estimates(
+        model, idm, threshold, refine, calibration, feats, images, background, csv_path, fem_image, allow_outside
+    )
     if refine:
         from tqdm import tqdm
 
@@ -502,7 +537,9 @@ def _refine_correct(refine: bool, mesh: str, correct: str) -> str | None:
     return None
 
 
-def _estimates(model, idm, threshold, refine, calibration, feats, images, background, csv_path, fem_image):
+def _estimates(
+    model, idm, threshold, refine, calibration, feats, images, background, csv_path, fem_image, allow_outside=False
+):
     """The estimates of the one input given (``infer``'s options), and the calibration used (or None)."""
     from .calibration import Calibration
     from .frames import expand
@@ -520,10 +557,13 @@ def _estimates(model, idm, threshold, refine, calibration, feats, images, backgr
     if images:
         if not background:
             raise UserError("background", "--images needs --background frames (the same press without the lesion)")
-        im, bg = expand(list(images)), expand(list(background))
+        im, bg = expand(list(images)), expand(list(background), param="background")
         return [estimate_images(im, bg, cal, model, "1", idm, threshold, keep_image=refine)], cal
     if csv_path:
-        return estimate_lesions_csv(csv_path, cal, model, idm, threshold, keep_image=refine), cal
+        ests = estimate_lesions_csv(
+            csv_path, cal, model, idm, threshold, keep_image=refine, allow_outside=allow_outside
+        )
+        return ests, cal
     return estimate(np.array([feats]), cal, model, ["1"], idm, threshold), cal
 
 

@@ -62,8 +62,15 @@ class FeatureSettings:
 
     @classmethod
     def from_dict(cls, d: dict) -> FeatureSettings:
+        if not isinstance(d, dict):
+            raise UserError("feature_settings", f"must be a JSON object (got {type(d).__name__})")
         known = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in known}).validate()
+        try:
+            return cls(**{k: v for k, v in d.items() if k in known}).validate()
+        except (TypeError, ValueError) as exc:
+            if isinstance(exc, UserError):
+                raise
+            raise UserError("feature_settings", f"a setting has the wrong type ({exc})") from None
 
 
 @dataclass
@@ -157,21 +164,26 @@ def camera_features(
 
 
 def features_from_files(
-    images: list[str], background: list[str], model=None, settings: FeatureSettings | None = None
+    images: list[str],
+    background: list[str],
+    model=None,
+    settings: FeatureSettings | None = None,
+    params: tuple[str, str] = ("images", "background"),
 ) -> CameraFeatures:
     """Camera features of a lesion from image files.
 
     ``model`` (a :class:`elastimap.camera.optics.SensorModel`) gives the footprint window
     and pixel scale; by default the synthetic camera's (the frame size must
-    match it).  Raises :class:`UserError` naming the bad file.
+    match it).  Raises :class:`UserError` naming the bad file and the parameter it came from
+    (``params``: where the lesion and the background frames were given).
     """
     from .frames import read_stack
     from .optics import SensorModel
 
     model = model or SensorModel()
     shape, window = model.shape, model.window
-    F, fs1 = read_stack(images, shape, window)
-    B, fs2 = read_stack(background, shape, window)
+    F, fs1 = read_stack(images, shape, window, params[0])
+    B, fs2 = read_stack(background, shape, window, params[1])
     if fs1 != fs2:
-        raise UserError("background", f"{background[0]}: bit depth differs from the lesion frames ({images[0]})")
+        raise UserError(params[1], f"{background[0]}: bit depth differs from the lesion frames ({images[0]})")
     return camera_features(F, B, fs1, window, model.pixel_mm, settings)

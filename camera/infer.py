@@ -528,7 +528,7 @@ def difference_of_frames(images: list[str], background: list[str], calibration: 
                 f"{pixel:g} mm)",
             )
     F, fs1 = read_stack(images, sensor.shape, sensor.window)
-    B, fs2 = read_stack(background, sensor.shape, sensor.window)
+    B, fs2 = read_stack(background, sensor.shape, sensor.window, "background")
     if fs1 != fs2:
         raise UserError("background", f"{background[0]}: bit depth differs from the lesion frames ({images[0]})")
     if fs1 != sensor.full_scale:
@@ -593,6 +593,7 @@ def estimate_lesions_csv(
     threshold: float = 0.10,
     progress=None,
     keep_image: bool = False,
+    allow_outside: bool = False,
 ) -> list[Estimate]:
     """Batch of lesions from a CSV, for every model kind (format in :func:`read_lesions_table`);
     ``keep_image``: frames rows of a feature ensemble also keep their difference image (for
@@ -601,7 +602,7 @@ def estimate_lesions_csv(
     Feature ensemble: ``O1,O2,O3`` or ``images,background``; image model: ``images,background``
     (each lesion's frames -> :func:`estimate_images`) or ``fem_image`` (a ``.npy`` FEM difference
     image, mm, no calibration needed).  ``progress(i, n)`` after each lesion."""
-    ids, kind, rows = read_lesions_table(path)
+    ids, kind, rows = read_lesions_table(path, allow_outside)
     image_model = model.input_kind == "image"
     if kind == "features":
         if image_model:
@@ -640,8 +641,9 @@ def _need_cal(calibration):
     return calibration
 
 
-def read_lesions_table(path: str | os.PathLike):
-    """The batch CSV: ``(ids, kind, rows)``.
+def read_lesions_table(path: str | os.PathLike, allow_outside: bool = False):
+    """The batch CSV: ``(ids, kind, rows)``; the files it names must lie in its folder unless
+    ``allow_outside`` (``--allow-outside``).
 
     Columns: optional ``id`` (default 1, 2, ...) and one of
 
@@ -652,15 +654,12 @@ def read_lesions_table(path: str | os.PathLike):
     """
     import pandas as pd
 
+    from elastimap.tables import read_csv
+
     from .frames import expand
 
     p = str(path)
-    if not os.path.exists(p):
-        raise UserError("csv", f"{p}: no such file")
-    try:
-        df = pd.read_csv(p, comment="#", skipinitialspace=True)
-    except Exception as exc:
-        raise UserError("csv", f"{p}: not a readable CSV ({exc})") from None
+    df = read_csv(p, "csv")
     if len(df) == 0:
         raise UserError("csv", f"{p}: no lesions")
     ids = [str(x) for x in df["id"]] if "id" in df.columns else [str(i + 1) for i in range(len(df))]
@@ -679,18 +678,35 @@ def read_lesions_table(path: str | os.PathLike):
         for i, (_, r) in zip(ids, df.iterrows()):
             if pd.isna(r["images"]) or pd.isna(r["background"]):
                 raise UserError("csv", f"{p}: lesion {i}: empty images or background")
-            rows.append((expand(str(r["images"]), base), expand(str(r["background"]), base)))
+            try:
+                rows.append(
+                    tuple(
+                        expand(str(r[c]), base, param="csv", allow_outside=allow_outside)
+                        for c in ("images", "background")
+                    )
+                )
+            except UserError as exc:
+                raise UserError("csv", f"{p}: lesion {i}: {exc.message}") from None
         return ids, "frames", rows
     if "fem_image" in df.columns:
         rows = []
         for i, f in zip(ids, df["fem_image"]):
             f = str(f)
             f = f if os.path.isabs(f) else os.path.join(base, f)
+            if not allow_outside and not _inside(f, base):
+                raise UserError(
+                    "csv", f"{p}: lesion {i}: {f}: outside the folder {base} (give --allow-outside to allow it)"
+                )
             if not os.path.isfile(f):
                 raise UserError("csv", f"{p}: lesion {i}: {f}: no such file")
             rows.append(f)
         return ids, "fem_image", rows
     raise UserError("csv", f"{p}: needs columns O1,O2,O3 or images,background or fem_image (plus optional id)")
+
+
+def _inside(path: str, folder: str) -> bool:
+    real, root = os.path.realpath(path), os.path.realpath(folder)
+    return real.startswith(root.rstrip(os.sep) + os.sep)
 
 
 def read_lesions_csv(path: str | os.PathLike, calibration: Calibration) -> tuple[list[str], np.ndarray]:

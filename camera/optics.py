@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,6 +66,7 @@ from elastimap.errors import UserError
 SENSOR_ROWS = 1042
 SENSOR_COLS = 1392
 PIXEL_UM = 4.65
+MAX_NOISE_SCALE = 100.0  # times the sensor's shot + read noise: beyond it a frame holds noise only
 
 
 @dataclass(frozen=True)
@@ -124,7 +126,9 @@ class SensorModel:
         check_range("full_well_e", self.full_well_e, 1)
         check_range("read_noise_e", self.read_noise_e, 0)
         check_range("dark_e", self.dark_e, 0)
-        check_range("noise_scale", self.noise_scale, 0)
+        check_range("noise_scale", self.noise_scale, 0, MAX_NOISE_SCALE)
+        if isinstance(self.seed, bool) or not isinstance(self.seed, numbers.Integral) or self.seed < 0:
+            raise UserError("seed", f"must be an integer >= 0 (got {self.seed!r})")
         return self
 
     def replace(self, **changes) -> SensorModel:
@@ -145,9 +149,14 @@ class SensorModel:
         if unknown:
             raise UserError("sensor", f"unknown sensor parameter(s): {', '.join(sorted(unknown))}")
         d = dict(d)
-        if "led_power" in d:
-            d["led_power"] = tuple(float(p) for p in d["led_power"])
-        return cls(**d).validate()
+        try:
+            if "led_power" in d:
+                d["led_power"] = tuple(float(p) for p in d["led_power"])
+            return cls(**d).validate()
+        except (TypeError, ValueError) as exc:
+            if isinstance(exc, UserError):
+                raise
+            raise UserError("sensor", f"a sensor parameter has the wrong type ({exc})") from None
 
     # ------------------------------------------------------------- geometry
     @property

@@ -9,6 +9,7 @@ elastimap dataset compact sweeps/default-tied-lhs512-s0
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import click
@@ -103,11 +104,16 @@ def compact_cmd(path, batch_rows):
         raise UserError("path", f"{path} is not a dataset directory")
     if batch_rows < 1:
         raise UserError("--batch-rows", f"must be >= 1 (got {batch_rows})")
-    lock = io.acquire_lock(path, param="path")
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise UserError("path", f"cannot compact {path}: no write permission (the dataset is unchanged)")
     try:
-        r = io.compact(path, batch_rows)
-    finally:
-        lock.unlink(missing_ok=True)
+        lock = io.acquire_lock(path, param="path")
+        try:
+            r = io.compact(path, batch_rows)
+        finally:
+            lock.unlink(missing_ok=True)
+    except OSError as exc:  # read-only or full file system: compaction is safe to interrupt
+        raise UserError("path", f"cannot compact {path} ({exc.strerror or exc}); its rows are unchanged") from None
     click.echo(
         f"{path}: {r['files_before']} files -> {r['files_after']}, {r['rows']} rows, "
         f"{r['dropped']} superseded rows dropped"

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from elastimap.errors import UserError
+from elastimap.tables import check_name, read_csv
 
 from .schema import PHANTOMS_CSV, TARGETS, UNITS
 
@@ -60,10 +61,7 @@ def read_phantoms(
     p = PHANTOMS_CSV if path is None else Path(path)
     if not p.is_file():
         raise UserError(param, f"{p}: no such file (a CSV with columns name, d, h, E)")
-    try:
-        df = pd.read_csv(p, comment="#", skipinitialspace=True)
-    except (ValueError, OSError) as exc:  # pandas' parser and empty-file errors are ValueErrors
-        raise UserError(param, f"{p}: not a readable CSV ({type(exc).__name__})") from None
+    df = read_csv(p, param)  # unreadable, empty, a column named twice: one line
     if "name" not in df.columns and "id" in df.columns:
         df = df.rename(columns={"id": "name"})
     missing = [c for c in ("name", *TARGETS) if c not in df.columns]
@@ -77,6 +75,8 @@ def read_phantoms(
         raise UserError(param, f"{p}: every row needs a name")
     if names.duplicated().any():
         raise UserError(param, f"{p}: duplicate names {sorted(set(names[names.duplicated()]))}")
+    for n in names:
+        check_name(n, param, f"{p}: phantom name")  # names become file names (frames, sample ids)
     df["name"] = names
     for c in (*TARGETS, *(c for c in TISSUE if c in df.columns)):
         v = pd.to_numeric(df[c], errors="coerce")

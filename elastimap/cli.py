@@ -25,6 +25,7 @@ subcommand, so that a fresh machine shows the whole pipeline working:
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -104,11 +105,17 @@ def demo(out, n, mesh, jobs):
 
     if n < 1:
         raise UserError("n", f"must be >= 1 (got {n})")
-    if jobs < 1:
-        raise UserError("jobs", f"must be >= 1 (got {jobs})")
-    check_out_dir(out, "out", allow_existing=True)  # the demo resumes in its folder
-    os.makedirs(out, exist_ok=True)
+    check_out_dir(out, "out", allow_existing=True)  # the demo resumes in its folder ...
+    _check_demo_folder(out)  # ... and only there
     data = os.path.join(out, "data")
+    from elastimap.sweep.run import SweepConfig, make_plan
+
+    # the sweep step's settings and folder, checked before the first step (--jobs 99999 failed after a solve)
+    make_plan(SweepConfig(n=n, jobs=jobs, mesh=mesh, phantoms=True, out=data).validate())
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, DEMO_MARK), "w") as fh:
+        json.dump({"kind": "elastimap.demo", "note": "made by elastimap demo; a rerun resumes here"}, fh)
+        fh.write("\n")
     _step(
         "one forward solve (default mesh)",
         ["solve", "--d", "8", "--h", "7", "--E", "50", "--image", os.path.join(out, "solve-d8-h7-E50.png")],
@@ -141,6 +148,20 @@ def demo(out, n, mesh, jobs):
         ],
     )  # a rerun of the demo replaces its run
     click.secho(f"\ndemo done: results in {out}/", bold=True)
+
+
+DEMO_MARK = "demo.json"
+
+
+def _check_demo_folder(out: str) -> None:
+    """An existing ``--out`` must be an earlier demo's folder (it holds ``demo.json``): the demo
+    replaces its ``train`` folder and adds to its ``data`` sweep, which must never be the user's."""
+    if os.path.isdir(out) and any(os.scandir(out)) and not os.path.isfile(os.path.join(out, DEMO_MARK)):
+        raise UserError(
+            "out",
+            f"{out} holds files but is not an earlier demo's folder (no {DEMO_MARK}); the demo replaces "
+            "its train/ and adds to its data/, so it only reruns in its own folder (choose another)",
+        )
 
 
 def main(argv=None):

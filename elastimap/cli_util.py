@@ -13,6 +13,8 @@ Every console script and ``python -m`` entry of the project goes through :func:`
   turns it into the flag of the command that ran (``--jobs``, ``--batch-rows``,
   ``--tissue-E``), so the translation lives here and nowhere else;
 * ``-h`` and ``--help`` work on every command and group;
+* every ``float`` option refuses ``nan`` and ``inf`` and every ``int`` option a number beyond 64
+  bits, where it is typed (:func:`guard_numbers`);
 * ``KeyboardInterrupt`` exits with 130;
 * anything else is a bug and keeps its traceback.
 
@@ -29,6 +31,7 @@ from __future__ import annotations
 
 import fnmatch
 import importlib
+import math
 import sys
 
 import click
@@ -149,6 +152,51 @@ def shard_option(help: str = "K/N: this process takes the items i with i % N == 
     return click.option("--shard", type=Shard(), default="0/1", show_default=True, help=help, **kw)
 
 
+class FiniteFloat(click.types.FloatParamType):
+    """A float option that is finite: ``nan`` and ``inf`` are refused where they are typed
+    (docs/errors.md, "Rules every command follows")."""
+
+    def convert(self, value, param, ctx):
+        v = super().convert(value, param, ctx)
+        if not math.isfinite(v):
+            self.fail(f"must be a finite number (got {value!r})", param, ctx)
+        return v
+
+
+class Int64(click.types.IntParamType):
+    """An integer option that fits in 64 bits: a 20-digit number is refused where it is typed,
+    not deep inside numpy after the work."""
+
+    def convert(self, value, param, ctx):
+        v = super().convert(value, param, ctx)
+        if not -(2**63) <= v < 2**63:
+            self.fail(f"must be an integer of at most 19 digits (got {value!r})", param, ctx)
+        return v
+
+
+_SAFE_TYPES = {click.types.FloatParamType: FiniteFloat(), click.types.IntParamType: Int64()}
+
+
+def _safe_type(t: click.ParamType) -> click.ParamType:
+    if type(t) in _SAFE_TYPES:
+        return _SAFE_TYPES[type(t)]
+    if isinstance(t, click.Tuple):
+        t.types = [_safe_type(x) for x in t.types]
+    return t
+
+
+def guard_numbers(command: click.Command) -> click.Command:
+    """Give every plain ``float`` / ``int`` option of ``command`` (and of the subcommands it holds)
+    the finite / 64-bit types above; :func:`run` and :class:`LazyGroup` call it, so every command
+    of the project refuses ``nan``, ``inf`` and 20-digit integers the same way, in one place."""
+    for p in command.params:
+        p.type = _safe_type(p.type)
+    if isinstance(command, click.Group):
+        for sub in command.commands.values():
+            guard_numbers(sub)
+    return command
+
+
 def options(*decorators):
     """Apply several option decorators in the order they are listed (first = first in --help)."""
 
@@ -192,7 +240,7 @@ class LazyGroup(click.Group):
 
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         if cmd_name not in self.commands and cmd_name in self.lazy:
-            self.commands[cmd_name] = load_command(self.lazy[cmd_name][0])
+            self.commands[cmd_name] = guard_numbers(load_command(self.lazy[cmd_name][0]))
         return self.commands.get(cmd_name)
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
@@ -286,6 +334,7 @@ def _hint(exc: click.BadParameter) -> str | None:
 def run(command: click.Command, args: list[str] | None = None, prog_name: str | None = None) -> None:
     """Run a click command the project's way (see the module docstring); exits the process."""
     argv = sys.argv[1:] if args is None else list(args)
+    guard_numbers(command)
     try:
         rv = command.main(
             args=argv,

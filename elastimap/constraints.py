@@ -142,7 +142,7 @@ class Predicate(Constraint):
     def is_satisfied_by(self, value: Any) -> bool:
         try:
             return bool(self.test(value))
-        except (TypeError, ValueError):
+        except Exception:  # a value the test cannot even look at (a list where a str is due) fails it
             return False
 
     def __str__(self) -> str:

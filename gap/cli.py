@@ -19,16 +19,16 @@ import json
 import math
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 import click
 
-from elastimap.cli_util import CONTEXT_SETTINGS, jobs_option, mesh_option, options
+from elastimap.cli_util import CONTEXT_SETTINGS, jobs_option, mesh_option, options, param_flags
 from elastimap.cli_util import run as run_cli
+from elastimap.constraints import Interval, validate_params
 from elastimap.dataset.phantoms import read_phantoms
 from elastimap.errors import UserError
-from elastimap.outputs import check_out_dir, check_out_file, staged_dir
+from elastimap.outputs import check_out_dir, check_out_file, write_dir
 
 from . import effects as fx
 from .settings import FINER, Settings
@@ -39,10 +39,13 @@ def default_cache() -> str:
 
 
 def _sim(cache, mesh, backend, jobs, no_progress):
+    from elastimap.sweep.run import MAX_JOBS
+
     from .simulate import Simulator
 
-    if jobs < 1:
-        raise UserError("jobs", f"must be >= 1 (got {jobs})")
+    validate_params({"jobs": jobs}, {"jobs": [Interval(int, 1, MAX_JOBS)]})
+    if cache != "none":
+        check_out_dir(cache, "cache", allow_existing=True)  # a file or a folder we cannot write: before any solve
 
     def prog(i, n):
         if not no_progress:
@@ -175,14 +178,18 @@ def synth_cmd(
         disc={"interface": interface} if interface != "tied" else None,
         force_noise=force_noise,
     )
-    with staged_dir(out, "out", overwrite=overwrite) as tmp:
-        tp = measured.write(meas, tmp, fmt)
-        synth.seal(truth, tmp)
-    tp = Path(out) / tp.name
+
+    def _write(folder):
+        measured.write(meas, folder, fmt)
+        synth.seal(truth, folder)
+
+    write_dir(out, _write, "out", overwrite=overwrite)  # whole; on a full disk the set goes to $TMPDIR
+    tp = Path(out) / ("measured.parquet" if fmt == "parquet" else "measured.csv")
     click.echo(f"SYNTHETIC measured data: {tp} ({meas.n} phantoms, truth sealed in {Path(out) / measured.SEALED})")
     return 0
 
 
+@param_flags({"effect": "--effects"})
 @cli.command("diagnose", context_settings=CONTEXT_SETTINGS)
 @click.option(
     "--measured",
@@ -222,6 +229,9 @@ def synth_cmd(
     help="Seeds the folds, the bootstrap, the proposed phantoms and the inverse training.",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON (stdout).")
+@click.option(
+    "--allow-outside", is_flag=True, help="Let --measured's table name files outside its folder (absolute paths, '..')."
+)
 @common
 def diagnose_cmd(
     mpath,
@@ -235,6 +245,7 @@ def diagnose_cmd(
     alpha,
     seed,
     as_json,
+    allow_outside,
     cache,
     backend,
     jobs,
@@ -250,22 +261,20 @@ def diagnose_cmd(
         raise UserError("model_floor", f"must be a finite number >= 0 (got {model_floor:g})")
     if n_train < 2:
         raise UserError("n_train", f"must be >= 2 (got {n_train})")
+    if seed < 0:
+        raise UserError("seed", f"must be an integer >= 0 (got {seed})")
     check_out_dir(out, "out", allow_existing=True)
-    meas = measured.load(mpath)
+    report.check_out(out)
+    meas = measured.load(mpath, allow_outside=allow_outside)
     cands = fx.parse_list(effects)
     st = Settings(model_floor=model_floor, alpha=alpha, seed=seed, inverse=not no_inverse, n_train=n_train)
     sim = _sim(cache or default_cache(), mesh or meas.mesh, backend, jobs, no_progress)
     fine = error_mesh_sim(error_mesh, sim, cache, backend, jobs, no_progress)
     res = diagnose(meas, cands, sim, st, fine)
-    try:
-        doc = report.write(res, out)
-    except OSError as exc:  # the diagnosis is done: keep it
-        fb = tempfile.mkdtemp(prefix="elastimap-gap-diagnosis-")
-        report.write(res, fb)
-        raise UserError(
-            "out", f"cannot write the report to {out} ({exc.strerror or exc}); it was written to {fb} instead"
-        ) from None
-    s = doc["summary"]
+    # the report replaces the folder whole (never a mix of two runs); on a full disk it goes to $TMPDIR
+    docs = []
+    write_dir(out, lambda folder: docs.append(report.write(res, folder)), "out", overwrite=True)
+    s = docs[-1]["summary"]
     if as_json:
         click.echo(json.dumps(report._jsonable(s), indent=2))
     else:
@@ -286,6 +295,7 @@ def error_mesh_sim(error_mesh, sim, cache, backend, jobs, no_progress):
     return _sim(cache or default_cache(), level, backend, jobs, no_progress)
 
 
+@param_flags({"effect": "--effects/--outside"})
 @cli.command("selftest", context_settings=CONTEXT_SETTINGS)
 @click.option("--trials", type=int, default=30, show_default=True, help="Blind trials to run.")
 @click.option(
@@ -364,6 +374,9 @@ def selftest_cmd(
         raise UserError("n_phantoms", f"need at least 4 phantoms (got {n_phantoms})")
     if frames < 1:
         raise UserError("frames", f"must be >= 1 (got {frames})")
+    for name, v in (("seed", seed), ("phantom_seed", phantom_seed)):
+        if v is not None and v < 0:
+            raise UserError(name, f"must be an integer >= 0 (got {v})")
     if out:
         check_out_dir(out, "out", allow_existing=True)
     if out and Path(out).exists() and any(Path(out).iterdir()):

@@ -43,6 +43,7 @@ from elastimap.camera.frames import expand, read_stack
 from elastimap.camera.optics import SensorModel
 from elastimap.dataset.schema import FEATURES
 from elastimap.errors import UserError
+from elastimap.tables import check_name, read_csv
 
 from .views import from_frames as views_from_frames
 from .views import profile_se, radial_profile
@@ -133,14 +134,21 @@ def _table_path(path: Path) -> Path:
     return path
 
 
-def load(path: str | os.PathLike) -> Measured:
-    """Read and validate a measured dataset; every problem is a one-line :class:`UserError`."""
+def load(path: str | os.PathLike, *, allow_outside: bool = False) -> Measured:
+    """Read and validate a measured dataset; every problem is a one-line :class:`UserError`.
+
+    The files the table names (frames, ``.npy`` images) are read only inside the dataset's folder
+    -- no absolute paths, ``..`` or links out of it -- unless ``allow_outside``
+    (``--allow-outside``); ids must be usable in file names (no ``/``)."""
     tp = _table_path(Path(path))
     base = tp.parent
-    try:
-        df = pd.read_parquet(tp) if tp.suffix == ".parquet" else pd.read_csv(tp, comment="#", skipinitialspace=True)
-    except Exception as exc:
-        raise UserError("measured", f"{tp}: not a readable table ({exc})") from None
+    if tp.suffix == ".parquet":
+        try:
+            df = pd.read_parquet(tp)
+        except Exception as exc:  # pyarrow raises many types for a damaged file
+            raise UserError("measured", f"{tp}: not a readable table ({exc})") from None
+    else:
+        df = read_csv(tp, "measured")
     if len(df) == 0:
         raise UserError("measured", f"{tp}: no rows")
     if len(df) < 4:
@@ -149,6 +157,8 @@ def load(path: str | os.PathLike) -> Measured:
     if missing:
         raise UserError("measured", f"{tp}: missing column(s) {', '.join(missing)} (need id, d, h, E)")
     df["id"] = df["id"].astype(str)
+    for id_ in df["id"]:
+        check_name(id_, "measured", f"{tp}: id")
     dup = sorted(set(df["id"][df["id"].duplicated()]))
     if dup:
         raise UserError("measured", f"{tp}: duplicate id(s) {dup[:5]}")
@@ -173,8 +183,7 @@ def load(path: str | os.PathLike) -> Measured:
             raise UserError("measured", f"{sp}: version {side.get('version')!r} not supported (expected {VERSION})")
     sensor = side.get("sensor")
     settings = side.get("feature_settings", {})
-    if sensor is not None:
-        SensorModel.from_dict(sensor)
+    _check_sidecar(sp, sensor, settings, side)
     n = len(df)
     has_feat = all(k in df.columns for k in FEATURES)
     has_img = "images" in df.columns and "background" in df.columns
@@ -203,10 +212,11 @@ def load(path: str | os.PathLike) -> Measured:
             r = df.iloc[i]
             if not isinstance(r["images"], str) or not r["images"].strip():
                 continue
-            F, fs1 = read_stack(expand(str(r["images"]), base), sm.shape, sm.window)
-            B, fs2 = read_stack(expand(str(r["background"]), base), sm.shape, sm.window)
+            where = f"{tp}, {r['id']!r}"
+            F, fs1 = read_stack(_files(r, "images", base, where, allow_outside), sm.shape, sm.window, "measured")
+            B, fs2 = read_stack(_files(r, "background", base, where, allow_outside), sm.shape, sm.window, "measured")
             if fs1 != fs2:
-                raise UserError("background", f"{r['background']}: bit depth differs from the lesion frames")
+                raise UserError("measured", f"{where}: the background frames' bit depth differs from the lesion frames")
             v = views_from_frames(F, B, sm, fs, fs1)
             from_frames[i] = v
             if need[i]:
@@ -221,7 +231,13 @@ def load(path: str | os.PathLike) -> Measured:
         if f is None or (isinstance(f, float) and np.isnan(f)) or str(f).strip() == "":
             return None
         fp = base / str(f)
-        if not fp.exists():
+        if not allow_outside and not _inside(fp, base):
+            raise UserError(
+                "measured",
+                f"{tp}: {what} {f} of {df['id'].iloc[i]} lies outside the folder {base} (a table's files are "
+                "read only inside its folder; give --allow-outside to allow it)",
+            )
+        if not fp.is_file():
             raise UserError("measured", f"{tp}: {what} {fp} of {df['id'].iloc[i]} does not exist")
         try:
             a = np.load(fp, allow_pickle=False)
@@ -264,6 +280,8 @@ def load(path: str | os.PathLike) -> Measured:
         if "tissue_E" in df.columns
         else np.full(n, np.nan)
     )
+    if np.any(np.isinf(tE)) or np.any(tE[np.isfinite(tE)] <= 0):
+        raise UserError("measured", f"{tp}: tissue_E must be a positive number of kPa (or empty)")
     mesh = str(side.get("mesh", "coarse"))
     if mesh not in ("tiny", "coarse", "default", "fine"):
         raise UserError("measured", f"{sp}: mesh must be tiny, coarse, default or fine (got {mesh!r})")
@@ -286,8 +304,45 @@ def load(path: str | os.PathLike) -> Measured:
     )
 
 
+def _inside(path: Path, folder: Path) -> bool:
+    real, root = os.path.realpath(path), os.path.realpath(folder)
+    return real.startswith(root.rstrip(os.sep) + os.sep)
+
+
+def _files(row, col: str, base: Path, where: str, allow_outside: bool) -> list[str]:
+    """The frame files of one row's ``images`` or ``background`` column (inside ``base``)."""
+    try:
+        return expand(str(row[col]), base, param="measured", allow_outside=allow_outside)
+    except UserError as exc:
+        raise UserError("measured", f"{where}, column {col}: {exc.message}") from None
+
+
+def _check_sidecar(sp: Path, sensor, settings, side: dict) -> None:
+    """The sidecar's camera model and feature settings are usable (else a one-line refusal naming it)."""
+    if not isinstance(settings, dict):
+        raise UserError("measured", f"{sp}: feature_settings must be a JSON object (got {type(settings).__name__})")
+    if sensor is not None and not isinstance(sensor, dict):
+        raise UserError("measured", f"{sp}: sensor must be a JSON object (got {type(sensor).__name__})")
+    if not isinstance(side.get("synthetic", False), bool):
+        raise UserError("measured", f"{sp}: synthetic must be true or false")
+    for what, make, value in (
+        ("sensor", SensorModel.from_dict, sensor),
+        ("feature_settings", FeatureSettings.from_dict, settings),
+    ):
+        if value is None:
+            continue
+        try:
+            make(value)
+        except UserError as exc:
+            raise UserError("measured", f"{sp}: {what}: {exc.message}") from None
+        except (TypeError, ValueError, KeyError, AttributeError) as exc:
+            raise UserError("measured", f"{sp}: {what} is not valid ({type(exc).__name__}: {exc})") from None
+
+
 def write(m: Measured, folder: str | os.PathLike, fmt: str = "csv") -> Path:
     """Write a dataset in the format above (difference images as ``.npy`` next to the table)."""
+    for id_ in m.ids:
+        check_name(id_, "ids", "id")
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     prefix = "synthetic_" if m.synthetic else ""

@@ -117,6 +117,29 @@ def verdict_line(res: dict) -> str:
     return f"outcome: unexplained by the candidates (best {ev['best']}, held-out reduced χ² {ev['ranking'][0]['reduced_chi2_cv']:.3g})"
 
 
+REPORT_FILES = ("diagnosis.json", "report.md", "report.html")
+
+
+def check_out(out: str | Path) -> None:
+    """``gap diagnose --out`` is replaced whole by the new report: it may hold nothing but an
+    earlier report (its files and PNG figures), so no file of the user's is ever deleted."""
+    from elastimap.errors import UserError
+
+    p = Path(out)
+    if not p.is_dir():
+        return
+    foreign = sorted(
+        x.name for x in p.iterdir() if not (x.is_file() and (x.name in REPORT_FILES or x.suffix == ".png"))
+    )
+    if foreign:
+        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+        raise UserError(
+            "out",
+            f"{p} holds files that are not a gap report ({shown}); the report replaces the folder whole, "
+            "so choose an empty or new folder",
+        )
+
+
 def write(res: dict, out: str | Path) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

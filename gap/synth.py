@@ -21,16 +21,20 @@ import numpy as np
 from scipy.stats import qmc
 
 from elastimap.camera.features import FeatureSettings
-from elastimap.camera.optics import SensorModel, render_pair
+from elastimap.camera.optics import MAX_NOISE_SCALE, SensorModel, render_pair
+from elastimap.constraints import Interval, validate_params
 from elastimap.errors import UserError
 from elastimap.outputs import check_out_dir, is_empty_dir
+from elastimap.tables import check_name
 
 from . import effects as fx
-from .measured import SEALED, SIDECAR, Measured
+from .measured import SEALED, SIDECAR, TABLE_NAMES, Measured
 from .simulate import Simulator, base_params
 from .views import from_frames
 
 DEFAULT_N = 12
+MAX_PHANTOMS = 100_000  # phantoms of one synthetic set (each is a forward solve)
+MAX_FRAMES = 10_000  # frames per phantom: a stack of this many is already gigabytes
 
 
 def check_out(out: str | os.PathLike, overwrite: bool = False) -> Path:
@@ -61,14 +65,31 @@ def check_out(out: str | os.PathLike, overwrite: bool = False) -> Path:
                 f"{p} holds real (non-synthetic) measured data; a generator never overwrites "
                 "it, not even with --overwrite (choose another folder)",
             )
+        foreign = sorted(x.name for x in p.iterdir() if not _written_by_synth(x))
+        if foreign:
+            shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+            raise UserError(
+                "out",
+                f"{p} holds a SYNTHETIC measured dataset and files gap synth did not write ({shown}); "
+                "a generator never replaces them, not even with --overwrite (move them, or choose another folder)",
+            )
         if not overwrite:
             raise UserError("out", f"{p} already holds a SYNTHETIC measured dataset; give --overwrite to replace it")
     return check_out_dir(p, "out", overwrite=overwrite)
 
 
+def _written_by_synth(x: Path) -> bool:
+    """Whether ``x`` is a file of the kind :func:`elastimap.gap.measured.write` and :func:`seal` write
+    for a SYNTHETIC dataset (its table, sidecar, sealed truth, ``synthetic_*.npy`` images)."""
+    if not x.is_file() or x.is_symlink():
+        return False
+    return x.name in (*TABLE_NAMES, SIDECAR, SEALED) or (x.name.startswith("synthetic_") and x.suffix == ".npy")
+
+
 def phantom_design(n: int = DEFAULT_N, seed: int = 0) -> np.ndarray:
     """(n, 3) phantom (d, h, E): LHS over d 5-12 mm, E 30-150 kPa (log), depth valid for every
     effect of the library (ellipsoid up to aspect 1.25, 1 mm skin layer)."""
+    validate_params({"n": n, "seed": seed}, {"n": [Interval(int, 1, MAX_PHANTOMS)], **_parameter_constraints})
     u = qmc.LatinHypercube(d=3, rng=np.random.default_rng(seed)).random(n)
     d = 5.0 + 7.0 * u[:, 0]
     half = 1.25 * d / 2
@@ -76,6 +97,15 @@ def phantom_design(n: int = DEFAULT_N, seed: int = 0) -> np.ndarray:
     h = lo + u[:, 1] * (hi - lo)
     E = np.exp(np.log(30.0) + u[:, 2] * np.log(150.0 / 30.0))
     return np.round(np.column_stack([d, h, E]), 3)
+
+
+#: What each setting of :func:`synthesize` alone must be (checked before any solve).
+_parameter_constraints = {
+    "frames": [Interval(int, 1, MAX_FRAMES)],
+    "seed": [Interval(int, 0, None)],
+    "noise_scale": [Interval(float, 0, MAX_NOISE_SCALE)],
+    "force_noise": [None, Interval(float, 0, 1, closed="right")],
+}
 
 
 def synthesize(
@@ -94,10 +124,12 @@ def synthesize(
     """``disc`` overrides fields of the solver's ``Discretisation`` (e.g. ``{"interface": "contact"}``)
     so that the data come from another formulation than the diagnosis; ``force_noise`` (relative
     standard error) adds a measured plate force."""
-    if int(frames) < 1:
-        raise UserError("frames", f"must be >= 1 (got {frames})")
-    if not (np.isfinite(noise_scale) and noise_scale >= 0):
-        raise UserError("noise_scale", f"must be a finite number >= 0 (got {noise_scale:g})")
+    validate_params(
+        {"frames": frames, "seed": seed, "noise_scale": noise_scale, "force_noise": force_noise},
+        _parameter_constraints,
+    )
+    for id_ in ids or ():
+        check_name(id_, "ids", "id")
     sensor = (sensor or SensorModel()).validate()
     settings = settings or FeatureSettings()
     true_sensor = sensor.replace(noise_scale=noise_scale)

@@ -41,6 +41,9 @@ def _check_outputs(image_png: str | None, image_npy: str | None, vtx: str | None
     from elastimap.errors import UserError
     from elastimap.outputs import check_out_dir, check_out_file
 
+    for flag, given in (("--image", image_png), ("--image-npy", image_npy), ("--vtx", vtx)):
+        if given is not None and not str(given).strip():
+            raise UserError(flag, "must be a path (got '')")
     if image_png:
         check_out_file(image_png, "--image")
     if image_npy:
@@ -161,13 +164,18 @@ def cli(
     ).validate()
     _check_outputs(image_png, image_npy, vtx)  # before the solve, not after it
     from .api import solve
+    from .errors import SolverError
 
-    if vtx:
-        from .api import solve_with_fields
+    try:
+        if vtx:
+            from .api import solve_with_fields
 
-        res = solve_with_fields(p, vtx)
-    else:
-        res = solve(p)
+            res = solve_with_fields(p, vtx)
+        else:
+            res = solve(p)
+    except SolverError as exc:  # a failed solve is a result to report, not a bug: one line, exit 1
+        click.echo(f"error: {exc}", err=True)
+        return 1
     from elastimap.outputs import write_or_fallback
 
     if image_npy:  # the array first: if the PNG then fails, the numbers are already safe

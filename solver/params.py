@@ -51,6 +51,11 @@ DESIGN_BOX = {"d": (2.0, 15.0), "E": (10.0, 200.0)}
 
 _POSITIVE_MM = Interval(float, 0, None, closed="neither", unit="mm")
 _POSITIVE_KPA = Interval(float, 0, None, closed="neither", unit="kPa")
+#: kPa, the moduli a solve accepts (1 Pa to 10 GPa): beyond them the linear solve loses every
+#: digit (1e308 kPa gave NaN displacements); checked after the table, which says "> 0" first
+MODULUS_RANGE = (1e-3, 1e7)
+#: an inclusion below 0.1 mm is smaller than any mesh level resolves (gmsh failed at 1e-300 mm)
+_INCLUSION_MM = Interval(float, 0.1, None, unit="mm")
 _POISSON = Interval(float, -1, 0.5, closed="neither")
 
 #: What each solve parameter alone must be, under the name errors report (``d``, ``tissue.E``, ...).
@@ -61,7 +66,7 @@ PARAMETER_CONSTRAINTS = {
     "tissue.nu": [_POISSON],
     "tissue.skin_E": [_POSITIVE_KPA],
     "tissue.nonlinearity": [Interval(float, 0, 1)],
-    "d": [_POSITIVE_MM],
+    "d": [_INCLUSION_MM],
     "E": [_POSITIVE_KPA],
     "inclusion.nu": [_POISSON],
     "inclusion.aspect": [Interval(float, 0.2, 5.0)],
@@ -264,6 +269,10 @@ class SolveParams:
         """
         t, inc, p, ld, ds, im = self.tissue, self.inclusion, self.probe, self.loading, self.disc, self.image
         validate_params(self._named_values(), PARAMETER_CONSTRAINTS)
+        moduli = {"tissue.E": t.E, "tissue.skin_E": t.skin_E, "E": inc.E}
+        moduli.update({f"probe.layer{i}.E": E for i, (_, E) in enumerate(p.layers, 1)})
+        for name, value in moduli.items():
+            check_range(name, value, *MODULUS_RANGE, unit="kPa")
         # rules that tie parameters together
         check_range("tissue.skin_thickness", t.skin_thickness, 0, t.thickness / 2, unit="mm")
         half_height = inc.aspect * inc.d / 2

@@ -65,6 +65,8 @@ def bench(counts: list[int], out: str | None = None, **kw) -> dict:
         root = Path(tmp.name)
     else:
         root = Path(out)
+        if root.exists() and not root.is_dir():
+            raise UserError("out", f"{root} is a file, not a folder")
         if root.exists() and any(root.iterdir()):
             raise UserError("out", f"{root} is not empty (the benchmark needs fresh directories)")
     plans = []

@@ -92,6 +92,14 @@ _common = options(
     default=None,
     help="address of a running dask scheduler (tcp://host:8786) instead of a local cluster",
 )
+@click.option(
+    "--dashboard",
+    type=str,
+    default=None,
+    metavar="HOST:PORT",
+    help="serve the local cluster's dask dashboard (no login) at this address: 127.0.0.1:8787 on this "
+    "machine only, :8787 on every interface (default: no dashboard)",
+)
 @click.option("--batch-rows", type=int, default=256, show_default=True, help="rows per merged batch file")
 @click.option(
     "--timeout",
@@ -137,6 +145,7 @@ def run_cmd(
     sizing,
     retry_failed,
     scheduler,
+    dashboard,
     batch_rows,
     timeout,
     no_progress,
@@ -164,6 +173,7 @@ def run_cmd(
         phantoms=phantoms,
         retry_failed=retry_failed,
         scheduler=scheduler,
+        dashboard=dashboard,
         batch_rows=batch_rows,
         timeout=timeout,
         progress=not no_progress,
@@ -177,7 +187,16 @@ def run_cmd(
     plan = make_plan(cfg)
     if scheduler and jobs != 2:
         click.echo("note: --jobs is ignored with --scheduler (the cluster decides the workers)", err=True)
-    summary = run(cfg, plan)
+    try:
+        summary = run(cfg, plan)
+    except OSError as exc:  # a full or read-only disk under --out: the landed rows stay, the lock is gone
+        from elastimap.errors import UserError
+
+        raise UserError(
+            "out",
+            f"writing in {plan.out} failed ({exc.strerror or exc}); the rows landed so far are kept: "
+            "free space and rerun the same command to resume",
+        ) from None
     click.echo(format_summary(summary))
     if summary.get("aborted"):
         click.echo(f"error: {summary['aborted']}", err=True)

@@ -8,6 +8,9 @@ that runs on every worker when it joins.
   for a reply with no time limit).
 * :func:`count_workers` is what the driver polls while it waits for results, to notice a cluster
   that has lost every worker (wall time, ``scancel``) instead of waiting for ever.
+* :func:`local_cluster` is the cluster of a sweep without ``--scheduler``: worker processes on this
+  machine, the scheduler on the loopback interface, the dashboard off unless asked for
+  (``--dashboard``), workers that leave Ctrl-C to the driver (:func:`dask_setup`).
 * :class:`WarmUpWorkers` is a dask worker plugin: registered on the scheduler, it runs the solver's
   warm-up once in every worker, also in workers that join later (a replacement SLURM
   job), so the first sample of a fresh worker does not pay the form compile.
@@ -19,7 +22,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import signal
 import socket
+import sys
+import threading
 from collections.abc import Callable
 
 from distributed.diagnostics.plugin import WorkerPlugin
@@ -99,6 +105,40 @@ def connect(address: str, timeout: float):
         return Client(address, timeout=f"{timeout}s")
     except Exception as exc:
         raise UserError("scheduler", f"cannot connect to {address} ({type(exc).__name__}: {exc})") from None
+
+
+def local_cluster(jobs: int, dashboard: str | None = None):
+    """A :class:`distributed.LocalCluster` of ``jobs`` one-thread worker processes on this machine.
+
+    Its scheduler listens on 127.0.0.1 only.  The dashboard (an unauthenticated web page that shows
+    and can stop the sweep's tasks) is off unless ``dashboard`` names an address
+    (``--dashboard``): ``127.0.0.1:8787`` keeps it on this machine, ``:8787`` opens it to the
+    network (it needs the ``bokeh`` package).  Every worker runs :func:`dask_setup` first (ignores SIGINT)."""
+    from distributed import LocalCluster
+
+    cluster = LocalCluster(
+        n_workers=jobs,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        # without a dashboard the scheduler still serves /health and /metrics: on loopback, a free port
+        dashboard_address=dashboard or "127.0.0.1:0",
+        scheduler_kwargs={"dashboard": dashboard is not None},
+        silence_logs=logging.CRITICAL,
+        preload=[__name__],
+    )
+    if dashboard is not None:
+        print(f"dask dashboard (no login): {cluster.dashboard_link}", file=sys.stderr)
+    return cluster
+
+
+def dask_setup(worker) -> None:
+    """Run by dask in each local worker process as it starts (``preload``): ignore SIGINT.
+
+    Ctrl-C reaches the whole process group; the driver catches it, keeps the landed rows and stops
+    the cluster.  A worker that took it as well printed a traceback of its event loop."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def count_workers(client, timeout: float | None = None) -> int | None:

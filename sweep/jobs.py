@@ -22,6 +22,7 @@ import hashlib
 import json
 import os
 import resource
+import signal
 import threading
 import time
 from collections.abc import Callable
@@ -57,13 +58,32 @@ def solve_with(solver: Callable | None, p: SolveParams):
 
 
 def warmup(solver: Callable | None, p: SolveParams) -> None:
-    """Compile what the solver needs once, before the fan-out (a no-op for solvers without ``warmup``)."""
+    """Compile what the solver needs once, before the fan-out (a no-op for solvers without ``warmup``).
+
+    In the main thread (the sweep driver) SIGINT and SIGTERM still reach Python's handlers
+    afterwards: ``gmsh.initialize`` puts both back to their default action at C level (while
+    ``signal.getsignal`` still reports Python's handler), so a Ctrl-C or ``scancel`` after the
+    warm-up killed the driver without its summary, leaving its lock and markers.  Both signals
+    are blocked during the warm-up, Python's handlers installed again, then one that came
+    meanwhile is delivered."""
     if solver is None:
         from elastimap.solver import warmup as warm
     else:
         warm = getattr(solver, "warmup", None)
-    if warm is not None:
+    if warm is None:
+        return
+    if threading.current_thread() is not threading.main_thread():
         warm(p)
+        return
+    sigs = {signal.SIGINT, signal.SIGTERM}
+    handlers = {s: signal.getsignal(s) for s in sigs}
+    signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+    try:
+        warm(p)
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, sigs)
 
 
 def sample_params(sample: dict, base: SolveParams) -> SolveParams:

@@ -32,7 +32,6 @@ from __future__ import annotations
 import datetime as _dt
 import functools
 import json
-import logging
 import os
 import signal
 import sys
@@ -76,6 +75,7 @@ class SweepConfig:
     phantoms: bool = False
     retry_failed: bool = False
     scheduler: str | None = None
+    dashboard: str | None = None  # the local cluster's dashboard address; None: no dashboard
     append: bool = False  # extend an existing folder with another design
     break_lock: bool = False  # remove another host's lock (a driver that is gone)
     connect_timeout: float = 30.0  # s for --scheduler to answer
@@ -108,6 +108,10 @@ class SweepConfig:
                 lambda a: isinstance(a, str) and bool(a.strip()),
                 "a dask scheduler address like tcp://host:8786 (leave it out for a local cluster)",
             ),
+        ],
+        "dashboard": [
+            None,
+            Predicate(lambda a: isinstance(a, str) and ":" in a, "an address HOST:PORT or :PORT (e.g. 127.0.0.1:8787)"),
         ],
         "connect_timeout": [Interval(float, 0, None, closed="neither", unit="s")],
         "worker_wait": [Interval(float, 0, None, closed="neither", unit="s")],
@@ -342,7 +346,7 @@ def check_foreign_lock(out: Path, break_lock: bool) -> None:
 
 def _start_client(cfg: SweepConfig):
     import dask
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")  # workers inherit: one core per solve
@@ -373,10 +377,9 @@ def _start_client(cfg: SweepConfig):
         from .cluster import connect
 
         return connect(cfg.scheduler.strip(), cfg.connect_timeout), None
-    # ":0": a free port for the scheduler's HTTP endpoint, so concurrent sweeps do not collide on 8787
-    cluster = LocalCluster(
-        n_workers=cfg.jobs, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.CRITICAL
-    )
+    from .cluster import local_cluster
+
+    cluster = local_cluster(cfg.jobs, cfg.dashboard)
     return Client(cluster), cluster
 
 

@@ -23,7 +23,7 @@ import click
 
 from elastimap.cli_util import CONTEXT_SETTINGS, Choice, data_option, no_progress_option, out_option, run
 from elastimap.errors import UserError
-from elastimap.outputs import check_out_dir, staged_dir
+from elastimap.outputs import check_inputs_kept, check_out_dir
 
 ALGO_CHOICES = ("lm", "scg", "all")
 VALIDATE_CHOICES = ("hov", "loocv", "all")
@@ -163,6 +163,8 @@ def cli(
     if threads < 0:
         raise UserError("threads", f"must be >= 0 (0 = torch's default; got {threads})")
     check_out_dir(out, "out", overwrite=overwrite)  # before any work; the run is staged below
+    if data is not None:
+        check_inputs_kept(out, "out", data=data)
 
     if synthetic is not None:
         if synthetic < 10:
@@ -185,8 +187,7 @@ def cli(
         threads=nthreads,
         save_models=not no_model,
     )
-    with staged_dir(out, "out", overwrite=overwrite) as tmp:
-        _run(samples, cfg, spec, out=str(tmp), final=out)
+    _run(samples, cfg, spec, out, overwrite)
     click.echo(f"wrote {out}", err=True)
     return 0
 
@@ -206,13 +207,18 @@ class RunSpec:
     save_models: bool
 
 
-def _run(samples, cfg, spec: RunSpec, out: str, final: str) -> int:
-    """The run itself, writing into ``out`` (the staged folder that becomes ``final``)."""
+def _run(samples, cfg, spec: RunSpec, out: str, overwrite: bool) -> None:
+    """The run: every network trained first, then everything written as one folder
+    (:func:`elastimap.outputs.write_dir`: ``out`` is replaced whole, and on a full disk the
+    finished run goes to a temporary folder that the error line names)."""
+    from elastimap.outputs import write_dir
+
     from .api import fit_ensemble
     from .data import data_hash, prepare
-    from .experiment import run_validation
-    from .report import markdown, plot_curves, table
+    from .experiment import check_trainable, run_validation
+    from .report import markdown, table
 
+    check_trainable(samples.n, cfg.arch, "data set")  # every fold is smaller: refuse before any output
     click.echo(samples.report(), err=True)
     click.echo(
         f"network {cfg.arch.describe()} ({cfg.arch.n_params} weights), device "
@@ -226,7 +232,6 @@ def _run(samples, cfg, spec: RunSpec, out: str, final: str) -> int:
         for a in spec.algos:
             r = run_validation(samples, a, v, spec.repeats, cfg, seed=spec.seed, test_split=spec.test_split)
             results.append(r)
-            plot_curves(r, os.path.join(out, f"curves-{a}-{v}.png"), label=f", {samples.source}")
             click.echo(
                 f"{a} {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s "
                 f"({r.row['trainings_per_s']:.2f}/s); stops {r.row['stops']}",
@@ -235,18 +240,15 @@ def _run(samples, cfg, spec: RunSpec, out: str, final: str) -> int:
     df = table(results)
     df.insert(0, "data_sha256", data_hash(samples.df))
     df.insert(0, "data", samples.source)
-    df.to_csv(os.path.join(out, "results.csv"), index=False)
     title = (
         f"Test errors, {samples.source}, {cfg.arch.describe()}, {cfg.epochs} epochs, feature noise "
         f"{cfg.feature_noise:g}; mean [2.5 %, 97.5 %] over {spec.repeats} repeat(s). MSE×100 is paper eq. (1) "
         f"on mapminmax [-1, 1]-scaled targets."
     )
     md = markdown(df, title)
-    with open(os.path.join(out, "results.md"), "w") as f:
-        f.write(md)
     click.echo(md)
 
-    models = {}
+    ensembles = {}
     if spec.save_models:
         drop_test = spec.validations == ["hov"]
         for a in spec.algos:
@@ -257,51 +259,63 @@ def _run(samples, cfg, spec: RunSpec, out: str, final: str) -> int:
                 test_rows, _ = split_rows(samples, "hov", spec.test_split, rng_for(spec.seed, "hov")[0])
                 s = prepare(samples.df[~test_rows], source=samples.source)
                 s.n_failed = samples.n_failed
-            ens = fit_ensemble(
-                s,
-                algo=a,
-                repeats=spec.repeats,
-                epochs=cfg.epochs,
-                hidden=cfg.hidden,
-                seed=spec.seed,
-                feature_noise=cfg.feature_noise,
-                val_fraction=cfg.val_fraction,
-                device=cfg.device,
-                progress=cfg.progress,
-                dtype=cfg.dtype,
+            ensembles[a] = (
+                fit_ensemble(
+                    s,
+                    algo=a,
+                    repeats=spec.repeats,
+                    epochs=cfg.epochs,
+                    hidden=cfg.hidden,
+                    seed=spec.seed,
+                    feature_noise=cfg.feature_noise,
+                    val_fraction=cfg.val_fraction,
+                    device=cfg.device,
+                    progress=cfg.progress,
+                    dtype=cfg.dtype,
+                ),
+                s.n,
             )
-            ens.save(os.path.join(out, f"model-{a}"))
-            path = os.path.join(final, f"model-{a}")
-            models[a] = path
-            click.echo(f"saved {ens.n_members}-member {a} ensemble ({s.n} training rows) to {path}", err=True)
-    with open(os.path.join(out, "run.json"), "w") as f:
-        json.dump(
-            {
-                "data": samples.source,
-                "n_samples": samples.n,
-                "n_failed_excluded": samples.n_failed,
-                "data_sha256": data_hash(samples.df),
-                "algo": spec.algos,
-                "validate": spec.validations,
-                "repeats": spec.repeats,
-                "epochs": cfg.epochs,
-                "hidden": spec.hidden,
-                "activation": spec.activation,
-                "feature_noise": cfg.feature_noise,
-                "test_split": spec.test_split,
-                "val_fraction": cfg.val_fraction,
-                "seed": spec.seed,
-                "device": str(cfg.resolved_device()),
-                "threads": spec.threads,
-                "workers": cfg.workers,
-                "dtype": str(cfg.dtype),
-                "wall_s": round(time.perf_counter() - t0, 3),
-                "models": models,
-            },
-            f,
-            indent=2,
-        )
-    return 0
+    models = {a: os.path.join(out, f"model-{a}") for a in ensembles}
+    doc = {
+        "data": samples.source,
+        "n_samples": samples.n,
+        "n_failed_excluded": samples.n_failed,
+        "data_sha256": data_hash(samples.df),
+        "algo": spec.algos,
+        "validate": spec.validations,
+        "repeats": spec.repeats,
+        "epochs": cfg.epochs,
+        "hidden": spec.hidden,
+        "activation": spec.activation,
+        "feature_noise": cfg.feature_noise,
+        "test_split": spec.test_split,
+        "val_fraction": cfg.val_fraction,
+        "seed": spec.seed,
+        "device": str(cfg.resolved_device()),
+        "threads": spec.threads,
+        "workers": cfg.workers,
+        "dtype": str(cfg.dtype),
+        "wall_s": round(time.perf_counter() - t0, 3),
+        "models": models,
+    }
+    write_dir(out, lambda folder: _write(folder, results, df, md, ensembles, doc), "out", overwrite=overwrite)
+    for a, (ens, n) in ensembles.items():
+        click.echo(f"saved {ens.n_members}-member {a} ensemble ({n} training rows) to {models[a]}", err=True)
+
+
+def _write(folder, results, df, md: str, ensembles: dict, doc: dict) -> None:
+    """Everything one run writes, into ``folder``."""
+    from .report import plot_curves
+
+    for r in results:
+        plot_curves(r, os.path.join(folder, f"curves-{r.algo}-{r.validate}.png"), label=f", {doc['data']}")
+    df.to_csv(os.path.join(folder, "results.csv"), index=False)
+    with open(os.path.join(folder, "results.md"), "w") as f:
+        f.write(md)
+    for a, (ens, _) in ensembles.items():
+        ens.save(os.path.join(folder, f"model-{a}"))
+    with open(os.path.join(folder, "run.json"), "w") as f:
+        json.dump(doc, f, indent=2)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -205,11 +205,12 @@ class Ensemble:
 
         from safetensors.numpy import save_file
 
-        from elastimap.outputs import publish_dir
+        from elastimap.outputs import publish_dir, umask
 
         final = os.path.abspath(directory)
         os.makedirs(os.path.dirname(final), exist_ok=True)
         tmp = tempfile.mkdtemp(prefix=f".{os.path.basename(final)}.", suffix=".partial", dir=os.path.dirname(final))
+        os.chmod(tmp, 0o777 & ~umask())  # mkdtemp's 0700 would outlive the rename
         try:
             tensors = {}
             for l, (W, b, _) in enumerate(self.layers()):
@@ -224,6 +225,8 @@ class Ensemble:
                 f.write("\n")
             from pathlib import Path
 
+            for name in os.listdir(tmp):  # safetensors writes its file 0600
+                os.chmod(os.path.join(tmp, name), 0o666 & ~umask())
             publish_dir(Path(tmp), Path(final), "model")
         except BaseException:
             import shutil
@@ -296,6 +299,9 @@ class Ensemble:
             raise bad_meta("scaling maxima must exceed the minima")
         if fr.shape != (2, arch.n_in) or tr.shape != (2, arch.n_out):
             raise bad_meta("feature_range / target_range do not match the architecture")
+        for name, r in (("feature_range", fr), ("target_range", tr)):
+            if not np.isfinite(r).all() or (r[0] > r[1]).any():
+                raise bad_meta(f"{name} must hold finite minima no larger than their maxima (the range flags need it)")
         names_f, names_t = list(meta["feature_names"]), list(meta["target_names"])
         if len(names_f) != arch.n_in or len(names_t) != arch.n_out:
             raise bad_meta("feature/target names do not match the architecture")

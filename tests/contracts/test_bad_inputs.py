@@ -338,23 +338,23 @@ CASES = [
     ("camera", ["detect", *TINY, "--out", "{A}/a-file"], ("out", "a-file")),
     (
         "camera",
-        ["calibrate", "--fem-features", "missing.csv", *TINY, "--frames", "1", "--out", "c.json"],
+        ["calibrate", "--fem-features", "missing.csv", *TINY, "--frames", "2", "--out", "c.json"],
         ("fem", "missing.csv"),
     ),
     # ---- calibrate
-    ("calibrate", ["--fem-features", "missing.csv", *TINY, "--frames", "1", "--out", "c.json"], ("fem", "missing.csv")),
+    ("calibrate", ["--fem-features", "missing.csv", *TINY, "--frames", "2", "--out", "c.json"], ("fem", "missing.csv")),
     (
         "calibrate",
-        ["--fem-features", "{A}/foreign.parquet", *TINY, "--frames", "1", "--out", "c.json"],
+        ["--fem-features", "{A}/foreign.parquet", *TINY, "--frames", "2", "--out", "c.json"],
         ("foreign.parquet",),
     ),
-    ("calibrate", ["--phantoms", "missing.csv", *TINY, "--frames", "1", "--out", "c.json"], ("phantoms", "missing")),
+    ("calibrate", ["--phantoms", "missing.csv", *TINY, "--frames", "2", "--out", "c.json"], ("phantoms", "missing")),
     ("calibrate", [*TINY, "--frames", "0", "--out", "c.json"], ("frames",)),
-    ("calibrate", [*TINY, "--frames", "1", "--out", "{A}/a-file/c.json"], ("out", "a-file")),
-    ("calibrate", [*TINY, "--frames", "1", "--out", "{A}/ds"], ("out", "ds")),
+    ("calibrate", [*TINY, "--frames", "2", "--out", "{A}/a-file/c.json"], ("out", "a-file")),
+    ("calibrate", [*TINY, "--frames", "2", "--out", "{A}/ds"], ("out", "ds")),
     (
         "calibrate",
-        [*TINY, "--frames", "1", "--out", "c.json", "--write-frames", "{A}/a-file"],
+        [*TINY, "--frames", "2", "--out", "c.json", "--write-frames", "{A}/a-file"],
         ("write-frames", "write_frames", "a-file"),
     ),
     # ---- infer

@@ -39,10 +39,15 @@ def test_gap_synth_refuses_existing_data_and_never_replaces_real_data(tmp_path):
     before = snapshot(m)
     code, _, err = invoke("gap", ["synth", "--out", str(m), *SYNTH, "--seed", "3"])
     assert code == 2 and "--overwrite" in err and snapshot(m) == before
+    # a file the user added is never deleted, not even with --overwrite (issue 40: it was)
+    code, _, err = invoke("gap", ["synth", "--out", str(m), *SYNTH, "--seed", "3", "--overwrite"])
+    assert code == 2 and "stray.txt" in err and snapshot(m) == before
+    (m / "stray.txt").unlink()
     # a synthetic dataset is replaced whole with --overwrite (nothing of the old one remains)
+    (m / "synthetic_difference_old.npy").write_bytes(b"")
     code, out, err = invoke("gap", ["synth", "--out", str(m), *SYNTH, "--seed", "3", "--overwrite"])
     assert code == 0, err
-    assert not (m / "stray.txt").exists() and (m / "measured.json").exists()
+    assert not (m / "synthetic_difference_old.npy").exists() and (m / "measured.json").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging folder left
     # real data: never, not even with --overwrite
     side = json.loads((m / "measured.json").read_text())
