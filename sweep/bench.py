@@ -16,7 +16,8 @@ With ``--compare`` (:func:`compare`) each worker count runs the sample list once
 ``paths`` (default ``separate,shared``), into fresh directories: ``separate`` every press
 factorised for itself (:class:`SeparatePresses`, the path before the shared presses),
 ``shared`` the remeshed forward model as shipped, ``morph`` the morphed, sized-by-d one
-(``geometry="morph", sizing="by_d"``, docs/forward-model.md, 'Mesh: sizing and morphing').  It
+(``geometry="morph", sizing="by_d"``, docs/forward-model.md, 'Mesh: sizing and morphing'),
+``morph-fixed`` the morphed one with today's sizing.  It
 prints each, the ratio of samples/min and of the workers' CPU seconds per sample against the
 first path (the latter less sensitive to other load on the machine than wall time), the load
 average before each run, the largest peak memory of a sample, and how far each path's features
@@ -46,6 +47,7 @@ PATHS = {
     "separate": ("remesh", "fixed", True),
     "shared": ("remesh", "fixed", False),
     "morph": ("morph", "by_d", False),
+    "morph-fixed": ("morph", "fixed", False),
 }
 
 

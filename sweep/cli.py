@@ -206,7 +206,7 @@ def run_cmd(
     show_default=True,
     help="with --compare: comma-separated paths, the first the baseline; separate = each press factorised "
     "for itself (remesh, fixed sizing: the path before), shared = remesh/fixed as shipped, "
-    "morph = geometry morph, sizing by_d",
+    "morph = geometry morph, sizing by_d, morph-fixed = geometry morph, sizing fixed",
 )
 @out_option(help="keep the datasets under OUT/jobs<k> (with --compare OUT/<path>-jobs<k>; default: a temporary dir)")
 def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solver_spec, jobs_list, compare, paths, out):
