@@ -252,7 +252,7 @@ def _peak_memory(path) -> float:
 def format_compare(res: dict) -> str:
     paths = res["paths"]
     head = (
-        f"{'jobs':>4} {'path':>8} {'samples':>7} {'failed':>6} {'wall s':>8} {'samples/min':>11} "
+        f"{'jobs':>4} {'path':>11} {'samples':>7} {'failed':>6} {'wall s':>8} {'samples/min':>11} "
         f"{'worker CPU s/sample':>19} {'solve s':>8} {'peak MiB':>8} {'load before':>11}"
     )
     what = ", ".join(
@@ -261,7 +261,7 @@ def format_compare(res: dict) -> str:
     lines = [f"sweep bench --compare (mesh {res['mesh']}): {what}", head]
     for r in res["rows"]:
         lines.append(
-            f"{r['jobs']:>4} {r['path']:>8} {r['samples']:>7} {r['failed']:>6} {r['wall_s']:>8.1f} "
+            f"{r['jobs']:>4} {r['path']:>11} {r['samples']:>7} {r['failed']:>6} {r['wall_s']:>8.1f} "
             f"{r['samples_per_min']:>11.2f} {r['worker_cpu_s_per_sample']:>19.2f} {r['mean_solve_s']:>8.2f} "
             f"{r['peak_memory_mb']:>8.0f} {r['load_before']:>11.2f}"
         )
