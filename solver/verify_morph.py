@@ -3,6 +3,7 @@
     python -m elastimap.solver.verify_morph                              # every check (long)
     python -m elastimap.solver.verify_morph --checks smoothness --points 8:7
     python -m elastimap.solver.verify_morph --checks convergence --levels coarse,default,fine
+    python -m elastimap.solver.verify_morph --checks calculix --calculix independent-fem/calculix.csv
 
 Checks:
 
@@ -15,6 +16,12 @@ Checks:
     of each derivative over the steps, and the seconds per sample of each method.
 ``edges``
     the jump at a bin edge: one (d, h) on an edge solved on the references of both sides.
+``calculix``
+    O1, O2 and the plate forces of the phantoms of an independent model's table (``--calculix``,
+    e.g. the ``calculix.csv`` of the independent FEM's development data: columns d_mm, h_mm,
+    E_kPa, O1_mm, O2_mm, plate_force_mN, plate_force_ref_mN) by the remeshed, fixed-sizing path
+    (what the sweep runs by default) and by the morphed, sized-by-d one on ``--mesh``, each one's
+    relative deviation from the table and which is closer; not run unless named.
 
 Figures belong in docs/forward-model.md together with the command that produced them.
 """
@@ -32,7 +39,13 @@ from elastimap.cli_util import run
 
 from .params import MESH_LEVELS, SIZINGS, Discretisation, SolveParams
 
-CHECKS = ("convergence", "smoothness", "edges")
+CHECKS = ("convergence", "smoothness", "edges", "calculix")
+#: the checks run when ``--checks`` is not given (``calculix`` needs a table)
+DEFAULT_CHECKS = CHECKS[:3]
+#: the two forward-model paths ``calculix`` compares: (geometry, sizing)
+PATHS = (("remesh", "fixed"), ("morph", "by_d"))
+#: the table's columns and the SolveResult fields they are compared with
+CALCULIX_COLUMNS = {"O1_mm": "O1", "O2_mm": "O2", "plate_force_mN": "force", "plate_force_ref_mN": "force_ref"}
 DIAMETERS = (2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 15.0)
 STEPS = (0.05, 0.1, 0.25, 0.5)
 POINTS = ((8.0, 7.0), (3.0, 4.5), (12.0, 9.0))
@@ -221,6 +234,58 @@ def check_edges(mesh="default", sizing="by_d", E=50.0) -> str:
     )
 
 
+# ------------------------------------------------------------------ an independent model's phantoms
+def check_calculix(path, mesh="default") -> str:
+    """Each phantom of the table at ``path`` solved by each of :data:`PATHS` on ``mesh`` (the
+    morphed path on the reference of its own bin); per phantom and quantity the relative
+    deviation (elastimap / table − 1) and which path is closer, then the mean |deviation| per
+    path and quantity over the phantoms."""
+    import pandas as pd
+
+    from .api import solve
+
+    table = pd.read_csv(path)
+    dev = {pth: {q: [] for q in CALCULIX_COLUMNS} for pth in PATHS}
+    rows, secs = [], {pth: 0.0 for pth in PATHS}
+    for r in table.itertuples(index=False):
+        res = {}
+        for geometry, sizing in PATHS:
+            disc = Discretisation(mesh=mesh, geometry=geometry, sizing=sizing)
+            p = SolveParams(disc=disc).with_inclusion(d=r.d_mm, h=r.h_mm, E=r.E_kPa)
+            t0 = time.perf_counter()
+            res[(geometry, sizing)] = solve(p)
+            secs[(geometry, sizing)] += time.perf_counter() - t0
+        for col, field in CALCULIX_COLUMNS.items():
+            ref = float(getattr(r, col))
+            e = {pth: getattr(res[pth], field) / ref - 1 for pth in PATHS}
+            for pth in PATHS:
+                dev[pth][col].append(abs(e[pth]))
+            a, b = (abs(e[pth]) for pth in PATHS)
+            closer = "/".join(PATHS[0]) if a < b else "/".join(PATHS[1]) if b < a else "tie"
+            rows.append(
+                [f"{r.d_mm:g}", f"{r.h_mm:g}", f"{r.E_kPa:g}", field, f"{ref:.6g}"]
+                + [f"{100 * e[pth]:+.2f} %" for pth in PATHS]
+                + [closer]
+            )
+    names = ["/".join(pth) for pth in PATHS]
+    out = [f"### Against {path} (mesh {mesh})\n"]
+    out.append(_table(["d", "h", "E", "quantity", "table"] + names + ["closer"], rows))
+    out.append("\nMean |deviation| over the phantoms:\n")
+    out.append(
+        _table(
+            ["quantity"] + names,
+            [[CALCULIX_COLUMNS[c]] + [f"{100 * np.mean(dev[pth][c]):.2f} %" for pth in PATHS] for c in CALCULIX_COLUMNS]
+            + [["O1 and O2"] + [f"{100 * np.mean(dev[pth]['O1_mm'] + dev[pth]['O2_mm']):.2f} %" for pth in PATHS]],
+        )
+    )
+    out.append(
+        "\nSeconds per phantom (this process): "
+        + ", ".join(f"{n} {secs[pth] / len(table):.1f}" for n, pth in zip(names, PATHS, strict=True))
+        + "\n"
+    )
+    return "\n".join(out)
+
+
 def _csv(text: str, name: str, cast=float) -> tuple:
     from elastimap.errors import UserError
 
@@ -231,7 +296,19 @@ def _csv(text: str, name: str, cast=float) -> tuple:
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--checks", default=",".join(CHECKS), show_default=True, help="Comma-separated subset of checks.")
+@click.option(
+    "--checks",
+    default=",".join(DEFAULT_CHECKS),
+    show_default=True,
+    help=f"Comma-separated subset of {', '.join(CHECKS)}.",
+)
+@click.option(
+    "--calculix",
+    "calculix",
+    type=click.Path(exists=True, dir_okay=False),
+    default=None,
+    help="calculix check: the independent model's table (e.g. independent-fem/calculix.csv)",
+)
 @click.option("--levels", default="coarse,default,fine,finer", show_default=True, help="mesh levels (convergence)")
 @click.option("--diameters", default=",".join(f"{d:g}" for d in DIAMETERS), show_default=True, help="d (mm)")
 @click.option(
@@ -253,7 +330,7 @@ def _csv(text: str, name: str, cast=float) -> tuple:
     show_default=True,
     help="convergence: skip a level for the larger d once one of its solves took longer",
 )
-def command(checks, levels, diameters, sizing, mesh, points, steps, max_seconds):
+def command(checks, calculix, levels, diameters, sizing, mesh, points, steps, max_seconds):
     """Convergence over d, derivative smoothness (remesh vs morph) and bin-edge jumps, as Markdown."""
     from elastimap.errors import UserError
 
@@ -261,6 +338,8 @@ def command(checks, levels, diameters, sizing, mesh, points, steps, max_seconds)
     bad = [c for c in chosen if c not in CHECKS]
     if bad:
         raise UserError("--checks", f"unknown check(s) {', '.join(bad)}; choose from {', '.join(CHECKS)}")
+    if "calculix" in chosen and calculix is None:
+        raise UserError("--calculix", "the calculix check needs the table's path")
     lv = _csv(levels, "--levels", str)
     if not lv or any(v not in MESH_LEVELS for v in lv):
         raise UserError("--levels", f"choose from {', '.join(MESH_LEVELS)} (got {levels!r})")
@@ -287,6 +366,8 @@ def command(checks, levels, diameters, sizing, mesh, points, steps, max_seconds)
             text = check_convergence(lv, ds, sizing, max_seconds=max_seconds)
         elif c == "smoothness":
             text = check_smoothness(pts, st, mesh, sizing)
+        elif c == "calculix":
+            text = check_calculix(calculix, mesh)
         else:
             text = check_edges(mesh, sizing)
         click.echo(text)

@@ -1,5 +1,5 @@
 """``sweep bench``: the same sweep at several worker counts, timed; ``--compare``: the same sweep
-by the path before the shared presses and by today's, side by side.
+by several forward-model paths (:data:`PATHS`), side by side.
 
 Each count runs the identical sample list into a fresh dataset directory, so
 every run solves everything (nothing is skipped).  Figures per run:
@@ -12,12 +12,16 @@ every run solves everything (nothing is skipped).  Figures per run:
 * driver overhead per sample: wall * jobs / n - mean solve time, i.e. worker
   time per sample not spent solving (start-up, idle, scheduling, landing)
 
-With ``--compare`` (:func:`compare`) each worker count runs the sample list twice, into fresh
-directories: first with every press factorised for itself (:class:`SeparatePresses`, the path
-before the shared presses), then with the forward model as shipped; it prints both, the ratio
-of samples/min and of the workers' CPU seconds per sample (less sensitive to other load on the
-machine than wall time), the load average before each run, the largest peak memory of a
-sample, and how far the shipped path's features are from the baseline's, sample by sample.
+With ``--compare`` (:func:`compare`) each worker count runs the sample list once per path of
+``paths`` (default ``separate,shared``), into fresh directories: ``separate`` every press
+factorised for itself (:class:`SeparatePresses`, the path before the shared presses),
+``shared`` the remeshed forward model as shipped, ``morph`` the morphed, sized-by-d one
+(``geometry="morph", sizing="by_d"``, docs/forward-model.md, 'Mesh: sizing and morphing'),
+``morph-fixed`` the morphed one with today's sizing.  It
+prints each, the ratio of samples/min and of the workers' CPU seconds per sample against the
+first path (the latter less sensitive to other load on the machine than wall time), the load
+average before each run, the largest peak memory of a sample, and how far each path's features
+are from the first path's, sample by sample (largest and mean).
 """
 
 from __future__ import annotations
@@ -34,8 +38,17 @@ from elastimap.errors import UserError
 
 from .run import SweepConfig, make_plan, run
 
-#: the features and the force :func:`compare` checks between the two paths
+#: the features and the force :func:`compare` checks between the paths
 COMPARED = ("O1", "O2", "O3", "force")
+
+#: the paths ``--compare`` can time: name -> (geometry, sizing, whether each press is factorised
+#: for itself)
+PATHS = {
+    "separate": ("remesh", "fixed", True),
+    "shared": ("remesh", "fixed", False),
+    "morph": ("morph", "by_d", False),
+    "morph-fixed": ("morph", "fixed", False),
+}
 
 
 class SeparatePresses:
@@ -144,7 +157,8 @@ def _timed_run(cfg: SweepConfig, plan) -> dict:
 
 def feature_deviation(a, b) -> dict:
     """Largest |b / a − 1| over the samples both datasets hold as ok, per quantity of ``COMPARED``
-    (a pair of zeros counts as equal, a zero against a non-zero as 1), and how many were compared."""
+    (a pair of zeros counts as equal, a zero against a non-zero as 1), its mean under
+    ``mean_<quantity>``, and how many were compared."""
     from elastimap.dataset import io
 
     cols = ["sample_id", "status", *COMPARED]
@@ -156,17 +170,28 @@ def feature_deviation(a, b) -> dict:
         zero = x == 0
         dev = np.where(zero, (y != 0).astype(float), np.abs(y - x) / np.where(zero, 1.0, np.abs(x)))
         out[k] = float(dev.max()) if dev.size else math.nan
+        out[f"mean_{k}"] = float(dev.mean()) if dev.size else math.nan
     return out
 
 
-def compare(counts: list[int], out: str | None = None, **kw) -> dict:
-    """The same sweep by :class:`SeparatePresses` and by the shipped forward model at each worker
-    count in ``counts`` (``kw`` as :class:`~elastimap.sweep.run.SweepConfig`'s, without ``solver``)."""
+def parse_paths(text: str) -> tuple[str, ...]:
+    """``separate,morph`` -> ("separate", "morph"): two or more distinct names of :data:`PATHS`."""
+    paths = tuple(x.strip() for x in text.split(",") if x.strip())
+    if len(paths) < 2 or len(set(paths)) != len(paths) or any(x not in PATHS for x in paths):
+        raise UserError("paths", f"give two or more distinct of {', '.join(PATHS)}, comma-separated (got {text!r})")
+    return paths
+
+
+def compare(counts: list[int], out: str | None = None, paths=("separate", "shared"), **kw) -> dict:
+    """The same sweep by each path of ``paths`` (names of :data:`PATHS`; the first is the baseline)
+    at each worker count in ``counts`` (``kw`` as :class:`~elastimap.sweep.run.SweepConfig`'s,
+    without ``solver``, ``geometry`` and ``sizing``, which the paths set)."""
     if not counts:
         raise UserError("counts", "give at least one worker count")
     if kw.get("solver") is not None:
         raise UserError("solver", "--compare times the forward model; leave --solver out")
     kw.pop("solver", None)
+    paths = parse_paths(",".join(paths))
     tmp = None
     if out is None:
         tmp = tempfile.TemporaryDirectory(prefix="sweep-compare-")
@@ -177,8 +202,17 @@ def compare(counts: list[int], out: str | None = None, **kw) -> dict:
             raise UserError("out", f"{root} is not empty (the benchmark needs fresh directories)")
     plans = []
     for k in counts:  # check everything before running anything
-        for path, solver in (("separate", SeparatePresses()), ("shared", None)):
-            cfg = SweepConfig(jobs=k, out=str(root / f"{path}-jobs{k}"), progress=False, solver=solver, **kw)
+        for path in paths:
+            geometry, sizing, separate = PATHS[path]
+            cfg = SweepConfig(
+                jobs=k,
+                out=str(root / f"{path}-jobs{k}"),
+                progress=False,
+                solver=SeparatePresses() if separate else None,
+                geometry=geometry,
+                sizing=sizing,
+                **kw,
+            )
             plans.append((k, path, cfg, make_plan(cfg)))
     rows = []
     try:
@@ -187,7 +221,7 @@ def compare(counts: list[int], out: str | None = None, **kw) -> dict:
             rows.append(
                 {
                     "jobs": k,
-                    "presses": path,
+                    "path": path,
                     "samples": s["done"],
                     "failed": s["failed"],
                     "wall_s": s["wall_s"],
@@ -199,11 +233,15 @@ def compare(counts: list[int], out: str | None = None, **kw) -> dict:
                     "out": cfg.out,
                 }
             )
-        devs = {k: feature_deviation(root / f"separate-jobs{k}", root / f"shared-jobs{k}") for k in counts}
+        devs = {
+            (k, path): feature_deviation(root / f"{paths[0]}-jobs{k}", root / f"{path}-jobs{k}")
+            for k in counts
+            for path in paths[1:]
+        }
     finally:
         if tmp is not None:
             tmp.cleanup()
-    return {"rows": rows, "deviation": devs, "mesh": kw.get("mesh"), "out": None if tmp else str(root)}
+    return {"rows": rows, "paths": paths, "deviation": devs, "mesh": kw.get("mesh"), "out": None if tmp else str(root)}
 
 
 def _peak_memory(path) -> float:
@@ -214,27 +252,33 @@ def _peak_memory(path) -> float:
 
 
 def format_compare(res: dict) -> str:
+    paths = res["paths"]
     head = (
-        f"{'jobs':>4} {'presses':>8} {'samples':>7} {'failed':>6} {'wall s':>8} {'samples/min':>11} "
+        f"{'jobs':>4} {'path':>11} {'samples':>7} {'failed':>6} {'wall s':>8} {'samples/min':>11} "
         f"{'worker CPU s/sample':>19} {'solve s':>8} {'peak MiB':>8} {'load before':>11}"
     )
-    lines = [f"sweep bench --compare (mesh {res['mesh']}): separate = each press factorised, shared = as shipped", head]
+    what = ", ".join(
+        f"{p} = {'/'.join(('separate presses' if PATHS[p][2] else 'shared presses', *PATHS[p][:2]))}" for p in paths
+    )
+    lines = [f"sweep bench --compare (mesh {res['mesh']}): {what}", head]
     for r in res["rows"]:
         lines.append(
-            f"{r['jobs']:>4} {r['presses']:>8} {r['samples']:>7} {r['failed']:>6} {r['wall_s']:>8.1f} "
+            f"{r['jobs']:>4} {r['path']:>11} {r['samples']:>7} {r['failed']:>6} {r['wall_s']:>8.1f} "
             f"{r['samples_per_min']:>11.2f} {r['worker_cpu_s_per_sample']:>19.2f} {r['mean_solve_s']:>8.2f} "
             f"{r['peak_memory_mb']:>8.0f} {r['load_before']:>11.2f}"
         )
-    by = {(r["jobs"], r["presses"]): r for r in res["rows"]}
-    for k, dev in res["deviation"].items():
-        a, b = by[(k, "separate")], by[(k, "shared")]
+    by = {(r["jobs"], r["path"]): r for r in res["rows"]}
+    for (k, path), dev in res["deviation"].items():
+        a, b = by[(k, paths[0])], by[(k, path)]
         lines.append(
-            f"jobs {k}: shared vs separate {b['samples_per_min'] / a['samples_per_min']:.2f}x samples/min, "
+            f"jobs {k}: {path} vs {paths[0]} {b['samples_per_min'] / a['samples_per_min']:.2f}x samples/min, "
             f"{a['worker_cpu_s_per_sample'] / b['worker_cpu_s_per_sample']:.2f}x less worker CPU per sample"
         )
         lines.append(
-            f"        features over {dev['samples']} samples, largest |shared/separate - 1|: "
+            f"        features over {dev['samples']} samples, |{path}/{paths[0]} - 1| largest: "
             + ", ".join(f"{q} {dev[q]:.1e}" for q in COMPARED)
+            + "; mean: "
+            + ", ".join(f"{q} {dev['mean_' + q]:.1e}" for q in COMPARED)
         )
     if res.get("out"):
         lines.append(f"datasets kept under {res['out']}")

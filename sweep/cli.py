@@ -5,6 +5,7 @@
     elastimap sweep run --samples table.csv --out sweeps/mine
     elastimap sweep bench --n 16 --mesh tiny             # samples/min at --jobs 1 and 2, driver overhead
     elastimap sweep bench --compare --n 64 --jobs-list 2 # the presses before vs as shipped, side by side
+    elastimap sweep bench --compare --paths separate,shared,morph --n 64 --jobs-list 2  # and morph/by_d
 
 Rerunning the same command resumes: only samples with no landed row run.
 """
@@ -215,13 +216,21 @@ def run_cmd(
 @click.option(
     "--compare",
     is_flag=True,
-    help="run each count twice, each press factorised for itself (the path before) and as shipped: "
-    "both timings, the ratio and the largest feature deviation (docs/sweep.md, 'Benchmark')",
+    help="run each count once per path of --paths: the timings, the ratios to the first path and "
+    "the feature deviations from it (docs/sweep.md, 'Benchmark')",
 )
-@out_option(help="keep the datasets under OUT/jobs<k> (with --compare OUT/<presses>-jobs<k>; default: a temporary dir)")
-def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solver_spec, jobs_list, compare, out):
+@click.option(
+    "--paths",
+    default="separate,shared",
+    show_default=True,
+    help="with --compare: comma-separated paths, the first the baseline; separate = each press factorised "
+    "for itself (remesh, fixed sizing: the path before), shared = remesh/fixed as shipped, "
+    "morph = geometry morph, sizing by_d, morph-fixed = geometry morph, sizing fixed",
+)
+@out_option(help="keep the datasets under OUT/jobs<k> (with --compare OUT/<path>-jobs<k>; default: a temporary dir)")
+def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solver_spec, jobs_list, compare, paths, out):
     """Time the same sweep at several --jobs: samples/min, speed-up, driver overhead per sample."""
-    from .bench import bench, format_bench, format_compare
+    from .bench import bench, format_bench, format_compare, parse_paths
     from .bench import compare as compare_paths
     from .jobs import resolve_solver
 
@@ -232,6 +241,7 @@ def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solve
 
         raise UserError("jobs_list", f"expected integers like 1,2 (got {jobs_list!r})") from None
     run_bench, show = (compare_paths, format_compare) if compare else (bench, format_bench)
+    extra = {"paths": parse_paths(paths)} if compare else {}
     res = run_bench(
         counts,
         n=16 if n is None and not samples else n,
@@ -244,6 +254,7 @@ def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solve
         phantoms=phantoms,
         out=out,
         solver=resolve_solver(solver_spec),
+        **extra,
     )
     click.echo(show(res))
     return 0
