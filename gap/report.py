@@ -179,6 +179,10 @@ def markdown(res: dict, figs: list[str]) -> str:
         "",
     ]
     L += ["## Verdict", "", f"**{verdict_line(res)}**", ""]
+    if res.get("adoption"):
+        a = res["adoption"]
+        where = f" → `{a['file']}` (hash {a['adopted']['sensor_hash']})" if a.get("file") else ""
+        L += [f"Sensor `{a['from']['sensor']['name']}` (hash {a['from']['sensor_hash']}): {a['note']}{where}.", ""]
     L.append(
         f"Baseline χ² = {ev['chi2_baseline']:.4g} over N = {ev['n_terms']} terms (reduced {ev['reduced_chi2_baseline']:.3g}, "
         f"p = {ev['p_value_baseline']:.3g}); the calibrated threshold χ²_N(1 − α) at α = {ev['alpha']:g} is "
