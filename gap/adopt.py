@@ -19,7 +19,7 @@ from elastimap.solver.params import from_sensor, to_sensor
 
 from . import effects as fx
 
-#: the file ``gap diagnose`` writes into its ``--out``
+#: the file ``gap diagnose`` writes into its ``--out`` (one of ``gap.report.REPORT_FILES``)
 ADOPTED = "adopted-sensor.toml"
 
 

@@ -117,7 +117,7 @@ def verdict_line(res: dict) -> str:
     return f"outcome: unexplained by the candidates (best {ev['best']}, held-out reduced χ² {ev['ranking'][0]['reduced_chi2_cv']:.3g})"
 
 
-REPORT_FILES = ("diagnosis.json", "report.md", "report.html")
+REPORT_FILES = ("diagnosis.json", "report.md", "report.html", "adopted-sensor.toml")  # the last: gap/adopt.py
 
 
 def check_out(out: str | Path) -> None:

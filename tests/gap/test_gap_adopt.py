@@ -82,3 +82,11 @@ def test_adopting_the_nominal_changes_nothing(lab):
     t = fx.for_sensor(lab)
     a = adopt(lab, {"probe_E1": [t["probe_E1"].nominal], "saturation": [lab.camera.w_sat]})
     assert a.sensor.replace(name=lab.name) == lab
+
+
+def test_the_adopted_file_belongs_to_the_report_folder():
+    """A rerun of ``gap diagnose`` into its own ``--out`` replaces the adopted file with the report."""
+    from elastimap.gap.adopt import ADOPTED
+    from elastimap.gap.report import REPORT_FILES
+
+    assert ADOPTED in REPORT_FILES
