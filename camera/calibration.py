@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from elastimap.dataset.phantoms import is_phantom, phantom_name
-from elastimap.dataset.schema import FEATURES, THICKNESS, UNITS
+from elastimap.dataset.schema import FEATURES, UNITS
 from elastimap.errors import UserError
 
 FEM_UNITS = {k: UNITS[k] for k in FEATURES}
@@ -304,9 +304,9 @@ def fit_calibration(
     ]
     m = {"created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}
     try:
-        from elastimap.provenance import code_version
+        from elastimap.provenance import stamp
 
-        m["code_version"] = code_version()
+        m.update(stamp())
     except Exception:
         pass
     m.update(meta or {})
@@ -347,17 +347,23 @@ def plot_calibration(cal: Calibration, path: str | os.PathLike) -> None:
 
 
 # ---------------------------------------------------------------- simulation
-def default_fem(mesh: str = "coarse", delta: float = 3.0):
-    """A function (d, h, E, tissue_E, thickness) -> SolveResult using the DOLFINx solver (imported lazily)."""
+def default_fem(mesh: str = "coarse", delta: float = 3.0, sensor=None):
+    """A function (d, h, E, tissue_E, thickness) -> SolveResult using the DOLFINx solver (imported lazily),
+    on the sensor ``sensor`` (:class:`elastimap.sensor.Sensor`; None: the paper's) with plate travel
+    ``delta`` (None: the sensor's) and the phantom's slab modulus and thickness (default: the sensor's)."""
+    from elastimap.sensor import Sensor
 
-    def fem(d: float, h: float, E: float, tissue_E: float = 5.0, thickness: float = THICKNESS):
+    sensor = sensor or Sensor()
+
+    def fem(d: float, h: float, E: float, tissue_E: float | None = None, thickness: float | None = None):
         from elastimap.solver import solve  # noqa: PLC0415 - keeps DOLFINx out of import time
-        from elastimap.solver.params import Discretisation, Loading, SolveParams, Tissue
+        from elastimap.solver.params import Discretisation, Inclusion, from_sensor
 
-        p = SolveParams(
-            tissue=Tissue(E=tissue_E, thickness=thickness), loading=Loading(delta=delta), disc=Discretisation(mesh=mesh)
-        ).with_inclusion(d=d, h=h, E=E)
-        return solve(p)
+        t = sensor.tissue
+        slab = dataclasses.replace(t, E=t.E if tissue_E is None else tissue_E, thickness=thickness or t.thickness)
+        load = sensor.loading if delta is None else dataclasses.replace(sensor.loading, delta=delta)
+        s = sensor.replace(tissue=slab, loading=load)
+        return solve(from_sensor(s, Inclusion(d=d, h=h, E=E, nu=t.nu), Discretisation(mesh=mesh)))
 
     return fem
 
@@ -469,8 +475,8 @@ def camera_features_from_csv(
             m = sensor or SensorModel()
             frames_out.append(
                 (
-                    read_stack(imgs, m.shape, m.window, "camera-csv")[0],
-                    read_stack(bg, m.shape, m.window, "camera-csv")[0],
+                    read_stack(imgs, m.shape, m.window, "camera-csv", bits=m.bits)[0],
+                    read_stack(bg, m.shape, m.window, "camera-csv", bits=m.bits)[0],
                 )
             )
     return np.array(out)

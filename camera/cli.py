@@ -28,20 +28,49 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
 warnings.showwarning = _show_warning
 
 
+def _description(path: str | None):
+    """The sensor description of ``--sensor`` (:mod:`elastimap.sensor`: TOML, or an output's JSON
+    record); None without ``--sensor`` or for a JSON object of camera parameters only (the camera
+    files of earlier versions: the paper's mechanics with that camera)."""
+    from elastimap.sensor import load
+
+    if not path or _camera_only(path):
+        return None
+    return load(path)
+
+
+def _camera_only(path: str) -> dict | None:
+    """The JSON object of ``path`` when it holds SensorModel parameters only, else None."""
+    from .optics import SensorModel
+
+    if not str(path).lower().endswith(".json"):
+        return None
+    try:
+        with open(path) as fh:
+            base = json.load(fh)
+    except FileNotFoundError:
+        raise UserError("sensor", f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError("sensor", f"{path}: cannot read ({exc})") from None
+    except json.JSONDecodeError as exc:
+        raise UserError("sensor", f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(base, dict):
+        raise UserError("sensor", f"{path}: must hold a JSON object (a sensor description or SensorModel parameters)")
+    known = {f.name for f in __import__("dataclasses").fields(SensorModel)}
+    return base if set(base) <= known else None
+
+
 def _sensor(sensor_json: str | None, **overrides):
+    """The camera of ``--sensor`` (a sensor description's, or a JSON object of SensorModel parameters),
+    with the camera flags given (``overrides``) applied."""
     from .optics import SensorModel
 
     base = {}
     if sensor_json:
-        try:
-            with open(sensor_json) as fh:
-                base = json.load(fh)
-        except FileNotFoundError:
-            raise UserError("sensor", f"{sensor_json}: no such file") from None
-        except json.JSONDecodeError as exc:
-            raise UserError("sensor", f"{sensor_json}: not valid JSON ({exc})") from None
-        if not isinstance(base, dict):
-            raise UserError("sensor", f"{sensor_json}: must hold a JSON object of SensorModel parameters")
+        base = _camera_only(sensor_json)
+        if base is None:
+            base = SensorModel.of(_description(sensor_json)).to_dict()
+    base = dict(base)
     given = {k: v for k, v in overrides.items() if v is not None}
     base.update(given)
     try:
@@ -59,7 +88,8 @@ def sensor_options(f):
                 "--sensor",
                 "sensor_json",
                 type=click.Path(dir_okay=False),
-                help="JSON object of SensorModel parameters (camera geometry, optics, noise).",
+                help="Sensor description (TOML; docs/howto/your-own-sensor.md): its camera, and for the "
+                "solves its probe, slab and loading; or a JSON object of SensorModel parameters (camera only).",
             ),
             click.option("--seed", type=int, default=None, help="Noise seed (default 0)."),
             click.option(
@@ -122,8 +152,8 @@ def cli():
 @click.option("--d", "d", type=float, required=True, help="Inclusion diameter, mm.")
 @click.option("--h", "h", type=float, required=True, help="Centre depth below the surface, mm.")
 @click.option("--E", "E", type=float, required=True, help="Inclusion modulus, kPa.")
-@click.option("--tissue-E", type=float, default=5.0, show_default=True, help="Tissue modulus, kPa.")
-@click.option("--delta", type=float, default=3.0, show_default=True, help="Indentation, mm.")
+@click.option("--tissue-E", type=float, default=None, help="Tissue modulus, kPa [default: the sensor's, 5].")
+@click.option("--delta", type=float, default=None, help="Indentation, mm [default: the sensor's, 3].")
 @mesh_option()
 @click.option("--frames", type=int, default=30, show_default=True, help="Camera frames per press.")
 @click.option("--out", type=click.Path(file_okay=False), required=True, help="Folder for the frame files.")
@@ -135,12 +165,16 @@ def cli():
 def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, seed, noise_scale, bits, binning):
     """Render SYNTHETIC camera frames of one inclusion and its background press (runs the FEM)."""
     from elastimap.outputs import check_out_dir
+    from elastimap.sensor import Sensor
 
     from .calibration import default_fem
     from .frames import write_frames
     from .optics import render_pair
 
     model = _sensor(sensor_json, **_model_kw(seed, noise_scale, bits, binning))
+    desc = _description(sensor_json)
+    delta = (desc or Sensor()).loading.delta if delta is None else delta
+    tissue_e = (desc or Sensor()).tissue.E if tissue_e is None else tissue_e
     if frames < 1:
         raise UserError("frames", f"must be >= 1 (got {frames})")
     if name is not None:
@@ -148,7 +182,7 @@ def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, s
 
         check_name(name, "--name", "--name")  # it names the frame files: checked before the solve
     check_out_dir(out, "--out", allow_existing=True)
-    res = default_fem(mesh, delta)(d, h, E, tissue_E=tissue_e)
+    res = default_fem(mesh, delta, desc)(d, h, E, tissue_E=tissue_e)
     F, B = render_pair(model, res.image_raw, res.image, res.pixel, frames)
     stem = name or f"d{d:g}_h{h:g}_E{E:g}"
     meta = {
@@ -162,6 +196,7 @@ def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, s
         "fem_O2": res.O2,
         "fem_O3": res.O3,
         "sensor": model.to_dict(),
+        **({"sensor_description": desc.to_dict(), "sensor_hash": desc.hash()} if desc else {}),
     }
     pl = write_frames(F, out, f"synthetic_{stem}", fmt, dict(meta, frame="lesion"))
     pb = write_frames(B, out, f"synthetic_{stem}_background", fmt, dict(meta, frame="background"))
@@ -179,7 +214,12 @@ def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, s
 @cli.command(context_settings=CONTEXT_SETTINGS)
 @click.option("--images", multiple=True, required=True, help="Lesion frames (files or globs; repeatable).")
 @click.option("--background", multiple=True, required=True, help="Background frames (files or globs).")
-@click.option("--sensor", "sensor_json", type=click.Path(dir_okay=False), help="Camera geometry (SensorModel JSON).")
+@click.option(
+    "--sensor",
+    "sensor_json",
+    type=click.Path(dir_okay=False),
+    help="Sensor description (TOML) or SensorModel JSON: the camera's geometry.",
+)
 @feature_options
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 def features(images, background, sensor_json, threshold, smooth_px, combine, as_json):
@@ -229,7 +269,9 @@ def features(images, background, sensor_json, threshold, smooth_px, combine, as_
     "O1,O2,O3) instead of solving.",
 )
 @mesh_option()
-@click.option("--delta", type=float, default=3.0, show_default=True, help="Indentation of the phantom presses, mm.")
+@click.option(
+    "--delta", type=float, default=None, help="Indentation of the phantom presses, mm [default: the sensor's, 3]."
+)
 @click.option("--frames", type=int, default=30, show_default=True, help="Camera frames per synthetic press.")
 @click.option(
     "--write-frames", type=click.Path(file_okay=False), default=None, help="Also save the synthetic frames here."
@@ -268,10 +310,13 @@ def calibrate(
     from elastimap.dataset.phantoms import read_phantoms
     from elastimap.dataset.schema import PHANTOMS_CSV
     from elastimap.outputs import check_out_dir, check_out_file
+    from elastimap.sensor import Sensor
 
     from . import calibration as C
 
     model = _sensor(sensor_json, **_model_kw(seed, noise_scale, bits, binning))
+    desc = _description(sensor_json)
+    delta = (desc or Sensor()).loading.delta if delta is None else delta
     settings = _settings(threshold, smooth_px, combine)
     from .deflection import MIN_FRAMES
 
@@ -286,7 +331,7 @@ def calibrate(
     if write_frames:
         check_out_dir(write_frames, "--write-frames", allow_existing=True)
     synthetic = camera_csv is None
-    fem_fn = C.default_fem(mesh, delta)
+    fem_fn = C.default_fem(mesh, delta, desc)
     pairs, results = [], None
     if synthetic:
 
@@ -326,6 +371,7 @@ def calibrate(
             "phantoms_file": str(phantoms or PHANTOMS_CSV),
             "camera_csv": camera_csv,
             "fem_features": fem_features,
+            **({"sensor_description": desc.to_dict(), "sensor_hash": desc.hash()} if desc else {}),
         },
         defl,
     )
@@ -428,6 +474,14 @@ def calibrate(
 )
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="Also write .csv or .json here.")
+@click.option(
+    "--sensor",
+    "sensor_path",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="The sensor the lesion was imaged with (TOML; docs/howto/your-own-sensor.md); refused when the model or "
+    "the calibration records another [default: theirs].",
+)
 def infer(
     model_dir,
     calibration,
@@ -445,6 +499,7 @@ def infer(
     allow_outside,
     as_json,
     out,
+    sensor_path,
 ):
     """Estimate (d, h, E) with intervals; out-of-range inputs and non-identifiable outputs are flagged.
 
@@ -481,6 +536,12 @@ def infer(
     model = load_model(model_dir)
     if refine and fem_image is not None and model.input_kind != "image":
         raise UserError("--refine", "--fem-image needs an image model (elastimap study image_model --save-model DIR)")
+    from elastimap.sensor import load as load_sensor
+
+    from .calibration import Calibration
+
+    cal = Calibration.load(calibration) if calibration is not None else None
+    sensor_hash = _check_sensor(load_sensor(sensor_path) if sensor_path else None, model, cal, refine)
     ests, cal = _estimates(
         model, idm, threshold, refine, calibration, feats, images, background, csv_path, fem_image, allow_outside
     )
@@ -499,7 +560,14 @@ def infer(
                 threshold=threshold,
                 progress=lambda i, n: bar.update(1),
             )
-    rows = [e.to_dict() for e in ests]
+    from elastimap.provenance import stamp
+
+    prov = stamp()
+    versions = ", ".join(f"{k} {v}" for k, v in prov["versions"].items())
+    rows = [
+        {**e.to_dict(), "sensor_hash": sensor_hash, "code_version": prov["code_version"], "versions": versions}
+        for e in ests
+    ]
     if out:
         _write_rows(rows, out)
     if as_json:
@@ -514,6 +582,50 @@ def infer(
             )
     if cal is not None and cal.synthetic:
         click.echo("note: the calibration was made with the SYNTHETIC camera", err=True)
+
+
+def _check_sensor(sensor, model, cal, refine: bool) -> str | None:
+    """The hash of the sensor the estimates stand for: ``--sensor``'s, else the calibration's, else
+    the model's (None when none records one).  The model (trained on FEM features) and the
+    calibration must stand for the same probe, slab, loading and interface as ``--sensor`` (and as
+    each other); ``--refine`` fits the paper's mechanics only (its forward map and calibrated
+    intervals)."""
+    from elastimap.sensor import CameraSpec, Sensor
+
+    from .optics import SensorModel
+
+    def mechanics(s):  # the sensor without its camera and name: what the FEM sees
+        return s.replace(name="-", camera=CameraSpec(footprint_mm=s.probe.footprint)).hash()
+
+    recorded = {}
+    meta = getattr(model, "meta", None) or {}
+    if meta.get("sensor"):
+        recorded["the model"] = Sensor.from_dict(meta["sensor"])
+    if cal is not None:
+        d = cal.meta.get("sensor_description")
+        camera = Sensor().replace(camera=SensorModel.from_dict(cal.sensor).spec()) if cal.sensor else Sensor()
+        recorded["the calibration"] = Sensor.from_dict(d) if d else camera
+    if sensor is not None:
+        for what, s in recorded.items():
+            if mechanics(s) != mechanics(sensor):
+                raise UserError(
+                    "sensor",
+                    f"{what} was made with another sensor ({s.name!r}, hash {s.hash()}) than {sensor.name!r} "
+                    f"(hash {sensor.hash()}): its probe, slab, loading or interface differ",
+                )
+        chosen = sensor
+    else:
+        if len({mechanics(s) for s in recorded.values()}) > 1:
+            raise UserError(
+                "calibration",
+                "the model and the calibration were made with different sensors ("
+                + ", ".join(f"{w}: {s.name!r}, hash {s.hash()}" for w, s in recorded.items())
+                + ")",
+            )
+        chosen = recorded.get("the calibration") or recorded.get("the model")
+    if refine and chosen is not None and mechanics(chosen) != mechanics(Sensor()):
+        raise UserError("--refine", "the FEM fit and its calibrated intervals are for the paper's sensor only")
+    return None if chosen is None else chosen.hash()
 
 
 def _refine_correct(refine: bool, mesh: str, correct: str) -> str | None:

@@ -182,8 +182,8 @@ def features_from_files(
 
     model = model or SensorModel()
     shape, window = model.shape, model.window
-    F, fs1 = read_stack(images, shape, window, params[0])
-    B, fs2 = read_stack(background, shape, window, params[1])
+    F, fs1 = read_stack(images, shape, window, params[0], bits=model.bits)
+    B, fs2 = read_stack(background, shape, window, params[1], bits=model.bits)
     if fs1 != fs2:
         raise UserError(params[1], f"{background[0]}: bit depth differs from the lesion frames ({images[0]})")
     return camera_features(F, B, fs1, window, model.pixel_mm, settings)

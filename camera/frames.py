@@ -1,9 +1,10 @@
-"""Reading and writing camera frames (8/16-bit PNG and TIFF).
+"""Reading and writing camera frames (8/12/16-bit PNG and TIFF, multi-page TIFF stacks).
 
-Reading is defensive: a missing, empty, corrupt, wrong-size or colour file
-raises :class:`UserError` naming the file (or, for colour, warns and converts);
-a frame with clipped (saturated) pixels in the footprint window, or a blank
-frame, gets a :class:`CameraWarning` naming the file.
+Reading (:mod:`elastimap.camera.framefiles`) is defensive: a missing, empty, corrupt,
+wrong-size file, or frames of mixed sizes or bit depths, raise :class:`UserError` naming the
+file; colour frames are converted to grey with a warning; a frame with clipped (saturated)
+pixels in the footprint window, a blank frame or dropped pages get a :class:`CameraWarning`
+naming the file.
 
 Synthetic frames are written with ``synthetic`` in the file name and the
 metadata (PNG text chunk ``synthetic``/``description``, TIFF ImageDescription).
@@ -20,13 +21,20 @@ import numpy as np
 
 from elastimap.errors import UserError
 
+from .framefiles import MAX_PIXELS, SATURATION_WARN_FRACTION, CameraWarning, read_frames
+
+__all__ = [
+    "CameraWarning",
+    "MAX_PIXELS",
+    "SATURATION_WARN_FRACTION",
+    "read_frame",
+    "read_stack",
+    "write_frames",
+    "read_metadata",
+    "expand",
+]
+
 FORMATS = ("png", "tiff")
-SATURATION_WARN_FRACTION = 1e-3  # warn when more than 0.1 % of the window pixels are clipped
-MAX_PIXELS = 1 << 26  # 67 Mpx: far above any sensor frame, far below what would exhaust memory
-
-
-class CameraWarning(UserWarning):
-    """A frame is usable but suspicious (saturated, blank, colour)."""
 
 
 def write_frames(
@@ -100,75 +108,23 @@ def read_frame(
     window: tuple[int, int, int] | None = None,
     param: str = "image",
 ) -> tuple[np.ndarray, int]:
-    """Read one frame; return (float array in DN, full-scale DN).
+    """Read the first frame of a file; return (float array in DN, full-scale DN).
 
     ``shape`` (rows, cols), when given, must match; it is checked from the file's header, before
     the pixels are decoded, and no frame may have more than :data:`MAX_PIXELS` pixels (a damaged or
     hostile header claiming 100000x100000 px is refused, not decoded).  ``window`` (row0, col0, n)
     restricts the saturation check to the footprint.  Problems are :class:`UserError` naming
-    ``param`` and the file.
+    ``param`` and the file.  A file holding more frames (a TIFF stack) is warned about:
+    :func:`read_stack` reads them all.
     """
-    from PIL import Image, UnidentifiedImageError
-
-    p = str(path)
-    if not os.path.exists(p):
-        raise UserError(param, f"{p}: no such file")
-    if os.path.isdir(p):
-        raise UserError(param, f"{p}: is a directory, not an image")
-    if os.path.getsize(p) == 0:
-        raise UserError(param, f"{p}: empty file (0 bytes)")
-    try:
-        with Image.open(p) as im:
-            cols, rows = im.size
-            if shape is not None and (rows, cols) != tuple(shape):
-                raise UserError(param, f"{p}: wrong size {cols}x{rows} (cols x rows); expected {shape[1]}x{shape[0]}")
-            if rows * cols > MAX_PIXELS:
-                raise UserError(param, f"{p}: {cols}x{rows} pixels is more than the {MAX_PIXELS} a frame may have")
-            im.load()
-            mode = im.mode
-            if mode in ("RGB", "RGBA", "P", "LA", "CMYK", "YCbCr"):
-                warnings.warn(f"{p}: colour image (mode {mode}) converted to grey", CameraWarning, stacklevel=2)
-                im = im.convert("L")
-                mode = "L"
-            arr = np.array(im)
-    except UserError:
-        raise  # the size checks above (a UserError is a ValueError: not "corrupt")
-    except UnidentifiedImageError:
-        raise UserError(param, f"{p}: not a readable PNG/TIFF image (corrupt or unknown format)") from None
-    except Image.DecompressionBombError as exc:
-        raise UserError(param, f"{p}: refused, too many pixels ({exc})") from None
-    except (OSError, SyntaxError, ValueError, MemoryError) as exc:
-        raise UserError(param, f"{p}: corrupt or truncated image ({exc})") from None
-    if arr.ndim != 2:
-        raise UserError(param, f"{p}: expected a single-channel image (got array shape {arr.shape})")
-    if arr.size == 0:
-        raise UserError(param, f"{p}: image has no pixels")
-    if arr.dtype == np.uint8 or mode in ("L", "1"):
-        full = 255
-    elif arr.dtype in (np.uint16, np.int32, np.int16, np.uint32) or mode.startswith("I"):
-        full = 65535
-    elif arr.dtype.kind == "f":
-        raise UserError(param, f"{p}: floating-point images are not supported (use 8- or 16-bit integers)")
-    else:
-        raise UserError(param, f"{p}: unsupported pixel type {arr.dtype} (mode {mode})")
-    if shape is not None and tuple(arr.shape) != tuple(shape):
-        raise UserError(
-            param, f"{p}: wrong size {arr.shape[1]}x{arr.shape[0]} (cols x rows); expected {shape[1]}x{shape[0]}"
+    frames, full = read_frames([str(path)], shape, window, param=param)
+    if len(frames) > 1:
+        warnings.warn(
+            f"{path}: {len(frames) - 1} of {len(frames)} frames dropped (only the first read; read_stack reads all)",
+            CameraWarning,
+            stacklevel=2,
         )
-    a = arr.astype(float)
-    sub = a if window is None else a[window[0] : window[0] + window[2], window[1] : window[1] + window[2]]
-    if sub.size:
-        sat = float(np.count_nonzero(sub >= full)) / sub.size
-        if sat > SATURATION_WARN_FRACTION:
-            warnings.warn(
-                f"{p}: {100 * sat:.2g} % of the footprint pixels are saturated "
-                f"(at {full}); features will be biased low",
-                CameraWarning,
-                stacklevel=2,
-            )
-        if sub.max() == sub.min():
-            warnings.warn(f"{p}: blank frame (all pixels {sub.max():g})", CameraWarning, stacklevel=2)
-    return a, full
+    return frames[0], full
 
 
 def read_stack(
@@ -176,21 +132,11 @@ def read_stack(
     shape: tuple[int, int] | None = None,
     window: tuple[int, int, int] | None = None,
     param: str = "images",
+    bits: int | None = None,
 ) -> tuple[np.ndarray, int]:
-    """Read several frames of one size and bit depth; return (n, rows, cols) float DN and full scale."""
-    if not paths:
-        raise UserError(param, "no image files given")
-    frames, full = [], None
-    for p in paths:
-        a, fs = read_frame(p, shape, window, param)
-        if shape is None:
-            shape = a.shape
-        if full is None:
-            full = fs
-        elif fs != full:
-            raise UserError(param, f"{p}: bit depth differs from {paths[0]} (full scale {fs} vs {full})")
-        frames.append(a)
-    return np.stack(frames), int(full)
+    """Every frame of every file (multi-page TIFF stacks included), of one size and bit depth;
+    return (n, rows, cols) float DN and full scale (:func:`elastimap.camera.framefiles.read_frames`)."""
+    return read_frames(paths, shape, window, bits, param)
 
 
 def _inside(path: str, folder: str) -> bool:

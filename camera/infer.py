@@ -527,8 +527,8 @@ def difference_of_frames(images: list[str], background: list[str], calibration: 
                 f"differs from the calibration's FEM grid ({ref.shape[0]}x{ref.shape[1]} of "
                 f"{pixel:g} mm)",
             )
-    F, fs1 = read_stack(images, sensor.shape, sensor.window)
-    B, fs2 = read_stack(background, sensor.shape, sensor.window, "background")
+    F, fs1 = read_stack(images, sensor.shape, sensor.window, bits=sensor.bits)
+    B, fs2 = read_stack(background, sensor.shape, sensor.window, "background", bits=sensor.bits)
     if fs1 != fs2:
         raise UserError("background", f"{background[0]}: bit depth differs from the lesion frames ({images[0]})")
     if fs1 != sensor.full_scale:

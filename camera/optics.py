@@ -45,7 +45,8 @@ keep the FEM image orientation (row 0 at y = -size/2, column 0 at
 x = -size/2); a real camera below the plate sees a mirror image, flip real
 frames before use if the inclusion position matters (features do not care).
 
-Every parameter lives in :class:`SensorModel`; randomness comes only from the
+Every parameter lives in :class:`SensorModel` (declared and checked in
+:class:`elastimap.sensor.CameraSpec`, the camera part of the sensor description); randomness comes only from the
 ``numpy.random.Generator`` passed in (or the ``seed``).  Pure numpy/scipy:
 no solver is imported.
 """
@@ -54,82 +55,22 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
-from elastimap.constraints import check_range
 from elastimap.errors import UserError
+from elastimap.sensor import MAX_NOISE_SCALE, CameraSpec
 
-SENSOR_ROWS = 1042
-SENSOR_COLS = 1392
-PIXEL_UM = 4.65
-MAX_NOISE_SCALE = 100.0  # times the sensor's shot + read noise: beyond it a frame holds noise only
+__all__ = ["MAX_NOISE_SCALE", "SensorModel"]
 
 
 @dataclass(frozen=True)
-class SensorModel:
-    """All parameters of the synthetic TIR camera (see the module docstring)."""
-
-    # camera (paper section 2.1)
-    sensor_rows: int = SENSOR_ROWS
-    sensor_cols: int = SENSOR_COLS
-    pixel_um: float = PIXEL_UM
-    binning: int = 10  # software binning (downsampled default); 1 = full resolution
-    window_native: int = 1000  # native pixels spanned by the probe footprint (centred)
-    footprint_mm: float = 25.0
-    # optics of the waveguide
-    w_sat: float = 0.5  # mm of probe compression at which scattering reaches 63 % of its maximum
-    level: float = 0.7  # full-scattering signal as a fraction of full well (unit illumination)
-    stray: float = 0.02  # light reaching the camera with no deformation (fraction of full well)
-    led_power: tuple[float, float, float, float] = (1.0, 0.85, 1.1, 0.95)  # left, right, bottom, top
-    led_gap: float = 3.0  # mm from the footprint edge to each LED
-    led_r0: float = 15.0  # mm, LED fall-off radius
-    vignetting: float = 0.15  # relative fall-off at the window corner
-    # effect switches (the nominal camera has neither): optical point-spread and response gamma
-    blur_mm: float = 0.0  # sigma (mm on the probe) of a Gaussian point-spread of the light image
-    gamma: float = 1.0  # response exponent: DN = FS * (electrons / (b^2 FW))^gamma
-    # sensor noise
-    full_well_e: float = 9000.0  # electrons per native pixel at full scale
-    read_noise_e: float = 10.0  # electrons rms per native pixel
-    dark_e: float = 100.0  # offset electrons per native pixel
-    bits: int = 16  # 8 or 16
-    noise_scale: float = 1.0  # multiplies shot + read noise; 0 = noise-free
-    seed: int = 0
-
-    # ---------------------------------------------------------------- checks
-    def validate(self) -> SensorModel:
-        if self.bits not in (8, 16):
-            raise UserError("bits", f"must be 8 or 16 (got {self.bits})")
-        if not (1 <= self.binning <= 64):
-            raise UserError("binning", f"must be in [1, 64] (got {self.binning})")
-        if not (8 <= self.window_native <= min(self.sensor_rows, self.sensor_cols)):
-            raise UserError(
-                "window_native",
-                f"must be in [8, {min(self.sensor_rows, self.sensor_cols)}] native pixels (got {self.window_native})",
-            )
-        if self.window_native // self.binning < 4:
-            raise UserError("binning", "leaves fewer than 4 pixels across the footprint")
-        check_range("footprint_mm", self.footprint_mm, 0, lo_open=True, unit="mm")
-        check_range("w_sat", self.w_sat, 0, lo_open=True, unit="mm")
-        check_range("level", self.level, 0, 1, lo_open=True)
-        check_range("stray", self.stray, 0, 1)
-        if len(self.led_power) != 4 or any(p < 0 for p in self.led_power) or sum(self.led_power) <= 0:
-            raise UserError("led_power", "needs four non-negative powers (left, right, bottom, top), not all 0")
-        check_range("led_gap", self.led_gap, 0, unit="mm")
-        check_range("led_r0", self.led_r0, 0, lo_open=True, unit="mm")
-        check_range("vignetting", self.vignetting, 0, 0.9)
-        check_range("blur_mm", self.blur_mm, 0, 5, unit="mm")
-        check_range("gamma", self.gamma, 0.3, 3)
-        check_range("full_well_e", self.full_well_e, 1)
-        check_range("read_noise_e", self.read_noise_e, 0)
-        check_range("dark_e", self.dark_e, 0)
-        check_range("noise_scale", self.noise_scale, 0, MAX_NOISE_SCALE)
-        if isinstance(self.seed, bool) or not isinstance(self.seed, numbers.Integral) or self.seed < 0:
-            raise UserError("seed", f"must be an integer >= 0 (got {self.seed!r})")
-        return self
+class SensorModel(CameraSpec):
+    """The synthetic TIR camera (see the module docstring): the camera's parameters, declared and
+    checked once in :class:`elastimap.sensor.CameraSpec` (the camera part of the sensor
+    description), with the optics that turn a deflection image into frames."""
 
     def replace(self, **changes) -> SensorModel:
         return dataclasses.replace(self, **changes)
@@ -157,6 +98,15 @@ class SensorModel:
             if isinstance(exc, UserError):
                 raise
             raise UserError("sensor", f"a sensor parameter has the wrong type ({exc})") from None
+
+    @classmethod
+    def of(cls, sensor) -> SensorModel:
+        """The camera of a sensor description (:class:`elastimap.sensor.Sensor`)."""
+        return cls(**{f.name: getattr(sensor.camera, f.name) for f in dataclasses.fields(CameraSpec)})
+
+    def spec(self) -> CameraSpec:
+        """The plain parameters (the camera part of a sensor description)."""
+        return CameraSpec(**{f.name: getattr(self, f.name) for f in dataclasses.fields(CameraSpec)})
 
     # ------------------------------------------------------------- geometry
     @property

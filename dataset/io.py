@@ -393,6 +393,21 @@ def read_manifest(path) -> dict | None:
         raise UserError("path", f"{f} is not valid JSON") from None
 
 
+def sensor_record(path) -> dict:
+    """``{"sensor": description, "sensor_hash": hash}`` of the sweep folder ``path`` ({} when it is
+    not one).  A manifest written before sweeps recorded the sensor is the paper's sensor with the
+    folder's solver settings (:func:`elastimap.solver.params.to_sensor` of its base parameters)."""
+    from elastimap.sensor import Sensor
+    from elastimap.solver.params import SolveParams, to_sensor
+
+    man = read_manifest(path) if Path(path).is_dir() else None
+    if man is None:
+        return {}
+    if man.get("sensor_hash"):
+        return {"sensor": man["sensor"], "sensor_hash": man["sensor_hash"]}
+    return to_sensor(SolveParams.from_dict(man.get("base_params", {})), Sensor()).record()
+
+
 def write_manifest(path, manifest: dict) -> None:
     f = Path(path) / MANIFEST
     tmp = f.with_name(f".{f.name}.{os.getpid()}.tmp")

@@ -99,9 +99,21 @@ def _step(title: str, argv: list[str]) -> None:
 @click.option("--n", type=int, default=40, show_default=True, help="Design samples in the demo sweep.")
 @mesh_option(default="coarse", help="Mesh level of the demo sweep.")
 @click.option("--jobs", type=int, default=2, show_default=True, help="Sweep worker processes.")
-def demo(out, n, mesh, jobs):
+@click.option(
+    "--sensor",
+    "sensor_path",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Sensor description (TOML; docs/howto/your-own-sensor.md) the solve and the sweep use [default: the paper's].",
+)
+def demo(out, n, mesh, jobs, sensor_path):
     """Run the pipeline on a small default: solve → sweep → inspect/plot → train."""
     from .outputs import check_out_dir
+    from .sensor import load
+
+    sensor = ["--sensor", os.path.abspath(sensor_path)] if sensor_path else []
+    if sensor_path:
+        load(sensor_path)  # a bad description: one line, before anything runs
 
     if n < 1:
         raise UserError("n", f"must be >= 1 (got {n})")
@@ -118,11 +130,11 @@ def demo(out, n, mesh, jobs):
         fh.write("\n")
     _step(
         "one forward solve (default mesh)",
-        ["solve", "--d", "8", "--h", "7", "--E", "50", "--image", os.path.join(out, "solve-d8-h7-E50.png")],
+        ["solve", *sensor, "--d", "8", "--h", "7", "--E", "50", "--image", os.path.join(out, "solve-d8-h7-E50.png")],
     )
     _step(
         f"sweep of {n} samples + 9 calibration phantoms ({mesh} mesh)",
-        ["sweep", "run", "--n", str(n), "--jobs", str(jobs), "--mesh", mesh, "--phantoms", "--out", data],
+        ["sweep", "run", *sensor, "--n", str(n), "--jobs", str(jobs), "--mesh", mesh, "--phantoms", "--out", data],
     )
     _step("inspect the dataset", ["dataset", "inspect", data])
     _step("plot the dataset", ["dataset", "plot", data, "--out", os.path.join(out, "figures")])

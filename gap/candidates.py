@@ -48,7 +48,10 @@ class Candidate:
 
 
 def phantom_params(meas: Measured, mesh: str):
-    return [base_params(mesh, *meas.dhe[i], tissue_E=meas.tissue_E[i]) for i in range(meas.n)]
+    return [
+        base_params(mesh, *meas.dhe[i], tissue_E=meas.tissue_E[i], sensor=meas.sensor_description)
+        for i in range(meas.n)
+    ]
 
 
 def _scaled(rec: Record, s: float) -> Record:

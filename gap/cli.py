@@ -29,8 +29,12 @@ from elastimap.constraints import Interval, validate_params
 from elastimap.dataset.phantoms import read_phantoms
 from elastimap.errors import UserError
 from elastimap.outputs import check_out_dir, check_out_file, write_dir
+from elastimap.sensor import Sensor
+from elastimap.sensor import load as load_sensor
+from elastimap.solver.cli import sensor_option
 
 from . import effects as fx
+from .adopt import ADOPTED
 from .settings import FINER, Settings
 
 
@@ -101,7 +105,13 @@ def effects_cmd():
     is_flag=True,
     help="Replace an earlier SYNTHETIC dataset in --out (real measured data is never replaced).",
 )
-@click.option("--effect", "effect", default="", help="NAME=MAGNITUDE[,NAME=MAGNITUDE] (empty: baseline only).")
+@sensor_option("The lab's sensor description (TOML; docs/howto/your-own-sensor.md) [default: the paper's].")
+@click.option(
+    "--effect",
+    "effect",
+    default="",
+    help="NAME=MAGNITUDE[,NAME=MAGNITUDE] on top of the --sensor (empty: baseline only).",
+)
 @click.option(
     "--phantoms", type=click.Path(), default=None, help="CSV with id (or name), d, h, E (default: an LHS design)."
 )
@@ -123,9 +133,8 @@ def effects_cmd():
 @click.option(
     "--interface",
     type=click.Choice(["tied", "contact", "bonded"]),
-    default="tied",
-    show_default=True,
-    help="Probe-tissue interface of the data's forward model.",
+    default=None,
+    help="Probe-tissue interface of the data's forward model [default: the --sensor's, tied].",
 )
 @click.option(
     "--force-noise", type=float, default=None, help="Also 'measure' the plate force with this relative error."
@@ -134,6 +143,7 @@ def effects_cmd():
 def synth_cmd(
     out,
     overwrite,
+    sensor_path,
     effect,
     phantoms,
     n,
@@ -153,7 +163,9 @@ def synth_cmd(
     from . import measured, synth
 
     synth.check_out(out, overwrite)
-    effs = fx.parse_spec(effect) if effect else []
+    sensor = load_sensor(sensor_path) if sensor_path else None
+    effs = fx.parse_spec(effect, table=fx.for_sensor(sensor or Sensor())) if effect else []
+    base_interface = (sensor or Sensor()).interface.model
     if frames < 1:
         raise UserError("frames", f"must be >= 1 (got {frames})")
     ids = None
@@ -175,8 +187,9 @@ def synth_cmd(
         seed=seed,
         ids=ids,
         noise_scale=noise_scale,
-        disc={"interface": interface} if interface != "tied" else None,
+        disc={"interface": interface} if interface and interface != base_interface else None,
         force_noise=force_noise,
+        description=sensor,
     )
 
     def _write(folder):
@@ -203,6 +216,10 @@ def synth_cmd(
     required=True,
     type=click.Path(file_okay=False),
     help="Folder for report.md, report.html, diagnosis.json and the PNG figures.",
+)
+@sensor_option(
+    "The sensor the phantoms were pressed with (TOML; docs/howto/your-own-sensor.md) [default: the measured "
+    f"set's, else the paper's]; the diagnosis writes it with the identified effect(s) as OUT/{ADOPTED}."
 )
 @click.option("--effects", default=None, help="Comma-separated candidate effects (default: all but offaxis).")
 @mesh_option(default=None, help="Mesh level of the diagnosis (default: the measured sidecar's).")
@@ -236,6 +253,7 @@ def synth_cmd(
 def diagnose_cmd(
     mpath,
     out,
+    sensor_path,
     effects,
     mesh,
     no_inverse,
@@ -252,7 +270,10 @@ def diagnose_cmd(
     no_progress,
 ):
     """Diagnose the sim-to-real gap of a measured dataset: report.md, PNG figures, diagnosis.json."""
-    from . import measured, report
+    from elastimap.provenance import stamp
+    from elastimap.sensor import dumps
+
+    from . import adopt, measured, report
     from .diagnose import diagnose
 
     if not 0 < alpha < 0.5:
@@ -265,20 +286,30 @@ def diagnose_cmd(
         raise UserError("seed", f"must be an integer >= 0 (got {seed})")
     check_out_dir(out, "out", allow_existing=True)
     report.check_out(out)
-    meas = measured.load(mpath, allow_outside=allow_outside)
-    cands = fx.parse_list(effects)
+    meas = measured.load(mpath, load_sensor(sensor_path) if sensor_path else None, allow_outside=allow_outside)
+    sensor = meas.sensor_description or Sensor().replace(camera=meas.sensor_model().spec())
+    cands = fx.parse_list(effects, table=fx.for_sensor(sensor))
     st = Settings(model_floor=model_floor, alpha=alpha, seed=seed, inverse=not no_inverse, n_train=n_train)
     sim = _sim(cache or default_cache(), mesh or meas.mesh, backend, jobs, no_progress)
     fine = error_mesh_sim(error_mesh, sim, cache, backend, jobs, no_progress)
     res = diagnose(meas, cands, sim, st, fine)
+    adoption, note = adopt.from_diagnosis(res, sensor)
+    res.update(sensor.record(), provenance=stamp(), adoption=adopt.record(adoption, note, sensor))
+
+    def write(folder):
+        docs.append(report.write(res, folder))
+        if adoption.adopted:
+            (Path(folder) / ADOPTED).write_text(dumps(adoption.sensor, f"gap diagnose --measured {mpath}: {note}"))
+
     # the report replaces the folder whole (never a mix of two runs); on a full disk it goes to $TMPDIR
     docs = []
-    write_dir(out, lambda folder: docs.append(report.write(res, folder)), "out", overwrite=True)
+    write_dir(out, write, "out", overwrite=True)
     s = docs[-1]["summary"]
     if as_json:
         click.echo(json.dumps(report._jsonable(s), indent=2))
     else:
         click.echo(f"{'SYNTHETIC data: ' if meas.synthetic else ''}{report.verdict_line(res)}")
+        click.echo(f"sensor: {note}" + (f" -> {Path(out) / ADOPTED}" if adoption.adopted else ""))
         click.echo(f"report: {Path(out) / 'report.md'}")
     return 0
 

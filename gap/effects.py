@@ -474,13 +474,19 @@ def get(name: str) -> Effect:
     return EFFECTS[name]
 
 
-def parse_list(text: str | None, default=DEFAULT_CANDIDATES) -> list[Effect]:
+def parse_list(text: str | None, default=DEFAULT_CANDIDATES, table: dict[str, Effect] | None = None) -> list[Effect]:
+    """The candidate effects named in ``text`` (default: ``default``), from ``table`` (the library
+    about another sensor, :func:`for_sensor`; default :data:`EFFECTS`)."""
+    table = EFFECTS if table is None else table
     if text is None or text.strip() == "":
-        return [EFFECTS[n] for n in default]
+        return [table[n] for n in default if n in table]
     names = [t.strip() for t in text.split(",") if t.strip()]
     if len(set(names)) != len(names):
         raise UserError("effects", "names an effect twice")
-    return [get(n) for n in names]
+    missing = [n for n in names if n in EFFECTS and n not in table]
+    if missing:
+        raise UserError("effects", f"{missing[0]} does not apply to this sensor (its probe has no such layer)")
+    return [table[get(n).name] for n in names]
 
 
 def families_for(cands: list[Effect], names=DEFAULT_FAMILIES) -> list[Family]:
@@ -489,14 +495,19 @@ def families_for(cands: list[Effect], names=DEFAULT_FAMILIES) -> list[Family]:
     return [FAMILIES[n] for n in names if set(FAMILIES[n].members) <= have]
 
 
-def parse_spec(text: str) -> list[tuple[Effect, float]]:
-    """``"friction=0.3,skin=40"`` -> [(Effect, magnitude), ...]."""
+def parse_spec(text: str, table: dict[str, Effect] | None = None) -> list[tuple[Effect, float]]:
+    """``"friction=0.3,skin=40"`` -> [(Effect, magnitude), ...], from ``table`` (the library about
+    another sensor, :func:`for_sensor`; default :data:`EFFECTS`)."""
+    table = EFFECTS if table is None else table
     out = []
     for part in [t.strip() for t in text.split(",") if t.strip()]:
         if "=" not in part:
             raise UserError("effect", f"{part!r}: use NAME=MAGNITUDE (e.g. friction=0.3)")
         name, val = part.split("=", 1)
         e = get(name.strip())
+        if e.name not in table:
+            raise UserError("effect", f"{e.name} does not apply to this sensor (its probe has no such layer)")
+        e = table[e.name]
         try:
             m = float(val)
         except ValueError:
@@ -508,4 +519,77 @@ def parse_spec(text: str) -> list[tuple[Effect, float]]:
         out.append((e, m))
     if len({e.name for e, _ in out}) != len(out):
         raise UserError("effect", "names an effect twice")
+    return out
+
+
+# ----------------------------------------------------------------------------- another sensor
+#: effects whose magnitude is a positive physical size: re-centred on another sensor by scaling
+#: (grid, blind range and limits times the sensor's value / the paper's); the others are shifted
+SCALED = frozenset(
+    {"skin", "background_E", "probe_E1", "probe_E2", "probe_E3", "probe_t1", "probe_t2", "probe_t3"}
+    | {"slab_thickness", "saturation"}
+)
+
+
+def value_in(e: Effect, p, camera) -> float | None:
+    """The magnitude of ``e`` that the solve parameters ``p`` and the camera ``camera`` (a
+    :class:`elastimap.sensor.CameraSpec`) hold, the inverse of :meth:`Effect.apply_params` /
+    :meth:`Effect.apply_sensor`; None when ``e`` does not apply (a probe without that layer).
+    Relative effects (a factor or an offset) and the lesion's own (aspect, offaxis) are at their
+    nominal."""
+    n = e.name
+    if n.startswith("probe_E") or n.startswith("probe_t"):
+        i = int(n[-1]) - 1
+        if i >= len(p.probe.layers):
+            return None
+        return float(p.probe.layers[i][0 if n.startswith("probe_t") else 1])
+    values = {
+        "nonlinearity": lambda: p.tissue.nonlinearity,
+        "friction": lambda: p.disc.friction_kt,
+        "skin": lambda: p.tissue.skin_E if p.tissue.skin_thickness > 0 else e.nominal,
+        "background_E": lambda: p.tissue.E,
+        "slab_thickness": lambda: p.tissue.thickness,
+        "tissue_nu": lambda: p.tissue.nu,
+        "tilt": lambda: math.degrees(p.loading.tilt),
+        "saturation": lambda: camera.w_sat,
+        "vignetting": lambda: camera.vignetting,
+        "blur": lambda: camera.blur_mm,
+        "gamma": lambda: camera.gamma,
+        "stray_light": lambda: camera.stray,
+    }
+    return float(values[n]()) if n in values else e.nominal
+
+
+def recentred(e: Effect, v: float) -> Effect:
+    """``e`` about the nominal ``v`` (another sensor's value): scaled (:data:`SCALED`) or shifted,
+    grid points outside the effect's limits dropped, ``v`` itself always on the grid."""
+    if e.is_nominal(v):
+        return e
+    if e.name in SCALED:
+        f = v / e.nominal
+        move = lambda x: x * f
+        limits = tuple(None if b is None else b * f for b in e.limits)
+    else:
+        move = lambda x: x + (v - e.nominal)
+        limits = e.limits
+    lo, hi = (-math.inf if limits[0] is None else limits[0]), (math.inf if limits[1] is None else limits[1])
+    grid = sorted({round(move(g), 12) for g in e.grid if lo <= move(g) <= hi} | {v})
+    blind = tuple(min(max(move(b), lo), hi) for b in e.blind)
+    at = None if e.sensitivity_at is None else min(max(move(e.sensitivity_at), lo), hi)
+    return dataclasses.replace(e, nominal=float(v), grid=tuple(grid), blind=blind, limits=limits, sensitivity_at=at)
+
+
+def for_sensor(sensor) -> dict[str, Effect]:
+    """The effects library about the sensor ``sensor`` (:class:`elastimap.sensor.Sensor`): each
+    effect's nominal is the sensor's value (:func:`value_in`), its grid moved with it
+    (:func:`recentred`); effects that do not apply (a layer the probe lacks) are left out.  The
+    paper's sensor gives :data:`EFFECTS` itself."""
+    from elastimap.solver.params import from_sensor
+
+    p = from_sensor(sensor)
+    out = {}
+    for name, e in EFFECTS.items():
+        v = value_in(e, p, sensor.camera)
+        if v is not None:
+            out[name] = recentred(e, v)
     return out

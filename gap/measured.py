@@ -21,7 +21,10 @@ A measured dataset is a folder (or the path of its table) holding
   "synthetic": bool, "sensor": {...SensorModel...}, "feature_settings": {...}, "mesh": "coarse",
   "description": "..."}``.  ``sensor`` and ``feature_settings`` describe the camera model the
   simulations go through (defaults: the nominal synthetic camera and feature settings); ``mesh``
-  the forward-model mesh level the comparison uses.
+  the forward-model mesh level the comparison uses.  ``sensor_description`` (optional, with
+  ``sensor_hash``): the whole sensor the phantoms were pressed with (:mod:`elastimap.sensor`;
+  probe, slab, loading, interface, camera), which the simulations then use; ``gap diagnose
+  --sensor`` gives it instead.
 
 A SYNTHETIC dataset (``gap synth``) says so in the sidecar (``"synthetic": true``), in its file
 names (``synthetic_*.npy``) and in its description; its true effect is kept in a separate sealed
@@ -43,6 +46,7 @@ from elastimap.camera.frames import expand, read_stack
 from elastimap.camera.optics import SensorModel
 from elastimap.dataset.schema import FEATURES
 from elastimap.errors import UserError
+from elastimap.sensor import Sensor
 from elastimap.tables import check_name, read_csv
 
 from .views import from_frames as views_from_frames
@@ -72,6 +76,9 @@ class Measured:
     difference_se: list | None = None  # per phantom: 2-D per-pixel standard error (FS) or None
     force: np.ndarray | None = None  # (n,) measured plate force (mN), NaN = not measured
     force_se: np.ndarray | None = None  # (n,) its standard error (mN)
+    #: the sensor the phantoms were pressed with (elastimap.sensor.Sensor; None: the paper's
+    #: mechanics with the camera ``sensor``); its camera then replaces ``sensor``
+    sensor_description: Sensor | None = None
 
     def __post_init__(self):
         n = len(self.ids)
@@ -95,6 +102,8 @@ class Measured:
         return len(self.ids)
 
     def sensor_model(self):
+        if self.sensor_description is not None:
+            return SensorModel.of(self.sensor_description)
         return SensorModel.from_dict(self.sensor) if self.sensor else SensorModel()
 
     def settings(self):
@@ -118,6 +127,7 @@ class Measured:
             [self.difference_se[i] for i in idx],
             self.force[idx],
             self.force_se[idx],
+            self.sensor_description,
         )
 
 
@@ -134,12 +144,14 @@ def _table_path(path: Path) -> Path:
     return path
 
 
-def load(path: str | os.PathLike, *, allow_outside: bool = False) -> Measured:
+def load(path: str | os.PathLike, sensor: Sensor | None = None, *, allow_outside: bool = False) -> Measured:
     """Read and validate a measured dataset; every problem is a one-line :class:`UserError`.
 
     The files the table names (frames, ``.npy`` images) are read only inside the dataset's folder
     -- no absolute paths, ``..`` or links out of it -- unless ``allow_outside``
-    (``--allow-outside``); ids must be usable in file names (no ``/``)."""
+    (``--allow-outside``); ids must be usable in file names (no ``/``).  ``sensor``: the sensor
+    description the phantoms were pressed with (``--sensor``); default the sidecar's
+    ``sensor_description``, else the paper's mechanics with the sidecar's camera."""
     tp = _table_path(Path(path))
     base = tp.parent
     if tp.suffix == ".parquet":
@@ -181,9 +193,16 @@ def load(path: str | os.PathLike, *, allow_outside: bool = False) -> Measured:
             raise UserError("measured", f"{sp}: not an elastimap gap measured-data sidecar (kind {side.get('kind')!r})")
         if side.get("version", -1) != VERSION:
             raise UserError("measured", f"{sp}: version {side.get('version')!r} not supported (expected {VERSION})")
-    sensor = side.get("sensor")
+    sensor_cam = side.get("sensor")
     settings = side.get("feature_settings", {})
-    _check_sidecar(sp, sensor, settings, side)
+    _check_sidecar(sp, sensor_cam, settings, side)
+    if sensor is None and side.get("sensor_description") is not None:
+        try:
+            sensor = Sensor.from_dict(side["sensor_description"])
+        except UserError as exc:
+            raise UserError("measured", f"{sp}: sensor_description: {exc.param}: {exc.message}") from None
+    if sensor is not None:
+        sensor_cam = SensorModel.of(sensor).to_dict()
     n = len(df)
     has_feat = all(k in df.columns for k in FEATURES)
     has_img = "images" in df.columns and "background" in df.columns
@@ -206,15 +225,19 @@ def load(path: str | os.PathLike, *, allow_outside: bool = False) -> Measured:
     if has_img:
         # frames given: features (where not in the table), the difference image and its
         # per-pixel noise always come from the frames, so the residual map is never lost
-        sm = SensorModel.from_dict(sensor) if sensor else SensorModel()
+        sm = SensorModel.from_dict(sensor_cam) if sensor_cam else SensorModel()
         fs = FeatureSettings.from_dict(settings or {})
         for i in range(n):
             r = df.iloc[i]
             if not isinstance(r["images"], str) or not r["images"].strip():
                 continue
             where = f"{tp}, {r['id']!r}"
-            F, fs1 = read_stack(_files(r, "images", base, where, allow_outside), sm.shape, sm.window, "measured")
-            B, fs2 = read_stack(_files(r, "background", base, where, allow_outside), sm.shape, sm.window, "measured")
+            F, fs1 = read_stack(
+                _files(r, "images", base, where, allow_outside), sm.shape, sm.window, "measured", bits=sm.bits
+            )
+            B, fs2 = read_stack(
+                _files(r, "background", base, where, allow_outside), sm.shape, sm.window, "measured", bits=sm.bits
+            )
             if fs1 != fs2:
                 raise UserError("measured", f"{where}: the background frames' bit depth differs from the lesion frames")
             v = views_from_frames(F, B, sm, fs, fs1)
@@ -292,7 +315,7 @@ def load(path: str | os.PathLike, *, allow_outside: bool = False) -> Measured:
         se,
         tE,
         diffs,
-        sensor,
+        sensor_cam,
         settings,
         mesh,
         bool(side.get("synthetic", False)),
@@ -301,6 +324,7 @@ def load(path: str | os.PathLike, *, allow_outside: bool = False) -> Measured:
         dses,
         force,
         force_se,
+        sensor,
     )
 
 
@@ -381,6 +405,8 @@ def write(m: Measured, folder: str | os.PathLike, fmt: str = "csv") -> Path:
         "feature_settings": m.feature_settings,
         "mesh": m.mesh,
     }
+    if m.sensor_description is not None:
+        side.update(sensor_description=m.sensor_description.to_dict(), sensor_hash=m.sensor_description.hash())
     (out / SIDECAR).write_text(json.dumps(side, indent=2) + "\n")
     return tp
 

@@ -123,7 +123,7 @@ def _by_new_phantoms(out: dict, mods, pairs, meas: Measured, V0: dict, names, si
     )
     if st.propose_solves and out["phantoms"]:
         best = out["phantoms"][0]
-        p = base_params(sim.mesh, best["d"], best["h"], best["E"])
+        p = base_params(sim.mesh, best["d"], best["h"], best["E"], sensor=meas.sensor_description)
         try:  # a proposal the effects cannot be applied to (or solved at) is not checked
             plist = [p] + [m.params_at(p, t).validate() for _, m, t, _ in mods]
             recs = sim.run(plist)

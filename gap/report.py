@@ -117,7 +117,7 @@ def verdict_line(res: dict) -> str:
     return f"outcome: unexplained by the candidates (best {ev['best']}, held-out reduced χ² {ev['ranking'][0]['reduced_chi2_cv']:.3g})"
 
 
-REPORT_FILES = ("diagnosis.json", "report.md", "report.html")
+REPORT_FILES = ("diagnosis.json", "report.md", "report.html", "adopted-sensor.toml")  # the last: gap/adopt.py
 
 
 def check_out(out: str | Path) -> None:
@@ -179,6 +179,10 @@ def markdown(res: dict, figs: list[str]) -> str:
         "",
     ]
     L += ["## Verdict", "", f"**{verdict_line(res)}**", ""]
+    if res.get("adoption"):
+        a = res["adoption"]
+        where = f" → `{a['file']}` (hash {a['adopted']['sensor_hash']})" if a.get("file") else ""
+        L += [f"Sensor `{a['from']['sensor']['name']}` (hash {a['from']['sensor_hash']}): {a['note']}{where}.", ""]
     L.append(
         f"Baseline χ² = {ev['chi2_baseline']:.4g} over N = {ev['n_terms']} terms (reduced {ev['reduced_chi2_baseline']:.3g}, "
         f"p = {ev['p_value_baseline']:.3g}); the calibrated threshold χ²_N(1 − α) at α = {ev['alpha']:g} is "

@@ -54,7 +54,8 @@ def training_design(meas: Measured, n: int, seed: int, aspect_hi: float = 1.0) -
     u = qmc.LatinHypercube(d=3, rng=np.random.default_rng(seed)).random(n)
     lo, hi = meas.dhe.min(0), meas.dhe.max(0)
     d = lo[0] + u[:, 0] * (hi[0] - lo[0])
-    a, b = depth_range(d, THICKNESS, aspect_hi)
+    thickness = meas.sensor_description.tissue.thickness if meas.sensor_description else THICKNESS
+    a, b = depth_range(d, thickness, aspect_hi)
     hl, hh = np.maximum(a, lo[1]), np.minimum(b, hi[1])
     hh = np.maximum(hh, hl)
     h = hl + u[:, 1] * (hh - hl)
@@ -81,7 +82,7 @@ def shrink_inverse(meas: Measured, mdl, th, sim: Simulator, sensor, settings, st
         1.0, max(float(t) for t, n in zip(th, mdl.labels) if n == "aspect") if "aspect" in mdl.labels else 1.0
     )
     T = training_design(meas, st.n_train, st.seed, aspect_hi)
-    p_base = [base_params(sim.mesh, *t) for t in T]
+    p_base = [base_params(sim.mesh, *t, sensor=meas.sensor_description) for t in T]
     p_eff = [mdl.params_at(p, th) for p in p_base]
     ok = []
     for i, p in enumerate(p_eff):

@@ -36,9 +36,10 @@ from elastimap.camera.features import camera_features
 from elastimap.camera.optics import background_deflection, render_pair
 from elastimap.dataset.store import SolveStore, params_key, solver_label
 from elastimap.errors import UserError
+from elastimap.sensor import Sensor
 from elastimap.solver import synthetic
 from elastimap.solver.batch import group_by_geometry, solve_group
-from elastimap.solver.params import Discretisation, SolveParams, SolveResult
+from elastimap.solver.params import Discretisation, Inclusion, SolveParams, SolveResult, from_sensor
 
 BACKENDS = ("fem", "toy")
 FLUSH_ROWS = 16
@@ -61,8 +62,14 @@ class Record:
         return np.array([self.O1, self.O2, self.O3])
 
 
-def base_params(mesh: str, d: float, h: float, E: float, tissue_E: float | None = None) -> SolveParams:
-    p = SolveParams(disc=Discretisation(mesh=mesh)).with_inclusion(d=float(d), h=float(h), E=float(E))
+def base_params(
+    mesh: str, d: float, h: float, E: float, tissue_E: float | None = None, sensor: Sensor | None = None
+) -> SolveParams:
+    """Solve parameters of one phantom (d mm, h mm, E kPa; ``tissue_E`` kPa when not the slab's)
+    pressed by ``sensor`` (the sensor description; None: the paper's) on the ``mesh`` level."""
+    sensor = sensor or Sensor()
+    lesion = Inclusion(d=float(d), h=float(h), E=float(E), nu=sensor.tissue.nu)
+    p = from_sensor(sensor, lesion, Discretisation(mesh=mesh))
     if tissue_E is not None and np.isfinite(tissue_E) and tissue_E != p.tissue.E:
         p = p.replace(tissue=dataclasses.replace(p.tissue, E=float(tissue_E)))
     return p

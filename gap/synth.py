@@ -120,22 +120,27 @@ def synthesize(
     noise_scale: float = 1.0,
     disc: dict | None = None,
     force_noise: float | None = None,
+    description=None,
 ) -> tuple[Measured, dict]:
     """``disc`` overrides fields of the solver's ``Discretisation`` (e.g. ``{"interface": "contact"}``)
     so that the data come from another formulation than the diagnosis; ``force_noise`` (relative
-    standard error) adds a measured plate force."""
+    standard error) adds a measured plate force.  ``description``: the lab's sensor
+    (:class:`elastimap.sensor.Sensor`; default the paper's), whose camera is ``sensor`` unless
+    given; ``effects`` come on top of it (take them from ``effects.for_sensor(description)``)."""
     validate_params(
         {"frames": frames, "seed": seed, "noise_scale": noise_scale, "force_noise": force_noise},
         _parameter_constraints,
     )
     for id_ in ids or ():
         check_name(id_, "ids", "id")
+    if sensor is None and description is not None:
+        sensor = SensorModel.of(description)
     sensor = (sensor or SensorModel()).validate()
     settings = settings or FeatureSettings()
     true_sensor = sensor.replace(noise_scale=noise_scale)
     plist = []
     for row in dhe:
-        p = base_params(sim.mesh, *row)
+        p = base_params(sim.mesh, *row, sensor=description)
         if disc:
             p = p.replace(disc=dataclasses.replace(p.disc, **disc))
         for e, m in effects:
@@ -184,6 +189,7 @@ def synthesize(
         Dse,
         force,
         force_se,
+        description,
     )
     truth = {"effects": [{"name": e.name, "magnitude": float(m), "unit": e.unit} for e, m in effects], "label": label}
     return meas, truth

@@ -4,29 +4,21 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 
 import click
+from click.core import ParameterSource
 
 from elastimap.cli_util import CONTEXT_SETTINGS, Choice, geometry_option, mesh_option, param_flags, run, sizing_option
+from elastimap.errors import UserError
+from elastimap.sensor import Sensor
 
-from .params import (
-    INTERFACES,
-    THICKNESS,
-    Discretisation,
-    ImageSpec,
-    Inclusion,
-    Loading,
-    Probe,
-    SolveParams,
-    Tissue,
-)
+from .params import INTERFACES, THICKNESS, Discretisation, ImageSpec, Inclusion, Probe, from_sensor
 
 
 def _layers(text: str | None):
     if text is None:
         return Probe().layers
-    from elastimap.errors import UserError
-
     try:
         out = tuple(tuple(float(v) for v in part.split(":")) for part in text.split(","))
     except ValueError:
@@ -34,6 +26,46 @@ def _layers(text: str | None):
     if not out or any(len(l) != 2 for l in out):
         raise UserError("--layers", f"expected THICK:E,THICK:E,... in mm:kPa from the tissue side (got {text!r})")
     return out
+
+
+def sensor_with_flags(path: str | None, flags: dict, given) -> Sensor:
+    """The description of ``--sensor`` (the paper's without it) with the sensor flags applied.
+
+    With ``--sensor``, only the flags given on the command line (``given(name)``) override the
+    file; without it every flag applies, as it always did.  ``flags`` holds the values of
+    ``layers``, ``nu``, ``tissue_E``, ``thickness``, ``delta``, ``force`` and ``interface``.
+    """
+    from elastimap.sensor import Layer, load
+
+    s = load(path) if path else Sensor()
+    use = (lambda k: given(k) and k in flags) if path else (lambda k: k in flags)
+    probe, tissue, loading, itf = s.probe, s.tissue, s.loading, s.interface
+    if use("layers"):
+        probe = replace(probe, layers=tuple(Layer(t, E) for t, E in _layers(flags["layers"])))
+    if use("nu"):
+        probe, tissue = replace(probe, nu=flags["nu"]), replace(tissue, nu=flags["nu"])
+    if use("tissue_E"):
+        tissue = replace(tissue, E=flags["tissue_E"])
+    if use("thickness"):
+        tissue = replace(tissue, thickness=flags["thickness"])
+    if use("delta"):
+        loading = replace(loading, delta=flags["delta"])
+    if use("force"):
+        loading = replace(loading, force=flags["force"])
+    if use("interface"):
+        itf = replace(itf, model=flags["interface"])
+    s = s.replace(probe=probe, tissue=tissue, loading=loading, interface=itf)
+    if path:  # the file's fields are checked by name before the solver's own checks
+        try:
+            s.validate()
+        except UserError as exc:
+            with_flags = " (with the flags given)" if any(given(k) for k in flags) else ""
+            raise UserError("sensor", f"{path}{with_flags}: {exc.param}: {exc.message}") from None
+    return s
+
+
+def sensor_option(help: str = "Sensor description (TOML; docs/howto/your-own-sensor.md) [default: the paper's]."):
+    return click.option("--sensor", "sensor_path", type=click.Path(dir_okay=False), default=None, help=help)
 
 
 def _check_outputs(image_png: str | None, image_npy: str | None, vtx: str | None) -> None:
@@ -57,6 +89,10 @@ def _check_outputs(image_png: str | None, image_npy: str | None, vtx: str | None
 
 @param_flags({"probe.layer*": "--layers"})
 @click.command(context_settings=CONTEXT_SETTINGS)
+@sensor_option(
+    "Sensor description (TOML; docs/howto/your-own-sensor.md) [default: the paper's]; the sensor flags "
+    "given (--layers, --nu, --tissue-E, --thickness, --delta, --force, --interface) override its fields."
+)
 @click.option("--d", "d", type=float, default=8.0, show_default=True, help="Inclusion diameter (mm).")
 @click.option(
     "--h",
@@ -116,6 +152,7 @@ def _check_outputs(image_png: str | None, image_npy: str | None, vtx: str | None
     help="Write the displacement field of the inclusion solve for ParaView (ADIOS2 .bp folder).",
 )
 def cli(
+    sensor_path,
     d,
     h,
     E,
@@ -147,20 +184,16 @@ def cli(
 
     Example: elastimap solve --d 8 --h 7 --E 50 --json --image inclusion.png
     """
-    p = SolveParams(
-        inclusion=Inclusion(d=d, h=h, E=E, nu=nu),
-        tissue=Tissue(E=tissue_E, thickness=thickness, nu=nu),
-        probe=Probe(layers=_layers(layers), nu=nu),
-        loading=Loading(delta=delta, force=force),
-        disc=Discretisation(
-            mesh=mesh,
-            degree=degree,
-            interface=interface,
-            symmetry="full" if full else "quarter",
-            geometry=geometry,
-            sizing=sizing,
-        ),
-        image=ImageSpec(pixel=pixel, threshold=threshold),
+    ctx = click.get_current_context()
+    given = lambda name: ctx.get_parameter_source(name) in (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)
+    flags = dict(layers=layers, nu=nu, tissue_E=tissue_E, thickness=thickness, delta=delta, force=force)
+    sensor = sensor_with_flags(sensor_path, {**flags, "interface": interface}, given)
+    lesion_nu = nu if (given("nu") or not sensor_path) else sensor.tissue.nu
+    disc = Discretisation(
+        mesh=mesh, degree=degree, symmetry="full" if full else "quarter", geometry=geometry, sizing=sizing
+    )
+    p = from_sensor(
+        sensor, Inclusion(d=d, h=h, E=E, nu=lesion_nu), disc, ImageSpec(pixel=pixel, threshold=threshold)
     ).validate()
     _check_outputs(image_png, image_npy, vtx)  # before the solve, not after it
     from .api import solve
@@ -193,11 +226,15 @@ def cli(
             lambda f: save_image_png(f, res.image, res.pixel, title, raw=res.image_raw), image_png, "--image"
         )
     if as_json:
-        click.echo(json.dumps(res.summary()))
+        from elastimap.provenance import stamp
+
+        click.echo(json.dumps({**res.summary(), **sensor.record(), **stamp()}))
     else:
         s = res.summary()
+        if sensor_path:
+            click.echo(f"sensor {sensor.name!r} ({sensor_path}, hash {sensor.hash()})")
         click.echo(
-            f"d = {d:g} mm, h = {h:g} mm, E = {E:g} kPa  ({mesh} mesh, {interface} interface, "
+            f"d = {d:g} mm, h = {h:g} mm, E = {E:g} kPa  ({mesh} mesh, {p.disc.interface} interface, "
             f"{'full' if full else 'quarter'} model, {res.ndofs} dofs)"
         )
         click.echo(f"O1 = {res.O1:.6g} mm   O2 = {res.O2:.6g} mm   O3 = {res.O3:.6g} mm^2")

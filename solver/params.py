@@ -19,6 +19,7 @@ import numpy as np
 
 from elastimap.constraints import Interval, Options, check_range, validate_params
 from elastimap.errors import UserError
+from elastimap.sensor import InterfaceSpec, Layer, LoadingSpec, ProbeSpec, SlabSpec
 
 MESH_LEVELS = ("tiny", "coarse", "default", "fine", "finer")
 
@@ -43,8 +44,9 @@ GEOMETRIES = ("remesh", "morph")
 #: scaled with d so that small inclusions converge like large ones
 SIZINGS = ("fixed", "by_d")
 
-#: mm, the default tissue slab thickness (``Tissue.thickness``; every room's default)
-THICKNESS = 20.0
+#: mm, the default tissue slab thickness (``Tissue.thickness``; every room's default): the paper's
+#: sensor's slab (elastimap/sensor.py, where the paper's sensor is defined)
+THICKNESS = SlabSpec().thickness
 #: the design box of the paper and of the default sweep: diameter d (mm) and inclusion modulus E
 #: (kPa); the centre depth h spans :func:`depth_range` of each d
 DESIGN_BOX = {"d": (2.0, 15.0), "E": (10.0, 200.0)}
@@ -347,6 +349,41 @@ class SolveParams:
                 f"gives {round(n)} pixels across the probe; at most {MAX_PIXELS} (pixel >= {p.size / MAX_PIXELS:g} mm)",
             )
         return self
+
+
+def from_sensor(sensor, inclusion: Inclusion | None = None, disc=None, image=None) -> SolveParams:
+    """Solve parameters of one lesion pressed by the sensor ``sensor`` (:class:`elastimap.sensor.Sensor`).
+
+    The description gives the probe, tissue slab, loading and interface; ``inclusion`` (default: the
+    default lesion with the slab's Poisson ratio), ``disc`` and ``image`` the rest (the interface
+    model and friction of ``disc`` are the sensor's; a tilted plate needs the full model).
+    ``from_sensor(Sensor()) == SolveParams()``.  Not validated: call ``.validate()``.
+    """
+    pr, t, ld, itf = sensor.probe, sensor.tissue, sensor.loading, sensor.interface
+    disc = dataclasses.replace(disc or Discretisation(), interface=itf.model, friction_kt=itf.friction_kt)
+    if ld.tilt != 0:
+        disc = dataclasses.replace(disc, symmetry="full")
+    return SolveParams(
+        inclusion=inclusion or Inclusion(nu=t.nu),
+        tissue=Tissue(**dataclasses.asdict(t)),
+        probe=Probe(size=pr.footprint, layers=tuple((l.thickness, l.E) for l in pr.layers), nu=pr.nu),
+        loading=Loading(delta=ld.delta, force=ld.force, tilt=ld.tilt),
+        disc=disc,
+        image=image or ImageSpec(),
+    )
+
+
+def to_sensor(p: SolveParams, like):
+    """The sensor description of ``p``'s probe, slab, loading and interface; the name and camera of
+    ``like`` (a :class:`elastimap.sensor.Sensor`).  ``to_sensor(from_sensor(s), s) == s``."""
+    pr, ld = p.probe, p.loading
+    return like.replace(
+        probe=ProbeSpec(footprint=pr.size, nu=pr.nu, layers=tuple(Layer(t, E) for t, E in pr.layers)),
+        tissue=SlabSpec(**dataclasses.asdict(p.tissue)),
+        loading=LoadingSpec(delta=ld.delta, force=ld.force, tilt=ld.tilt),
+        interface=InterfaceSpec(model=p.disc.interface, friction_kt=p.disc.friction_kt),
+        camera=dataclasses.replace(like.camera, footprint_mm=pr.size),
+    )
 
 
 #: most image pixels across the probe (an image of MAX_PIXELS² float32 values is 16 MiB)

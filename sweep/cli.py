@@ -28,6 +28,7 @@ from elastimap.cli_util import (
     sizing_option,
 )
 from elastimap.cli_util import run as run_cli
+from elastimap.solver.cli import sensor_option
 from elastimap.solver.params import INTERFACES
 
 from . import design as dsg
@@ -45,7 +46,10 @@ _common = options(
     click.option("--seed", type=int, default=0, show_default=True, help="seed of the design"),
     mesh_option(),
     click.option(
-        "--interface", type=Choice(INTERFACES), default="tied", show_default=True, help="probe/tissue interface"
+        "--interface",
+        type=Choice(INTERFACES),
+        default=None,
+        help="probe/tissue interface [default: the --sensor's, tied for the paper's]",
     ),
     click.option(
         "--design",
@@ -82,6 +86,10 @@ _common = options(
 
 @cli.command("run", context_settings=CONTEXT_SETTINGS)
 @_common
+@sensor_option(
+    "sensor description (TOML; docs/howto/your-own-sensor.md) [default: the paper's]; recorded in OUT's "
+    "manifest: one folder holds one sensor"
+)
 @jobs_option(default=2, help="local worker processes (one solve each)")
 @out_option(help="dataset directory (default sweeps/<mesh>-<interface>-<design><n>-s<seed>)")
 @geometry_option()
@@ -131,6 +139,7 @@ _common = options(
     help="seconds the run waits while the cluster has no worker, then ends with exit code 3",
 )
 def run_cmd(
+    sensor_path,
     n,
     seed,
     mesh,
@@ -156,16 +165,19 @@ def run_cmd(
     worker_wait,
 ):
     """Run one solve per sample (resumable) and land the rows in OUT."""
+    from elastimap.sensor import Sensor, load
+
     from .jobs import resolve_solver
     from .run import SweepConfig, format_summary, make_plan, run
 
+    sensor = load(sensor_path) if sensor_path else Sensor()
     cfg = SweepConfig(
         n=n,
         jobs=jobs,
         seed=seed,
         out=out,
         mesh=mesh,
-        interface=interface,
+        interface=interface or sensor.interface.model,
         geometry=geometry,
         sizing=sizing,
         design=design,
@@ -184,6 +196,7 @@ def run_cmd(
         worker_wait=worker_wait,
         argv=sys.argv[1:],
         solver=resolve_solver(solver_spec),
+        sensor=sensor if sensor_path else None,
     )
     plan = make_plan(cfg)
     if scheduler and jobs != 2:
@@ -247,7 +260,7 @@ def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solve
         n=16 if n is None and not samples else n,
         seed=seed,
         mesh=mesh,
-        interface=interface,
+        interface=interface or "tied",
         design=design,
         ranges=dsg.parse_ranges_text(ranges),
         samples=samples,

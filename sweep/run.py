@@ -29,6 +29,7 @@ stay, the lock and the per-run markers are removed, the summary is printed.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import functools
 import json
@@ -46,8 +47,17 @@ from elastimap.constraints import Interval, Options, Predicate, validate_params
 from elastimap.dataset import io, store
 from elastimap.dataset.phantoms import phantom_samples
 from elastimap.errors import UserError
-from elastimap.provenance import code_version, host
-from elastimap.solver.params import GEOMETRIES, INTERFACES, MESH_LEVELS, SIZINGS, Discretisation, SolveParams
+from elastimap.provenance import code_version, host, library_versions
+from elastimap.sensor import PAPER_HASH, Sensor
+from elastimap.solver.params import (
+    GEOMETRIES,
+    INTERFACES,
+    MESH_LEVELS,
+    SIZINGS,
+    Discretisation,
+    SolveParams,
+    from_sensor,
+)
 
 from . import design as dsg
 from . import jobs
@@ -88,6 +98,9 @@ class SweepConfig:
     # None: the forward model; tests pass the SYNTHETIC stand-in (see sweep.jobs), which the
     # workers receive as a task argument
     solver: Callable | None = None
+    #: the sensor description (elastimap.sensor.Sensor); None: the paper's.  ``interface`` above
+    #: replaces the description's interface model (the command line fills it from the description)
+    sensor: Sensor | None = None
 
     #: What each setting alone must be (relations between settings are checked in ``make_plan``).
     _parameter_constraints = {
@@ -141,8 +154,16 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, handled like Ctrl-C."""
 
 
+def sweep_sensor(cfg: SweepConfig) -> Sensor:
+    """The sensor a sweep runs: ``cfg.sensor`` (the paper's when None) with ``cfg.interface``."""
+    s = cfg.sensor or Sensor()
+    return s.replace(interface=dataclasses.replace(s.interface, model=cfg.interface))
+
+
 def default_out(cfg: SweepConfig, n: int) -> str:
     parts = [cfg.mesh, cfg.interface] + [v for v in (cfg.geometry, cfg.sizing) if v in ("morph", "by_d")]
+    if not sweep_sensor(cfg).is_paper:
+        parts.append(f"sensor{sweep_sensor(cfg).hash()[:8]}")
     if cfg.samples:
         parts.append(Path(cfg.samples).stem)
     if n:
@@ -161,7 +182,8 @@ def make_plan(cfg: SweepConfig) -> Plan:
     cfg.validate()
     n = cfg.n if cfg.n is not None else (0 if cfg.samples else 512)
     disc = Discretisation(mesh=cfg.mesh, interface=cfg.interface, geometry=cfg.geometry, sizing=cfg.sizing)
-    base = SolveParams(disc=disc).validate()
+    sensor = sweep_sensor(cfg).validate()
+    base = from_sensor(sensor, disc=disc).validate()
     ranges = dsg.check_ranges(cfg.ranges, base.tissue.thickness)
     samples = dsg.design_points(n, cfg.design, cfg.seed, ranges, base.tissue.thickness)
     if cfg.samples:
@@ -204,6 +226,14 @@ def make_plan(cfg: SweepConfig) -> Plan:
             raise UserError(
                 "out",
                 f"{out} holds a sweep by the {man.get('solver', store.FEM)!r} solver, not {label!r}; use another --out",
+            )
+        if man is not None and man.get("sensor_hash", PAPER_HASH) != sensor.hash():
+            theirs = man.get("sensor", {}).get("name", "paper") if man.get("sensor") else "paper"
+            raise UserError(
+                "out",
+                f"{out} holds a sweep of another sensor ({theirs!r}, hash {man.get('sensor_hash', PAPER_HASH)}); "
+                f"this command's is {sensor.name!r} (hash {sensor.hash()}); one folder holds one sensor: "
+                "use another --out",
             )
         if man is not None and man.get("base_params") != _jsonable(base.to_dict()):
             old = man.get("base_params", {}).get("disc", {})
@@ -451,6 +481,7 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
             "planned": [],
             "runs": [],
         }
+        man.update(sweep_sensor(cfg).record())  # an old manifest (no record) is the paper's sensor's
         known = set(man["planned"])
         new = [s["sample_id"] for s in plan.samples if s["sample_id"] not in known]
         man["planned"] += new
@@ -472,6 +503,7 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
             "jobs": cfg.jobs,
             "scheduler": cfg.scheduler,
             "code_version": code_version(),
+            "versions": library_versions(),
             "host": host(),
         }
         man["runs"].append(run_log)

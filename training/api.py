@@ -71,7 +71,8 @@ def fit_ensemble(
     fit = np.ones((R, n), bool)
     batch = make_batch(X, T, fit, None, cfg, rng, gen)
     res = train_batch(algo, batch.obj, batch.theta0, cfg, desc=f"{algo} final")
-    from elastimap.provenance import code_version
+    from elastimap.dataset.io import sensor_record
+    from elastimap.provenance import stamp
 
     meta = {
         "algo": algo,
@@ -90,7 +91,8 @@ def fit_ensemble(
         "final_train_mse": [float(v) for v in _last(res.history["train"])],
         "dtype": str(cfg.dtype).replace("torch.", ""),
         "device": str(cfg.resolved_device()),
-        "code_version": code_version(),
+        **stamp(),
+        **sensor_record(samples.source),
         "initialisation": "Nguyen-Widrow (MATLAB initnw) hidden layers, uniform [-1,1] purelin layers",
     }
     return Ensemble(

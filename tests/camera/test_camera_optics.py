@@ -62,7 +62,7 @@ def test_render_seeded_dtype_and_noise_free(toy):
 @pytest.mark.parametrize(
     "bad",
     [
-        dict(bits=12),
+        dict(bits=10),  # 8, 12 and 16 are the bit depths (12 since the sensor description)
         dict(binning=0),
         dict(w_sat=0),
         dict(led_power=(1, 1, 1)),
