@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 
 from elastimap.errors import UserError
-from elastimap.training.data import TARGETS, UNITS, data_hash, prepare
+from elastimap.training.data import UNITS, data_hash, prepare
 from elastimap.training.experiment import TrainConfig, ValidationResult, plan_folds, train_final, validate_inputs
 from elastimap.training.model import Ensemble
 
@@ -246,7 +246,7 @@ def fit_image_model(
     log_e: bool = False,
 ) -> ImageModel:
     """Train the saved ensemble on every row of ``data`` (``repeats`` initialisations)."""
-    from elastimap.provenance import code_version
+    from elastimap.provenance import stamp
 
     cfg = _image_cfg(cfg or TrainConfig(progress=False))
     pca = ShapePCA.fit(data.images, k)
@@ -275,21 +275,8 @@ def fit_image_model(
         "data_sha256": data_hash(samples_of(data).df),
         "stop_reasons": res.stop,
         "epochs_run": res.epochs.tolist(),
-        "code_version": code_version(),
+        **stamp(),
         "device": str(icfg.resolved_device()),
     }
-    ens = Ensemble(
-        arch=icfg.arch,
-        theta=res.theta.detach().cpu().numpy().astype(np.float64),
-        x_min=batch.x_lo[0],
-        x_max=batch.x_hi[0],
-        y_min=batch.t_lo[0],
-        y_max=batch.t_hi[0],
-        feature_names=names,
-        target_names=TARGETS,
-        units=units,
-        feature_range=np.stack([X0.min(0), X0.max(0)]),
-        target_range=np.stack([T.min(0), T.max(0)]),
-        meta=meta,
-    )
+    ens = Ensemble.from_training(icfg.arch, res, batch, X0, T, names, units, meta)
     return ImageModel(ens, pca, force, tuple(data.shape), float(data.pixel), log_e)

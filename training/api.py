@@ -95,20 +95,7 @@ def fit_ensemble(
         **sensor_record(samples.source),
         "initialisation": "Nguyen-Widrow (MATLAB initnw) hidden layers, uniform [-1,1] purelin layers",
     }
-    return Ensemble(
-        arch=cfg.arch,
-        theta=res.theta.detach().cpu().numpy().astype(np.float64),
-        x_min=batch.x_lo[0],
-        x_max=batch.x_hi[0],
-        y_min=batch.t_lo[0],
-        y_max=batch.t_hi[0],
-        feature_names=FEATURES,
-        target_names=TARGETS,
-        units=dict(UNITS),
-        feature_range=np.stack([X.min(0), X.max(0)]),
-        target_range=np.stack([T.min(0), T.max(0)]),
-        meta=meta,
-    )
+    return Ensemble.from_training(cfg.arch, res, batch, X, T, FEATURES, UNITS, meta)
 
 
 def _last(h: torch.Tensor) -> np.ndarray:

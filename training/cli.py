@@ -305,13 +305,11 @@ def _run(samples, cfg, spec: RunSpec, out: str, overwrite: bool) -> None:
 
 def _write(folder, results, df, md: str, ensembles: dict, doc: dict) -> None:
     """Everything one run writes, into ``folder``."""
-    from .report import plot_curves
+    from .report import plot_curves, write_tables
 
     for r in results:
         plot_curves(r, os.path.join(folder, f"curves-{r.algo}-{r.validate}.png"), label=f", {doc['data']}")
-    df.to_csv(os.path.join(folder, "results.csv"), index=False)
-    with open(os.path.join(folder, "results.md"), "w") as f:
-        f.write(md)
+    write_tables(folder, df, md)
     for a, (ens, _) in ensembles.items():
         ens.save(os.path.join(folder, f"model-{a}"))
     with open(os.path.join(folder, "run.json"), "w") as f:

@@ -105,6 +105,26 @@ class Ensemble:
     target_range: np.ndarray | None = None  # (2, n_out)
     meta: dict = field(default_factory=dict)
 
+    @classmethod
+    def from_training(cls, arch, res, batch, X, T, feature_names, units, meta) -> Ensemble:
+        """The ensemble a training run made: ``res`` (its parameters), ``batch`` (the mapminmax
+        scalings of its first member, shared by all), ``X``/``T`` the training inputs and targets
+        (their ranges are the model's range flags)."""
+        return cls(
+            arch=arch,
+            theta=res.theta.detach().cpu().numpy().astype(np.float64),
+            x_min=batch.x_lo[0],
+            x_max=batch.x_hi[0],
+            y_min=batch.t_lo[0],
+            y_max=batch.t_hi[0],
+            feature_names=tuple(feature_names),
+            target_names=TARGETS,
+            units=dict(units),
+            feature_range=np.stack([X.min(0), X.max(0)]),
+            target_range=np.stack([T.min(0), T.max(0)]),
+            meta=meta,
+        )
+
     def __post_init__(self):
         self.theta = np.atleast_2d(np.asarray(self.theta, dtype=np.float64))
         for k in ("x_min", "x_max", "y_min", "y_max"):

@@ -8,6 +8,8 @@ import textwrap
 import numpy as np
 import pandas as pd
 
+from elastimap.outputs import write_text
+
 from .data import TARGETS, UNITS
 from .experiment import METRICS, ValidationResult
 
@@ -28,6 +30,13 @@ def _cell(row, m, t, digits=3):
     if row["repeats"] > 1:
         return f"{mean:.{digits}g} [{lo:.{digits}g}, {hi:.{digits}g}]"
     return f"{mean:.{digits}g}"
+
+
+def write_tables(folder: str, df: pd.DataFrame, md: str) -> None:
+    """A validation run's tables into ``folder``: ``results.csv`` and ``results.md`` (each written whole,
+    :func:`elastimap.outputs.write_text`)."""
+    write_text(os.path.join(folder, "results.csv"), df.to_csv(index=False), "out")
+    write_text(os.path.join(folder, "results.md"), md, "out")
 
 
 def markdown(df: pd.DataFrame, title: str | None = None) -> str:

@@ -111,7 +111,7 @@ def main(
     from elastimap.training.experiment import ALGOS, VALIDATIONS, TrainConfig
     from elastimap.training.net import parse_hidden
     from elastimap.training.perf import set_threads, tune_malloc
-    from elastimap.training.report import markdown, table
+    from elastimap.training.report import markdown, table, write_tables
 
     algos = [a.strip() for a in algo.split(",") if a.strip()]
     vals = [v.strip() for v in validate.split(",") if v.strip()]
@@ -178,15 +178,13 @@ def main(
         return 0
     df = table(results)
     df.insert(0, "data", data.source)
-    df.to_csv(os.path.join(out, "results.csv"), index=False)
     title = (
         f"Image-based inverse, {data.source} ({data.n} rows), inputs ln(peak) + {k - 1} shape-PCA scores"
         f"{' + force' if force else ''}{', target ln E' if log_e else ''}, image noise {image_noise:g} of the peak, {epochs} epochs; "
         f"mean [2.5 %, 97.5 %] over {repeats} repeat(s)."
     )
     md = markdown(df, title)
-    with open(os.path.join(out, "results.md"), "w") as f:
-        f.write(md)
+    write_tables(out, df, md)
     click.echo(md)
     return 0
 
