@@ -1,4 +1,4 @@
-"""What the model-form error term (:mod:`elastimap.workflows.discrepancy`) does to a fit, measured on a
+"""What the model-form error term (:mod:`elastimap.identify.discrepancy`) does to a fit, measured on a
 world elastimap did not make.
 
     python -m elastimap.workflows.studies.modelform --world /work/shared/devdata/independent-fem \\
@@ -14,13 +14,13 @@ variant world for choosing settings: it proves self-consistency only).
 
 Per set, the first nine phantoms are the lab's calibration phantoms: their (d, h, E) are known, so their
 residual images ``I_i − m(θ_i)`` (world plus frame noise, minus elastimap's map ``--model-mesh`` at the
-truth) are what :func:`elastimap.workflows.discrepancy.learn` learns the discrepancy from.  Scored: each
+truth) are what :func:`elastimap.identify.discrepancy.learn` learns the discrepancy from.  Scored: each
 calibration phantom with a discrepancy learnt from the other eight, and phantoms 10–12 with the one
 learnt from the nine.  For each, a measured image (the world's difference image plus Gaussian pixel
 noise of ``--frames`` frames of the nominal camera, :func:`elastimap.camera.optics.deflection_noise_map`,
 ``--draws`` draws) is fitted **linearised at the truth** (one generalised least-squares step in the
 fit's coordinates (d, u, e), :class:`elastimap.identify.coords.FitCoords`, from the map's exact
-derivative; :func:`elastimap.workflows.discrepancy.linear_fit`):
+derivative; :func:`elastimap.identify.discrepancy.linear_fit`):
 
 * ``closed``: the error budget the fit carries today -- the pixel noise and the map's discretisation
   error, the difference from ``--alt-mesh`` as a per-pixel sd (3x3 local rms) and one systematic image
@@ -169,7 +169,7 @@ def step_closed(I, m_img, Jx, s, delta):
 def score_one(ph, m_img, J, alt_img, disc, frames, rng, draws):
     """Linearised fits of one phantom's world image under both budgets, ``draws`` noise draws."""
     from elastimap.camera.optics import deflection_noise_map
-    from elastimap.workflows import discrepancy as dy
+    from elastimap.identify import discrepancy as dy
 
     th = ph["theta"]
     Jx, X = fit_jacobian(th, J)
@@ -215,7 +215,7 @@ def score_one(ph, m_img, J, alt_img, disc, frames, rng, draws):
 def score_set(world, model, alt, frames, draws, seed, which, prior_weight, ell_grid=None):
     """Learn from the calibration phantoms (each left out in turn), score every phantom (module docstring)."""
     from elastimap.camera.optics import deflection_noise_map
-    from elastimap.workflows import discrepancy as dy
+    from elastimap.identify import discrepancy as dy
 
     ell_grid = dy.ELL_GRID if ell_grid is None else ell_grid
     rng = np.random.default_rng(seed)
@@ -268,13 +268,13 @@ def summary(rows, budget) -> dict:
 def fit_nonlinear(I, sigma, th0, fmap, disc, systematic=(), max_iter: int = 8) -> dict:
     """A check, not the product's fit: projected Gauss–Newton of (d, u, e) on the box with the map's exact
     derivative at each iterate (``fmap.pin_exact(d, h).tangent``), each step the generalised
-    least-squares step of :func:`elastimap.workflows.discrepancy.linear_fit` under ``disc`` (None: the
+    least-squares step of :func:`elastimap.identify.discrepancy.linear_fit` under ``disc`` (None: the
     closed budget), halved until the misfit falls (at most 3 times); stops when no parameter moves by
     more than 0.2 sd.  Returns the estimate, its covariance in x, the box flags and the solves."""
     from scipy import ndimage
 
     from elastimap.dataset.schema import DESIGN_BOX
-    from elastimap.workflows import discrepancy as dy
+    from elastimap.identify import discrepancy as dy
 
     X = fit_jacobian(th0, np.zeros((3, 1)))[1]
     # the discrepancy's modes and envelope from the measured image (smoothed over 1 pixel), fixed for
@@ -335,7 +335,7 @@ def nonlinear_check(world, model_mesh, alt, cache, frames, seed, which, prior_we
     truth under both budgets (the discrepancy learnt as in :func:`score_set`)."""
     from elastimap.camera.optics import deflection_noise_map
     from elastimap.identify.forward_maps import shared_map
-    from elastimap.workflows import discrepancy as dy
+    from elastimap.identify import discrepancy as dy
 
     rng = np.random.default_rng(seed)
     model = model_at([ph["theta"] for ph in world], model_mesh, cache)
@@ -454,7 +454,7 @@ def main(
 ):
     """The fit's error budget with and without the learnt model-form error, on another model's phantoms."""
     from elastimap.errors import UserError
-    from elastimap.workflows import discrepancy as dy
+    from elastimap.identify import discrepancy as dy
 
     if calculix:
         for r in calculix_check(calculix, model_mesh, cache):

@@ -1,4 +1,4 @@
-"""The model-form error term (:mod:`elastimap.workflows.discrepancy`) on SYNTHETIC analytic images:
+"""The model-form error term (:mod:`elastimap.identify.discrepancy`) on SYNTHETIC analytic images:
 its modes, what it learns from calibration phantoms, and that the fit carrying it is the marginal
 generalised least squares (the covariance holds the discrepancy)."""
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from elastimap.errors import UserError
-from elastimap.workflows import discrepancy as dy
+from elastimap.identify import discrepancy as dy
 
 PIX = 0.5
 
