@@ -334,8 +334,8 @@ def nonlinear_check(world, model_mesh, alt, cache, frames, seed, which, prior_we
     """Each phantom's world image (one noise draw) fitted by :func:`fit_nonlinear` from ``start`` x the
     truth under both budgets (the discrepancy learnt as in :func:`score_set`)."""
     from elastimap.camera.optics import deflection_noise_map
-    from elastimap.identify.forward_maps import shared_map
     from elastimap.identify import discrepancy as dy
+    from elastimap.identify.forward_maps import shared_map
 
     rng = np.random.default_rng(seed)
     model = model_at([ph["theta"] for ph in world], model_mesh, cache)
