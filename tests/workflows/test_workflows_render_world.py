@@ -1,0 +1,61 @@
+"""The world renderer (:mod:`elastimap.workflows.render_world`) on a SYNTHETIC two-phantom world: the
+tables it writes are read by the product's own readers (a measured set, a calibration's camera CSV)."""
+
+import csv
+
+import numpy as np
+from click.testing import CliRunner
+
+from elastimap.workflows import render_world
+
+
+def _world(tmp_path):
+    w = tmp_path / "world"
+    w.mkdir()
+    yy, xx = np.mgrid[-12.25:12.3:0.5, -12.25:12.3:0.5]
+    ref = 3.0 - 0.002 * (xx**2 + yy**2)
+    rows = []
+    for i, (d, h, E) in enumerate([(6, 7, 60), (10, 8, 30)], start=1):
+        raw = ref + 0.05 * d / 10 * np.exp(-(xx**2 + yy**2) / (2 * (d / 2) ** 2))
+        np.save(w / f"raw_{i}.npy", raw)
+        np.save(w / f"ref_{i}.npy", ref)
+        rows.append(["none", f"P{i:02d}", d, h, E, f"raw_{i}.npy", f"ref_{i}.npy", 1, 1, "no effect"])
+    with open(w / "sets.csv", "w", newline="") as f:
+        c = csv.writer(f)
+        c.writerow(
+            ["set", "phantom", "d_mm", "h_mm", "E_kPa", "raw", "ref", "plate_force_mN", "plate_force_ref_mN", "effect"]
+        )
+        c.writerows(rows)
+    return w
+
+
+def test_rendered_set_is_a_measured_set(tmp_path):
+    from elastimap.gap.measured import load
+
+    w = _world(tmp_path)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(render_world.cli, ["--world", str(w), "--frames", "2", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    m = load(out / "none")
+    assert m.ids == ["P01", "P02"]
+    assert np.allclose(m.dhe, [[6, 7, 60], [10, 8, 30]])
+    # the larger bump gives the larger peak feature
+    assert m.y[1, 0] > m.y[0, 0] > 0
+    assert sorted(p.name for p in (out / "none").iterdir()) == [
+        "camera.csv",
+        "frames",
+        "lesions.csv",
+        "measured.csv",
+        "phantoms.csv",
+    ]
+
+
+def test_refuses_existing_out_and_unknown_set(tmp_path):
+    w = _world(tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    r = CliRunner().invoke(render_world.cli, ["--world", str(w), "--out", str(out)])
+    assert r.exit_code == 2 and "--out" in r.output
+    r = CliRunner().invoke(render_world.cli, ["--world", str(w), "--sets", "nope", "--out", str(tmp_path / "o2")])
+    assert r.exit_code == 2 and "--sets" in r.output
+    assert not (tmp_path / "o2").exists() and list(out.iterdir()) == []
