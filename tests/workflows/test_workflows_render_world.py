@@ -1,4 +1,4 @@
-"""The world renderer (:mod:`elastimap.workflows.render_world`) on a SYNTHETIC two-phantom world: the
+"""The world renderer (:mod:`elastimap.workflows.render_world`) on a SYNTHETIC four-phantom world: the
 tables it writes are read by the product's own readers (a measured set, a calibration's camera CSV)."""
 
 import csv
@@ -15,7 +15,7 @@ def _world(tmp_path):
     yy, xx = np.mgrid[-12.25:12.3:0.5, -12.25:12.3:0.5]
     ref = 3.0 - 0.002 * (xx**2 + yy**2)
     rows = []
-    for i, (d, h, E) in enumerate([(6, 7, 60), (10, 8, 30)], start=1):
+    for i, (d, h, E) in enumerate([(6, 7, 60), (10, 8, 30), (4, 6, 30), (8, 7, 50)], start=1):
         raw = ref + 0.05 * d / 10 * np.exp(-(xx**2 + yy**2) / (2 * (d / 2) ** 2))
         np.save(w / f"raw_{i}.npy", raw)
         np.save(w / f"ref_{i}.npy", ref)
@@ -37,10 +37,10 @@ def test_rendered_set_is_a_measured_set(tmp_path):
     r = CliRunner().invoke(render_world.cli, ["--world", str(w), "--frames", "2", "--out", str(out)])
     assert r.exit_code == 0, r.output
     m = load(out / "none")
-    assert m.ids == ["P01", "P02"]
-    assert np.allclose(m.dhe, [[6, 7, 60], [10, 8, 30]])
+    assert m.ids == ["P01", "P02", "P03", "P04"]
+    assert np.allclose(m.dhe[:2], [[6, 7, 60], [10, 8, 30]])
     # the larger bump gives the larger peak feature
-    assert m.y[1, 0] > m.y[0, 0] > 0
+    assert m.y[1, 0] > m.y[3, 0] > m.y[0, 0] > m.y[2, 0] > 0
     assert sorted(p.name for p in (out / "none").iterdir()) == [
         "camera.csv",
         "frames",
