@@ -260,12 +260,11 @@ class Ensemble:
         """Read a model folder; any damage is ONE :class:`UserError` naming the file.
 
         Checked: ``model.json`` is JSON with the format, architecture, scaling, names and
-        ranges; the weights file matches the SHA-256 recorded in ``model.json`` (folders
-        written before the hash was recorded skip this check); it is a readable safetensors
-        file holding exactly the tensors the architecture needs, with their shapes, all finite.
+        ranges (:func:`_read_meta`); the weights file matches the SHA-256 recorded in
+        ``model.json`` (folders written before the hash was recorded skip this check); it is a
+        readable safetensors file holding exactly the tensors the architecture needs, with their
+        shapes, all finite (:func:`_read_weights`).
         """
-        from safetensors.numpy import load_file
-
         meta_p = os.path.join(directory, META_FILE)
         w_p = os.path.join(directory, WEIGHTS_FILE)
         if not os.path.isdir(directory):
@@ -275,98 +274,124 @@ class Ensemble:
                 raise UserError(
                     "model", f"{directory} is not a trained model directory (missing {os.path.basename(p)})"
                 )
-
-        def bad_meta(why: str) -> UserError:
-            return UserError("model", f"{meta_p}: {why}")
-
-        def bad_weights(why: str) -> UserError:
-            return UserError("model", f"{w_p}: {why}")
-
-        try:
-            with open(meta_p, encoding="utf-8") as f:
-                meta = json.load(f)
-        except (ValueError, UnicodeDecodeError) as exc:
-            raise bad_meta(f"not valid JSON ({exc})") from None
-        if not isinstance(meta, dict):
-            raise bad_meta("not a JSON object")
-        try:
-            version = int(meta.get("format_version", -1))
-        except (TypeError, ValueError):
-            version = -1
-        if meta.get("format") != FORMAT or not 1 <= version <= FORMAT_VERSION:
-            raise bad_meta(f"unsupported model format {meta.get('format')!r} version {meta.get('format_version')!r}")
-        for key in ("architecture", "scaling", "feature_names", "target_names", "feature_range", "target_range"):
-            if key not in meta:
-                raise bad_meta(f"missing '{key}'")
-        try:
-            arch = Arch.from_json(meta["architecture"])
-            if arch.n_in < 1 or arch.n_out < 1 or any(n < 1 for n, _ in arch.hidden):
-                raise ValueError("layer sizes must be >= 1")
-        except (KeyError, TypeError, ValueError) as exc:
-            raise bad_meta(f"unreadable 'architecture' ({type(exc).__name__}: {exc})") from None
-        sc = meta["scaling"]
-        try:
-            scal = {k: np.asarray(sc[k], dtype=np.float64) for k in ("x_min", "x_max", "t_min", "t_max")}
-            fr = np.asarray(meta["feature_range"], dtype=np.float64)
-            tr = np.asarray(meta["target_range"], dtype=np.float64)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise bad_meta(f"unreadable 'scaling' or ranges ({type(exc).__name__}: {exc})") from None
-        for k, v in scal.items():
-            n = arch.n_in if k.startswith("x") else arch.n_out
-            if v.shape != (n,) or not np.isfinite(v).all():
-                raise bad_meta(f"scaling {k} must be {n} finite numbers")
-        if not ((scal["x_max"] > scal["x_min"]).all() and (scal["t_max"] > scal["t_min"]).all()):
-            raise bad_meta("scaling maxima must exceed the minima")
-        if fr.shape != (2, arch.n_in) or tr.shape != (2, arch.n_out):
-            raise bad_meta("feature_range / target_range do not match the architecture")
-        for name, r in (("feature_range", fr), ("target_range", tr)):
-            if not np.isfinite(r).all() or (r[0] > r[1]).any():
-                raise bad_meta(f"{name} must hold finite minima no larger than their maxima (the range flags need it)")
-        names_f, names_t = list(meta["feature_names"]), list(meta["target_names"])
-        if len(names_f) != arch.n_in or len(names_t) != arch.n_out:
-            raise bad_meta("feature/target names do not match the architecture")
-        want_sha = meta.get("weights_sha256")
-        if want_sha is not None and _sha256(w_p) != want_sha:
-            raise bad_weights("does not match the SHA-256 recorded in model.json (damaged or edited)")
-        try:
-            t = load_file(w_p)
-        except Exception as exc:  # safetensors raises several types for damaged files
-            raise bad_weights(f"not a readable safetensors file ({type(exc).__name__})") from None
-        want = {f"layer{l}.{k}" for l in range(len(arch.layers)) for k in ("weight", "bias")}
-        if set(t) != want:
-            missing, extra = sorted(want - set(t)), sorted(set(t) - want)
-            raise bad_weights(
-                "tensors do not match the architecture in model.json"
-                + (f"; missing {', '.join(missing)}" if missing else "")
-                + (f"; unexpected {', '.join(extra)}" if extra else "")
-            )
-        parts, M = [], None
-        for l, (fi, fo, _) in enumerate(arch.layers):
-            W, b = t[f"layer{l}.weight"], t[f"layer{l}.bias"]
-            M = W.shape[0] if M is None else M
-            if W.shape != (M, fo, fi) or b.shape != (M, fo) or M < 1:
-                raise bad_weights(
-                    f"layer{l} has shapes {W.shape} and {b.shape}; model.json's architecture "
-                    f"needs ({M}, {fo}, {fi}) and ({M}, {fo})"
-                )
-            parts.append(np.concatenate([W, b[:, :, None]], axis=2).reshape(M, -1))
-        theta = np.concatenate(parts, axis=1).astype(np.float64)
-        if not np.isfinite(theta).all():
-            raise bad_weights("holds NaN or inf weights")
+        m = _read_meta(meta_p)
+        theta = _read_weights(w_p, m["arch"], m["meta"].get("weights_sha256"))
+        scal = m["scaling"]
         return cls(
-            arch=arch,
+            arch=m["arch"],
             theta=theta,
             x_min=scal["x_min"],
             x_max=scal["x_max"],
             y_min=scal["t_min"],
             y_max=scal["t_max"],
-            feature_names=tuple(names_f),
-            target_names=tuple(names_t),
-            units=dict(meta.get("units", {})),
-            feature_range=fr,
-            target_range=tr,
-            meta=dict(meta.get("training", {})),
+            feature_names=m["feature_names"],
+            target_names=m["target_names"],
+            units=dict(m["meta"].get("units", {})),
+            feature_range=m["feature_range"],
+            target_range=m["target_range"],
+            meta=dict(m["meta"].get("training", {})),
         )
+
+
+def _read_meta(meta_p: str) -> dict:
+    """``model.json`` checked: format and version, architecture, finite scalings with max > min,
+    finite ranges with min <= max (the range flags need them), names matching the architecture.
+    Returns ``meta`` (the raw document), ``arch``, ``scaling``, the ranges and the names."""
+
+    def bad(why: str) -> UserError:
+        return UserError("model", f"{meta_p}: {why}")
+
+    try:
+        with open(meta_p, encoding="utf-8") as f:
+            meta = json.load(f)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise bad(f"not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise bad("not a JSON object")
+    try:
+        version = int(meta.get("format_version", -1))
+    except (TypeError, ValueError):
+        version = -1
+    if meta.get("format") != FORMAT or not 1 <= version <= FORMAT_VERSION:
+        raise bad(f"unsupported model format {meta.get('format')!r} version {meta.get('format_version')!r}")
+    for key in ("architecture", "scaling", "feature_names", "target_names", "feature_range", "target_range"):
+        if key not in meta:
+            raise bad(f"missing '{key}'")
+    try:
+        arch = Arch.from_json(meta["architecture"])
+        if arch.n_in < 1 or arch.n_out < 1 or any(n < 1 for n, _ in arch.hidden):
+            raise ValueError("layer sizes must be >= 1")
+    except (KeyError, TypeError, ValueError) as exc:
+        raise bad(f"unreadable 'architecture' ({type(exc).__name__}: {exc})") from None
+    sc = meta["scaling"]
+    try:
+        scal = {k: np.asarray(sc[k], dtype=np.float64) for k in ("x_min", "x_max", "t_min", "t_max")}
+        fr = np.asarray(meta["feature_range"], dtype=np.float64)
+        tr = np.asarray(meta["target_range"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise bad(f"unreadable 'scaling' or ranges ({type(exc).__name__}: {exc})") from None
+    for k, v in scal.items():
+        n = arch.n_in if k.startswith("x") else arch.n_out
+        if v.shape != (n,) or not np.isfinite(v).all():
+            raise bad(f"scaling {k} must be {n} finite numbers")
+    if not ((scal["x_max"] > scal["x_min"]).all() and (scal["t_max"] > scal["t_min"]).all()):
+        raise bad("scaling maxima must exceed the minima")
+    if fr.shape != (2, arch.n_in) or tr.shape != (2, arch.n_out):
+        raise bad("feature_range / target_range do not match the architecture")
+    for name, r in (("feature_range", fr), ("target_range", tr)):
+        if not np.isfinite(r).all() or (r[0] > r[1]).any():
+            raise bad(f"{name} must hold finite minima no larger than their maxima (the range flags need it)")
+    names_f, names_t = tuple(meta["feature_names"]), tuple(meta["target_names"])
+    if len(names_f) != arch.n_in or len(names_t) != arch.n_out:
+        raise bad("feature/target names do not match the architecture")
+    return {
+        "meta": meta,
+        "arch": arch,
+        "scaling": scal,
+        "feature_range": fr,
+        "target_range": tr,
+        "feature_names": names_f,
+        "target_names": names_t,
+    }
+
+
+def _read_weights(w_p: str, arch: Arch, want_sha: str | None) -> np.ndarray:
+    """The flat parameters ``(M, P)`` from the safetensors file ``w_p``, checked against the
+    SHA-256 ``want_sha`` (None: not recorded) and against ``arch`` (tensor names and shapes,
+    one member count, all finite)."""
+    from safetensors.numpy import load_file
+
+    def bad(why: str) -> UserError:
+        return UserError("model", f"{w_p}: {why}")
+
+    if want_sha is not None and _sha256(w_p) != want_sha:
+        raise bad("does not match the SHA-256 recorded in model.json (damaged or edited)")
+    try:
+        t = load_file(w_p)
+    except Exception as exc:  # safetensors raises several types for damaged files
+        raise bad(f"not a readable safetensors file ({type(exc).__name__})") from None
+    want = {f"layer{l}.{k}" for l in range(len(arch.layers)) for k in ("weight", "bias")}
+    if set(t) != want:
+        missing, extra = sorted(want - set(t)), sorted(set(t) - want)
+        raise bad(
+            "tensors do not match the architecture in model.json"
+            + (f"; missing {', '.join(missing)}" if missing else "")
+            + (f"; unexpected {', '.join(extra)}" if extra else "")
+        )
+    parts, M = [], None
+    for l, (fi, fo, _) in enumerate(arch.layers):
+        W, b = t[f"layer{l}.weight"], t[f"layer{l}.bias"]
+        M = W.shape[0] if M is None else M
+        if W.shape != (M, fo, fi) or b.shape != (M, fo) or M < 1:
+            raise bad(
+                f"layer{l} has shapes {W.shape} and {b.shape}; model.json's architecture "
+                f"needs ({M}, {fo}, {fi}) and ({M}, {fo})"
+            )
+        parts.append(np.concatenate([W, b[:, :, None]], axis=2).reshape(M, -1))
+    theta = np.concatenate(parts, axis=1).astype(np.float64)
+    if not np.isfinite(theta).all():
+        raise bad("holds NaN or inf weights")
+    return theta
 
 
 def _sha256(path: str) -> str:
