@@ -297,48 +297,66 @@ def train_scg(
         o = o.subset(loc)
         a = active
         th, pa, ga = th[loc], pa[loc], ga[loc]
-        p, nr, lk, lb, dk, succ = dX[a], nrm[a], lam[a], lamb[a], delta[a], success[a]
-
-        # 1. second-order information (only used where the last step succeeded)
-        if succ.any():
-            sig = sigma / nr.sqrt()
-            _, g_t = o.perf_grad(th + sig[:, None] * p)
-            s = (g_t - (-ga)) / sig[:, None]
-            dk = torch.where(succ, (p * s).sum(1), dk)
-        # 2. scale
-        dk = dk + (lk - lb) * nr
-        neg = dk <= 0
-        lb = torch.where(neg, 2.0 * (lk - dk / nr), lb)
-        dk = torch.where(neg, -dk + lk * nr, dk)
-        lk = torch.where(neg, lb, lk)
-        # 3. step size and comparison parameter
-        muk = (p * ga).sum(1)
-        alpha = muk / dk
-        th_new = th + alpha[:, None] * p
-        perf_new, g_new = o.perf_grad(th_new)
-        dif = 2.0 * dk * (pa - perf_new) / (muk * muk)
-        ok = (dif >= 0) & torch.isfinite(perf_new)
-        dif = torch.where(torch.isfinite(dif), dif, torch.zeros_like(dif))
-        # 4. success: move, new direction
-        k_new = k_iter[a] + ok.long()
-        r_new = -g_new
-        beta = ((r_new * r_new).sum(1) - (r_new * ga).sum(1)) / muk
-        restart = (k_new % P) == 0
-        p_new = torch.where(restart[:, None], r_new, r_new + beta[:, None] * p)
-        okc = ok[:, None]
-        theta[a] = torch.where(okc, th_new, th)
-        perf[a] = torch.where(ok, perf_new, pa)
-        gX[a] = torch.where(okc, r_new, ga)
-        dX[a] = torch.where(okc, p_new, p)
-        nrm[a] = torch.where(ok, (p_new * p_new).sum(1), nr)
-        k_iter[a] = k_new
-        lb = torch.where(ok, torch.zeros_like(lb), lk)
-        success[a] = ok
-        # 5. adapt the scale parameter (Møller step 7 uses the |p_k|² of this iteration)
-        lk = torch.where(dif < 0.25, lk + dk * (1.0 - dif) / nr, lk)
-        lk = torch.where(dif >= 0.75, 0.25 * lk, lk)
-        lam[a], lamb[a], delta[a] = lk, lb, dk
+        st = _scg_step(o, th, pa, ga, dX[a], nrm[a], lam[a], lamb[a], delta[a], success[a], k_iter[a], sigma, P)
+        ok, okc = st["ok"], st["ok"][:, None]
+        theta[a] = torch.where(okc, st["theta"], th)
+        perf[a] = torch.where(ok, st["perf"], pa)
+        gX[a] = torch.where(okc, st["r"], ga)
+        dX[a] = torch.where(okc, st["p"], dX[a])
+        nrm[a] = torch.where(ok, (st["p"] * st["p"]).sum(1), nrm[a])
+        k_iter[a], success[a] = st["k"], ok
+        lam[a], lamb[a], delta[a] = st["lam"], st["lamb"], st["delta"]
         if progress is not None:
             progress(epoch)
     final = val.best_theta if val is not None else theta
     return TrainResult(final, ep_run, stop, hist)
+
+
+def _scg_step(o, th, pa, ga, p, nr, lk, lb, dk, succ, k, sigma: float, P: int) -> dict:
+    """One iteration of Møller's SCG (steps 1-5 of :func:`train_scg`) for the active problems:
+    ``th`` parameters, ``pa`` their objective, ``ga`` = ``r`` = −∇E, ``p`` the search direction and
+    ``nr`` = |p|², ``lk``/``lb``/``dk`` λ, λ̄, δ, ``succ`` whether the last step succeeded, ``k``
+    the successful steps so far.  Returns the trial point and its objective and ``r``, ``ok``
+    (accepted), the next direction ``p`` (to keep only where accepted), ``k`` and the new λ, λ̄, δ.
+    """
+    # 1. second-order information (only used where the last step succeeded)
+    if succ.any():
+        sig = sigma / nr.sqrt()
+        _, g_t = o.perf_grad(th + sig[:, None] * p)
+        s = (g_t - (-ga)) / sig[:, None]
+        dk = torch.where(succ, (p * s).sum(1), dk)
+    # 2. scale
+    dk = dk + (lk - lb) * nr
+    neg = dk <= 0
+    lb = torch.where(neg, 2.0 * (lk - dk / nr), lb)
+    dk = torch.where(neg, -dk + lk * nr, dk)
+    lk = torch.where(neg, lb, lk)
+    # 3. step size and comparison parameter
+    muk = (p * ga).sum(1)
+    alpha = muk / dk
+    th_new = th + alpha[:, None] * p
+    perf_new, g_new = o.perf_grad(th_new)
+    dif = 2.0 * dk * (pa - perf_new) / (muk * muk)
+    ok = (dif >= 0) & torch.isfinite(perf_new)
+    dif = torch.where(torch.isfinite(dif), dif, torch.zeros_like(dif))
+    # 4. success: move, new direction (restart every P successful steps)
+    k_new = k + ok.long()
+    r_new = -g_new
+    beta = ((r_new * r_new).sum(1) - (r_new * ga).sum(1)) / muk
+    restart = (k_new % P) == 0
+    p_new = torch.where(restart[:, None], r_new, r_new + beta[:, None] * p)
+    lb = torch.where(ok, torch.zeros_like(lb), lk)
+    # 5. adapt the scale parameter (Møller step 7 uses the |p_k|² of this iteration)
+    lk = torch.where(dif < 0.25, lk + dk * (1.0 - dif) / nr, lk)
+    lk = torch.where(dif >= 0.75, 0.25 * lk, lk)
+    return {
+        "theta": th_new,
+        "perf": perf_new,
+        "r": r_new,
+        "ok": ok,
+        "p": p_new,
+        "k": k_new,
+        "lam": lk,
+        "lamb": lb,
+        "delta": dk,
+    }
