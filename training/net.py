@@ -330,96 +330,138 @@ def gn_system(
     (``(B, P, P)``, contiguous) receives ``JᵀJ``.
     """
     B, n, _ = X.shape
-    K = arch.n_out
-    layers = arch.layers
-    q = len(layers) - 1  # the output layer
+    layers, q = arch.layers, len(arch.layers) - 1  # q: the output layer
     dt, dev = theta.dtype, theta.device
     Y, acts = forward(theta, X, arch, keep=True)
-    params = unpack(theta, arch)
     ones = torch.ones(B, 1, n, dtype=dt, device=dev)
-    aT = [torch.cat([a.transpose(1, 2), ones], dim=1) for a in acts[:-1]]  # ã_l: (B, in_l + 1, n)
-    der = [_dact(acts[l + 1].transpose(1, 2), layers[l][2]) for l in range(q)]  # (B, out_l, n), None = 1
-    P, sl = arch.n_params, arch.slices
+    net = _Pass(
+        K=arch.n_out,
+        layers=layers,
+        params=unpack(theta, arch),
+        aT=[torch.cat([a.transpose(1, 2), ones], dim=1) for a in acts[:-1]],  # ã_l: (B, in_l + 1, n)
+        der=[_dact(acts[l + 1].transpose(1, 2), layers[l][2]) for l in range(q)],  # (B, out_l, n), None = 1
+        w=w,
+    )
     E = je = None
     if T is not None:
         r = (Y - T) * w.unsqueeze(-1)  # (B, n, K)
         E = (r * r).sum(dim=(1, 2))
-        je = torch.empty(B, P, dtype=dt, device=dev)
-        e = r.transpose(1, 2)  # Σ_k δ_l[., k] r_k
-    # δ_l: (B, out_l, K, n), w folded in
-    deltas = [None] * (q + 1)
-    d = torch.eye(K, dtype=dt, device=dev)[None, :, :, None] * w[:, None, None, :]
-    for l in range(q, -1, -1):
-        deltas[l] = d
-        fi, fo, _ = layers[l]
-        if T is not None:
-            je[:, sl[l]] = torch.bmm(e, aT[l].transpose(1, 2)).reshape(B, -1)
-        if l > 0:
-            Wt = params[l][0].transpose(1, 2)  # (B, out_{l-1}, out_l)
-            d = torch.bmm(Wt, d.reshape(B, fo, K * n)).reshape(B, fi, K, n)
-            if der[l - 1] is not None:
-                d.mul_(der[l - 1].unsqueeze(2))
-            if T is not None:
-                e = torch.bmm(Wt, e)
-                if der[l - 1] is not None:
-                    e.mul_(der[l - 1])
+        je = net.gradient(r.transpose(1, 2), arch.n_params, arch.slices)
+    P, sl = arch.n_params, arch.slices
     G = torch.empty(B, P, P, dtype=dt, device=dev) if out is None else out
-    # output layer: I_K ⊗ Σ_i w_i ã ãᵀ
-    iq = aT[q].shape[1]
-    H = torch.bmm(aT[q] * w[:, None, :], aT[q].transpose(1, 2))
-    Gq = G[:, sl[q], sl[q]]
-    Gq.zero_()
-    for k in range(K):
-        Gq[:, k * iq : (k + 1) * iq, k * iq : (k + 1) * iq] = H
-    # per hidden layer: its diagonal-block strategy and, where needed, S_m (B, out_m, out_m, n)
-    explicit, S = [], [None] * q
-    for m in range(q):
-        fi, fo, _ = layers[m]
-        s_m, po, pi = fo * (fi + 1), fo * (fo + 1) // 2, (fi + 1) * (fi + 2) // 2
-        explicit.append(K * s_m * s_m + _EW * K * s_m <= po * pi + _EW * (2 * K * po + pi))
-        if m == 0 and explicit[0]:
-            continue
-        if m == q - 1:
-            Wq = params[q][0]
-            S[m] = torch.bmm(Wq.transpose(1, 2), Wq).unsqueeze(-1) * w[:, None, None, :]
-            if der[m] is not None:
-                S[m].mul_(der[m].unsqueeze(2)).mul_(der[m].unsqueeze(1))
-        else:
-            dm = deltas[m]
-            S[m] = (dm.unsqueeze(2) * dm.unsqueeze(1)).sum(3)
+    net.output_block(G[:, sl[q], sl[q]])
     for l in range(q):
-        dl, al = deltas[l], aT[l]
-        ol, il = dl.shape[1], al.shape[1]
-        s_l = ol * il
-        if explicit[l]:
-            Jl = (dl.unsqueeze(2) * al[:, None, :, None, :]).reshape(B, s_l, K * n)
-            G[:, sl[l], sl[l]] = torch.bmm(Jl, Jl.transpose(1, 2))
-        else:
-            pairs, flat = _sym_plan(ol, il, dev)
-            C = S[l].reshape(B, ol * ol, n)[:, pairs]  # (B, #pairs_o, n)
-            A = _pair_products(al)  # (B, #pairs_i, n)
-            M = torch.bmm(C, A.transpose(1, 2)).reshape(B, -1)
-            G[:, sl[l], sl[l]] = M.index_select(1, flat).reshape(B, s_l, s_l)
-        for m in range(l + 1, q):  # hidden cross blocks
-            om, im = layers[m][1], aT[m].shape[1]
-            C = S[m]
-            for p in range(m - 1, l - 1, -1):  # C_{p,m} = D_p W_{p+1}ᵀ C_{p+1,m}
-                C = torch.bmm(params[p + 1][0].transpose(1, 2), C.reshape(B, layers[p + 1][1], om * n))
-                C = C.reshape(B, layers[p][1], om, n)
-                if der[p] is not None:
-                    C.mul_(der[p].unsqueeze(2))
-            A = (al.unsqueeze(2) * aT[m].unsqueeze(1)).reshape(B, il * im, n)
-            M = torch.bmm(C.reshape(B, ol * om, n), A.transpose(1, 2)).view(B, ol, om, il, im)
-            G[:, sl[l], sl[m]] = M.permute(0, 1, 3, 2, 4).reshape(B, s_l, om * im)
+        G[:, sl[l], sl[l]] = net.diagonal_block(l)
+        for m in range(l + 1, q + 1):  # cross blocks with the later layers, the output layer last
+            M = net.cross_block(l, m)  # (B, out_l, out_m, in_l, in_m)
+            s_l, s_m = M.shape[1] * M.shape[3], M.shape[2] * M.shape[4]
+            G[:, sl[l], sl[m]] = M.permute(0, 1, 3, 2, 4).reshape(B, s_l, s_m)
             if not upper:
-                G[:, sl[m], sl[l]] = M.permute(0, 2, 4, 1, 3).reshape(B, om * im, s_l)
-        # cross block with the output layer: C_i = δ_l[i]
-        A = (al.unsqueeze(2) * aT[q].unsqueeze(1)).reshape(B, il * iq, n)
-        M = torch.bmm(dl.reshape(B, ol * K, n), A.transpose(1, 2)).view(B, ol, K, il, iq)
-        G[:, sl[l], sl[q]] = M.permute(0, 1, 3, 2, 4).reshape(B, s_l, K * iq)
-        if not upper:
-            G[:, sl[q], sl[l]] = M.permute(0, 2, 4, 1, 3).reshape(B, K * iq, s_l)
+                G[:, sl[m], sl[l]] = M.permute(0, 2, 4, 1, 3).reshape(B, s_m, s_l)
     return E, G, je
+
+
+class _Pass:
+    """One forward pass's quantities that the blocks of ``JᵀJ`` (:func:`gn_system`) share: the
+    layer inputs ``ã_l`` (``aT``), the transfer-function derivatives ``D_l`` (``der``), the
+    back-propagated ``δ_l`` (B, out_l, K, n) with the sample weights ``w`` folded in, and the
+    per-sample ``S_m = Σ_k δ_m δ_mᵀ`` of the hidden layers whose diagonal block needs them."""
+
+    def __init__(self, K, layers, params, aT, der, w):
+        self.K, self.layers, self.params, self.aT, self.der, self.w = K, layers, params, aT, der, w
+        self.q = len(layers) - 1
+        self.B, self.n = w.shape
+        self.deltas = self._deltas()
+        self.explicit = [self._explicit(m) for m in range(self.q)]
+        self.S = [None if (m == 0 and self.explicit[0]) else self._S(m) for m in range(self.q)]
+
+    def _back(self, l: int, d: torch.Tensor) -> torch.Tensor:
+        """``D_{l-1} W_lᵀ d`` for ``d`` (B, out_l, ...): one step of back-propagation."""
+        fo = self.layers[l][1]
+        Wt = self.params[l][0].transpose(1, 2)  # (B, out_{l-1}, out_l)
+        shape = d.shape
+        d = torch.bmm(Wt, d.reshape(self.B, fo, -1)).reshape(self.B, Wt.shape[1], *shape[2:])
+        if self.der[l - 1] is not None:
+            dl = self.der[l - 1]
+            d.mul_(dl.reshape(self.B, dl.shape[1], *([1] * (len(shape) - 3)), self.n))
+        return d
+
+    def _deltas(self) -> list[torch.Tensor]:
+        K, q = self.K, self.q
+        d = torch.eye(K, dtype=self.w.dtype, device=self.w.device)[None, :, :, None] * self.w[:, None, None, :]
+        out = [None] * (q + 1)
+        for l in range(q, -1, -1):
+            out[l] = d
+            if l > 0:
+                d = self._back(l, d)
+        return out
+
+    def gradient(self, e: torch.Tensor, P: int, sl) -> torch.Tensor:
+        """``Jᵀr`` (B, P) for the weighted residuals ``e`` (B, K, n), back-propagated alike."""
+        je = torch.empty(self.B, P, dtype=e.dtype, device=e.device)
+        for l in range(self.q, -1, -1):
+            je[:, sl[l]] = torch.bmm(e, self.aT[l].transpose(1, 2)).reshape(self.B, -1)
+            if l > 0:
+                e = self._back(l, e)
+        return je
+
+    def _explicit(self, m: int) -> bool:
+        """Whether layer ``m``'s diagonal block is cheaper as the Gram matrix of its explicit
+        Jacobian block than from the upper triangles of ``C_i`` and ``A_i``."""
+        fi, fo, _ = self.layers[m]
+        K = self.K
+        s_m, po, pi = fo * (fi + 1), fo * (fo + 1) // 2, (fi + 1) * (fi + 2) // 2
+        return K * s_m * s_m + _EW * K * s_m <= po * pi + _EW * (2 * K * po + pi)
+
+    def _S(self, m: int) -> torch.Tensor:
+        """``S_m`` (B, out_m, out_m, n); for the last hidden layer ``w_i D_i (W_Lᵀ W_L) D_i``."""
+        if m == self.q - 1:
+            Wq = self.params[self.q][0]
+            S = torch.bmm(Wq.transpose(1, 2), Wq).unsqueeze(-1) * self.w[:, None, None, :]
+            if self.der[m] is not None:
+                S.mul_(self.der[m].unsqueeze(2)).mul_(self.der[m].unsqueeze(1))
+            return S
+        dm = self.deltas[m]
+        return (dm.unsqueeze(2) * dm.unsqueeze(1)).sum(3)
+
+    def output_block(self, Gq: torch.Tensor) -> None:
+        """The output layer's (``purelin``) diagonal block ``I_K ⊗ Σ_i w_i ã ãᵀ`` into ``Gq``."""
+        a = self.aT[self.q]
+        iq = a.shape[1]
+        H = torch.bmm(a * self.w[:, None, :], a.transpose(1, 2))
+        Gq.zero_()
+        for k in range(self.K):
+            Gq[:, k * iq : (k + 1) * iq, k * iq : (k + 1) * iq] = H
+
+    def diagonal_block(self, l: int) -> torch.Tensor:
+        """Hidden layer ``l``'s diagonal block (B, s_l, s_l)."""
+        dl, al = self.deltas[l], self.aT[l]
+        ol, il = dl.shape[1], al.shape[1]
+        s_l, B = ol * il, self.B
+        if self.explicit[l]:
+            Jl = (dl.unsqueeze(2) * al[:, None, :, None, :]).reshape(B, s_l, self.K * self.n)
+            return torch.bmm(Jl, Jl.transpose(1, 2))
+        pairs, flat = _sym_plan(ol, il, al.device)
+        C = self.S[l].reshape(B, ol * ol, self.n)[:, pairs]  # (B, #pairs_o, n)
+        A = _pair_products(al)  # (B, #pairs_i, n)
+        M = torch.bmm(C, A.transpose(1, 2)).reshape(B, -1)
+        return M.index_select(1, flat).reshape(B, s_l, s_l)
+
+    def cross_block(self, l: int, m: int) -> torch.Tensor:
+        """The ``(l, m)`` block, ``l < m``, as (B, out_l, out_m, in_l, in_m): ``Σ_i C_i ⊗ A_i`` with
+        ``C_{l,m}`` from ``S_m`` by ``C_{p,m} = D_p W_{p+1}ᵀ C_{p+1,m}`` (hidden ``m``) or
+        ``C_i = δ_l[i]`` (``m`` the output layer)."""
+        B, n = self.B, self.n
+        al, am = self.aT[l], self.aT[m]
+        ol, il, im = self.deltas[l].shape[1], al.shape[1], am.shape[1]
+        if m == self.q:
+            C, om = self.deltas[l], self.K
+        else:
+            C, om = self.S[m], self.layers[m][1]
+            for p in range(m - 1, l - 1, -1):
+                C = self._back(p + 1, C)
+        A = (al.unsqueeze(2) * am.unsqueeze(1)).reshape(B, il * im, n)
+        return torch.bmm(C.reshape(B, ol * om, n), A.transpose(1, 2)).view(B, ol, om, il, im)
 
 
 def init_nguyen_widrow(
