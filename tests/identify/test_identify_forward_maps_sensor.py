@@ -31,6 +31,11 @@ def test_sensor_template_is_none_for_the_papers_mechanics(lab):
     assert sensor_template(Sensor().replace(name="other-camera")) is None  # a name (or camera) is no mechanics
     t = sensor_template(lab)
     assert t == from_sensor(lab) and t != SolveParams() and t.probe.size == 20.0
+    # the calibrated intervals stay the paper's sensor's; the maps are built lazily (no solve here)
+    assert fit_maps("coarse", "fine", "morph", Sensor()).intervals == "calibrated"
+    m = fit_maps("coarse", "fine", "morph", lab)
+    assert m.intervals == "gauss"
+    assert {f.morphed.template.probe.size for f in (m.forward, m.forward_alt, m.forward_fine)} == {20.0}
 
 
 @pytest.mark.slow
