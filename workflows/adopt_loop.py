@@ -183,15 +183,16 @@ def diagnosis_row(folder: Path) -> dict:
         "outcome": ev["outcome"],
         "winner": ev.get("winner"),
         "ranking": [
-            {"effect": r["effect"], "magnitude": r.get("magnitude"), "reduced_chi2_cv": r["reduced_chi2_cv"]}
+            {"effect": r["effect"], "magnitude": r.get("magnitude"), "held_out_chi2": r["ssr_cv"]}
             for r in ev.get("ranking", [])[:3]
         ],
         "adoption": res["adoption"]["note"],
         "adopted": [r for r in res["adoption"]["rows"] if r["adopted"]],
     }
-    if row["winner"]:
-        w = ev["reported"][row["winner"]]
-        row["winner_held_out_chi2"] = w.get("ssr_cv")
+    if row["winner"]:  # its held-out χ²: the ranking's row of the winner, or of the family that fitted it
+        src = ev["reported"][row["winner"]].get("via") or row["winner"]
+        rk = next((x for x in ev.get("ranking", []) if x["effect"] == src), None)
+        row["winner_held_out_chi2"] = None if rk is None else rk["ssr_cv"]
     return row
 
 
@@ -239,6 +240,13 @@ def run_round(out: Path, r: int, sensor: Path, data: dict, a: dict, log: Path, m
             "--jobs", a["jobs"], "--cache", out / "cache", "--no-progress", *extra, "--out", diag, log=log,
         )  # fmt: skip
     timing["diagnose_s"] = time.time() - t2
+    timing["wall_s"] = time.time() - t0
+    tf = rd / "timing.json"  # a resumed round keeps the times of the run that did its work
+    if tf.exists():
+        timing = json.loads(tf.read_text())
+    else:
+        timing = {k: round(v, 1) for k, v in timing.items()}
+        tf.write_text(json.dumps(timing))
     from elastimap.sensor import load
 
     s = load(sensor)
@@ -250,9 +258,14 @@ def run_round(out: Path, r: int, sensor: Path, data: dict, a: dict, log: Path, m
         "model": str(model.relative_to(out)),
         **mre(est, out / "lesions-truth.csv"),
         **diagnosis_row(diag),
-        "wall_s": time.time() - t0,
-        **{k: round(v, 1) for k, v in timing.items()},
+        **timing,
     }
+
+
+def ci(row: dict) -> str:
+    """`` [lo, hi]`` of an adopted row's 95 % interval, or nothing."""
+    c = row.get("magnitude_ci")
+    return f" [{c[0]:.4g}, {c[1]:.4g}]" if c else ""
 
 
 def table_md(doc: dict) -> str:
@@ -263,8 +276,10 @@ def table_md(doc: dict) -> str:
         "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in doc["rounds"]:
-        ad = "; ".join(f"{x['effect']} = {x['magnitude']:.4g} {x['unit']}" for x in r["adopted"]) or "nothing"
-        win = r["outcome"] + (f" ({r['winner']})" if r.get("winner") else "")
+        ad = "; ".join(f"{x['effect']} = {x['magnitude']:.4g} {x['unit']}{ci(x)}" for x in r["adopted"]) or "nothing"
+        win = r["outcome"] + (
+            f" by {r['winner']} (held-out χ² {r['winner_held_out_chi2']:.3g})" if r.get("winner_held_out_chi2") else ""
+        )
         lines.append(
             f"| {r['round']} | `{r['sensor_name']}` (`{r['sensor_hash']}`) | {r['d_mre']:.1f} / {r['h_mre']:.1f} / "
             f"{r['E_mre']:.1f} | {r['flagged']}/{r['n']} | {r['chi2_baseline']:.4g} ({r['chi2_threshold']:.4g}) over "
@@ -337,7 +352,10 @@ def main(
     lab_p, true_p = write_sensors(o, lab, withheld)
     write_designs(o, n_phantoms, n_lesions, seed)
     data = make_data(o, true_p, "", a, log)
-    data_s = time.time() - t0
+    tf = o / "data-timing.json"  # kept from the run that made the data
+    if not tf.exists():
+        tf.write_text(json.dumps({"data_s": round(time.time() - t0, 1)}))
+    data_s = json.loads(tf.read_text())["data_s"]
     doc = {
         "synthetic": True,
         "command": "python workflows/adopt_loop.py " + " ".join(sys.argv[1:]),
@@ -345,7 +363,7 @@ def main(
         "machine": f"{platform.node()} ({os.cpu_count()} cores)",
         "withheld": withheld,
         "settings": a,
-        "data_s": round(data_s, 1),
+        "data_s": data_s,
         "rounds": [],
     }
     sensor, rows, none = lab_p, [], None

@@ -81,4 +81,7 @@ def test_adopt_loop_adopts_the_winner_and_the_next_round_sweeps_it(tmp_path):
     study(out)
     new = [x for x in (out / "commands.log").read_text()[len(before) :].splitlines() if x.startswith("$ elastimap")]
     assert new and all(x.startswith("$ elastimap sweep run") for x in new), new  # the sweeps resume themselves
-    assert json.loads((out / "loop.json").read_text())["rounds"][1]["sensor_hash"] == adopted.hash()
+    again = json.loads((out / "loop.json").read_text())
+    assert again["rounds"][1]["sensor_hash"] == adopted.hash()
+    assert [r["wall_s"] for r in again["rounds"]] == [r["wall_s"] for r in doc["rounds"]]  # the first run's times
+    assert again["data_s"] == doc["data_s"]
