@@ -354,16 +354,18 @@ def main(
     data = make_data(o, true_p, "", a, log)
     tf = o / "data-timing.json"  # kept from the run that made the data
     if not tf.exists():
-        tf.write_text(json.dumps({"data_s": round(time.time() - t0, 1)}))
-    data_s = json.loads(tf.read_text())["data_s"]
+        started = datetime.fromtimestamp(t0, UTC).strftime("%Y-%m-%d %H:%M UTC")
+        tf.write_text(json.dumps({"data_s": round(time.time() - t0, 1), "started": started}))
+    first = json.loads(tf.read_text())
     doc = {
         "synthetic": True,
         "command": "python workflows/adopt_loop.py " + " ".join(sys.argv[1:]),
-        "date": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        "date": first.get("started"),  # when the study started (a resumed run keeps it)
+        "rendered": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "machine": f"{platform.node()} ({os.cpu_count()} cores)",
         "withheld": withheld,
         "settings": a,
-        "data_s": data_s,
+        "data_s": first["data_s"],
         "rounds": [],
     }
     sensor, rows, none = lab_p, [], None

@@ -84,4 +84,4 @@ def test_adopt_loop_adopts_the_winner_and_the_next_round_sweeps_it(tmp_path):
     again = json.loads((out / "loop.json").read_text())
     assert again["rounds"][1]["sensor_hash"] == adopted.hash()
     assert [r["wall_s"] for r in again["rounds"]] == [r["wall_s"] for r in doc["rounds"]]  # the first run's times
-    assert again["data_s"] == doc["data_s"]
+    assert again["data_s"] == doc["data_s"] and again["date"] == doc["date"] and again["date"].endswith("UTC")
