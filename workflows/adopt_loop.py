@@ -40,6 +40,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from elastimap.solver.params import MESH_LEVELS
+
 #: the withheld effect of the study in the docs, chosen before any result: the tissue-side probe
 #: layer is 200 kPa where the lab (the paper) says 300 kPa, a PDMS batch softer by a third.
 WITHHELD = "probe_E1=200"
@@ -60,23 +62,30 @@ def elastimap(*args: str, log: Path) -> None:
         )
 
 
-def write_sensors(out: Path, lab: str | None, withheld: str) -> tuple[Path, Path]:
-    """``lab.toml`` (the lab's description) and ``true.toml`` (it with the withheld effect; the same
-    description when ``withheld`` is ``none``)."""
+def sensors(lab: str | None, withheld: str):
+    """The lab's description (``lab``, default the paper's) and its true sensor: it with the withheld
+    effect (``NAME=VALUE``, :func:`elastimap.gap.adopt.adopt`; the same description for ``none``)."""
     from elastimap.gap import effects as fx
     from elastimap.gap.adopt import adopt
-    from elastimap.sensor import Sensor, dumps, load
+    from elastimap.sensor import Sensor, load
 
     sensor = load(lab, "lab") if lab else Sensor().replace(name="lab")
+    found = {}
+    if withheld != "none":
+        for e, m in fx.parse_spec(withheld, table=fx.for_sensor(sensor)):
+            found[e.name] = [float(m)]
+    return sensor, (adopt(sensor, found, name="lab-true").sensor if found else sensor)
+
+
+def write_sensors(out: Path, lab: str | None, withheld: str) -> tuple[Path, Path]:
+    """``lab.toml`` (the lab's description) and ``true.toml`` (:func:`sensors`) in ``out``, kept when there."""
+    from elastimap.sensor import dumps
+
+    sensor, truth = sensors(lab, withheld)
     lab_p, true_p = out / "lab.toml", out / "true.toml"
     if not lab_p.exists():
         lab_p.write_text(dumps(sensor, "the lab's description of its sensor"))
     if not true_p.exists():
-        found = {}
-        if withheld != "none":
-            for e, m in fx.parse_spec(withheld, table=fx.for_sensor(sensor)):
-                found[e.name] = [float(m)]
-        truth = adopt(sensor, found, name="lab-true").sensor if found else sensor
         true_p.write_text(dumps(truth, f"SYNTHETIC: the lab's true sensor (withheld: {withheld})"))
     return lab_p, true_p
 
@@ -300,9 +309,19 @@ def table_md(doc: dict) -> str:
     help="NAME=VALUE of the true sensor's withheld effect ('none': no effect).",
 )
 @click.option(
-    "--mesh", default="coarse", show_default=True, help="Mesh level of the lab's model (sweep, calibrate, diagnose)."
+    "--mesh",
+    type=click.Choice(MESH_LEVELS),
+    default="coarse",
+    show_default=True,
+    help="Mesh level of the lab's model (sweep, calibrate, diagnose).",
 )
-@click.option("--data-mesh", default="default", show_default=True, help="Mesh level of the lab's SYNTHETIC data.")
+@click.option(
+    "--data-mesh",
+    type=click.Choice(MESH_LEVELS),
+    default="default",
+    show_default=True,
+    help="Mesh level of the lab's SYNTHETIC data.",
+)
 @click.option("--n", "n", type=int, default=256, show_default=True, help="Design samples per round's sweep.")
 @click.option("--phantoms", "n_phantoms", type=int, default=12, show_default=True, help="The lab's phantoms.")
 @click.option("--lesions", "n_lesions", type=int, default=12, show_default=True, help="Held-out lesions.")
@@ -345,6 +364,18 @@ def main(
         mesh=mesh, data_mesh=data_mesh, n=n, frames=frames, repeats=repeats, hidden=hidden, effects=effects,
         error_mesh=error_mesh, seed=seed, jobs=jobs,
     )  # fmt: skip
+    from elastimap.errors import UserError
+
+    for flag, v, lo in (
+        ("--n", n, 1), ("--phantoms", n_phantoms, 4), ("--lesions", n_lesions, 1), ("--frames", frames, 2),
+        ("--rounds", rounds, 1), ("--repeats", repeats, 1), ("--jobs", jobs, 1),
+    ):  # fmt: skip
+        if v < lo:
+            raise UserError(flag, f"must be an integer >= {lo} (got {v})")
+    try:
+        sensors(lab, withheld)  # the descriptions are checked before anything is written
+    except UserError as exc:
+        raise UserError("--lab" if exc.param == "lab" else "--withheld", exc.message) from None
     o = Path(out)
     o.mkdir(parents=True, exist_ok=True)
     log = o / "commands.log"
@@ -390,4 +421,6 @@ def main(
 
 
 if __name__ == "__main__":
-    main()
+    from elastimap.cli_util import run
+
+    sys.exit(run(main, prog_name="workflows/adopt_loop.py"))

@@ -85,3 +85,20 @@ def test_adopt_loop_adopts_the_winner_and_the_next_round_sweeps_it(tmp_path):
     assert again["rounds"][1]["sensor_hash"] == adopted.hash()
     assert [r["wall_s"] for r in again["rounds"]] == [r["wall_s"] for r in doc["rounds"]]  # the first run's times
     assert again["data_s"] == doc["data_s"] and again["date"] == doc["date"] and again["date"].endswith("UTC")
+
+
+@pytest.mark.parametrize(
+    "args, flag",
+    [(["--n", "0"], "--n"), (["--withheld", "probe_E9=3"], "--withheld"), (["--lab", "missing.toml"], "--lab")],
+)
+def test_bad_input_is_one_line_and_writes_nothing(tmp_path, args, flag):
+    out = tmp_path / "loop"
+    r = subprocess.run(
+        [sys.executable, str(SCRIPT), "--out", str(out), *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+    )
+    assert r.returncode == 2 and r.stderr.startswith(f"error: {flag}: ") and r.stderr.count("\n") == 1, r.stderr
+    assert not out.exists()
