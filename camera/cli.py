@@ -541,7 +541,8 @@ def infer(
     from .calibration import Calibration
 
     cal = Calibration.load(calibration) if calibration is not None else None
-    sensor_hash = _check_sensor(load_sensor(sensor_path) if sensor_path else None, model, cal, refine)
+    sensor = _check_sensor(load_sensor(sensor_path) if sensor_path else None, model, cal)
+    sensor_hash = None if sensor is None else sensor.hash()
     ests, cal = _estimates(
         model, idm, threshold, refine, calibration, feats, images, background, csv_path, fem_image, allow_outside
     )
@@ -559,6 +560,7 @@ def infer(
                 correct=correct,
                 threshold=threshold,
                 progress=lambda i, n: bar.update(1),
+                sensor=sensor,
             )
     from elastimap.provenance import stamp
 
@@ -584,12 +586,11 @@ def infer(
         click.echo("note: the calibration was made with the SYNTHETIC camera", err=True)
 
 
-def _check_sensor(sensor, model, cal, refine: bool) -> str | None:
-    """The hash of the sensor the estimates stand for: ``--sensor``'s, else the calibration's, else
-    the model's (None when none records one).  The model (trained on FEM features) and the
-    calibration must stand for the same probe, slab, loading and interface as ``--sensor`` (and as
-    each other); ``--refine`` fits the paper's mechanics only (its forward map and calibrated
-    intervals)."""
+def _check_sensor(sensor, model, cal):
+    """The sensor the estimates stand for: ``--sensor``'s, else the calibration's, else the model's
+    (None when none records one; ``--refine``'s maps press with it).  The model (trained on FEM
+    features) and the calibration must stand for the same probe, slab, loading and interface as
+    ``--sensor`` (and as each other)."""
     from elastimap.sensor import CameraSpec, Sensor
 
     from .optics import SensorModel
@@ -623,9 +624,7 @@ def _check_sensor(sensor, model, cal, refine: bool) -> str | None:
                 + ")",
             )
         chosen = recorded.get("the calibration") or recorded.get("the model")
-    if refine and chosen is not None and mechanics(chosen) != mechanics(Sensor()):
-        raise UserError("--refine", "the FEM fit and its calibrated intervals are for the paper's sensor only")
-    return None if chosen is None else chosen.hash()
+    return chosen
 
 
 def _refine_correct(refine: bool, mesh: str, correct: str) -> str | None:

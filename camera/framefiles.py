@@ -16,7 +16,8 @@ a size other than ``shape``.  What is warned about (:class:`CameraWarning`, nami
 colour frames (converted to grey), pages dropped (the reduced-resolution previews/thumbnails
 some TIFF writers add), saturated or blank frames in the footprint ``window``.
 
-TIFF is read with tifffile, PNG with Pillow.
+TIFF is read with tifffile, PNG with Pillow; a packed 12-bit TIFF needs the optional imagecodecs
+(``pip install 'elastimap[frames]'``, in the ``dev`` extra), else it is refused with one line saying so.
 """
 
 from __future__ import annotations
@@ -107,7 +108,10 @@ def _read_tiff(p: str, param: str, shape=None) -> tuple[np.ndarray, int | None]:
     except UserError:
         raise
     except NotImplementedError as exc:  # packed 12-bit or exotic compression: tifffile needs imagecodecs
-        raise UserError(param, f"{p}: this TIFF's encoding cannot be read here ({exc})") from None
+        hint = (
+            "; install the optional imagecodecs (pip install 'elastimap[frames]')" if "imagecodecs" in str(exc) else ""
+        )
+        raise UserError(param, f"{p}: this TIFF's encoding cannot be read here ({exc}){hint}") from None
     except (tifffile.TiffFileError, ValueError, OSError, KeyError, IndexError, struct.error) as exc:
         raise UserError(param, f"{p}: not a readable TIFF (corrupt or truncated: {exc})") from None
     if dropped:

@@ -398,6 +398,7 @@ def refine_estimates(
     max_passes: int = 2,
     fine: str = "correct",
     intervals: str | None = None,
+    sensor=None,
 ) -> list[Estimate]:
     """Refine image-model estimates by the maximum-likelihood fit of the forward map
     (:func:`elastimap.identify.fit.fit_image`).
@@ -419,7 +420,8 @@ def refine_estimates(
     the fit's 95 % intervals (:func:`~elastimap.identify.fit.fit_image`); None: the calibrated ones
     where all the maps are the solver's (:func:`~elastimap.identify.forward_maps.fit_maps`) at the calibrated
     levels (:func:`~elastimap.identify.forward_maps.default_intervals`), else the Gauss–Newton ones.
-    ``progress(i, n)`` after each lesion.
+    ``sensor`` (:class:`elastimap.sensor.Sensor`; None: the paper's): the solver's maps press with its
+    mechanics (:func:`~elastimap.identify.forward_maps.fit_maps`).  ``progress(i, n)`` after each lesion.
 
     Each estimate's mean becomes the fitted (d, h, E), ``lo``/``hi`` its 95 % interval and ``sd``/``crb``
     the standard deviation that interval stands for (relative for ``crb``): the Gauss–Newton one times
@@ -443,7 +445,7 @@ def refine_estimates(
     check_correct(mesh, correct)
     given = forward is not None or forward_alt is not None or forward_fine is not None
     if forward is None:
-        maps = fit_maps(mesh, correct, geometry)
+        maps = fit_maps(mesh, correct, geometry, sensor)
         forward = maps.forward
         forward_alt = maps.forward_alt if forward_alt is None else forward_alt
         forward_fine = maps.forward_fine if forward_fine is None else forward_fine

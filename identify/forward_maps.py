@@ -220,18 +220,36 @@ class FitMaps:
     intervals: str
 
 
-def fit_maps(mesh: str = "coarse", correct: str | None = None, geometry: str | None = None) -> FitMaps:
+def sensor_template(sensor=None) -> SolveParams | None:
+    """The solve parameters of ``sensor``'s mechanics (:func:`elastimap.solver.params.from_sensor`:
+    probe layers, footprint, slab, loading, interface), or None for the paper's (``SolveParams()``)
+    and for ``sensor`` None."""
+    if sensor is None:
+        return None
+    from elastimap.solver.params import from_sensor
+
+    p = from_sensor(sensor)
+    return None if p == SolveParams() else p
+
+
+def fit_maps(mesh: str = "coarse", correct: str | None = None, geometry: str | None = None, sensor=None) -> FitMaps:
     """The process's maps of a fit at ``mesh``: the fit's map, the neighbouring level of the level it
     stands for (``correct`` or ``mesh``; the model error) and, with ``correct`` (a finer level), the
     correcting map -- all with the fit level's bin rule (:data:`BELOW_LEVELS`) -- and
-    :func:`default_intervals`.  What :func:`elastimap.identify.fit.fit_forward` and ``infer --refine`` fit with."""
+    :func:`default_intervals`.  What :func:`elastimap.identify.fit.fit_forward` and ``infer --refine`` fit with.
+
+    ``sensor`` (:class:`elastimap.sensor.Sensor`; None: the paper's): the maps press with its probe,
+    slab, loading and interface (:func:`sensor_template`).  The calibrated intervals were calibrated
+    on the paper's sensor, so another sensor's fit reports the Gauss–Newton ones
+    (docs/howto/your-own-sensor.md, "Infer from lesion frames")."""
     check_correct(mesh, correct)
     below = mesh in BELOW_LEVELS  # one bin rule for all the fit's maps
+    template = sensor_template(sensor)
     return FitMaps(
-        shared_map(mesh, geometry, below=below),
-        shared_map(neighbour_level(correct or mesh), geometry, below=below),
-        shared_map(correct, geometry, below=below) if correct else None,
-        default_intervals(mesh, correct, geometry),
+        shared_map(mesh, geometry, below=below, template=template),
+        shared_map(neighbour_level(correct or mesh), geometry, below=below, template=template),
+        shared_map(correct, geometry, below=below, template=template) if correct else None,
+        default_intervals(mesh, correct, geometry) if template is None else "gauss",
     )
 
 
@@ -239,14 +257,19 @@ _SHARED_MAPS: dict = {}
 
 
 def shared_map(
-    mesh: str, geometry: str | None = None, sizing: str | None = None, below: bool | None = None
+    mesh: str,
+    geometry: str | None = None,
+    sizing: str | None = None,
+    below: bool | None = None,
+    template: SolveParams | None = None,
 ) -> Callable:
-    """The process's :func:`forward_map` for ``mesh``, ``geometry`` and ``sizing`` (built once: a
-    morphed map keeps its reference meshes, compiled forms and factorisation patterns between lesions)."""
+    """The process's :func:`forward_map` for ``mesh``, ``geometry``, ``sizing`` and ``template``
+    (None: the paper's sensor; built once: a morphed map keeps its reference meshes, compiled forms
+    and factorisation patterns between lesions)."""
     below = mesh in BELOW_LEVELS if below is None else bool(below)
-    k = (mesh, geometry or default_geometry(), sizing or "fixed")
+    k = (mesh, geometry or default_geometry(), sizing or "fixed", None if template is None else repr(template))
     if k not in _SHARED_MAPS:  # one per process: a morphed map keeps its mesh and forms
-        _SHARED_MAPS[k] = forward_map(mesh, geometry, sizing=sizing)
+        _SHARED_MAPS[k] = forward_map(mesh, geometry, template=template, sizing=sizing)
     f = _SHARED_MAPS[k]
     if isinstance(f, ForwardMap) and f.below != below:  # the same mesh and forms, the other bin rule
         return ForwardMap(f.morphed, below=below)

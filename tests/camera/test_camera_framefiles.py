@@ -184,3 +184,19 @@ def test_a_12_bit_camera_end_to_end(tmp_path):
     tifffile.imwrite(tmp_path / "background.tif", B, photometric="minisblack")
     stacked = features_from_files([str(tmp_path / "lesion.tif")], [str(tmp_path / "background.tif")], m)
     assert (stacked.O1, stacked.O2, stacked.O3) == (want.O1, want.O2, want.O3)
+
+
+def test_packed_12_bit_tiff_stack_reads_against_4095(tmp_path):
+    """A packed 12-bit TIFF (BitsPerSample 12, three bytes for two pixels) says its depth itself;
+    reading it needs the optional imagecodecs (pyproject, extra ``frames``)."""
+    pytest.importorskip("imagecodecs")
+    F = frames(4, np.uint16, hi=4095)
+    p = tmp_path / "packed12.tif"
+    tifffile.imwrite(p, F, photometric="minisblack", bitspersample=12)
+    with tifffile.TiffFile(p) as tif:
+        pg = tif.pages[0]
+        assert pg.bitspersample == 12 and sum(pg.databytecounts) == 12 * 16 * 12 // 8  # packed, not 16-bit containers
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing dropped, nothing to warn about
+        stack, full = read_frames([str(p)])
+    assert full == 4095 and np.array_equal(stack, F.astype(float))

@@ -108,6 +108,10 @@ def test_describe_sweep_train_calibrate_infer(tmp_path):
     [est] = json.loads(elastimap(*infer, "--sensor", lab))
     assert set(est) >= {"d", "h", "E", "code_version", "versions"} and est["sensor_hash"] == h, est
     assert [est[q] for q in "dhE"] == [r[q] for r in json.loads(elastimap(*infer)) for q in "dhE"]
+    # --refine: the FEM fit presses with the lab's probe (identify/forward_maps.py, fit_maps(sensor=))
+    [ref] = json.loads(elastimap(*infer, "--sensor", lab, "--refine", "--mesh", "tiny"))
+    assert ref["input"].endswith("+fem_refined") and ref["sensor_hash"] == h and ref["fit_solves"] > 0, ref
+    assert all(ref[f"{q}_lo"] <= ref[q] <= ref[f"{q}_hi"] for q in "dhE"), ref
     # another sensor's lesion is refused before any work, with one line
     paper = tmp_path / "paper.toml"
     paper.write_text("")
