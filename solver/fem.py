@@ -141,7 +141,6 @@ class Model:
         # (version, key, δ, tilt, ū, whether the reference solver holds its own factors) of the last
         # reference press (linear, no friction)
         self._reference = None
-        self._last: dict = {}  # kind -> (key, δ, tilt, ū) of the last press of that kind (``_guess``)
         self.share_presses = default_presses() == "shared"
         self.timings = {"setup": time.perf_counter() - t0}
 
@@ -220,13 +219,11 @@ class Model:
             # ratio, more CG iterations than a factorisation costs (a sweep's E, not a variant's)
             E0 = E_inclusion if rec.tag is None else rec.tag
             far = max(E_inclusion / E0, E0 / E_inclusion) > RECYCLE_MAX_RATIO
-            guess = self._guess(kind, key, delta)
             ubar = None
             if (far or rec.K0 is None) and kind == "inclusion":
-                ubar = self._borrow(rec, K, f, key, E_inclusion, delta, guess)
+                ubar = self._borrow(rec, K, f, key, E_inclusion, delta)
             if ubar is None:
-                ubar = rec.solve(K, f, key, fresh=far, tag=E_inclusion, guess=guess)
-            self._keep(kind, key, delta, ubar)
+                ubar = rec.solve(K, f, key, fresh=far, tag=E_inclusion)
             if kind == "reference" and self.newton is None:
                 if self._reference is not None:
                     self._reference[4].destroy()
@@ -248,31 +245,7 @@ class Model:
         self._tick("post", t)
         return Solution(u=u, reaction=r, iterations=1)
 
-    def _guess(self, kind: str, key: bytes, delta: float):
-        """Where CG on older factors starts a press (shared presses only; ``Recycled.solve(guess=)``,
-        the same tolerance): the inclusion press from the reference press just solved on this mesh
-        position, moduli, active set and loading; otherwise a press from the last press of its kind
-        with the same active set and loading (the mesh moved a little, or other moduli: a fit's
-        step, a batch's next variant).  None: from zero."""
-        if not self.share_presses:
-            return None
-        here = (key, float(delta), self.reduction.tilt)
-        ref = self._reference
-        if kind == "inclusion" and ref is not None and ref[:4] == (self._version, *here):
-            return ref[4]
-        last = self._last.get(kind)
-        return last[3] if last is not None and last[:3] == here else None
-
-    def _keep(self, kind: str, key: bytes, delta: float, ubar) -> None:
-        """Keep a copy of ``ubar`` as the next start of its kind (:meth:`_guess`)."""
-        if not self.share_presses:
-            return
-        old = self._last.pop(kind, None)
-        if old is not None:
-            old[3].destroy()
-        self._last[kind] = (key, float(delta), self.reduction.tilt, ubar.copy())
-
-    def _borrow(self, rec: Recycled, K, f, key: bytes, E_inclusion: float, delta: float, guess=None):
+    def _borrow(self, rec: Recycled, K, f, key: bytes, E_inclusion: float, delta: float):
         """The inclusion press by CG on the reference press's factors (``Recycled.borrow``) where
         that is cheaper than factorising, else None: right after the reference press factorised
         this mesh position, moduli, pattern and loading, for the difference of the two presses
@@ -293,7 +266,7 @@ class Model:
             return rec.borrow(donor, K, f, key, PRESS_MAX_IT, tag=E_inclusion, start=ref[4], rtol=rtol)
         if rec.blr_min is None or K.getSize()[0] < rec.blr_min or ratio > BORROW_MAX_RATIO:
             return None
-        return rec.borrow(donor, K, f, key, BORROW_MAX_IT, tag=E_inclusion, guess=guess)
+        return rec.borrow(donor, K, f, key, BORROW_MAX_IT, tag=E_inclusion)
 
     # ------------------------------------------------------------------ matrices
     def _unit_inclusion(self, key: bytes | None = None, Pm=None):
@@ -456,9 +429,6 @@ class Model:
 
     def destroy(self) -> None:
         self.moved()  # drops the unit-modulus matrices and the reference solution
-        for last in self._last.values():
-            last[3].destroy()
-        self._last = {}
         for part in (self.lu, *self.recycled.values(), self.reduction, self.friction, self.newton):
             if part is not None:
                 part.destroy()

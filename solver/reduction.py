@@ -270,35 +270,6 @@ BLR_TOLERANCE = 1e-8
 CG_RTOL = 1e-12
 
 
-def warm_cg(ksp: PETSc.KSP, b: PETSc.Vec, x: PETSc.Vec, guess: PETSc.Vec | None) -> int:
-    r"""Solve with ``ksp`` (CG on factors of a nearby matrix) into ``x``, from ``guess`` when given
-    (x₀ = guess; e.g. the inclusion press from the reference press just solved on the same mesh,
-    a press from the same press of the sample before), else from zero.  PETSc's test is the same
-    either way, ‖B r_k‖ ≤ rtol ‖B b‖ (B the factors' inverse), so a good guess changes the
-    iterations, not the accuracy.  Returns the iterations a start from zero would have needed,
-    estimated from the contraction per iteration observed, ρ = (‖B r_n‖ / ‖B r_0‖)^(1/n):
-    n_cold ≈ ln(rtol) / ln ρ (what :meth:`Recycled.resolve` weighs against a factorisation: its
-    back-solves start from zero)."""
-    if guess is None or ksp.getType() != "cg":
-        ksp.solve(b, x)
-        return ksp.getIterationNumber()
-    guess.copy(x)
-    ksp.setInitialGuessNonzero(True)
-    ksp.setConvergenceHistory(length=ksp.getTolerances()[3] + 1)
-    try:
-        ksp.solve(b, x)
-    finally:
-        ksp.setInitialGuessNonzero(False)
-    n = ksp.getIterationNumber()
-    hist = ksp.getConvergenceHistory()
-    ksp.setConvergenceHistory(length=0)
-    rtol = ksp.getTolerances()[0]
-    if n == 0 or len(hist) < n + 1 or not (0 < hist[n] < hist[0]):
-        return n
-    rho = (hist[n] / hist[0]) ** (1.0 / n)
-    return max(n, int(np.ceil(np.log(rtol) / np.log(rho))))
-
-
 class Recycled:
     r"""K x = f by conjugate gradients preconditioned with the Cholesky factors of a nearby
     matrix K₀: the last one this solver factorised, a variant of the same problem (another
@@ -378,13 +349,10 @@ class Recycled:
         self.key, self.tag = key, tag
         self.factorisations += 1
 
-    def solve(
-        self, K: PETSc.Mat, f: PETSc.Vec, key: bytes, fresh: bool = False, tag=None, guess: PETSc.Vec | None = None
-    ) -> PETSc.Vec:
+    def solve(self, K: PETSc.Mat, f: PETSc.Vec, key: bytes, fresh: bool = False, tag=None) -> PETSc.Vec:
         """x = K⁻¹ f; ``fresh``: factorise K without trying the old factors (the caller knows
         it far from K₀, e.g. an inclusion modulus changed several-fold, from ``self.tag``);
-        ``tag``: kept as ``self.tag`` when K is factorised; ``guess``: where CG on the old factors
-        starts (:func:`warm_cg`; the same tolerance, fewer iterations)."""
+        ``tag``: kept as ``self.tag`` when K is factorised."""
         K.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         K.setOption(PETSc.Mat.Option.SPD, True)
         self._borrowed_K = None
@@ -393,10 +361,10 @@ class Recycled:
         equal = same and K.equal(self.K0)  # the same matrix again: its factors solve it exactly
         if same and not equal:
             self.ksp.setOperators(K, self.K0)  # K₀ unchanged: its factors are reused
-            n = warm_cg(self.ksp, f, x, guess)
+            self.ksp.solve(f, x)
             if self.ksp.getConvergedReason() > 0:
-                self.last = (n, tag)
-                self.iterations += self.ksp.getIterationNumber()
+                self.last = (self.ksp.getIterationNumber(), tag)
+                self.iterations += self.last[0]
                 return x
         self.last = (0, tag)
         if not equal:  # new constraints, far from K₀, or CG did not converge: K's own factors
@@ -422,7 +390,6 @@ class Recycled:
         tag=None,
         start: PETSc.Vec | None = None,
         rtol: float | None = None,
-        guess: PETSc.Vec | None = None,
     ) -> PETSc.Vec | None:
         r"""x = K⁻¹ f by CG preconditioned with ``donor``'s factors (another solve kind on the same
         mesh and constraints, e.g. the reference press for the inclusion press: K and K₀ differ by
@@ -433,8 +400,7 @@ class Recycled:
 
         ``start`` x₀ (e.g. the reference press's solution for the inclusion press): CG solves for the
         correction, $K v = f - K x_0$, $x = x_0 + v$, to ``rtol`` (default this solver's) relative to
-        that residual — a tolerance on the difference of the two presses, not on x.  ``guess``
-        (without ``start``): where CG starts, its tolerance unchanged (:func:`warm_cg`)."""
+        that residual — a tolerance on the difference of the two presses, not on x."""
         if donor.K0 is None or donor.key != key or donor.K0.getSize() != K.getSize():
             return None
         K.setOption(PETSc.Mat.Option.SYMMETRIC, True)
@@ -451,8 +417,9 @@ class Recycled:
         ksp.setTolerances(rtol=rtol or self.ksp.getTolerances()[0], atol=0.0, max_it=int(max_it))
         ksp.setOperators(K, donor.K0)  # the donor's K₀ unchanged: its factors are reused
         try:
-            n = warm_cg(ksp, b, x, guess if start is None else None)
+            ksp.solve(b, x)
             ok = ksp.getConvergedReason() > 0
+            n = ksp.getIterationNumber()
         finally:
             ksp.setTolerances(rtol=rtol0, atol=atol, max_it=it0)
             ksp.setOperators(before, donor.K0)
@@ -464,7 +431,7 @@ class Recycled:
         if start is not None:
             x.axpy(1.0, start)
         self.last = (n, tag)
-        self.iterations += ksp.getIterationNumber()
+        self.iterations += n
         self.borrowed += 1
         self._borrowed_K = (K, key)
         return x
