@@ -42,10 +42,12 @@ def solve_with_fields(params: SolveParams, vtx_path: str) -> SolveResult:
 
 def _solve(params: SolveParams, vtx_path: str | None = None, presses: str | None = None) -> SolveResult:
     from .errors import SolverError
-    from .fem import Model
+    from .fem import Model, default_presses
     from .geometry import MeshError, build_mesh
 
     p = params.validate()
+    if presses is None:
+        default_presses()  # a bad $ELASTIMAP_PRESSES is refused before any work
     if p.disc.geometry == "morph":
         if vtx_path:
             from elastimap.errors import UserError
