@@ -22,11 +22,12 @@ from .sample import run_sample, sample_tag
 PRESSES = ("shared", "separate")
 
 
-def solve(params: SolveParams, presses: str = "shared") -> SolveResult:
+def solve(params: SolveParams, presses: str | None = None) -> SolveResult:
     """Run one sample.  Raises :class:`elastimap.errors.UserError` for bad input and
     :class:`solver.SolverError` (message carries d, h, E) when the solve fails.  ``presses``: one
-    of ``PRESSES`` (the remeshed path; a morphed one shares its presses always)."""
-    if presses not in PRESSES:
+    of ``PRESSES``; None: ``$ELASTIMAP_PRESSES`` (``shared`` when unset;
+    :func:`elastimap.solver.fem.default_presses`, which also sets a morphed or batched model's)."""
+    if presses is not None and presses not in PRESSES:
         from elastimap.errors import UserError
 
         raise UserError("presses", f"must be one of {', '.join(PRESSES)} (got {presses!r})")
@@ -39,12 +40,14 @@ def solve_with_fields(params: SolveParams, vtx_path: str) -> SolveResult:
     return _solve(params, vtx_path)
 
 
-def _solve(params: SolveParams, vtx_path: str | None = None, presses: str = "shared") -> SolveResult:
+def _solve(params: SolveParams, vtx_path: str | None = None, presses: str | None = None) -> SolveResult:
     from .errors import SolverError
-    from .fem import Model
+    from .fem import Model, default_presses
     from .geometry import MeshError, build_mesh
 
     p = params.validate()
+    if presses is None:
+        default_presses()  # a bad $ELASTIMAP_PRESSES is refused before any work
     if p.disc.geometry == "morph":
         if vtx_path:
             from elastimap.errors import UserError
@@ -58,7 +61,8 @@ def _solve(params: SolveParams, vtx_path: str | None = None, presses: str = "sha
     try:
         raw = build_mesh(p)
         model = Model(raw, p)
-        model.share_presses = presses == "shared"
+        if presses is not None:
+            model.share_presses = presses == "shared"
     except (MeshError, SolverError) as exc:
         raise SolverError(f"mesh/setup failed for {sample_tag(p)}: {exc}") from exc
     try:

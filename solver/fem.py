@@ -78,6 +78,24 @@ BORROW_MAX_IT = 50
 PRESS_MAX_RATIO = 100.0
 PRESS_MAX_IT = 32
 PRESS_RTOL = 1e-6
+#: the environment variable that sets how every new :class:`Model` shares its presses
+#: (``shared``, the default, or ``separate``: the path before, each press factorised for itself):
+#: a whole command (``infer --refine``, ``gap diagnose``) can be timed on the path before without a
+#: change on its side (docs/sweep.md, 'Benchmark')
+PRESSES_ENV = "ELASTIMAP_PRESSES"
+
+
+def default_presses() -> str:
+    """``shared`` or ``separate``: what ``$ELASTIMAP_PRESSES`` says (``shared`` when unset);
+    raises :class:`~elastimap.errors.UserError` naming the variable for any other value."""
+    import os
+
+    value = os.environ.get(PRESSES_ENV, "").strip() or "shared"
+    if value not in ("shared", "separate"):
+        from elastimap.errors import UserError
+
+        raise UserError(PRESSES_ENV, f"must be shared or separate (got {value!r})")
+    return value
 
 
 class Model:
@@ -123,7 +141,7 @@ class Model:
         # (version, key, δ, tilt, ū, whether the reference solver holds its own factors) of the last
         # reference press (linear, no friction)
         self._reference = None
-        self._share = True
+        self.share_presses = default_presses() == "shared"
         self.timings = {"setup": time.perf_counter() - t0}
 
     def set_params(self, p: SolveParams) -> None:

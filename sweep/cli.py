@@ -6,6 +6,7 @@
     elastimap sweep bench --n 16 --mesh tiny             # samples/min at --jobs 1 and 2, driver overhead
     elastimap sweep bench --compare --n 64 --jobs-list 2 # the presses before vs as shipped, side by side
     elastimap sweep bench --compare --paths separate,shared,morph --n 64 --jobs-list 2  # and morph/by_d
+    elastimap sweep timeit --repeat 3 -- elastimap solve --d 8 --h 7 --E 50 --json  # any command, both presses
 
 Rerunning the same command resumes: only samples with no landed row run.
 """
@@ -270,6 +271,25 @@ def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solve
         **extra,
     )
     click.echo(show(res))
+    return 0
+
+
+@cli.command(
+    "timeit", context_settings={**CONTEXT_SETTINGS, "ignore_unknown_options": True, "allow_interspersed_args": False}
+)
+@click.option("--repeat", type=int, default=3, show_default=True, help="interleaved rounds (each path once a round)")
+@click.option("--json", "as_json", is_flag=True, help="print the summary and every run as JSON")
+@click.argument("command", nargs=-1, type=click.UNPROCESSED)
+def timeit_cmd(repeat, as_json, command):
+    """Time COMMAND (after '--') whole-process with ELASTIMAP_PRESSES=separate (the presses before)
+    and =shared (as shipped), interleaved: median wall and CPU, peak memory, ratios, and the
+    features' deviation when it prints JSON (docs/sweep.md, 'Benchmark')."""
+    import json
+
+    from .timeit import report, timeit
+
+    res = timeit(list(command), repeat=repeat)
+    click.echo(json.dumps(res, indent=1) if as_json else report(res))
     return 0
 
 

@@ -118,3 +118,37 @@ def test_a_process_that_keeps_its_models_prints_only_its_own_output():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip() == "ok", r.stdout[-500:]
+
+
+def test_the_environment_sets_every_new_models_presses(monkeypatch):
+    """``$ELASTIMAP_PRESSES`` (what ``sweep timeit`` sets) decides a new model's presses, so that a
+    whole command (morphed or batched models included) runs on the path before; other values are
+    refused naming the variable."""
+    from elastimap.solver.fem import PRESSES_ENV, default_presses
+
+    p = TINY.with_inclusion(d=8.0, h=7.0, E=50.0)
+    for value, share in (("separate", False), ("shared", True), ("", True)):
+        monkeypatch.setenv(PRESSES_ENV, value)
+        assert default_presses() == (value or "shared")
+        model = _model(p)
+        try:
+            assert model.share_presses is share
+            assert model.reduction.ptap_via == ("rap" if share else None)
+        finally:
+            model.destroy()
+    monkeypatch.setenv(PRESSES_ENV, "both")
+    with pytest.raises(UserError) as err:
+        default_presses()
+    assert err.value.param == PRESSES_ENV
+
+
+def test_an_explicit_presses_overrides_the_environment(monkeypatch):
+    from elastimap.solver.api import solve
+    from elastimap.solver.fem import PRESSES_ENV
+
+    p = TINY.with_inclusion(d=8.0, h=7.0, E=50.0)
+    monkeypatch.setenv(PRESSES_ENV, "separate")
+    env = solve(p)
+    monkeypatch.delenv(PRESSES_ENV)
+    sep = solve(p, presses="separate")
+    assert (env.O1, env.O2, env.O3, env.force) == (sep.O1, sep.O2, sep.O3, sep.force)  # bit for bit
