@@ -141,6 +141,7 @@ class Estimate:
             out["fit_seconds"] = float(self.fit.seconds)
             out["fit_converged"] = bool(self.fit.converged)
             out["fit_moving"] = ";".join(self.fit.moving)
+            out["fit_model_form"] = bool(getattr(self.fit, "model_form", False))  # carried the lab's term
         out["crb_set"] = self.crb_set
         out["input"] = self.input
         out["n_members"] = self.n_members
@@ -398,6 +399,8 @@ def refine_estimates(
     max_passes: int = 2,
     fine: str = "correct",
     intervals: str | None = None,
+    discrepancy=None,
+    pixel: float | None = None,
 ) -> list[Estimate]:
     """Refine image-model estimates by the maximum-likelihood fit of the forward map
     (:func:`elastimap.identify.fit.fit_image`).
@@ -419,7 +422,11 @@ def refine_estimates(
     the fit's 95 % intervals (:func:`~elastimap.identify.fit.fit_image`); None: the calibrated ones
     where all the maps are the solver's (:func:`~elastimap.identify.forward_maps.fit_maps`) at the calibrated
     levels (:func:`~elastimap.identify.forward_maps.default_intervals`), else the Gauss–Newton ones.
-    ``progress(i, n)`` after each lesion.
+    ``progress(i, n)`` after each lesion.  ``discrepancy``: the model-form error the fit carries
+    (:class:`elastimap.identify.discrepancy.Discrepancy`, learnt by ``camera calibrate`` from the lab's
+    phantoms, :func:`calibration_discrepancy`) on images of ``pixel`` mm: the fit's estimate and
+    interval then come from the valley profile of its marginal misfit (docs/model-form.md, 'How the fit
+    carries it'); None: the closed world (noise and discretisation only).
 
     Each estimate's mean becomes the fitted (d, h, E), ``lo``/``hi`` its 95 % interval and ``sd``/``crb``
     the standard deviation that interval stands for (relative for ``crb``): the Gauss–Newton one times
@@ -466,6 +473,8 @@ def refine_estimates(
                 max_passes=max_passes,
                 fine=fine,
                 intervals=intervals,
+                discrepancy=discrepancy,
+                pixel=pixel,
             )
             e.mean = r.theta
             e.crb = r.relstd_calibrated

@@ -73,6 +73,7 @@ from elastimap.errors import UserError
 from elastimap.solver.params import Tissue
 
 from .coords import FitCoords, h_range
+from .discrepancy import Discrepancy, Marginal
 from .forward_maps import fit_maps, image_of
 from .intervals import Z95, scales_for
 
@@ -130,8 +131,16 @@ class FitConfig:
     optimiser: Optimiser = field(default_factory=Optimiser)
     fine: str = "correct"
     intervals: str = "gauss"
+    #: the model-form error the fit carries (:class:`~elastimap.identify.discrepancy.Discrepancy`,
+    #: learnt from the lab's calibration phantoms; None: the closed world) on images of ``pixel`` mm
+    discrepancy: Discrepancy | None = None
+    pixel: float | None = None
 
     def __post_init__(self):
+        if self.discrepancy is not None and not (self.pixel and math.isfinite(self.pixel) and self.pixel > 0):
+            raise UserError(
+                "pixel", f"a fit carrying a discrepancy needs the image's pixel side in mm (got {self.pixel})"
+            )
         if self.fine not in FINE_MODES:
             raise UserError("fine", f"must be one of {', '.join(FINE_MODES)} (got {self.fine!r})")
         if self.intervals not in INTERVALS:
@@ -153,6 +162,8 @@ class FitConfig:
         E_tissue: float | None = None,
         fine: str = "correct",
         intervals: str = "gauss",
+        discrepancy: Discrepancy | None = None,
+        pixel: float | None = None,
     ) -> FitConfig:
         """The configuration from flat keywords (those of :func:`fit_image`)."""
         return cls(
@@ -160,6 +171,8 @@ class FitConfig:
             Optimiser(tuple(fd), max_nfev, max_passes, e_scan, tangent),
             fine,
             intervals,
+            discrepancy,
+            pixel,
         )
 
 
@@ -191,6 +204,9 @@ class FitResult:
     #: the interval's scale k of (d, h, E) (``lo``/``hi`` = θ̂ ± 1.96 k sd): the calibrated one of
     #: :func:`elastimap.identify.intervals.scales_for` with ``intervals="calibrated"``, else ones
     scale: np.ndarray = field(default_factory=lambda: np.ones(3))
+    #: whether the fit carried the model-form term (:class:`FitConfig`'s ``discrepancy``): its covariance
+    #: and χ² are then the marginal ones and ``scale`` is ones
+    model_form: bool = False
 
     @property
     def relstd_calibrated(self) -> np.ndarray:
@@ -414,6 +430,9 @@ class ImageFit:
         model error, covariance and intervals at the estimate."""
         t0 = time.perf_counter()
         I, s_meas, shape, theta0 = self._inputs(image, sigma, theta0)
+        I_meas = I
+        if self.config.discrepancy is not None:
+            I = self._mean_corrected(I, shape)
         prior = self.config.prior
         X = prior.coordinates(self.forward)
         lb, ub = X.box(prior.d_range, prior.E_range)
@@ -433,12 +452,15 @@ class ImageFit:
         dof = max(I.size - 3, 1)
         chi2 = float(r @ r) / dof
         Cx = self._covariance(J, chi2, model.delta, s_tot)
+        disc = self.config.discrepancy
+        if disc is not None:  # the model-form term: its marginal covariance at the estimate
+            Cx, chi2 = self._marginal(model, I_meas, s_tot, shape, x, J * s_tot[:, None])
         Gx = X.dtheta(x)
         th = X.theta(x)
         sd = np.sqrt(np.clip(np.diag(Gx @ Cx @ Gx.T), 0, None))
         relstd = np.array([sd[0] / th[0], sd[1] / th[1], sd[2]])
         lo_gauss, hi_gauss = interval95(X, x, Cx, np.ones(3), prior, lb, ub)
-        calibrated = self.config.intervals == "calibrated"
+        calibrated = self.config.intervals == "calibrated" and disc is None  # the scales are the closed world's
         scale = scales_for(relstd, th, thickness=prior.thickness) if calibrated else np.ones(3)
         lo, hi = interval95(X, x, Cx, scale, prior, lb, ub)
         tol = 1e-3 * (ub - lb)
@@ -464,7 +486,27 @@ class ImageFit:
             lo_gauss=lo_gauss,
             hi_gauss=hi_gauss,
             scale=scale,
+            model_form=disc is not None,
         )
+
+    def _mean_corrected(self, I, shape) -> np.ndarray:
+        """The image less the discrepancy's expected image ``Φ μ`` (the modes built from the measured image
+        smoothed over one pixel): what the passes fit."""
+        if shape is None:
+            raise UserError("image", "a fit carrying a discrepancy needs the 2-D image (its modes are images)")
+        basis = ndimage.gaussian_filter(I.reshape(shape), 1.0, mode="nearest")
+        return I - self.config.discrepancy.mean_image(basis, float(self.config.pixel))
+
+    def _marginal(self, model: FitModel, I, s_tot, shape, x, Jx) -> tuple[np.ndarray, float]:
+        """The covariance (x units) and χ² per degree of freedom of the estimate ``x`` under the model-form
+        term (see the module docstring, 'model-form term'): the generalised least-squares information of
+        the map's Jacobian ``Jx`` (mm per x unit, not whitened) with the discrepancy marginalised, its
+        basis the map's image at ``x``, plus the discretisation's systematic part and the Birge factor."""
+        cfg = self.config
+        m0 = model(x)
+        M = Marginal(I, s_tot.reshape(shape), m0.reshape(shape), float(cfg.pixel), cfg.discrepancy)
+        st = M.step(m0, Jx, model.delta, birge=True)
+        return st.cov, st.chi2 / st.dof
 
     @staticmethod
     def _inputs(image, sigma, theta0):
