@@ -40,7 +40,8 @@ never silently extrapolated: every estimate carries ``flags``:
   (e.g. below the training range to which the interval is clipped);
 * ``saturated`` - camera pixels beyond the response's saturation (frames of an image model);
 * ``at_design_edge:q`` - the physics fit (``--refine``) ended with ``q`` on the design box's edge
-  (d, E at the box's limits, h at the admissible depth range's): the likelihood's maximum is not
+  (d, E at the box's limits or within 1 % of them, h at the admissible depth range's;
+  :func:`elastimap.identify.fit.on_edge`): the likelihood's maximum is not
   inside the box, so the estimate is the box's edge and the Gauss–Newton interval, which assumes an
   interior maximum, holds for none of the coupled parameters.  Then no quantity is reportable.
 

@@ -44,8 +44,9 @@ residuals whitened by ``D``'s Cholesky factor, :meth:`Discrepancy.whitener`) the
 fit estimates ``β`` beside θ with the prior as ``K`` extra residual rows ``L⁻¹(β − μ)``: the
 Gauss–Newton covariance of θ is then the marginal one, so a parameter confounded with a mode (a stiff
 inclusion's E with the amplitude) gets the interval the prior allows -- to first order: a nonlinear fit
-carrying this term walked along the d–E valley on the dev set (docs/model-form.md, 'The nonlinear
-check'), so no product fit uses it yet (it lives here so the fit and the diagnosis can share it).  The informativeness
+minimising this marginal misfit walked along the d–E valley on the dev set (docs/model-form.md, 'The
+nonlinear check'), so the product's fit (:mod:`elastimap.identify.fit`) keeps the closed world's
+estimate and takes only its covariance from here (:class:`Marginal`).  The informativeness
 is what Brynjarsdóttir & O'Hagan ask for: ``τ`` is the spread over the lab's own phantoms, not a
 free function.
 

@@ -53,6 +53,27 @@ problem, prior and misfit apart from the optimisers), each declared in :class:`F
   ``identify/maps/intervals.json``), for the configuration they were calibrated on
   (:func:`~elastimap.identify.forward_maps.default_intervals`).
 
+* **model-form term** (``discrepancy``, :class:`~elastimap.identify.discrepancy.Discrepancy`, learnt by
+  ``camera calibrate`` from the lab's calibration phantoms; docs/model-form.md, 'How the fit carries
+  it'): the world differs from the map by ``δ = Φ β + a η`` (modes of the image, ``β ~ N(μ, C)``, and a
+  correlated remainder).  The estimate is the closed world's (the passes above) -- the term adds no
+  walk along the d–E valley and no correction of the mean (subtracting ``Φ μ`` moved d by 2–12 % the
+  wrong way on the SYNTHETIC variant world, its mean over the phantoms not that of the lesion) -- and
+  its covariance is the marginal one,
+
+      C_x = [(J_a ᵀ J_a)⁻¹]_xx max(1, χ²_m / dof) + Σ_k b_k b_kᵀ,
+      J_a = [ L_D⁻¹ J   L_D⁻¹ Φ ;  0   L_C⁻¹ ],   D = diag σ² + ρ² A K_ℓ A,   L_C L_Cᵀ = C
+
+  (:class:`~elastimap.identify.discrepancy.Marginal`: the generalised least squares of the pixels under
+  ``Σ = D + Φ C Φᵀ``, its modes built from the map's image at the estimate; ``χ²_m`` the marginal misfit
+  there).  The interval is ``θ̂ ± 1.96 sd`` from it (``k = 1``: the calibrated scales are the closed
+  world's), and a parameter whose relative sd exceeds the threshold is reported as its interval.  Why
+  not the marginal optimum: the marginal misfit is flat along the valley (the amplitude mode absorbs
+  what tells d from E), so a fit that minimises it walks wherever the map's shape error points --
+  on the dev set to soft, larger inclusions, on the SYNTHETIC variant world (tiny map, coarse world
+  2 % stiffer) a profile of it along the valley put 6 mm, 160 kPa at 7.7 mm, 10 kPa with a narrow
+  interval (docs/model-form.md, 'Choosing the formulation').
+
 Measured accuracy and coverage: docs/camera.md, 'Inference'.  The fit itself tunes no factor; the
 interval's scales are calibrated on seen benchmark seeds, never on the lesions a table scores.
 """
@@ -402,6 +423,22 @@ def interval95(X: FitCoords, x, Cx, k, prior: DesignPrior, lb, ub) -> tuple[np.n
     return lo, hi
 
 
+#: an estimate of d or E within this fraction of the design box's limit (in mm or kPa) is on its edge: E's
+#: contrast coordinate saturates at the stiff end, so 1e-3 of the box in it is about 2 kPa at 200 kPa
+EDGE_REL = 0.01
+
+
+def on_edge(x, th, lb, ub, prior: DesignPrior) -> list[str]:
+    """The parameters of the estimate (fit coordinates ``x``, θ = ``th``) on the design box's edge: within
+    1e-3 of the box in x, or (d, E) within :data:`EDGE_REL` of their limits."""
+    tol = 1e-3 * (ub - lb)
+    at = [q for j, q in enumerate(TARGETS) if x[j] <= lb[j] + tol[j] or x[j] >= ub[j] - tol[j]]
+    for j, q, (a, b) in ((0, "d", prior.d_range), (2, "E", prior.E_range)):
+        if q not in at and (th[j] <= a * (1 + EDGE_REL) or th[j] >= b / (1 + EDGE_REL)):
+            at.append(q)
+    return [q for q in TARGETS if q in at]
+
+
 # ============================================================================ the fit
 class ImageFit:
     """The maximum-likelihood fit of ``forward`` (with the other levels ``forward_alt``, a map or a
@@ -430,9 +467,6 @@ class ImageFit:
         model error, covariance and intervals at the estimate."""
         t0 = time.perf_counter()
         I, s_meas, shape, theta0 = self._inputs(image, sigma, theta0)
-        I_meas = I
-        if self.config.discrepancy is not None:
-            I = self._mean_corrected(I, shape)
         prior = self.config.prior
         X = prior.coordinates(self.forward)
         lb, ub = X.box(prior.d_range, prior.E_range)
@@ -454,7 +488,9 @@ class ImageFit:
         Cx = self._covariance(J, chi2, model.delta, s_tot)
         disc = self.config.discrepancy
         if disc is not None:  # the model-form term: its marginal covariance at the estimate
-            Cx, chi2 = self._marginal(model, I_meas, s_tot, shape, x, J * s_tot[:, None])
+            if shape is None:
+                raise UserError("image", "a fit carrying a discrepancy needs the 2-D image (its modes are images)")
+            Cx, chi2 = self._marginal(model, I, s_tot, shape, x, J * s_tot[:, None])
         Gx = X.dtheta(x)
         th = X.theta(x)
         sd = np.sqrt(np.clip(np.diag(Gx @ Cx @ Gx.T), 0, None))
@@ -463,8 +499,7 @@ class ImageFit:
         calibrated = self.config.intervals == "calibrated" and disc is None  # the scales are the closed world's
         scale = scales_for(relstd, th, thickness=prior.thickness) if calibrated else np.ones(3)
         lo, hi = interval95(X, x, Cx, scale, prior, lb, ub)
-        tol = 1e-3 * (ub - lb)
-        at = [q for j, q in enumerate(TARGETS) if x[j] <= lb[j] + tol[j] or x[j] >= ub[j] - tol[j]]
+        at = on_edge(x, th, lb, ub, prior)
         big = np.abs(I) >= 0.1 * np.abs(I).max()
         me = float(np.sqrt(np.mean(s_mod[big] ** 2)) / np.sqrt(np.mean(s_meas[big] ** 2)))
         return FitResult(
@@ -488,14 +523,6 @@ class ImageFit:
             scale=scale,
             model_form=disc is not None,
         )
-
-    def _mean_corrected(self, I, shape) -> np.ndarray:
-        """The image less the discrepancy's expected image ``Φ μ`` (the modes built from the measured image
-        smoothed over one pixel): what the passes fit."""
-        if shape is None:
-            raise UserError("image", "a fit carrying a discrepancy needs the 2-D image (its modes are images)")
-        basis = ndimage.gaussian_filter(I.reshape(shape), 1.0, mode="nearest")
-        return I - self.config.discrepancy.mean_image(basis, float(self.config.pixel))
 
     def _marginal(self, model: FitModel, I, s_tot, shape, x, Jx) -> tuple[np.ndarray, float]:
         """The covariance (x units) and χ² per degree of freedom of the estimate ``x`` under the model-form
