@@ -380,7 +380,8 @@ def loo_fits(record: dict, phantoms, pairs, deflection: dict, sensor=None, progr
     discrepancy learnt from the other phantoms, from a start that knows nothing of it (the other
     phantoms' mean d and h, their geometric-mean E; the fit's E scan searches from there).  Returns
     ``{"n", "covered" (d, h, E), "reported" (d, h, E), "rows"}``; a parameter counts as reported when
-    the fit calls it identifiable (relative sd ≤ 10 %) and it is not on the design box's edge."""
+    the fit calls it identifiable (relative sd ≤ 10 %) and no parameter is on the design box's edge (as
+    ``infer`` prints it)."""
     from elastimap.identify import discrepancy as dy
     from elastimap.identify.fit import fit_image
     from elastimap.identify.forward_maps import fit_maps
@@ -414,7 +415,7 @@ def loo_fits(record: dict, phantoms, pairs, deflection: dict, sensor=None, progr
             pixel=pixel,
         )
         cov = [bool(r.lo[j] <= thetas[i, j] <= r.hi[j]) for j in range(3)]
-        rep = [bool(r.relstd[j] <= 0.10 and q not in r.at_bound) for j, q in enumerate(("d", "h", "E"))]
+        rep = [bool(r.relstd[j] <= 0.10 and not r.at_bound) for j in range(3)]  # as infer prints them
         rows.append(
             {
                 "name": names[i],
@@ -424,6 +425,7 @@ def loo_fits(record: dict, phantoms, pairs, deflection: dict, sensor=None, progr
                 "hi": r.hi.tolist(),
                 "covered": cov,
                 "reported": rep,
+                "at_bound": r.at_bound,
                 "seconds": r.seconds,
             }
         )

@@ -67,7 +67,9 @@ problem, prior and misfit apart from the optimisers), each declared in :class:`F
   (:class:`~elastimap.identify.discrepancy.Marginal`: the generalised least squares of the pixels under
   ``Σ = D + Φ C Φᵀ``, its modes built from the map's image at the estimate; ``χ²_m`` the marginal misfit
   there).  The interval is ``θ̂ ± 1.96 sd`` from it (``k = 1``: the calibrated scales are the closed
-  world's), and a parameter whose relative sd exceeds the threshold is reported as its interval.  Why
+  world's), and a parameter whose relative sd exceeds the threshold is reported as its interval.  A fit
+  that ends with E on the design box's edge reports the valley's interval (:func:`valley_interval`: E
+  over the box, d along the valley of equal amplitude across it).  Why
   not the marginal optimum: the marginal misfit is flat along the valley (the amplitude mode absorbs
   what tells d from E), so a fit that minimises it walks wherever the map's shape error points --
   on the dev set to soft, larger inclusions, on the SYNTHETIC variant world (tiny map, coarse world
@@ -423,6 +425,20 @@ def interval95(X: FitCoords, x, Cx, k, prior: DesignPrior, lb, ub) -> tuple[np.n
     return lo, hi
 
 
+def valley_interval(X: FitCoords, x, lo, hi, prior: DesignPrior, lb, ub) -> tuple[np.ndarray, np.ndarray]:
+    """The 95 % interval of a fit that ended with E on the design box's edge: the likelihood's maximum
+    lies beyond the box along the d–E valley, so every point of the valley inside the box stays
+    possible.  E's interval is the whole box, and d's the hull of its own and the valley's d across it:
+    along the valley of equal amplitude ``3 ln d + e = const`` (``e = ln c(E)``, the contrast coordinate
+    of :class:`~elastimap.identify.coords.FitCoords`), ``d(e) = d̂ exp((ê − e)/3)`` for e over the box."""
+    lo, hi = np.array(lo, float), np.array(hi, float)
+    d_ends = x[0] * np.exp((x[2] - np.array([ub[2], lb[2]])) / 3.0)
+    lo[0] = max(min(lo[0], float(d_ends.min())), prior.d_range[0])
+    hi[0] = min(max(hi[0], float(d_ends.max())), prior.d_range[1])
+    lo[2], hi[2] = prior.E_range
+    return lo, hi
+
+
 #: an estimate of d or E within this fraction of the design box's limit (in mm or kPa) is on its edge: E's
 #: contrast coordinate saturates at the stiff end, so 1e-3 of the box in it is about 2 kPa at 200 kPa
 EDGE_REL = 0.01
@@ -500,6 +516,10 @@ class ImageFit:
         scale = scales_for(relstd, th, thickness=prior.thickness) if calibrated else np.ones(3)
         lo, hi = interval95(X, x, Cx, scale, prior, lb, ub)
         at = on_edge(x, th, lb, ub, prior)
+        if disc is not None and "E" in at and prior.coords == "contrast":  # beyond the box along the valley
+            lo, hi = valley_interval(X, x, lo, hi, prior, lb, ub)
+            relstd[0] = max(relstd[0], (hi[0] - lo[0]) / (2 * Z95 * th[0]))
+            relstd[2] = max(relstd[2], math.log(hi[2] / lo[2]) / (2 * Z95))
         big = np.abs(I) >= 0.1 * np.abs(I).max()
         me = float(np.sqrt(np.mean(s_mod[big] ** 2)) / np.sqrt(np.mean(s_meas[big] ** 2)))
         return FitResult(

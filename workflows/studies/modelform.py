@@ -5,6 +5,10 @@ world elastimap did not make.
         --sets none,tissueE65 --model-mesh fine --alt-mesh default --out modelform.json
     python -m elastimap.workflows.studies.modelform --world-level default --model-mesh coarse --alt-mesh tiny
     python -m elastimap.workflows.studies.modelform --calculix /work/shared/devdata/independent-fem/calculix.csv
+    python -m elastimap.workflows.studies.modelform --world-level coarse --product tiny --frames 30
+
+``--product LEVEL`` fits each phantom with the product's fit (:func:`product_check`: the maps ``infer
+--refine --mesh LEVEL`` uses, closed world and carrying the learnt term) instead of the linearised step.
 
 The world: a folder in the format of ``shared/devdata/independent-fem`` (``sets.csv`` with one row per
 phantom, ``raw_*.npy`` / ``ref_*.npy`` the lesion and background press, mm) -- or, with
@@ -33,8 +37,7 @@ relative sd ≤ 10 %, E's sd of ln E ≤ 0.1, the threshold inference prints a n
 interval's coverage (``|Δx| ≤ 1.96 sd`` in the fit's coordinates), how often the linearised estimate
 leaves the design box (what drives a fit to its edge), and the held-out residual's ``χ²/p`` under the
 budget (1 when the budget is the right size).  Linearised at the truth: it measures how the budget
-weighs a model-form difference, not the nonlinear fit's path (that needs the fit itself to carry the
-term: issue 38, phase 2).
+weighs a model-form difference, not the nonlinear fit's path (``--product`` and ``--nonlinear`` fit it).
 """
 
 from __future__ import annotations
