@@ -90,3 +90,21 @@ def test_a_fit_carrying_the_term_needs_the_pixel_and_a_2d_image(learnt):
         FitConfig(discrepancy=disc)
     with pytest.raises(UserError, match="2-D image"):
         fit_image(np.ones(2500), 0.01, [6, 6, 50], maps.forward, discrepancy=disc, pixel=PIXEL)
+
+
+def test_an_estimate_on_the_E_edge_reports_the_valleys_interval():
+    """E on the box's edge: E's interval is the whole box, d's reaches along the valley of equal amplitude
+    (3 ln d + ln c(E) = const) to where E meets the box's other end; h keeps its own."""
+    from elastimap.identify.coords import FitCoords
+    from elastimap.identify.fit import DesignPrior, on_edge, valley_interval
+
+    prior, X = DesignPrior(), FitCoords()
+    lb, ub = X.box(prior.d_range, prior.E_range)
+    th = np.array([8.0, 8.0, 199.0])
+    x = X.x(th)
+    assert on_edge(x, th, lb, ub, prior) == ["E"]  # within 1 % of 200 kPa
+    assert on_edge(X.x([8.0, 8.0, 190.0]), [8.0, 8.0, 190.0], lb, ub, prior) == []
+    lo, hi = valley_interval(X, x, [7.9, 7.8, 150.0], [8.1, 8.2, 200.0], prior, lb, ub)
+    assert (lo[2], hi[2]) == prior.E_range and lo[1] == 7.8 and hi[1] == 8.2
+    c = lambda E: (E - 5.0) / (E + 7.5)  # noqa: E731  Eshelby's contrast, tissue 5 kPa
+    assert lo[0] <= 7.9 and hi[0] == pytest.approx(8.0 * (c(199.0) / c(10.0)) ** (1 / 3), rel=1e-6)
