@@ -480,7 +480,8 @@ def calibrate(
     "within 3 mm of the slab's base) as calibrated on SYNTHETIC benchmark lesions "
     "(elastimap.identify.intervals; docs/camera.md, 'Inference').  From frames, every pixel is weighted by "
     "its own noise, measured from the frames' scatter, plus the forward map's error measured between two "
-    "mesh levels.",
+    "mesh levels.  With a --calibration that carries the lab's model-form error (camera calibrate), the "
+    "intervals and identifiability flags also hold it (docs/model-form.md, 'How the fit carries it').",
 )
 @click.option(
     "--image-noise",
@@ -577,7 +578,7 @@ def infer(
 
     from .calibration import Calibration
 
-    cal = Calibration.load(calibration) if calibration is not None else None
+    cal = given_cal = Calibration.load(calibration) if calibration is not None else None
     sensor_hash = _check_sensor(load_sensor(sensor_path) if sensor_path else None, model, cal, refine)
     ests, cal = _estimates(
         model, idm, threshold, refine, calibration, feats, images, background, csv_path, fem_image, allow_outside
@@ -587,7 +588,7 @@ def infer(
 
         from .infer import refine_estimates
 
-        form = _model_form(cal, mesh, correct)
+        form = _model_form(given_cal, mesh, correct)  # also for --fem-image given with --calibration
         with tqdm(total=len(ests), desc="refine (FEM fit)", unit="lesion", disable=len(ests) < 2) as bar:
             ests = refine_estimates(
                 ests,
