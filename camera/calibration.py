@@ -80,6 +80,7 @@ class Calibration:
     synthetic: bool = True
     meta: dict = field(default_factory=dict)
     deflection: dict | None = None  # see deflection_calibration (None: image models cannot use frames)
+    discrepancy: dict | None = None  # see learn_discrepancy (None: --refine fits the closed world)
 
     # ranges over the calibration set
     @property
@@ -133,6 +134,7 @@ class Calibration:
             "sensor": self.sensor,
             "meta": self.meta,
             "deflection": self.deflection,
+            "discrepancy": self.discrepancy,
         }
 
     def save(self, path: str | os.PathLike) -> None:
@@ -181,6 +183,7 @@ class Calibration:
             bool(d.get("synthetic", False)),
             d.get("meta", {}),
             d.get("deflection"),
+            d.get("discrepancy"),
         )
 
     def report(self) -> str:
@@ -203,7 +206,19 @@ class Calibration:
                 f"  difference images from frames (inverse response): scale {self.deflection['scale']:.4f}, "
                 f"relative rms vs FEM {100 * min(rel):.2g}-{100 * max(rel):.2g} % over the phantoms"
             )
+        if self.discrepancy:
+            lines.extend(discrepancy_report(self.discrepancy))
         return "\n".join(lines)
+
+    def model_form(self):
+        """``(Discrepancy, level, pixel mm)`` of the model-form term learnt from the phantoms
+        (:func:`learn_discrepancy`), or None."""
+        if not self.discrepancy:
+            return None
+        from elastimap.identify.discrepancy import Discrepancy
+
+        z = self.discrepancy
+        return Discrepancy.from_dict(z["term"]), str(z["level"]), float(z["pixel"])
 
     def reference_image(self) -> tuple[np.ndarray, float]:
         """The FEM reference press (mm) and its pixel side (mm), for :mod:`elastimap.camera.deflection`."""
@@ -242,6 +257,16 @@ def _check_loaded(p: str, fits: dict, fem: np.ndarray, cam: np.ndarray, d: dict)
         raise bad("sensor is not a JSON object")
     if d.get("deflection") is not None and not isinstance(d["deflection"], dict):
         raise bad("deflection is not a JSON object")
+    z = d.get("discrepancy")
+    if z is not None:
+        if not isinstance(z, dict) or not {"term", "level", "pixel"} <= set(z):
+            raise bad("discrepancy is not a model-form record (term, level, pixel)")
+        from elastimap.identify.discrepancy import Discrepancy
+
+        try:
+            Discrepancy.from_dict(z["term"])
+        except UserError as exc:
+            raise bad(exc.message) from None
 
 
 def deflection_calibration(results, pairs, sensor=None) -> dict:
@@ -280,6 +305,188 @@ def deflection_calibration(results, pairs, sensor=None) -> dict:
     }
 
 
+def recovered_images(pairs, deflection: dict, sensor=None) -> list:
+    """The phantoms' FEM-equivalent difference images from their (lesion, background) frame stacks
+    through the deflection calibration (:class:`elastimap.camera.deflection.DeflectionImage` each)."""
+    from .deflection import difference_image
+    from .optics import SensorModel
+
+    sensor = sensor or SensorModel()
+    ref = np.asarray(deflection["reference"], float)
+    return [
+        difference_image(F, B, sensor, ref, float(deflection["pixel"]), scale=float(deflection["scale"]))
+        for F, B in pairs
+    ]
+
+
+def learn_discrepancy(
+    phantoms, pairs, deflection: dict, level: str, sensor=None, forward=None, description=None
+) -> dict:
+    """The model-form error of the lab's phantoms (:func:`elastimap.identify.discrepancy.calibrate`):
+    each phantom's difference image recovered from its frames (:func:`recovered_images`) minus the
+    fit's forward image at its known (d, h, E) on mesh ``level`` (the level ``infer --refine`` stands
+    for: its morphed map, :func:`elastimap.identify.forward_maps.fit_maps`; ``forward`` replaces it),
+    with the leave-one-phantom-out check.  Phantoms on another slab (``tissue_E``, ``tissue_thickness``
+    columns) than the fit's are left out.  Returns the calibration file's ``discrepancy`` record:
+    ``term`` (:meth:`~elastimap.identify.discrepancy.Discrepancy.to_dict`), ``level``, ``pixel`` (mm),
+    ``names`` (the phantoms used), ``loo`` (per phantom: held-out χ² per pixel, modes' z, covered) and
+    ``beyond`` (terms beyond 3 x their prior scale: an effect, not a model-form difference).
+    ``sensor`` is the camera (:class:`~elastimap.camera.optics.SensorModel`), ``description`` the lab's
+    sensor (:class:`elastimap.sensor.Sensor`; None: the paper's) whose mechanics the map presses with."""
+    from elastimap.identify import discrepancy as dy
+
+    if forward is None:
+        from elastimap.identify.forward_maps import BELOW_LEVELS, sensor_template, shared_map
+
+        forward = shared_map(level, below=level in BELOW_LEVELS, template=sensor_template(description))
+    own = [i for i, (_, r) in enumerate(phantoms.iterrows()) if _default_slab(r)]
+    if len(own) < 2:
+        raise UserError("phantoms", "learning the model-form error needs at least 2 phantoms on the default slab")
+    rec = recovered_images([pairs[i] for i in own], deflection, sensor)
+    rows = [phantoms.iloc[i] for i in own]
+    thetas = [(float(r["d"]), float(r["h"]), float(r["E"])) for r in rows]
+    disc, loo = dy.calibrate(
+        [r.image for r in rec],
+        [r.sigma for r in rec],
+        thetas,
+        forward,
+        float(deflection["pixel"]),
+        source=f"{len(own)} calibration phantoms (camera calibrate)",
+    )
+    return {
+        "model": "I = m(theta) + Phi beta + remainder + noise (elastimap.identify.discrepancy)",
+        "term": disc.to_dict(),
+        "level": level,
+        "pixel": float(deflection["pixel"]),
+        "names": [str(r["name"]) for r in rows],
+        "loo": [
+            {"name": str(r["name"]), "chi2_px": h.chi2_px, "z": h.z.tolist(), "covered": h.covered.tolist()}
+            for r, h in zip(rows, loo)
+        ],
+        "beyond": disc.beyond(),
+    }
+
+
+def refine_levels(level: str) -> tuple[str, str | None]:
+    """``(--mesh, --refine-correct)`` of the ``infer --refine`` fit that stands for mesh ``level``: `coarse`
+    corrected by `fine` for `fine` (the default fit), else ``level`` alone."""
+    from elastimap.identify.forward_maps import DEFAULT_CORRECT
+
+    for mesh, correct in DEFAULT_CORRECT.items():
+        if correct == level:
+            return mesh, correct
+    return level, None
+
+
+def loo_fits(record: dict, phantoms, pairs, deflection: dict, sensor=None, progress=None, description=None) -> dict:
+    """Leave-one-phantom-out check of the fit that carries the model-form term: each phantom of
+    ``record`` (:func:`learn_discrepancy`) fitted from its frames as ``infer --refine`` does, with the
+    discrepancy learnt from the other phantoms, from a start that knows nothing of it (the other
+    phantoms' mean d and h, their geometric-mean E; the fit's E scan searches from there).  Returns
+    ``{"n", "covered" (d, h, E), "reported" (d, h, E), "rows"}``; a parameter counts as reported when
+    the fit calls it identifiable (relative sd ≤ 10 %) and no parameter is on the design box's edge (as
+    ``infer`` prints it)."""
+    from elastimap.identify import discrepancy as dy
+    from elastimap.identify.fit import fit_image
+    from elastimap.identify.forward_maps import fit_maps
+
+    names = record["names"]
+    idx = [list(phantoms["name"].astype(str)).index(n) for n in names]
+    rec = recovered_images([pairs[i] for i in idx], deflection, sensor)
+    thetas = np.array([[float(phantoms.iloc[i][k]) for k in ("d", "h", "E")] for i in idx])
+    mesh, correct = refine_levels(record["level"])
+    maps = fit_maps(mesh, correct, sensor=description)
+    f = maps.forward_fine or maps.forward
+    pixel = float(record["pixel"])
+    models = [np.asarray(f(*th).image, float) for th in thetas]
+    rows, n = [], len(idx)
+    for i in range(n):
+        rest = [j for j in range(n) if j != i]
+        disc = dy.learn(
+            [rec[j].image - models[j] for j in rest], [models[j] for j in rest], [rec[j].sigma for j in rest], pixel
+        )
+        start = np.array(
+            [thetas[rest, 0].mean(), thetas[rest, 1].mean(), float(np.exp(np.log(thetas[rest, 2]).mean()))]
+        )
+        r = fit_image(
+            rec[i].image,
+            rec[i].sigma,
+            start,
+            maps.forward,
+            forward_alt=maps.forward_alt,
+            forward_fine=maps.forward_fine,
+            discrepancy=disc,
+            pixel=pixel,
+        )
+        cov = [bool(r.lo[j] <= thetas[i, j] <= r.hi[j]) for j in range(3)]
+        rep = [bool(r.relstd[j] <= 0.10 and not r.at_bound) for j in range(3)]  # as infer prints them
+        rows.append(
+            {
+                "name": names[i],
+                "truth": thetas[i].tolist(),
+                "theta": r.theta.tolist(),
+                "lo": r.lo.tolist(),
+                "hi": r.hi.tolist(),
+                "covered": cov,
+                "reported": rep,
+                "at_bound": r.at_bound,
+                "seconds": r.seconds,
+            }
+        )
+        if progress:
+            progress(names[i], rows[-1])
+    return {
+        "n": n,
+        "covered": [int(sum(r["covered"][j] for r in rows)) for j in range(3)],
+        "reported": [int(sum(r["reported"][j] for r in rows)) for j in range(3)],
+        "rows": rows,
+    }
+
+
+def _default_slab(r) -> bool:
+    """Whether a phantom row lies on the default slab (no ``tissue_E``/``tissue_thickness`` of its own)."""
+    from elastimap.solver.params import Tissue
+
+    t = Tissue()
+    for col, v in (("tissue_E", t.E), ("tissue_thickness", t.thickness)):
+        if col in r and np.isfinite(r[col]) and abs(float(r[col]) - v) > 1e-9:
+            return False
+    return True
+
+
+def discrepancy_report(z: dict) -> list[str]:
+    """Lines of the calibration report for a ``discrepancy`` record (:func:`learn_discrepancy`)."""
+    t = z["term"]
+    lines = [
+        f"  model-form error (level {z['level']}, {t['n_phantoms']} phantoms): "
+        + ", ".join(
+            f"{m} mean {100 * mu:+.2g} % sd {100 * s:.2g} %" for m, mu, s in zip(t["modes"], t["mean"], t["tau"])
+        )
+        + f", remainder {100 * t['rho']:.2g} % (corr. {t['ell']:g} mm)"
+    ]
+    if z.get("loo"):
+        cov = np.array([r["covered"] for r in z["loo"]], bool)
+        chi = [r["chi2_px"] for r in z["loo"]]
+        lines.append(
+            "    leave-one-phantom-out: modes covered "
+            + ", ".join(f"{m} {int(c.sum())}/{len(c)}" for m, c in zip(t["modes"], cov.T))
+            + f", held-out chi2/px {min(chi):.2f}-{max(chi):.2f}"
+        )
+    if z.get("fits"):
+        f = z["fits"]
+        lines.append(
+            f"    leave-one-phantom-out fits (--report-loo): 95 % intervals hold d {f['covered'][0]}/{f['n']}, "
+            f"h {f['covered'][1]}/{f['n']}, E {f['covered'][2]}/{f['n']}; printed as a number d/h/E "
+            f"{f['reported'][0]}/{f['reported'][1]}/{f['reported'][2]}"
+        )
+    if z.get("beyond"):
+        lines.append(
+            f"    WARNING: {', '.join(z['beyond'])} beyond 3 x the model-form prior: the phantoms differ from "
+            "elastimap by more than a model-form difference (run gap diagnose; docs/model-form.md)"
+        )
+    return lines
+
+
 def fit_calibration(
     phantoms,
     fem: np.ndarray,
@@ -289,6 +496,7 @@ def fit_calibration(
     synthetic: bool = True,
     meta: dict | None = None,
     deflection: dict | None = None,
+    discrepancy: dict | None = None,
 ) -> Calibration:
     fem = np.asarray(fem, dtype=float)
     cam = np.asarray(cam, dtype=float)
@@ -311,7 +519,7 @@ def fit_calibration(
         pass
     m.update(meta or {})
     return Calibration(
-        fits, [r["name"] for r in recs], recs, fem, cam, feature_settings, sensor, synthetic, m, deflection
+        fits, [r["name"] for r in recs], recs, fem, cam, feature_settings, sensor, synthetic, m, deflection, discrepancy
     )
 
 

@@ -279,6 +279,22 @@ def features(images, background, sensor_json, threshold, smooth_px, combine, as_
 @click.option(
     "--format", "fmt", type=click.Choice(["png", "tiff"]), default="png", help="Format of --write-frames' files."
 )
+@click.option(
+    "--refine-level",
+    default="auto",
+    show_default=True,
+    metavar="LEVEL|auto|none",
+    help="Learn the model-form error (docs/model-form.md) for the infer --refine fit standing for this mesh "
+    "level, from the phantoms' frames at their known (d, h, E): auto = fine (the default --refine, coarse "
+    "corrected by fine), tiny with --mesh tiny; none = do not learn it (--refine then fits the closed world).",
+)
+@click.option(
+    "--report-loo",
+    is_flag=True,
+    help="Also fit each phantom from its frames as infer --refine does, with the model-form error learnt "
+    "from the others, and report (and store) the 95 % intervals' leave-one-phantom-out coverage "
+    "(about 30-60 s CPU a phantom).",
+)
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="Calibration JSON to write.")
 @click.option(
     "--plot", type=click.Path(dir_okay=False), default=None, help="PNG of the three fits (default <out>.png)."
@@ -295,6 +311,8 @@ def calibrate(
     frames,
     write_frames,
     fmt,
+    refine_level,
+    report_loo,
     out,
     plot,
     sensor_json,
@@ -306,7 +324,9 @@ def calibrate(
     smooth_px,
     combine,
 ):
-    """Fit O_FEM = a O_cam + b per feature on the nine calibration phantoms (paper 3.3)."""
+    """Fit O_FEM = a O_cam + b per feature on the nine calibration phantoms (paper 3.3); solve the
+    deflection calibration camera frames need (image models, --refine) and learn the model-form error
+    the --refine fit carries (docs/model-form.md, 'How the fit carries it')."""
     from elastimap.dataset.phantoms import read_phantoms
     from elastimap.dataset.schema import PHANTOMS_CSV
     from elastimap.outputs import check_out_dir, check_out_file
@@ -323,6 +343,9 @@ def calibrate(
     if frames < MIN_FRAMES:  # the deflection calibration measures the noise from the frames' scatter
         raise UserError("--frames", f"must be >= {MIN_FRAMES} (got {frames})")
     ph = read_phantoms(phantoms, min_rows=3, why="to fit a calibration line")
+    level = _refine_level(refine_level, mesh)
+    if report_loo and level is None:
+        raise UserError("--report-loo", "needs the model-form error (--refine-level not none)")
     # every input read and every output location checked before anything is solved or written
     fem_given = C.fem_features_from_csv(fem_features, ph) if fem_features else None
     check_out_file(out, "--out")
@@ -350,13 +373,25 @@ def calibrate(
         few = [str(n) for n, (F, B) in zip(ph["name"], pairs) if min(len(F), len(B)) < MIN_FRAMES]
         if few:  # the deflection calibration after the solves needs them: say so before
             raise UserError("--camera-csv", f"{camera_csv}: fewer than {MIN_FRAMES} frames for {', '.join(few[:5])}")
-        if fem_given is not None:
-            fem = fem_given
-        else:
-            results = [fem_fn(float(x["d"]), float(x["h"]), float(x["E"])) for _, x in ph.iterrows()]
-            fem = np.array([[r.O1, r.O2, r.O3] for r in results])
-    # camera frames -> FEM-equivalent difference images (image models, --refine) need the FEM solves
-    defl = C.deflection_calibration(results, pairs, model) if results else None
+        # camera frames -> FEM-equivalent difference images (image models, --refine) need the FEM solves,
+        # also where the features come from a sweep (--fem-features)
+        results = [fem_fn(float(x["d"]), float(x["h"]), float(x["E"])) for _, x in ph.iterrows()]
+        fem = fem_given if fem_given is not None else np.array([[r.O1, r.O2, r.O3] for r in results])
+    defl = C.deflection_calibration(results, pairs, model)
+    disc = None
+    if level is not None:
+        click.echo(f"learning the model-form error for the --refine fit at level {level} ...", err=True)
+        disc = C.learn_discrepancy(ph, pairs, defl, level, model, description=desc)
+        if report_loo:
+
+            def said(name, row):
+                click.echo(
+                    f"  {name:14s} fit {row['theta'][0]:.3g}/{row['theta'][1]:.3g}/{row['theta'][2]:.3g}  "
+                    f"covered d/h/E {'/'.join('yes' if c else 'no' for c in row['covered'])}",
+                    err=True,
+                )
+
+            disc["fits"] = C.loo_fits(disc, ph, pairs, defl, model, said, description=desc)
     cal = C.fit_calibration(
         ph,
         fem,
@@ -371,9 +406,11 @@ def calibrate(
             "phantoms_file": str(phantoms or PHANTOMS_CSV),
             "camera_csv": camera_csv,
             "fem_features": fem_features,
+            "refine_level": level,
             **({"sensor_description": desc.to_dict(), "sensor_hash": desc.hash()} if desc else {}),
         },
         defl,
+        disc,
     )
     from elastimap.outputs import write_or_fallback
 
@@ -443,7 +480,8 @@ def calibrate(
     "within 3 mm of the slab's base) as calibrated on SYNTHETIC benchmark lesions "
     "(elastimap.identify.intervals; docs/camera.md, 'Inference').  From frames, every pixel is weighted by "
     "its own noise, measured from the frames' scatter, plus the forward map's error measured between two "
-    "mesh levels.",
+    "mesh levels.  With a --calibration that carries the lab's model-form error (camera calibrate), the "
+    "intervals and identifiability flags also hold it (docs/model-form.md, 'How the fit carries it').",
 )
 @click.option(
     "--image-noise",
@@ -540,7 +578,7 @@ def infer(
 
     from .calibration import Calibration
 
-    cal = Calibration.load(calibration) if calibration is not None else None
+    cal = given_cal = Calibration.load(calibration) if calibration is not None else None
     sensor = _check_sensor(load_sensor(sensor_path) if sensor_path else None, model, cal)
     sensor_hash = None if sensor is None else sensor.hash()
     ests, cal = _estimates(
@@ -551,6 +589,7 @@ def infer(
 
         from .infer import refine_estimates
 
+        form = _model_form(given_cal, mesh, correct)  # also for --fem-image given with --calibration
         with tqdm(total=len(ests), desc="refine (FEM fit)", unit="lesion", disable=len(ests) < 2) as bar:
             ests = refine_estimates(
                 ests,
@@ -561,6 +600,8 @@ def infer(
                 threshold=threshold,
                 progress=lambda i, n: bar.update(1),
                 sensor=sensor,
+                discrepancy=form[0] if form else None,
+                pixel=form[2] if form else None,
             )
     from elastimap.provenance import stamp
 
@@ -625,6 +666,36 @@ def _check_sensor(sensor, model, cal):
             )
         chosen = recorded.get("the calibration") or recorded.get("the model")
     return chosen
+
+
+def _model_form(cal, mesh: str, correct: str | None):
+    """The calibration's model-form term for the --refine fit at ``mesh`` corrected by ``correct``:
+    ``(Discrepancy, level, pixel)`` or None (no calibration, or one without it: the closed world); a
+    term learnt for another level than the fit stands for is refused."""
+    form = cal.model_form() if cal is not None else None
+    if form is not None and form[1] != (correct or mesh):
+        raise UserError(
+            "--mesh",
+            f"the calibration's model-form error was learnt for the fit at level {form[1]}, this --refine fit "
+            f"stands for {correct or mesh} (recalibrate with --refine-level {correct or mesh})",
+        )
+    return form
+
+
+def _refine_level(refine_level: str, mesh: str) -> str | None:
+    """``calibrate --refine-level`` checked before any work: the mesh level whose --refine fit the
+    model-form error is learnt for, or None."""
+    from elastimap.solver.params import MESH_LEVELS
+
+    if refine_level == "none":
+        return None
+    if refine_level == "auto":
+        return "tiny" if mesh == "tiny" else "fine"
+    if refine_level not in MESH_LEVELS:
+        raise UserError(
+            "--refine-level", f"must be auto, none or one of {', '.join(MESH_LEVELS)} (got {refine_level!r})"
+        )
+    return refine_level
 
 
 def _refine_correct(refine: bool, mesh: str, correct: str) -> str | None:

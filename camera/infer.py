@@ -40,7 +40,8 @@ never silently extrapolated: every estimate carries ``flags``:
   (e.g. below the training range to which the interval is clipped);
 * ``saturated`` - camera pixels beyond the response's saturation (frames of an image model);
 * ``at_design_edge:q`` - the physics fit (``--refine``) ended with ``q`` on the design box's edge
-  (d, E at the box's limits, h at the admissible depth range's): the likelihood's maximum is not
+  (d, E at the box's limits or within 1 % of them, h at the admissible depth range's;
+  :func:`elastimap.identify.fit.on_edge`): the likelihood's maximum is not
   inside the box, so the estimate is the box's edge and the Gauss–Newton interval, which assumes an
   interior maximum, holds for none of the coupled parameters.  Then no quantity is reportable.
 
@@ -141,6 +142,7 @@ class Estimate:
             out["fit_seconds"] = float(self.fit.seconds)
             out["fit_converged"] = bool(self.fit.converged)
             out["fit_moving"] = ";".join(self.fit.moving)
+            out["fit_model_form"] = bool(getattr(self.fit, "model_form", False))  # carried the lab's term
         out["crb_set"] = self.crb_set
         out["input"] = self.input
         out["n_members"] = self.n_members
@@ -399,6 +401,8 @@ def refine_estimates(
     fine: str = "correct",
     intervals: str | None = None,
     sensor=None,
+    discrepancy=None,
+    pixel: float | None = None,
 ) -> list[Estimate]:
     """Refine image-model estimates by the maximum-likelihood fit of the forward map
     (:func:`elastimap.identify.fit.fit_image`).
@@ -422,6 +426,12 @@ def refine_estimates(
     levels (:func:`~elastimap.identify.forward_maps.default_intervals`), else the Gauss–Newton ones.
     ``sensor`` (:class:`elastimap.sensor.Sensor`; None: the paper's): the solver's maps press with its
     mechanics (:func:`~elastimap.identify.forward_maps.fit_maps`).  ``progress(i, n)`` after each lesion.
+    ``discrepancy``: the model-form error the fit carries
+    (:class:`elastimap.identify.discrepancy.Discrepancy`, learnt by ``camera calibrate`` from the lab's
+    phantoms, :meth:`~elastimap.camera.calibration.Calibration.model_form`) on images of ``pixel`` mm: the fit's estimate stays its
+    own, its covariance is the marginal one with the term integrated out, and an E on the design edge
+    gets the valley's interval (docs/model-form.md, 'How the fit carries it'); None: the closed world
+    (noise and discretisation only).
 
     Each estimate's mean becomes the fitted (d, h, E), ``lo``/``hi`` its 95 % interval and ``sd``/``crb``
     the standard deviation that interval stands for (relative for ``crb``): the Gauss–Newton one times
@@ -468,6 +478,8 @@ def refine_estimates(
                 max_passes=max_passes,
                 fine=fine,
                 intervals=intervals,
+                discrepancy=discrepancy,
+                pixel=pixel,
             )
             e.mean = r.theta
             e.crb = r.relstd_calibrated

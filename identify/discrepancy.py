@@ -44,8 +44,9 @@ residuals whitened by ``D``'s Cholesky factor, :meth:`Discrepancy.whitener`) the
 fit estimates ``β`` beside θ with the prior as ``K`` extra residual rows ``L⁻¹(β − μ)``: the
 Gauss–Newton covariance of θ is then the marginal one, so a parameter confounded with a mode (a stiff
 inclusion's E with the amplitude) gets the interval the prior allows -- to first order: a nonlinear fit
-carrying this term walked along the d–E valley on the dev set (docs/model-form.md, 'The nonlinear
-check'), so no product fit uses it yet (it lives here so the fit and the diagnosis can share it).  The informativeness
+minimising this marginal misfit walked along the d–E valley on the dev set (docs/model-form.md, 'The
+nonlinear check'), so the product's fit (:mod:`elastimap.identify.fit`) keeps the closed world's
+estimate and takes only its covariance from here (:class:`Marginal`).  The informativeness
 is what Brynjarsdóttir & O'Hagan ask for: ``τ`` is the spread over the lab's own phantoms, not a
 free function.
 
@@ -467,6 +468,48 @@ class LinearFit:
     dof: int
 
 
+class Marginal:
+    """The marginal misfit of an image under the discrepancy, its basis held fixed: the measured
+    ``image`` (mm), its pixel noise ``sigma`` (mm) and the image ``basis_image`` (mm, 2-D) the modes and
+    the remainder's envelope are built from, whitened once (one Cholesky factorisation of ``D``).
+
+    :meth:`step` is the generalised least-squares step of a fit linearised at a forward image ``m``
+    with Jacobian ``J`` ``(p, n)`` (mm per unit of the fit's coordinates):
+    ``min_(z, β) |L_D⁻¹(m + J z + Φ β − I)|² + |L_C⁻¹(β − μ)|²`` (:func:`augment`), whose minimum is
+    the marginal ``χ²`` of ``m`` over the directions ``J`` and the modes.  Holding the basis fixed
+    matters when misfits at several points are compared: a covariance that grows with the trial image
+    lowers ``rᵀΣ⁻¹r`` where the image is larger, and a fit would drift there (the log-determinant
+    that would balance it is not in a least-squares misfit)."""
+
+    def __init__(self, image, sigma, basis_image, pixel: float, disc: Discrepancy | None = None):
+        mb = np.asarray(basis_image, float)
+        self.I = np.asarray(image, float).ravel()
+        self.disc = disc or Discrepancy.none()
+        self.W = self.disc.whitener(mb, pixel, sigma)
+        self.P_w = self.W(self.disc.basis(mb, pixel))
+        self.I_w = self.W(self.I)
+
+    def step(self, m, J=None, systematic=(), birge: bool = False) -> LinearFit:
+        """The step from the forward image ``m`` (mm) along ``J`` (None: no parameters, the misfit
+        alone); ``systematic`` and ``birge`` as in :func:`linear_fit`."""
+        J = np.zeros((self.I.size, 0)) if J is None else np.asarray(J, float).reshape(self.I.size, -1)
+        r_w = self.W(np.asarray(m, float).ravel()) - self.I_w
+        r_a, J_a, keep = augment(r_w, self.W(J) if J.shape[1] else J, self.P_w, self.disc)
+        step = -np.linalg.lstsq(J_a, r_a, rcond=None)[0]
+        Hi = _inverse(J_a.T @ J_a)
+        n = J.shape[1]
+        r_after = r_a + J_a @ step
+        chi2, dof = float(r_after @ r_after), max(self.I.size - n, 1)
+        cov = Hi * (max(1.0, chi2 / dof) if birge else 1.0)
+        for dl in systematic:
+            rhs = np.concatenate([self.W(np.asarray(dl, float).ravel()), np.zeros(J_a.shape[0] - self.I.size)])
+            b = Hi @ (J_a.T @ rhs)
+            cov = cov + np.outer(b, b)
+        beta = self.disc.mean.copy()
+        beta[keep] = beta[keep] + step[n:]
+        return LinearFit(step[:n], cov[:n, :n], beta, chi2, dof)
+
+
 def linear_fit(
     image,
     m0,
@@ -485,33 +528,12 @@ def linear_fit(
     discretisation error, the difference of two mesh levels), each propagated through the estimator as
     a shift ``b`` added as ``b bᵀ`` to the covariance -- as :func:`elastimap.identify.fit.fit_image`
     does; ``birge``: the covariance widened by ``max(1, χ²/dof)``.  ``basis_image``: the image (mm) the
-    discrepancy's modes and envelope are built from (default ``m0``).  A fit that compares misfits
-    at several points must hold it fixed (e.g. the measured image, smoothed): a covariance that
-    grows with the trial image lowers ``rᵀΣ⁻¹r`` where the image is larger, and the fit drifts there
-    (the log-determinant that would balance it is not in a least-squares misfit).  What
-    :mod:`elastimap.workflows.studies.modelform` scores; a fit's passes do the same at each start."""
+    discrepancy's modes and envelope are built from (default ``m0``; :class:`Marginal` explains why a
+    fit comparing several points holds it fixed).  What :mod:`elastimap.workflows.studies.modelform`
+    scores."""
     m0 = np.asarray(m0, float)
-    I = np.asarray(image, float).ravel()
-    J = np.asarray(J, float).reshape(I.size, -1)
-    disc = disc or Discrepancy.none()
     mb = m0 if basis_image is None else np.asarray(basis_image, float).reshape(m0.shape)
-    W = disc.whitener(mb, pixel, sigma)
-    r_w = W(m0.ravel() - I)
-    P_w = W(disc.basis(mb, pixel))
-    r_a, J_a, keep = augment(r_w, W(J) if J.shape[1] else J, P_w, disc)
-    step = -np.linalg.lstsq(J_a, r_a, rcond=None)[0]
-    Hi = _inverse(J_a.T @ J_a)
-    n = J.shape[1]
-    r_after = r_a + J_a @ step
-    chi2, dof = float(r_after @ r_after), max(I.size - n, 1)
-    cov = Hi * (max(1.0, chi2 / dof) if birge else 1.0)
-    for dl in systematic:
-        rhs = np.concatenate([W(np.asarray(dl, float).ravel()), np.zeros(J_a.shape[0] - I.size)])
-        b = Hi @ (J_a.T @ rhs)
-        cov = cov + np.outer(b, b)
-    beta = disc.mean.copy()
-    beta[keep] = beta[keep] + step[n:]
-    return LinearFit(step[:n], cov[:n, :n], beta, chi2, dof)
+    return Marginal(image, sigma, mb, pixel, disc).step(m0, J, systematic, birge)
 
 
 @dataclass(frozen=True)

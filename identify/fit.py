@@ -53,6 +53,29 @@ problem, prior and misfit apart from the optimisers), each declared in :class:`F
   ``identify/maps/intervals.json``), for the configuration they were calibrated on
   (:func:`~elastimap.identify.forward_maps.default_intervals`).
 
+* **model-form term** (``discrepancy``, :class:`~elastimap.identify.discrepancy.Discrepancy`, learnt by
+  ``camera calibrate`` from the lab's calibration phantoms; docs/model-form.md, 'How the fit carries
+  it'): the world differs from the map by ``δ = Φ β + a η`` (modes of the image, ``β ~ N(μ, C)``, and a
+  correlated remainder).  The estimate is the closed world's (the passes above) -- the term adds no
+  walk along the d–E valley and no correction of the mean (subtracting ``Φ μ`` moved d by 2–12 % the
+  wrong way on the SYNTHETIC variant world, its mean over the phantoms not that of the lesion) -- and
+  its covariance is the marginal one,
+
+      C_x = [(J_a ᵀ J_a)⁻¹]_xx max(1, χ²_m / dof) + Σ_k b_k b_kᵀ,
+      J_a = [ L_D⁻¹ J   L_D⁻¹ Φ ;  0   L_C⁻¹ ],   D = diag σ² + ρ² A K_ℓ A,   L_C L_Cᵀ = C
+
+  (:class:`~elastimap.identify.discrepancy.Marginal`: the generalised least squares of the pixels under
+  ``Σ = D + Φ C Φᵀ``, its modes built from the map's image at the estimate; ``χ²_m`` the marginal misfit
+  there).  The interval is ``θ̂ ± 1.96 sd`` from it (``k = 1``: the calibrated scales are the closed
+  world's), and a parameter whose relative sd exceeds the threshold is reported as its interval.  A fit
+  that ends with E on the design box's edge reports the valley's interval (:func:`valley_interval`: E
+  over the box, d along the valley of equal amplitude across it).  Why
+  not the marginal optimum: the marginal misfit is flat along the valley (the amplitude mode absorbs
+  what tells d from E), so a fit that minimises it walks wherever the map's shape error points --
+  on the dev set to soft, larger inclusions, on the SYNTHETIC variant world (tiny map, coarse world
+  2 % stiffer) a profile of it along the valley put 6 mm, 160 kPa at 7.7 mm, 10 kPa with a narrow
+  interval (docs/model-form.md, 'Choosing the formulation').
+
 Measured accuracy and coverage: docs/camera.md, 'Inference'.  The fit itself tunes no factor; the
 interval's scales are calibrated on seen benchmark seeds, never on the lesions a table scores.
 """
@@ -73,6 +96,7 @@ from elastimap.errors import UserError
 from elastimap.solver.params import Tissue
 
 from .coords import FitCoords, h_range
+from .discrepancy import Discrepancy, Marginal
 from .forward_maps import fit_maps, image_of
 from .intervals import Z95, scales_for
 
@@ -130,8 +154,16 @@ class FitConfig:
     optimiser: Optimiser = field(default_factory=Optimiser)
     fine: str = "correct"
     intervals: str = "gauss"
+    #: the model-form error the fit carries (:class:`~elastimap.identify.discrepancy.Discrepancy`,
+    #: learnt from the lab's calibration phantoms; None: the closed world) on images of ``pixel`` mm
+    discrepancy: Discrepancy | None = None
+    pixel: float | None = None
 
     def __post_init__(self):
+        if self.discrepancy is not None and not (self.pixel and math.isfinite(self.pixel) and self.pixel > 0):
+            raise UserError(
+                "pixel", f"a fit carrying a discrepancy needs the image's pixel side in mm (got {self.pixel})"
+            )
         if self.fine not in FINE_MODES:
             raise UserError("fine", f"must be one of {', '.join(FINE_MODES)} (got {self.fine!r})")
         if self.intervals not in INTERVALS:
@@ -153,6 +185,8 @@ class FitConfig:
         E_tissue: float | None = None,
         fine: str = "correct",
         intervals: str = "gauss",
+        discrepancy: Discrepancy | None = None,
+        pixel: float | None = None,
     ) -> FitConfig:
         """The configuration from flat keywords (those of :func:`fit_image`)."""
         return cls(
@@ -160,6 +194,8 @@ class FitConfig:
             Optimiser(tuple(fd), max_nfev, max_passes, e_scan, tangent),
             fine,
             intervals,
+            discrepancy,
+            pixel,
         )
 
 
@@ -191,6 +227,9 @@ class FitResult:
     #: the interval's scale k of (d, h, E) (``lo``/``hi`` = θ̂ ± 1.96 k sd): the calibrated one of
     #: :func:`elastimap.identify.intervals.scales_for` with ``intervals="calibrated"``, else ones
     scale: np.ndarray = field(default_factory=lambda: np.ones(3))
+    #: whether the fit carried the model-form term (:class:`FitConfig`'s ``discrepancy``): its covariance
+    #: and χ² are then the marginal ones and ``scale`` is ones
+    model_form: bool = False
 
     @property
     def relstd_calibrated(self) -> np.ndarray:
@@ -386,6 +425,36 @@ def interval95(X: FitCoords, x, Cx, k, prior: DesignPrior, lb, ub) -> tuple[np.n
     return lo, hi
 
 
+def valley_interval(X: FitCoords, x, lo, hi, prior: DesignPrior, lb, ub) -> tuple[np.ndarray, np.ndarray]:
+    """The 95 % interval of a fit that ended with E on the design box's edge: the likelihood's maximum
+    lies beyond the box along the d–E valley, so every point of the valley inside the box stays
+    possible.  E's interval is the whole box, and d's the hull of its own and the valley's d across it:
+    along the valley of equal amplitude ``3 ln d + e = const`` (``e = ln c(E)``, the contrast coordinate
+    of :class:`~elastimap.identify.coords.FitCoords`), ``d(e) = d̂ exp((ê − e)/3)`` for e over the box."""
+    lo, hi = np.array(lo, float), np.array(hi, float)
+    d_ends = x[0] * np.exp((x[2] - np.array([ub[2], lb[2]])) / 3.0)
+    lo[0] = max(min(lo[0], float(d_ends.min())), prior.d_range[0])
+    hi[0] = min(max(hi[0], float(d_ends.max())), prior.d_range[1])
+    lo[2], hi[2] = prior.E_range
+    return lo, hi
+
+
+#: an estimate of d or E within this fraction of the design box's limit (in mm or kPa) is on its edge: E's
+#: contrast coordinate saturates at the stiff end, so 1e-3 of the box in it is about 2 kPa at 200 kPa
+EDGE_REL = 0.01
+
+
+def on_edge(x, th, lb, ub, prior: DesignPrior) -> list[str]:
+    """The parameters of the estimate (fit coordinates ``x``, θ = ``th``) on the design box's edge: within
+    1e-3 of the box in x, or (d, E) within :data:`EDGE_REL` of their limits."""
+    tol = 1e-3 * (ub - lb)
+    at = [q for j, q in enumerate(TARGETS) if x[j] <= lb[j] + tol[j] or x[j] >= ub[j] - tol[j]]
+    for j, q, (a, b) in ((0, "d", prior.d_range), (2, "E", prior.E_range)):
+        if q not in at and (th[j] <= a * (1 + EDGE_REL) or th[j] >= b / (1 + EDGE_REL)):
+            at.append(q)
+    return [q for q in TARGETS if q in at]
+
+
 # ============================================================================ the fit
 class ImageFit:
     """The maximum-likelihood fit of ``forward`` (with the other levels ``forward_alt``, a map or a
@@ -433,16 +502,24 @@ class ImageFit:
         dof = max(I.size - 3, 1)
         chi2 = float(r @ r) / dof
         Cx = self._covariance(J, chi2, model.delta, s_tot)
+        disc = self.config.discrepancy
+        if disc is not None:  # the model-form term: its marginal covariance at the estimate
+            if shape is None:
+                raise UserError("image", "a fit carrying a discrepancy needs the 2-D image (its modes are images)")
+            Cx, chi2 = self._marginal(model, I, s_tot, shape, x, J * s_tot[:, None])
         Gx = X.dtheta(x)
         th = X.theta(x)
         sd = np.sqrt(np.clip(np.diag(Gx @ Cx @ Gx.T), 0, None))
         relstd = np.array([sd[0] / th[0], sd[1] / th[1], sd[2]])
         lo_gauss, hi_gauss = interval95(X, x, Cx, np.ones(3), prior, lb, ub)
-        calibrated = self.config.intervals == "calibrated"
+        calibrated = self.config.intervals == "calibrated" and disc is None  # the scales are the closed world's
         scale = scales_for(relstd, th, thickness=prior.thickness) if calibrated else np.ones(3)
         lo, hi = interval95(X, x, Cx, scale, prior, lb, ub)
-        tol = 1e-3 * (ub - lb)
-        at = [q for j, q in enumerate(TARGETS) if x[j] <= lb[j] + tol[j] or x[j] >= ub[j] - tol[j]]
+        at = on_edge(x, th, lb, ub, prior)
+        if disc is not None and "E" in at and prior.coords == "contrast":  # beyond the box along the valley
+            lo, hi = valley_interval(X, x, lo, hi, prior, lb, ub)
+            relstd[0] = max(relstd[0], (hi[0] - lo[0]) / (2 * Z95 * th[0]))
+            relstd[2] = max(relstd[2], math.log(hi[2] / lo[2]) / (2 * Z95))
         big = np.abs(I) >= 0.1 * np.abs(I).max()
         me = float(np.sqrt(np.mean(s_mod[big] ** 2)) / np.sqrt(np.mean(s_meas[big] ** 2)))
         return FitResult(
@@ -464,7 +541,19 @@ class ImageFit:
             lo_gauss=lo_gauss,
             hi_gauss=hi_gauss,
             scale=scale,
+            model_form=disc is not None,
         )
+
+    def _marginal(self, model: FitModel, I, s_tot, shape, x, Jx) -> tuple[np.ndarray, float]:
+        """The covariance (x units) and χ² per degree of freedom of the estimate ``x`` under the model-form
+        term (see the module docstring, 'model-form term'): the generalised least-squares information of
+        the map's Jacobian ``Jx`` (mm per x unit, not whitened) with the discrepancy marginalised, its
+        basis the map's image at ``x``, plus the discretisation's systematic part and the Birge factor."""
+        cfg = self.config
+        m0 = model(x)
+        M = Marginal(I, s_tot.reshape(shape), m0.reshape(shape), float(cfg.pixel), cfg.discrepancy)
+        st = M.step(m0, Jx, model.delta, birge=True)
+        return st.cov, st.chi2 / st.dof
 
     @staticmethod
     def _inputs(image, sigma, theta0):

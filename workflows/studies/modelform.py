@@ -5,6 +5,10 @@ world elastimap did not make.
         --sets none,tissueE65 --model-mesh fine --alt-mesh default --out modelform.json
     python -m elastimap.workflows.studies.modelform --world-level default --model-mesh coarse --alt-mesh tiny
     python -m elastimap.workflows.studies.modelform --calculix /work/shared/devdata/independent-fem/calculix.csv
+    python -m elastimap.workflows.studies.modelform --world-level coarse --product tiny --frames 30
+
+``--product LEVEL`` fits each phantom with the product's fit (:func:`product_check`: the maps ``infer
+--refine --mesh LEVEL`` uses, closed world and carrying the learnt term) instead of the linearised step.
 
 The world: a folder in the format of ``shared/devdata/independent-fem`` (``sets.csv`` with one row per
 phantom, ``raw_*.npy`` / ``ref_*.npy`` the lesion and background press, mm) -- or, with
@@ -33,8 +37,7 @@ relative sd ≤ 10 %, E's sd of ln E ≤ 0.1, the threshold inference prints a n
 interval's coverage (``|Δx| ≤ 1.96 sd`` in the fit's coordinates), how often the linearised estimate
 leaves the design box (what drives a fit to its edge), and the held-out residual's ``χ²/p`` under the
 budget (1 when the budget is the right size).  Linearised at the truth: it measures how the budget
-weighs a model-form difference, not the nonlinear fit's path (that needs the fit itself to carry the
-term: issue 38, phase 2).
+weighs a model-form difference, not the nonlinear fit's path (``--product`` and ``--nonlinear`` fit it).
 """
 
 from __future__ import annotations
@@ -383,6 +386,93 @@ def nonlinear_check(world, model_mesh, alt, cache, frames, seed, which, prior_we
     return rows
 
 
+def product_check(world, fit_mesh, correct, frames, seed, which, prior_weight, start) -> dict:
+    """The product's fit (:func:`elastimap.identify.fit.fit_image` on the maps ``infer --refine --mesh
+    fit_mesh --refine-correct correct`` uses) of each phantom's world image (one noise draw of
+    ``frames`` frames) from ``start`` x the truth, closed world (the calibrated or Gauss–Newton interval
+    as inference reports it) and carrying the discrepancy learnt from the calibration phantoms (each of
+    the nine left out of its own).  Returns ``{"rows", "summary"}``; "reported" is what inference prints
+    as a number: relative sd (of the reported interval) ≤ 10 % and not on the design box's edge."""
+    import time
+
+    from elastimap.camera.optics import deflection_noise_map
+    from elastimap.identify import discrepancy as dy
+    from elastimap.identify.fit import fit_image
+    from elastimap.identify.forward_maps import fit_maps
+
+    rng = np.random.default_rng(seed)
+    maps = fit_maps(fit_mesh, correct)
+    level = maps.forward_fine or maps.forward
+    models = [np.asarray(level(*(float(v) for v in ph["theta"])).image, float) for ph in world]
+    cal = []
+    for ph, m in zip(world[:N_CAL], models, strict=False):
+        sigma = deflection_noise_map(ph["ref"], PIXEL, frames)
+        cal.append((ph["diff"] + sigma * rng.standard_normal(sigma.shape) - m, m, sigma))
+    rows = []
+    for i, ph in enumerate(world):
+        disc = dy.learn(
+            *zip(*[c for j, c in enumerate(cal) if j != i], strict=True), PIXEL, which=which, prior_weight=prior_weight
+        )
+        th = np.asarray(ph["theta"], float)
+        sigma = deflection_noise_map(ph["ref"], PIXEL, frames)
+        I = ph["diff"] + sigma * rng.standard_normal(sigma.shape)
+        row = {"phantom": ph["phantom"], "theta": th.tolist()}
+        for name, dsc in (("closed", None), ("open", disc)):
+            t0 = time.process_time()
+            r = fit_image(
+                I,
+                sigma,
+                th * np.asarray(start),
+                maps.forward,
+                forward_alt=maps.forward_alt,
+                forward_fine=maps.forward_fine,
+                intervals=maps.intervals,
+                discrepancy=dsc,
+                pixel=PIXEL,
+            )
+            rel = r.relstd_calibrated
+            row[name] = {
+                "theta_hat": r.theta.tolist(),
+                "rel_err": (np.abs(r.theta - th) / th).tolist(),
+                "covered": ((r.lo <= th) & (th <= r.hi)).tolist(),
+                "reported": [bool(rel[j] <= IDENTIFIABLE and not r.at_bound) for j in range(3)],
+                "at_bound": r.at_bound,
+                "converged": r.converged,
+                "cpu_s": time.process_time() - t0,
+            }
+        rows.append(row)
+        click.echo(
+            f"{ph['phantom']} θ {np.round(th, 1).tolist()}: "
+            + " | ".join(
+                f"{b} {np.round(row[b]['theta_hat'], 2).tolist()} cov {row[b]['covered']} rep {row[b]['reported']}"
+                f" bound {row[b]['at_bound']}"
+                for b in ("closed", "open")
+            )
+        )
+    return {"rows": rows, "summary": {b: product_summary(rows, b) for b in ("closed", "open")}}
+
+
+def product_summary(rows, budget) -> dict:
+    """Coverage (% of all), printed-as-a-number counts and their MRE (%), printed-and-missed counts, E on the
+    design edge, converged count and mean CPU s of :func:`product_check`'s rows under ``budget``."""
+    v = [r[budget] for r in rows]
+    cov = np.array([x["covered"] for x in v], bool)
+    rep = np.array([x["reported"] for x in v], bool)
+    err = np.array([x["rel_err"] for x in v], float)
+    return {
+        "n": len(v),
+        "coverage_pct": (100 * cov.mean(axis=0)).tolist(),
+        "reported": rep.sum(axis=0).tolist(),
+        "mre_reported_pct": [
+            float(100 * err[rep[:, j], j].mean()) if rep[:, j].any() else float("nan") for j in range(3)
+        ],
+        "reported_missed": (rep & ~cov).sum(axis=0).tolist(),
+        "E_at_edge": int(sum("E" in x["at_bound"] for x in v)),
+        "converged": int(sum(x["converged"] for x in v)),
+        "cpu_s_mean": float(np.mean([x["cpu_s"] for x in v])),
+    }
+
+
 def calculix_check(path: str, mesh: str, cache: str) -> list[dict]:
     """elastimap's map at ``mesh`` against a third model's features (``calculix.csv`` of the independent
     references: O1 mm, O2 mm, plate forces mN at five designs): the relative differences, the scale of
@@ -433,6 +523,16 @@ def calculix_check(path: str, mesh: str, cache: str) -> list[dict]:
     help="Fit each phantom with the (nonlinear) projected Gauss–Newton check instead of the linearised step.",
 )
 @click.option(
+    "--product",
+    "product_mesh",
+    type=MeshLevel(),
+    default=None,
+    help="Fit each phantom with the product's fit (infer --refine's maps at this --mesh, corrected by "
+    "--product-correct) closed-world and carrying the discrepancy, from --start x the truth.",
+)
+@click.option("--product-correct", default="none", show_default=True, help="--product: the correcting level, or none.")
+@click.option("--start", default="0.9,1.05,1.5", show_default=True, help="--product: the start, d,h,E x the truth.")
+@click.option(
     "--out", default=None, type=click.Path(dir_okay=False), help="Write the rows here (.json; must not exist)."
 )
 def main(
@@ -450,6 +550,9 @@ def main(
     cache,
     calculix,
     nonlinear,
+    product_mesh,
+    product_correct,
+    start,
     out,
 ):
     """The fit's error budget with and without the learnt model-form error, on another model's phantoms."""
@@ -479,6 +582,33 @@ def main(
         raise UserError("--ell-grid", f"comma-separated lengths >= 0 mm (got {ell_grid!r})")
     names = [v.strip() for v in sets.split(",") if v.strip()] if world else ["variant"]
     worlds = {n: read_world(world, n) if world else variant_world(world_level, cache) for n in names}
+    if product_mesh is not None:
+        try:
+            st = tuple(float(v) for v in start.split(","))
+        except ValueError:
+            st = ()
+        if len(st) != 3 or min(st) <= 0:
+            raise UserError("--start", f"three factors > 0, d,h,E (got {start!r})")
+        corr = None if product_correct == "none" else product_correct
+        from elastimap.identify.forward_maps import check_correct
+
+        check_correct(product_mesh, corr)
+        result = {"world": world or f"elastimap remesh {world_level}, by_d, contact (SYNTHETIC)", "frames": frames}
+        result.update(seed=seed, modes=list(which), prior_weight=prior_weight, sets={})
+        result.update(product=product_mesh, product_correct=corr, start=list(st))
+        for n, w in worlds.items():
+            result["sets"][n] = res = product_check(w, product_mesh, corr, frames, seed, which, prior_weight, st)
+            for b, v in res["summary"].items():
+                click.echo(
+                    f"[{n}] {b:6s} coverage d/h/E {v['coverage_pct'][0]:.0f}/{v['coverage_pct'][1]:.0f}/"
+                    f"{v['coverage_pct'][2]:.0f} %  printed d/h/E {v['reported']} MRE {np.round(v['mre_reported_pct'], 1).tolist()} %"
+                    f"  printed+missed {v['reported_missed']}  E at edge {v['E_at_edge']}  converged {v['converged']}/{v['n']}"
+                    f"  CPU {v['cpu_s_mean']:.1f} s"
+                )
+        if out:
+            with open(out, "w") as fh:
+                json.dump(result, fh, indent=1)
+        return
     thetas = {key(ph["theta"]): ph["theta"] for w in worlds.values() for ph in w}
     model = model_at(thetas.values(), model_mesh, cache)
     alt = None if alt_mesh == "none" else model_at(thetas.values(), alt_mesh, cache)
