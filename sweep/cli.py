@@ -248,7 +248,7 @@ def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solve
     from .jobs import resolve_solver
 
     try:
-        counts = [int(x) for x in jobs_list.split(",") if x.strip()]
+        counts = [int(x) for x in jobs_list.split(",")]
     except ValueError:
         from elastimap.errors import UserError
 

@@ -22,10 +22,11 @@ import os
 import click
 import numpy as np
 
-from elastimap.cli_util import CONTEXT_SETTINGS, run
+from elastimap.cli_util import CONTEXT_SETTINGS, param_flags, run
 from elastimap.errors import UserError
 
 
+@param_flags({"path": "--data"})
 @click.command(context_settings=CONTEXT_SETTINGS)
 @click.option(
     "--data",
