@@ -522,7 +522,7 @@ def sweep_cases() -> list[Case]:
     base = ["sweep", "run", *T, "--jobs", "1", "--no-progress"]
 
     def bad(cid: str, args: list[str], *names: str, out: str | None = "new", **kw) -> None:
-        extra = ["--out", out] if out else []
+        extra = ["--out", out] if out is not None else []
         c.append(Case(f"sweep/{cid}", g, [*base, "--n", "1", *extra, *args] if "--n" not in args else [*base, *extra, *args], "refuse", names, **kw))  # fmt: skip
 
     for v in ["-1", "abc", "99999999999999999999", "1e3", ""]:

@@ -162,6 +162,8 @@ CASES = [
     ("sweep", [*SWEEP, "--out", "s", "--dashboard", "127.0.0.1:99999"], "--dashboard"),
     ("sweep", [*SWEEP, "--out", "s", "--dashboard", "::::"], "--dashboard"),
     ("sweep", ["bench", "--mesh", "tiny", "--n", "1", "--jobs-list", "1,,2"], "--jobs-list"),
+    # the --jobs note came before the error line
+    ("sweep", [*SWEEP, "--out", "s", "--scheduler", "not a url", "--connect-timeout", "2"], "--scheduler"),
     ("elastimap", ["demo", "--mesh", "tiny", "--out", ""], "--out"),
     # sizes and fractions out of range
     ("camera", ["synth", *SOLVE, "--frames", "100000", "--out", "fr"], "--frames"),
