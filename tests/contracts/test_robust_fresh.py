@@ -171,6 +171,29 @@ CASES = [
     ("gap", ["bench", "--mesh", "tiny", "--data-cache", "{A}/cal.json"], "--data-cache"),
     ("elastimap", ["demo", "--mesh", "tiny", "--jobs", "1", "--n", "4", "--out", "dm"], "--n"),
     ("elastimap", ["study", "image_model", "--data", "{A}/feats.csv", "--out", "im"], "--data"),
+    # the saved model replaced the sweep it was trained on
+    (
+        "elastimap",
+        [
+            "study",
+            "image_model",
+            "--data",
+            "{A}/ds",
+            "--validate",
+            "none",
+            "--k",
+            "3",
+            "--hidden",
+            "3",
+            "--repeats",
+            "1",
+            "--epochs",
+            "2",
+            "--save-model",
+            "{A}/ds",
+        ],
+        "--save-model",
+    ),  # fmt: skip
     (
         "gap",
         [
