@@ -175,8 +175,10 @@ def synth(d, h, E, tissue_e, delta, mesh, frames, out, name, fmt, sensor_json, s
     desc = _description(sensor_json)
     delta = (desc or Sensor()).loading.delta if delta is None else delta
     tissue_e = (desc or Sensor()).tissue.E if tissue_e is None else tissue_e
-    if frames < 1:
-        raise UserError("frames", f"must be >= 1 (got {frames})")
+    from .deflection import MAX_FRAMES
+
+    if not 1 <= frames <= MAX_FRAMES:
+        raise UserError("frames", f"must be in [1, {MAX_FRAMES}] (got {frames})")
     if name is not None:
         from elastimap.tables import check_name
 
@@ -329,7 +331,7 @@ def calibrate(
     the --refine fit carries (docs/model-form.md, 'How the fit carries it')."""
     from elastimap.dataset.phantoms import read_phantoms
     from elastimap.dataset.schema import PHANTOMS_CSV
-    from elastimap.outputs import check_out_dir, check_out_file
+    from elastimap.outputs import check_out_dir, check_out_file, figure_suffixes
     from elastimap.sensor import Sensor
 
     from . import calibration as C
@@ -338,19 +340,22 @@ def calibrate(
     desc = _description(sensor_json)
     delta = (desc or Sensor()).loading.delta if delta is None else delta
     settings = _settings(threshold, smooth_px, combine)
-    from .deflection import MIN_FRAMES
+    from .deflection import MAX_FRAMES, MIN_FRAMES
 
-    if frames < MIN_FRAMES:  # the deflection calibration measures the noise from the frames' scatter
-        raise UserError("--frames", f"must be >= {MIN_FRAMES} (got {frames})")
+    if not MIN_FRAMES <= frames <= MAX_FRAMES:  # the deflection calibration measures the noise from the frames' scatter
+        raise UserError("--frames", f"must be in [{MIN_FRAMES}, {MAX_FRAMES}] (got {frames})")
     ph = read_phantoms(phantoms, min_rows=3, why="to fit a calibration line")
     level = _refine_level(refine_level, mesh)
     if report_loo and level is None:
         raise UserError("--report-loo", "needs the model-form error (--refine-level not none)")
     # every input read and every output location checked before anything is solved or written
     fem_given = C.fem_features_from_csv(fem_features, ph) if fem_features else None
-    check_out_file(out, "--out")
+    keep = {"--phantoms": phantoms, "--camera-csv": camera_csv, "--fem-features": fem_features, "--sensor": sensor_json}
+    check_out_file(out, "--out", inputs=keep)
     png = plot or os.path.splitext(out)[0] + ".png"
-    check_out_file(png, "--plot")
+    if os.path.abspath(png) == os.path.abspath(out):
+        raise UserError("--plot", f"{png} is also --out; give the figure another name")
+    check_out_file(png, "--plot", suffixes=figure_suffixes(), inputs=keep)
     if write_frames:
         check_out_dir(write_frames, "--write-frames", allow_existing=True)
     synthetic = camera_csv is None
@@ -566,10 +571,13 @@ def infer(
     correct = _refine_correct(refine, mesh, correct)
     if fem_image is not None and not os.path.isfile(fem_image):
         raise UserError("--fem-image", f"{fem_image}: no such file")
+    if background and not images:
+        raise UserError("--background", "goes with --images (the lesion frames)")
     if out:
         from elastimap.outputs import check_out_file
 
-        check_out_file(out, "--out")
+        keep = {"--model": model_dir, "--calibration": calibration, "--csv": csv_path, "--fem-image": fem_image}
+        check_out_file(out, "--out", suffixes=(".csv", ".json"), inputs={**keep, "--sensor": sensor_path})
     idm = load_identifiability(None if identifiability == "none" else identifiability)
     model = load_model(model_dir)
     if refine and fem_image is not None and model.input_kind != "image":
@@ -725,13 +733,14 @@ def _estimates(
     """The estimates of the one input given (``infer``'s options), and the calibration used (or None)."""
     from .calibration import Calibration
     from .frames import expand
-    from .infer import estimate, estimate_fem_images, estimate_images, estimate_lesions_csv
+    from .infer import estimate, estimate_fem_images, estimate_images, estimate_lesions_csv, fem_image_stack
 
     if fem_image is not None:
         try:
             arr = np.load(fem_image, allow_pickle=False)
         except Exception as exc:
             raise UserError("--fem-image", f"{fem_image}: not a .npy array ({exc})") from None
+        arr = fem_image_stack(arr, model, "--fem-image", fem_image)
         return estimate_fem_images(arr, model, identifiability=idm, threshold=threshold), None
     if calibration is None and not csv_path:
         raise UserError("--calibration", "camera features and frames need the FEM<->camera calibration file")

@@ -53,6 +53,7 @@ from scipy import ndimage
 from elastimap.errors import UserError
 
 MIN_FRAMES = 2  # the scatter needs two frames per stack
+MAX_FRAMES = 1000  # frames per press a command takes (30 s of video at the sensor's 30 frames/s)
 VAR_SMOOTH_PX = 2.0  # Gaussian sigma (camera pixels) over which the frame variance is averaged
 S_MAX = 1.0 - 1e-6  # inverse response: s at or above this is saturated scattering
 

@@ -49,7 +49,7 @@ class FeatureSettings:
     combine: str = "mean-image"
 
     def validate(self) -> FeatureSettings:
-        check_range("threshold", self.threshold, 0)
+        check_range("threshold", self.threshold, 0, 1)  # a fraction of full scale
         check_range("smooth_px", self.smooth_px, 0, 20)
         if not (1 <= self.supersample <= 32):
             raise UserError("supersample", f"must be in [1, 32] (got {self.supersample})")

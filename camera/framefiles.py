@@ -89,8 +89,12 @@ def _grey(a: np.ndarray, p: str, what: str) -> np.ndarray:
 
 
 def _read_tiff(p: str, param: str, shape=None) -> tuple[np.ndarray, int | None]:
+    import logging
+
     import tifffile
 
+    # tifffile logs what it cannot parse; the one error line below names the file and the reason
+    logging.getLogger("tifffile").setLevel(logging.CRITICAL)
     try:
         with tifffile.TiffFile(p) as tif:
             pages, dropped, bits = [], 0, set()

@@ -255,6 +255,26 @@ def _check_input(model, given: str) -> None:
         raise UserError("model", _WRONG_INPUT[given])
 
 
+def fem_image_stack(arr, model, param: str, name: str) -> np.ndarray:
+    """``arr`` read from ``name`` as ``(n, ny, nx)`` (or ``(n, ny*nx)``) finite FEM difference images
+    on the image model's grid; anything else is a :class:`UserError` naming ``param``."""
+    _check_input(model, "image")
+    a = np.asarray(arr)
+    if a.dtype.kind not in "iuf":
+        raise UserError(param, f"{name}: expected a numeric image array (got dtype {a.dtype})")
+    shape = tuple(model.shape) if getattr(model, "shape", None) is not None else None
+    if shape is not None and a.shape == shape:
+        a = a[None]
+    fits = a.ndim == 3 and (shape is None or a.shape[1:] == shape)
+    fits = fits or (shape is not None and a.ndim == 2 and a.shape[1] == shape[0] * shape[1])
+    if not fits or a.shape[0] == 0 or a.size == 0:
+        want = f"{shape[0]} x {shape[1]} (or a stack n x {shape[0]} x {shape[1]})" if shape else "(n, ny, nx)"
+        raise UserError(param, f"{name}: expected the model's image shape {want} (got shape {a.shape})")
+    if not np.isfinite(a).all():
+        raise UserError(param, f"{name}: contains NaN or inf")
+    return a.astype(float)
+
+
 def _ids(ids, n: int, what: str) -> list[str]:
     ids = [str(i + 1) for i in range(n)] if ids is None else [str(i) for i in ids]
     if len(ids) != n:
@@ -632,9 +652,10 @@ def estimate_lesions_csv(
         imgs = []
         for i, f in zip(ids, rows):
             try:
-                imgs.append(np.load(f, allow_pickle=False))
+                arr = np.load(f, allow_pickle=False)
             except Exception as exc:
                 raise UserError("csv", f"{path}: lesion {i}: {f} is not a .npy array ({exc})") from None
+            imgs.append(fem_image_stack(arr, model, "csv", f"{path}: lesion {i}: {f}")[0])
         return estimate_fem_images(np.array(imgs, dtype=float), model, ids, identifiability, threshold)
     cal = _need_cal(calibration)
     if not image_model and not keep_image:

@@ -44,8 +44,11 @@ def inspect_cmd(path, as_json, top):
 @click.option("--n-images", "images", default=12, show_default=True, help="example images in the grid of images.png")
 def plot_cmd(path, out, images):
     """PNG figures: the paper's 3-D scatter per feature, features vs parameters, example images."""
+    from elastimap.outputs import check_inputs_kept
+
     from .plot import plot_all
 
+    check_inputs_kept(out, "--out", PATH=path)  # figures never land among the data
     for f in plot_all(path, out, n_images=images):
         click.echo(str(f))
     return 0
@@ -77,7 +80,7 @@ def export_cmd(path, out, status, images):
     src = Path(path).resolve()
     target = out or str(src.with_suffix(".csv") if src.is_file() else src.with_name(src.name + ".csv"))
     if target != "-":
-        check_out_file(target, "--out")  # before reading
+        check_out_file(target, "--out", inputs={"PATH": path})  # before reading
     df = io.read_samples(path, status=None if status == "all" else status)
     if images:
         df["image"] = [" ".join(f"{x:.6g}" for x in v) if v is not None else "" for v in df["image"]]

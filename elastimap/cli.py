@@ -115,8 +115,10 @@ def demo(out, n, mesh, jobs, sensor_path):
     if sensor_path:
         load(sensor_path)  # a bad description: one line, before anything runs
 
-    if n < 1:
-        raise UserError("n", f"must be >= 1 (got {n})")
+    # the training step's net (3 -> DEMO_HIDDEN -> 3) needs one design sample per 3 weights
+    min_n = ((3 + 1) * DEMO_HIDDEN + (DEMO_HIDDEN + 1) * 3) // 3
+    if n < min_n:
+        raise UserError("n", f"must be >= {min_n}: the demo trains a {DEMO_HIDDEN}-neuron net on the sweep (got {n})")
     check_out_dir(out, "out", allow_existing=True)  # the demo resumes in its folder ...
     _check_demo_folder(out)  # ... and only there
     data = os.path.join(out, "data")
@@ -151,7 +153,7 @@ def demo(out, n, mesh, jobs, sensor_path):
             "--repeats",
             "3",
             "--hidden",
-            "6",
+            str(DEMO_HIDDEN),
             "--data",
             data,
             "--out",
@@ -163,6 +165,7 @@ def demo(out, n, mesh, jobs, sensor_path):
 
 
 DEMO_MARK = "demo.json"
+DEMO_HIDDEN = 6  # hidden neurons of the demo's net (the paper's 25-10 net needs >= 131 samples)
 
 
 def _check_demo_folder(out: str) -> None:

@@ -100,11 +100,23 @@ def sizing_option(
     return click.option(flag, type=Choice(SIZINGS), default=default, show_default=True, help=help, **kw)
 
 
+def _path_kw(default: str | None, required: bool) -> dict:
+    # click >= 8.2 does not enforce required=True on an option given an explicit default=None
+    kw = dict(required=required, show_default=default is not None, callback=_not_empty)
+    return kw if default is None else {**kw, "default": default}
+
+
+def _not_empty(ctx: click.Context, param: click.Parameter, value):
+    """A path option given as '' is refused where it is typed (it would mean the current folder
+    or the default, silently)."""
+    if value is not None and not str(value).strip():
+        raise click.BadParameter("must name a file or folder (got an empty string)", ctx, param)
+    return value
+
+
 def out_option(help: str = "Output directory.", default: str | None = None, required: bool = False, **kw):
     """``--out``: where results go (each command checks it before any work starts)."""
-    return click.option(
-        "--out", "out", default=default, required=required, show_default=default is not None, help=help, **kw
-    )
+    return click.option("--out", "out", help=help, **_path_kw(default, required), **kw)
 
 
 def data_option(
@@ -114,9 +126,7 @@ def data_option(
     **kw,
 ):
     """``--data``: the sample table a command reads (a sweep's output)."""
-    return click.option(
-        "--data", "data", default=default, required=required, show_default=default is not None, help=help, **kw
-    )
+    return click.option("--data", "data", help=help, **_path_kw(default, required), **kw)
 
 
 def no_progress_option(help: str = "Hide the progress bars (the results do not change).", **kw):

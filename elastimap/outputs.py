@@ -50,6 +50,7 @@ __all__ = [
     "check_out_file",
     "check_out_dir",
     "check_inputs_kept",
+    "figure_suffixes",
     "staged_dir",
     "write_dir",
     "publish_dir",
@@ -103,14 +104,28 @@ def _reason(exc: OSError) -> str:
     return exc.strerror or str(exc)
 
 
-def check_out_file(path: str | os.PathLike, param: str, *, create_parents: bool = False) -> Path:
+def check_out_file(
+    path: str | os.PathLike,
+    param: str,
+    *,
+    create_parents: bool = False,
+    suffixes: tuple[str, ...] | None = None,
+    inputs: dict[str, str | os.PathLike | None] | None = None,
+) -> Path:
     """A file about to be written: not a folder, in an existing folder we may write in
-    (with ``create_parents``: in a folder the writer may create).
+    (with ``create_parents``: in a folder the writer may create), with one of ``suffixes``
+    (e.g. :func:`figure_suffixes`) when given, and none of the command's ``inputs``
+    (``{"--flag": path}``) nor inside an input folder (:func:`check_inputs_kept`).
 
     An existing file is allowed (the caller decides whether replacing it is right); a symbolic
     link is written through to its target, so one that leads nowhere (a loop, a missing
     target) is refused here, before the work."""
     p = Path(path)
+    if not str(path):
+        raise UserError(param, "must name a file (got an empty string)")
+    if suffixes and p.suffix.lower() not in suffixes:
+        raise UserError(param, f"{p}: the file name must end in {', '.join(suffixes)}")
+    check_inputs_kept(p, param, **(inputs or {}))
     try:
         is_dir = p.is_dir()
     except OSError as exc:  # a name too long, a loop in a folder above it
@@ -138,11 +153,13 @@ def check_out_dir(
     overwrite: bool = False,
     allow_existing: bool = False,
     hint: str = "--overwrite",
+    marker: str | None = None,
 ) -> Path:
     """A folder about to be filled.
 
     Refused: a file at ``path``; a folder we cannot write in (or create); a folder that
-    already holds files, unless ``overwrite`` (the caller replaces it whole) or
+    already holds files, unless ``overwrite`` (the caller replaces it whole; with ``marker``,
+    only a folder holding that file, the mark of the command's own earlier result) or
     ``allow_existing`` (the caller adds to it, e.g. a resumable sweep)."""
     p = Path(path)
     if os.path.lexists(p) and not p.is_dir():
@@ -152,6 +169,10 @@ def check_out_dir(
             raise UserError(param, f"cannot write in {p}: no write permission")
         if not (overwrite or allow_existing or is_empty_dir(p)):
             raise UserError(param, f"{p} already holds files; give {hint} to replace it, or choose another folder")
+        if overwrite and marker and not is_empty_dir(p) and not (p / marker).is_file():
+            raise UserError(
+                param, f"{p} holds files but no {marker}: {hint} replaces only an earlier result; choose another folder"
+            )
         if overwrite and not os.access(p.parent if str(p.parent) else Path("."), os.W_OK | os.X_OK):
             raise UserError(param, f"cannot replace {p}: no write permission in {p.parent}")
     else:
@@ -165,15 +186,31 @@ def _within(p: Path, folder: Path) -> bool:
 
 
 def check_inputs_kept(out: str | os.PathLike, param: str, **inputs: str | os.PathLike | None) -> None:
-    """Refuse an output folder that is, or holds, one of the command's inputs (``flag=path``):
-    replacing ``out`` whole (``--overwrite``, a staged run) would delete the input data."""
+    """Refuse an output (file or folder) that is, holds or lies inside one of the command's inputs
+    (``flag=path``; ``data``, ``"--data"`` or an argument ``PATH``): replacing ``out`` whole (``--overwrite``, a staged
+    run) would delete the input data, and writing into an input folder would mix the results
+    with the data."""
     for flag, path in inputs.items():
-        if path is not None and os.path.lexists(path) and _within(Path(path), Path(out)):
-            name = "--" + flag.replace("_", "-")
+        if path is None or not str(path) or not os.path.lexists(path):
+            continue
+        name = flag if flag.startswith("-") or flag.isupper() else "--" + flag.replace("_", "-")
+        if _within(Path(path), Path(out)):
             raise UserError(
                 param,
-                f"{out} holds the input {name} {path}; writing the results there would delete it (choose another folder)",
+                f"{out} is or holds the input {name} {path}; writing the results there would replace it "
+                "(choose another name)",
             )
+        if os.path.isdir(path) and _within(Path(out), Path(path)):
+            raise UserError(
+                param, f"{out} lies inside the input {name} {path}; write the results outside the input folder"
+            )
+
+
+def figure_suffixes() -> tuple[str, ...]:
+    """The file-name endings matplotlib can save a figure as (``.png``, ``.pdf``, ``.svg``, ...)."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    return tuple(sorted("." + k for k in FigureCanvasBase.get_supported_filetypes()))
 
 
 # ----------------------------------------------------------------------------- files

@@ -288,6 +288,8 @@ def diagnose_cmd(
     report.check_out(out)
     meas = measured.load(mpath, load_sensor(sensor_path) if sensor_path else None, allow_outside=allow_outside)
     sensor = meas.sensor_description or Sensor().replace(camera=meas.sensor_model().spec())
+    if effects is not None and not effects.strip():
+        raise UserError("--effects", "name at least one effect (leave --effects out for the default candidates)")
     cands = fx.parse_list(effects, table=fx.for_sensor(sensor))
     st = Settings(model_floor=model_floor, alpha=alpha, seed=seed, inverse=not no_inverse, n_train=n_train)
     sim = _sim(cache or default_cache(), mesh or meas.mesh, backend, jobs, no_progress)
@@ -503,6 +505,7 @@ def bench_cmd(n, mesh, jobs, effect, data_mesh, data_interface, data_cache, inve
         raise UserError("data-mesh", f"must be tiny, coarse, default or fine (got {data_mesh!r})")
     if out:
         check_out_file(out, "out")
+    check_out_dir(data_cache or default_cache(), "data_cache", allow_existing=True)  # before any solve
     res = bench.run(
         n, mesh, jobs, effect, data_mesh, data_interface, data_cache or default_cache(), inverse, not full_grid
     )

@@ -68,20 +68,22 @@ def sensor_option(help: str = "Sensor description (TOML; docs/howto/your-own-sen
     return click.option("--sensor", "sensor_path", type=click.Path(dir_okay=False), default=None, help=help)
 
 
-def _check_outputs(image_png: str | None, image_npy: str | None, vtx: str | None) -> None:
+def _check_outputs(image_png: str | None, image_npy: str | None, vtx: str | None, sensor_path: str | None) -> None:
     """Every output location is checked before the solve starts."""
     from elastimap.errors import UserError
-    from elastimap.outputs import check_out_dir, check_out_file
+    from elastimap.outputs import check_out_dir, check_out_file, figure_suffixes
+
+    keep = {"--sensor": sensor_path}
 
     for flag, given in (("--image", image_png), ("--image-npy", image_npy), ("--vtx", vtx)):
         if given is not None and not str(given).strip():
             raise UserError(flag, "must be a path (got '')")
     if image_png:
-        check_out_file(image_png, "--image")
+        check_out_file(image_png, "--image", suffixes=figure_suffixes(), inputs=keep)
     if image_npy:
         if not str(image_npy).endswith(".npy"):
             raise UserError("--image-npy", f"{image_npy}: the file name must end in .npy")
-        check_out_file(image_npy, "--image-npy")
+        check_out_file(image_npy, "--image-npy", inputs=keep)
     if vtx:
         # ADIOS2 writes a folder; onto an existing file it aborts the whole process
         check_out_dir(vtx, "--vtx", allow_existing=True)
@@ -195,7 +197,7 @@ def cli(
     p = from_sensor(
         sensor, Inclusion(d=d, h=h, E=E, nu=lesion_nu), disc, ImageSpec(pixel=pixel, threshold=threshold)
     ).validate()
-    _check_outputs(image_png, image_npy, vtx)  # before the solve, not after it
+    _check_outputs(image_png, image_npy, vtx, sensor_path)  # before the solve, not after it
     from .api import solve
     from .errors import SolverError
 

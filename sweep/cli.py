@@ -200,8 +200,6 @@ def run_cmd(
         sensor=sensor if sensor_path else None,
     )
     plan = make_plan(cfg)
-    if scheduler and jobs != 2:
-        click.echo("note: --jobs is ignored with --scheduler (the cluster decides the workers)", err=True)
     try:
         summary = run(cfg, plan)
     except OSError as exc:  # a full or read-only disk under --out: the landed rows stay, the lock is gone
@@ -213,6 +211,8 @@ def run_cmd(
             "free space and rerun the same command to resume",
         ) from None
     click.echo(format_summary(summary))
+    if scheduler and jobs != 2:  # after the run: a scheduler that does not answer is then the one line
+        click.echo("note: --jobs is ignored with --scheduler (the cluster decides the workers)", err=True)
     if summary.get("aborted"):
         click.echo(f"error: {summary['aborted']}", err=True)
         return 3
@@ -249,7 +249,7 @@ def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solve
     from .jobs import resolve_solver
 
     try:
-        counts = [int(x) for x in jobs_list.split(",") if x.strip()]
+        counts = [int(x) for x in jobs_list.split(",")]
     except ValueError:
         from elastimap.errors import UserError
 

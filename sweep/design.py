@@ -84,10 +84,14 @@ def parse_ranges_text(text: str | None) -> dict[str, str]:
     is an error.
     """
     out: dict[str, str] = {}
-    for part in (text or "").split(","):
+    if text is None:
+        return out
+    if not text.strip():
+        raise UserError("ranges", f"expected NAME=LO:HI[,NAME=LO:HI] (names {', '.join(NAMES)}; got '')")
+    for part in text.split(","):
         part = part.strip()
         if not part:
-            continue
+            raise UserError("ranges", f"{text!r}: an empty item between commas")
         if "=" not in part:
             raise UserError("ranges", f"{part!r}: expected NAME=LO:HI (names {', '.join(NAMES)})")
         name, spec = (x.strip() for x in part.split("=", 1))

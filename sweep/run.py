@@ -66,6 +66,12 @@ MAX_JOBS = 256
 CLOSE_TIMEOUT = 10.0  # s to close the client of an external scheduler (one that may be gone)
 
 
+def _is_host_port(a) -> bool:
+    """``HOST:PORT``, ``:PORT`` or ``[IPv6]:PORT`` with PORT in [0, 65535]."""
+    host, sep, port = str(a).rpartition(":")
+    return bool(sep) and port.isdigit() and int(port) <= 65535 and (":" not in host or host[:1] + host[-1:] == "[]")
+
+
 @dataclass
 class SweepConfig:
     """One sweep's settings; ``ranges`` is a dict (see :func:`elastimap.sweep.design.check_ranges`),
@@ -124,7 +130,7 @@ class SweepConfig:
         ],
         "dashboard": [
             None,
-            Predicate(lambda a: isinstance(a, str) and ":" in a, "an address HOST:PORT or :PORT (e.g. 127.0.0.1:8787)"),
+            Predicate(_is_host_port, "an address HOST:PORT or :PORT with PORT in [0, 65535] (e.g. 127.0.0.1:8787)"),
         ],
         "connect_timeout": [Interval(float, 0, None, closed="neither", unit="s")],
         "worker_wait": [Interval(float, 0, None, closed="neither", unit="s")],

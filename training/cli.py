@@ -162,9 +162,9 @@ def cli(
         raise UserError("device", "cuda requested but no GPU is available")
     if threads < 0:
         raise UserError("threads", f"must be >= 0 (0 = torch's default; got {threads})")
-    check_out_dir(out, "out", overwrite=overwrite)  # before any work; the run is staged below
     if data is not None:
         check_inputs_kept(out, "out", data=data)
+    check_out_dir(out, "out", overwrite=overwrite, marker="run.json")  # before any work; the run is staged below
 
     if synthetic is not None:
         if synthetic < 10:

@@ -92,7 +92,7 @@ class TrainConfig:
         ],
         "dtype": [Options((torch.float32, torch.float64))],
         "mem_bytes": [None, Interval(int, 1, None)],
-        "workers": [Interval(int, 0, None)],
+        "workers": [Interval(int, 0, 256)],
         "n_in": [Interval(int, 1, None)],
     }
 

@@ -22,10 +22,11 @@ import os
 import click
 import numpy as np
 
-from elastimap.cli_util import CONTEXT_SETTINGS, run
+from elastimap.cli_util import CONTEXT_SETTINGS, param_flags, run
 from elastimap.errors import UserError
 
 
+@param_flags({"path": "--data"})
 @click.command(context_settings=CONTEXT_SETTINGS)
 @click.option(
     "--data",
@@ -127,6 +128,10 @@ def main(
             raise UserError("--validate", f"must be hov and/or loocv (got {v!r})")
     if repeats < 1:
         raise UserError("--repeats", f"must be >= 1 (got {repeats})")
+    if save_model:
+        from elastimap.outputs import check_inputs_kept
+
+        check_inputs_kept(save_model, "--save-model", data=data_path)  # the model never lands on its data
     if not 2 <= k <= 50:
         raise UserError("--k", f"must be in [2, 50] (got {k})")
     if not 0 <= image_noise < 1:
