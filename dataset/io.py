@@ -460,7 +460,11 @@ def acquire_lock(out, param: str = "--out") -> Path:
             except FileNotFoundError:
                 pass
             continue
-        with os.fdopen(fd, "w") as fh:
-            json.dump(me, fh)
+        try:
+            with os.fdopen(fd, "w") as fh:
+                json.dump(me, fh)
+        except OSError as exc:  # a full disk: an empty lock would refuse the rerun the error asks for
+            lock.unlink(missing_ok=True)
+            raise UserError(param, f"cannot write the lock {lock}: {exc.strerror or exc}") from None
         return lock
     raise UserError(param, f"cannot take the lock {lock}")

@@ -195,6 +195,24 @@ def test_lock_live_holder_refused_stale_taken_over(tmp_path, capsys):
     assert not (tmp_path / io.LOCK).exists()
 
 
+def test_lock_not_left_when_it_cannot_be_written(tmp_path, monkeypatch):
+    """A full disk while the lock is written: one error line, no empty lock left behind (an empty,
+    fresh lock would refuse the very rerun the error asks for)."""
+    import errno
+
+    from elastimap.errors import UserError
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr(io.json, "dump", full)
+        with pytest.raises(UserError, match="cannot write the lock .*No space left"):
+            io.acquire_lock(tmp_path)
+    assert not (tmp_path / io.LOCK).exists()
+    io.acquire_lock(tmp_path).unlink()  # once space is back the lock is taken at once
+
+
 def test_reader_survives_compaction_running_alongside(tmp_path):
     import threading
 
