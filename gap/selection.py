@@ -71,6 +71,19 @@ def pairs(models: list, rows: list[dict], st: Settings, y0: np.ndarray) -> list:
     return out
 
 
+def both_needed(row: dict) -> bool:
+    """Whether every member of a pair row is needed: its 95 % interval excludes its nominal."""
+    return all(not (lo <= nom <= hi) for (lo, hi), nom in zip(row["magnitude_ci"], row["nominal"]))
+
+
+def _pair_charge(row: dict, st: Settings) -> float:
+    """What a pair row is charged in the ordering beyond its score: the ambiguity margin when both
+    its effects are needed, else infinity (a pair with a member at its nominal is that member's single
+    effect, whose own row stands for it; its larger interpolation error would flatter it)."""
+    row["both_needed"] = both_needed(row)
+    return st.ambiguity_margin if row["both_needed"] else math.inf
+
+
 def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread=None, mf: dict | None = None) -> dict:
     """Calibrated significance, per-candidate held-out fit, ranking (pairs beside the single effects
     when the gap is significant), ambiguity set, outcome and verdict.  ``S0``: the error model (a
@@ -87,12 +100,15 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
     significant = chi0 > thr
     if significant:
         rows += [_row(p, y, S0, F, chi0, thr, sl, sys, spread, coherent) for p in pairs(models, rows, st, y0)]
-        # a pair leads only when it beats every single effect and family by more than the margin
-        rows.sort(key=lambda r: r["score"] + (st.ambiguity_margin if r.get("pair") else 0.0))
+        # a pair leads only when both its effects are needed (each member's interval excludes its
+        # nominal) and it beats every single effect and family by more than the margin
+        rows.sort(key=lambda r: r["score"] + (_pair_charge(r, st) if r.get("pair") else 0.0))
     best = rows[0] if rows else None
     ambiguity, reported, level = [], {}, None
-    if best is not None and mf is not None:
-        level = residual_level(y, best["_model"].predict(best["_theta"]), best["_S"], mf["phi"], mf["disc"])
+    if best is not None and mf is not None:  # what the best leaves (no gap: what the baseline leaves)
+        f, Sb = (best["_model"].predict(best["_theta"]), best["_S"]) if significant else (y0, S0)
+        level = residual_level(y, f, Sb, mf["phi"], mf["disc"])
+        level["of"] = best["effect"] if significant else "baseline"
     if not significant:
         outcome = "no significant gap"
     elif best and best["passes"] and not (level and level["beyond"]):
