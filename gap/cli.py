@@ -239,6 +239,15 @@ def synth_cmd(
 )
 @click.option("--alpha", type=float, default=0.01, show_default=True, help="Level of the calibrated chi-square tests.")
 @click.option(
+    "--model-form",
+    type=click.Choice(["prior", "none"]),
+    default="prior",
+    show_default=True,
+    help="Model-form level in the decision: 'prior' = identify.discrepancy's prior scales (2 % amplitude "
+    "and width of each phantom's bump, 1 % smooth remainder; docs/gap.md, 'Model-form level'); "
+    "'none' = noise and discretisation only (the closed world).",
+)
+@click.option(
     "--seed",
     type=int,
     default=0,
@@ -261,6 +270,7 @@ def diagnose_cmd(
     error_mesh,
     model_floor,
     alpha,
+    model_form,
     seed,
     as_json,
     allow_outside,
@@ -289,7 +299,14 @@ def diagnose_cmd(
     meas = measured.load(mpath, load_sensor(sensor_path) if sensor_path else None, allow_outside=allow_outside)
     sensor = meas.sensor_description or Sensor().replace(camera=meas.sensor_model().spec())
     cands = fx.parse_list(effects, table=fx.for_sensor(sensor))
-    st = Settings(model_floor=model_floor, alpha=alpha, seed=seed, inverse=not no_inverse, n_train=n_train)
+    st = Settings(
+        model_floor=model_floor,
+        alpha=alpha,
+        seed=seed,
+        inverse=not no_inverse,
+        n_train=n_train,
+        model_form=model_form == "prior",
+    )
     sim = _sim(cache or default_cache(), mesh or meas.mesh, backend, jobs, no_progress)
     fine = error_mesh_sim(error_mesh, sim, cache, backend, jobs, no_progress)
     res = diagnose(meas, cands, sim, st, fine)
@@ -370,6 +387,13 @@ def error_mesh_sim(error_mesh, sim, cache, backend, jobs, no_progress):
 )
 @click.option("--inverse", is_flag=True, help="Also retrain the inverse in every trial (slow).")
 @click.option(
+    "--model-form",
+    type=click.Choice(["prior", "none"]),
+    default="prior",
+    show_default=True,
+    help="Model-form level in each trial's decision (as 'gap diagnose --model-form').",
+)
+@click.option(
     "--start", type=int, default=0, show_default=True, help="First trial to run (resume a cut run: same draws)."
 )
 @common
@@ -389,6 +413,7 @@ def selftest_cmd(
     seed,
     phantom_seed,
     inverse,
+    model_form,
     cache,
     backend,
     jobs,
@@ -447,7 +472,7 @@ def selftest_cmd(
         n_phantoms,
         frames,
         seed,
-        Settings(inverse=inverse),
+        Settings(inverse=inverse, model_form=model_form == "prior"),
         data_disc={
             k: v for k, v in (("interface", data_interface), ("sizing", data_sizing)) if v not in ("tied", "fixed")
         }
