@@ -5,10 +5,10 @@
 covariance: noise, the measured discretisation error and the model-form level
 (:mod:`elastimap.gap.model_form`).  The gap is **significant** when the baseline's
 χ²_0 > χ²_N(1 − α); a candidate **passes** when its held-out (leave-one-phantom-out, or 10-fold
-for n > 15) χ² ≤ χ²_N(1 − α).  score_c = held-out χ²_c + k_c ln N.  Pairs of single effects
-(two effects at once, k = 2) are ranked beside them and lead only when they beat every single
-effect and family by more than ``Settings.ambiguity_margin`` (sparse: one effect unless the data
-ask for two).  Every candidate of the leader's kind within the margin of a passing best is
+for n > 15) χ² ≤ χ²_N(1 − α).  score_c = held-out χ²_c + k_c ln N.  When no single effect or
+family passes, pairs of single effects (two effects at once, k = 2) are ranked beside them and
+lead only when both their effects are needed and they beat every single effect and family by more
+than ``Settings.ambiguity_margin`` (sparse: one effect unless the data ask for two).  Every candidate of the leader's kind within the margin of a passing best is
 reported with it (one: **explained**, several: **ambiguous**), provided what the best leaves is at
 the model-form level (its modes' mean within :data:`~elastimap.identify.discrepancy.BEYOND` × τ₀);
 otherwise, or when nothing passes: **unexplained**.  The three verdicts a user acts on
@@ -98,7 +98,7 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
     rows = [_row(mdl, y, S0, F, chi0, thr, sl, sys, spread, coherent) for mdl in models]
     rows.sort(key=lambda r: r["score"])
     significant = chi0 > thr
-    if significant:
+    if significant and not rows[0]["passes"]:  # two effects only where one is not enough
         rows += [_row(p, y, S0, F, chi0, thr, sl, sys, spread, coherent) for p in pairs(models, rows, st, y0)]
         # a pair leads only when both its effects are needed (each member's interval excludes its
         # nominal) and it beats every single effect and family by more than the margin
