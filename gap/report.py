@@ -136,11 +136,12 @@ def verdict_line(res: dict) -> str:
         return f"outcome: explained, ambiguous -- cannot be told apart with these phantoms: {s}{leaves}{tail}"
     top = ev["ranking"][0]
     rank = ", ".join(r["effect"] for r in ev["ranking"][:3])
-    why = (
-        f"its residual's {', '.join(ev['residual_level']['beyond'])} beyond 3 × the prior scale"
-        if ev.get("residual_level") and ev["residual_level"]["beyond"] and top["passes"]
-        else f"held-out reduced χ² {top['reduced_chi2_cv']:.3g}"
-    )
+    if ev.get("residual_level") and ev["residual_level"]["beyond"] and top["passes"]:
+        why = f"its residual's {', '.join(ev['residual_level']['beyond'])} beyond 3 × the prior scale"
+    elif top["passes"] and top["at_grid_edge"]:
+        why = f"its fit pinned at the end of its range, held-out reduced χ² {top['reduced_chi2_cv']:.3g}"
+    else:
+        why = f"held-out reduced χ² {top['reduced_chi2_cv']:.3g}"
     return f"outcome: unexplained: a residual beyond {lvl} remains (best {ev['best']}, {why}; ranking {rank})"
 
 

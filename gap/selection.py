@@ -10,8 +10,10 @@ family passes, pairs of single effects (two effects at once, k = 2) are ranked b
 lead only when both their effects are needed and they beat every single effect and family by more
 than ``Settings.ambiguity_margin`` (sparse: one effect unless the data ask for two).  Every candidate of the leader's kind within the margin of a passing best is
 reported with it (one: **explained**, several: **ambiguous**), provided what the best leaves is at
-the model-form level (its modes' mean within :data:`~elastimap.identify.discrepancy.BEYOND` × τ₀);
-otherwise, or when nothing passes: **unexplained**.  The three verdicts a user acts on
+the model-form level (its modes' mean within :data:`~elastimap.identify.discrepancy.BEYOND` × τ₀)
+and, with the model-form level, its fit is not pinned at the end of its range (a family held at its
+members' grid ends mimicked an inclusion's shape on a variant world); otherwise, or when nothing
+passes: **unexplained**.  The three verdicts a user acts on
 (:func:`verdict`): "no gap beyond the model-form level", "explained", "unexplained".
 """
 
@@ -111,7 +113,7 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
         level["of"] = best["effect"] if significant else "baseline"
     if not significant:
         outcome = "no significant gap"
-    elif best and best["passes"] and not (level and level["beyond"]):
+    elif best and best["passes"] and not (level and level["beyond"]) and not (mf is not None and best["at_grid_edge"]):
         kind = bool(best.get("pair"))
         close = [r for r in rows if bool(r.get("pair")) == kind and r["score"] - best["score"] <= st.ambiguity_margin]
         reported = reported_set(close, rows)
