@@ -160,3 +160,21 @@ def test_an_effect_beyond_the_level_is_explained_and_one_outside_the_library_is_
     meas, _ = synth.synthesize(dhe, [(fx.get("skin"), 40.0)], FormToy(), frames=6, seed=4)
     ev = diagnose(meas, fx.parse_list(CANDS), toy, Settings(inverse=False, bootstrap=20))["evaluation"]
     assert ev["outcome"] == "unexplained" and ev["verdict"] == "unexplained" and ev["winner"] is None
+
+
+def test_a_winner_pinned_at_the_end_of_its_range_is_no_confident_answer():
+    """SYNTHETIC sweeps: the data ask for friction a little beyond its grid (1.05 where the grid ends
+    at 1), so the fit is pinned at the end and still passes.  With the model-form level that is no
+    confident answer ("unexplained", the pinned fit first in the ranking); the closed-world budget
+    keeps its old rule (explained, "end of its range")."""
+    rng, y0, dirs, models = _world(seed=1)
+    y = y0 + 1.05 * dirs["friction"] + 0.3 * rng.standard_normal(y0.shape)
+    S = np.ones_like(y0)
+    sl = {"profile": slice(0, y0.shape[1])}
+    mf = level({"profile": y0}, None, ["profile"], 0.5)
+    ev = evaluate(y, S, y0, models, y0.shape[0], Settings(), sl, mf=mf)
+    top = ev["ranking"][0]
+    assert top["effect"] == "friction" and top["at_grid_edge"] and top["passes"]
+    assert ev["outcome"] == "unexplained" and ev["verdict"] == "unexplained"
+    ev = evaluate(y, S, y0, models, y0.shape[0], Settings(), sl)
+    assert ev["outcome"] == "explained" and ev["winner"] == "friction"
