@@ -140,6 +140,8 @@ def verdict_line(res: dict) -> str:
         why = f"its residual's {', '.join(ev['residual_level']['beyond'])} beyond 3 × the prior scale"
     elif top["passes"] and top["at_grid_edge"]:
         why = f"its fit pinned at the end of its range, held-out reduced χ² {top['reduced_chi2_cv']:.3g}"
+    elif top["passes"] and ev.get("model_form"):
+        why = f"its 95 % interval holds its nominal (no effect), held-out reduced χ² {top['reduced_chi2_cv']:.3g}"
     else:
         why = f"held-out reduced χ² {top['reduced_chi2_cv']:.3g}"
     return f"outcome: unexplained: a residual beyond {lvl} remains (best {ev['best']}, {why}; ranking {rank})"

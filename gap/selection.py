@@ -11,9 +11,8 @@ lead only when both their effects are needed and they beat every single effect a
 than ``Settings.ambiguity_margin`` (sparse: one effect unless the data ask for two).  Every candidate of the leader's kind within the margin of a passing best is
 reported with it (one: **explained**, several: **ambiguous**), provided what the best leaves is at
 the model-form level (its modes' mean within :data:`~elastimap.identify.discrepancy.BEYOND` × τ₀)
-and, with the model-form level, its fit is not pinned at the end of its range (a family held at its
-members' grid ends mimicked an inclusion's shape on a variant world); otherwise, or when nothing
-passes: **unexplained**.  The three verdicts a user acts on
+and, with the model-form level, its fit is neither pinned at the end of its range nor holding its
+nominal within its interval (:func:`_unsure`); otherwise, or when nothing passes: **unexplained**.  The three verdicts a user acts on
 (:func:`verdict`): "no gap beyond the model-form level", "explained", "unexplained".
 """
 
@@ -86,6 +85,18 @@ def _pair_charge(row: dict, st: Settings) -> float:
     return st.ambiguity_margin if row["both_needed"] else math.inf
 
 
+def needed(row: dict) -> bool:
+    """Whether a row's fit needs its effect: some member's 95 % interval excludes its nominal."""
+    return any(not (lo <= nom <= hi) for (lo, hi), nom in zip(row["magnitude_ci"], row["nominal"]))
+
+
+def _unsure(row: dict) -> bool:
+    """With the model-form level, a passing best is no confident answer when its fit is pinned at the
+    end of its range, or when its interval holds the nominal (no effect) although the gap is
+    significant (chosen on variant worlds: docs/gap.md, 'Out-of-library safety')."""
+    return bool(row["at_grid_edge"]) or not needed(row)
+
+
 def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread=None, mf: dict | None = None) -> dict:
     """Calibrated significance, per-candidate held-out fit, ranking (pairs beside the single effects
     when the gap is significant), ambiguity set, outcome and verdict.  ``S0``: the error model (a
@@ -113,7 +124,7 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
         level["of"] = best["effect"] if significant else "baseline"
     if not significant:
         outcome = "no significant gap"
-    elif best and best["passes"] and not (level and level["beyond"]) and not (mf is not None and best["at_grid_edge"]):
+    elif best and best["passes"] and not (level and level["beyond"]) and not (mf is not None and _unsure(best)):
         kind = bool(best.get("pair"))
         close = [r for r in rows if bool(r.get("pair")) == kind and r["score"] - best["score"] <= st.ambiguity_margin]
         reported = reported_set(close, rows)

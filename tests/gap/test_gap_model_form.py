@@ -178,3 +178,17 @@ def test_a_winner_pinned_at_the_end_of_its_range_is_no_confident_answer():
     assert ev["outcome"] == "unexplained" and ev["verdict"] == "unexplained"
     ev = evaluate(y, S, y0, models, y0.shape[0], Settings(), sl)
     assert ev["outcome"] == "explained" and ev["winner"] == "friction"
+
+
+def test_a_winner_whose_interval_holds_no_effect_is_no_confident_answer():
+    """The out-of-library rules on ranking rows: an answer is sure only when some member's interval
+    excludes its nominal (the effect is needed) and its fit is not pinned at the end of its range."""
+    from elastimap.gap.selection import _unsure, needed
+
+    row = {"magnitude_ci": [[2.8, 8.7]], "nominal": [5.0], "at_grid_edge": False}  # skin around its nominal
+    assert not needed(row) and _unsure(row)
+    row = {"magnitude_ci": [[6.36, 6.97]], "nominal": [5.0], "at_grid_edge": False}  # background_E off 5
+    assert needed(row) and not _unsure(row)
+    assert _unsure(dict(row, at_grid_edge=True))
+    fam = {"magnitude_ci": [[190.0, 210.0], [120.0, 180.0]], "nominal": [300.0, 150.0], "at_grid_edge": False}
+    assert needed(fam) and not _unsure(fam)  # a family: one member off is enough
