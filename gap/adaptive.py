@@ -92,6 +92,9 @@ def refine(
 def _targets(rows: list[dict], byname: dict, st: Settings):
     """The magnitudes this round adds: ({effect: magnitudes to solve}, {effect: magnitudes to
     render}, the effects of the rows that could be reported), from the ranking (best first)."""
+    # pairs of effects (gap/selection.py) are refined only when one leads: the rest of them are the
+    # single effects' own rows again (a member near its nominal), which refine those rows' fits
+    rows = [r for i, r in enumerate(rows) if not r.get("pair") or i == 0]
     best = rows[0]["score"]
     want: dict[str, list[float]] = {}
     rendered: dict[str, list[float]] = {}  # no-solve effects: rendered exactly at the fit

@@ -97,7 +97,9 @@ def from_diagnosis(res: dict, sensor: Sensor) -> tuple[Adoption, str]:
     outcome = ev["outcome"]
     if outcome != "explained":
         why = {
-            "no significant gap": "no significant gap: nothing to adopt",
+            "no significant gap": "no gap beyond the model-form level: nothing to adopt"
+            if ev.get("model_form")
+            else "no significant gap: nothing to adopt",
             "ambiguous": "ambiguous (" + ", ".join(ev.get("ambiguous_set", [])) + "): nothing adopted; "
             "the report says which measurement separates them",
             "unexplained": "unexplained by the candidates: nothing to adopt",
@@ -105,8 +107,12 @@ def from_diagnosis(res: dict, sensor: Sensor) -> tuple[Adoption, str]:
         return Adoption(sensor), why
     winner = ev["winner"]
     row = ev["reported"][winner]
-    name = winner if winner in fx.FAMILIES and len(row["magnitude"]) > 1 else row["members"][0]
-    a = adopt(sensor, {name: [float(m) for m in row["magnitude"]]})
+    if row["_row"].get("pair"):  # two effects at once: each at its fitted magnitude
+        spec = {n: [float(m)] for n, m in zip(row["members"], row["magnitude"])}
+    else:
+        name = winner if winner in fx.FAMILIES and len(row["magnitude"]) > 1 else row["members"][0]
+        spec = {name: [float(m) for m in row["magnitude"]]}
+    a = adopt(sensor, spec)
     for r in a.rows:
         ci = row["magnitude_ci"][row["members"].index(r["effect"])] if r["effect"] in row["members"] else None
         r["magnitude_ci"] = ci

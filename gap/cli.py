@@ -239,6 +239,15 @@ def synth_cmd(
 )
 @click.option("--alpha", type=float, default=0.01, show_default=True, help="Level of the calibrated chi-square tests.")
 @click.option(
+    "--model-form",
+    type=click.Choice(["prior", "none"]),
+    default="prior",
+    show_default=True,
+    help="Model-form level in the decision: 'prior' = identify.discrepancy's prior scales (2 % amplitude "
+    "and width of each phantom's bump, 1 % smooth remainder; docs/gap.md, 'Model-form level'); "
+    "'none' = noise and discretisation only (the closed world).",
+)
+@click.option(
     "--seed",
     type=int,
     default=0,
@@ -261,6 +270,7 @@ def diagnose_cmd(
     error_mesh,
     model_floor,
     alpha,
+    model_form,
     seed,
     as_json,
     allow_outside,
@@ -291,7 +301,14 @@ def diagnose_cmd(
     if effects is not None and not effects.strip():
         raise UserError("--effects", "name at least one effect (leave --effects out for the default candidates)")
     cands = fx.parse_list(effects, table=fx.for_sensor(sensor))
-    st = Settings(model_floor=model_floor, alpha=alpha, seed=seed, inverse=not no_inverse, n_train=n_train)
+    st = Settings(
+        model_floor=model_floor,
+        alpha=alpha,
+        seed=seed,
+        inverse=not no_inverse,
+        n_train=n_train,
+        model_form=model_form == "prior",
+    )
     sim = _sim(cache or default_cache(), mesh or meas.mesh, backend, jobs, no_progress)
     fine = error_mesh_sim(error_mesh, sim, cache, backend, jobs, no_progress)
     res = diagnose(meas, cands, sim, st, fine)
@@ -372,6 +389,13 @@ def error_mesh_sim(error_mesh, sim, cache, backend, jobs, no_progress):
 )
 @click.option("--inverse", is_flag=True, help="Also retrain the inverse in every trial (slow).")
 @click.option(
+    "--model-form",
+    type=click.Choice(["prior", "none"]),
+    default="prior",
+    show_default=True,
+    help="Model-form level in each trial's decision (as 'gap diagnose --model-form').",
+)
+@click.option(
     "--start", type=int, default=0, show_default=True, help="First trial to run (resume a cut run: same draws)."
 )
 @common
@@ -391,6 +415,7 @@ def selftest_cmd(
     seed,
     phantom_seed,
     inverse,
+    model_form,
     cache,
     backend,
     jobs,
@@ -449,7 +474,7 @@ def selftest_cmd(
         n_phantoms,
         frames,
         seed,
-        Settings(inverse=inverse),
+        Settings(inverse=inverse, model_form=model_form == "prior"),
         data_disc={
             k: v for k, v in (("interface", data_interface), ("sizing", data_sizing)) if v not in ("tied", "fixed")
         }

@@ -74,14 +74,15 @@ from . import effects as fx
 from .adaptive import refine
 from .candidates import Candidate, needs_solves, phantom_params, simulate_candidates
 from .fit_models import build_models, systematic_modes
-from .measured import Measured, measured_views
+from .measured import FEATURES, Measured, measured_views
 from .model_error import model_error, richardson_correct
+from .model_form import Metric, level
 from .propose import propose
 from .selection import evaluate
 from .settings import Settings
 from .shrink import shrink_features, shrink_inverse
 from .simulate import Simulator
-from .views import cat, decision_views, slices
+from .views import EDGES, cat, decision_views, slices
 from .where import image_residual, view_baselines, where
 
 
@@ -115,10 +116,13 @@ def diagnose(
     mv = measured_views(meas, sensor, settings)
     names = decision_views(mv)
     y, y0, S0 = _decision_data(mv, V0, me, names)
+    mf = level(V0, D0, names, sensor.pixel_mm) if st.model_form else None
+    S = Metric(S0, mf["M"] if mf else None)
 
     def evaluate_now():
         modes, spread = systematic_modes(me, names)
-        return evaluate(y, S0, y0, build_models(C, names, V0, st), meas.n, st, slices(V0, names), modes, spread)
+        models = build_models(C, names, V0, st)
+        return evaluate(y, S, y0, models, meas.n, st, slices(V0, names), modes, spread, mf)
 
     with _timed(timing, "refine"):
         ref_solves, ref_rounds, ref_fine_seconds = (
@@ -129,6 +133,7 @@ def diagnose(
     with _timed(timing, "rest"):
         _annotate_ranking(ev["ranking"], C)
         ev["views"] = names
+        _locate_level(ev.get("residual_level"), meas, V0, names)
         ev["by_view"] = view_baselines(mv, V0, me, st)
         found = _findings(meas, ev, mv, V0, D0, me, names, y, y0, sim, sensor, settings, st)
     solve_seconds = {"baseline": base_seconds}
@@ -212,6 +217,24 @@ def _findings(meas: Measured, ev: dict, mv, V0, D0, me: dict, names, y, y0, sim,
             wh["image_after"] = image_residual(meas, Dw, me, sensor)
             wh["image_after"]["effect"] = best["effect"]
     return {"where": wh, "shrink_features": shrink, "shrink_inverse": inv, "proposal": prop}
+
+
+def _locate_level(lv: dict | None, meas: Measured, V0: dict, names) -> None:
+    """Name where the best candidate's whitened residual is largest: the phantom and the view's
+    quantity (an annulus of the profile in mm, a feature, the force)."""
+    if not lv:
+        return
+    i, q = lv["largest"]["phantom"], lv["largest"]["quantity"]
+    for k, sl in slices(V0, names).items():
+        if sl.start <= q < sl.stop:
+            j = q - sl.start
+            what = (
+                f"annulus {EDGES[j]:g}–{EDGES[j + 1]:g} mm"
+                if k == "profile"
+                else (FEATURES[j] if k == "features" else "plate force")
+            )
+            lv["where"] = f"phantom {meas.ids[i]}, {what} ({lv['largest']['z']:+.2g} sd)"
+            lv["largest"]["phantom_id"] = meas.ids[i]
 
 
 def _annotate_ranking(rows: list[dict], C: list[Candidate]) -> None:

@@ -21,6 +21,7 @@ from scipy.optimize import brentq, minimize_scalar
 
 from . import effects as fx
 from .candidates import Candidate, Interp, fit_range
+from .model_form import Metric
 from .settings import Settings
 from .views import cat
 
@@ -40,7 +41,10 @@ def _interp_error(g: np.ndarray, Y: np.ndarray) -> np.ndarray:
 
 
 def chi2(y, f, S) -> np.ndarray:
-    """Σ_q ((y − f) / S)² over the last axis."""
+    """Σ_q ((y − f) / S)² over the last axis; ``S`` a :class:`~elastimap.gap.model_form.Metric`
+    (the model-form level's covariance): Σ_q (L⁻¹ (y − f))_q², per phantom."""
+    if isinstance(S, Metric):
+        return S.chi2(y, f)
     return np.sum(((y - f) / S) ** 2, axis=-1)
 
 
@@ -341,6 +345,23 @@ class Composed:
 
     def units(self):
         return [m.unit for m in self.members]
+
+
+class Pair(Composed):
+    """Two single effects at once (k = 2): f(θ_a, θ_b) = y0 + (f_a(θ_a) − y0) + (f_b(θ_b) − y0),
+    composed to first order from their own sweeps like a family (interactions neglected), each held
+    inside its effect's grid; named ``a+b``."""
+
+    def __init__(self, a: Single, b: Single, y0: np.ndarray):
+        super().__init__(fx.Family(f"{a.name}+{b.name}", (a.name, b.name), "two effects at once"), [a, b], y0, None)
+        self.stage = a.stage if a.stage == b.stage else f"{a.stage}+{b.stage}"
+
+    def predict(self, th, names=None) -> np.ndarray:
+        if names is None or list(names) == self.names:
+            return super().predict(th)
+        a = self.members[0]
+        base = a.predict([a.effect.nominal], names)  # the baseline in those views
+        return base + sum(m.predict(t, names) - base for m, t in zip(self.members, th))
 
 
 def build_models(C: list[Candidate], names, V0: dict, st: Settings) -> list:

@@ -20,6 +20,7 @@ from elastimap.errors import UserError
 
 from .candidates import phantom_params
 from .measured import Measured
+from .model_form import Metric
 from .settings import Settings
 from .simulate import Simulator, base_params
 from .synth import phantom_design
@@ -27,8 +28,18 @@ from .views import cat, sim_views, slices
 
 
 def _sep(fa, fb, S) -> float:
-    """sqrt(Σ ((fa − fb) / S)²): the separation of two predictions in noise units."""
+    """sqrt(Σ ((fa − fb) / S)²): the separation of two predictions in noise units (``S`` a
+    :class:`~elastimap.gap.model_form.Metric`: the whitened difference, so what the model-form level
+    can absorb does not count)."""
+    if isinstance(S, Metric):
+        return float(np.sqrt(np.sum(S.z(np.asarray(fa) - np.asarray(fb)) ** 2)))
     return float(np.sqrt(np.sum(((fa - fb) / S) ** 2)))
+
+
+def _sd(S) -> np.ndarray:
+    """Per-quantity sd of an error model (a new measurement's noise units: the marginal sd, the
+    model-form level's included)."""
+    return S.sd if isinstance(S, Metric) else S
 
 
 def propose(
@@ -66,7 +77,7 @@ def _by_force(out: dict, mods, pairs, meas: Measured, V0: dict, me: dict, names,
 
 def _by_second_depth(out: dict, mods, pairs, meas: Measured, V0: dict, names, sim, sensor, settings, st) -> None:
     """(ii) a second indentation depth, solved at the phantoms with the largest signal."""
-    S_all = mods[0][3]
+    S_all = _sd(mods[0][3])
     idx = np.argsort(-V0["features"][:, 0])[: st.propose_phantoms]
     p0 = [phantom_params(meas, sim.mesh)[i] for i in idx]
     pd_ = [p.replace(loading=dataclasses.replace(p.loading, delta=st.second_delta)) for p in p0]
@@ -97,7 +108,7 @@ def _by_new_phantoms(out: dict, mods, pairs, meas: Measured, V0: dict, names, si
     """(iii) new phantoms: linear emulator of z = (f - y0)/S over (ln d, h, ln E), the best
     proposal checked with solves."""
     y0 = cat(V0, names)
-    S = mods[0][3]
+    S = _sd(mods[0][3])
     X = np.column_stack([np.ones(meas.n), np.log(meas.dhe[:, 0]), meas.dhe[:, 1], np.log(meas.dhe[:, 2])])
     Z = [(m.predict(t) - y0) / S for _, m, t, _ in mods]
     coefs = [np.linalg.lstsq(X, z, rcond=None)[0] for z in Z]

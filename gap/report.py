@@ -53,6 +53,10 @@ def summary(res: dict) -> dict:
     top = ev["ranking"][0] if ev["ranking"] else None
     out = {
         "outcome": ev["outcome"],
+        "verdict": ev.get("verdict", ev["outcome"]),
+        "verdict_line": verdict_line(res),
+        "model_form": ev.get("model_form_note"),
+        "residual_level": ev.get("residual_level"),
         "winner": ev["winner"],
         "ambiguous_set": ev["ambiguous_set"],
         "best_candidate": ev["best"],
@@ -93,17 +97,33 @@ def summary(res: dict) -> dict:
     return out
 
 
+def _level(ev: dict) -> str:
+    """What the best candidate leaves, in model-form units (the residual's modes and where it is largest)."""
+    lv = ev.get("residual_level")
+    if not lv:
+        return ""
+    parts = ", ".join(
+        f"{m} {100 * a:+.2g} ± {100 * b:.2g} %" for m, a, b in zip(lv["modes"], lv["beta_mean"], lv["beta_sd"])
+    )
+    where = lv.get("where", "")
+    return f"residual {parts} (mean ± sd over the phantoms)" + (f", largest at {where}" if where else "")
+
+
 def verdict_line(res: dict) -> str:
+    """The one-line verdict: one of the three outcomes (docs/gap.md, 'The three outcomes')."""
     ev = res["evaluation"]
     rows = ev.get("reported", {})
     o = ev["outcome"]
+    mf = ev.get("model_form", False)
+    lvl = "the model-form level" if mf else "the model's own tolerance"
     if o == "no significant gap":
         return (
-            f"outcome: no significant gap beyond the model's own tolerance (χ² {ev['chi2_baseline']:.4g} ≤ "
+            f"outcome: no gap beyond {lvl} (χ² {ev['chi2_baseline']:.4g} ≤ "
             f"{ev['chi2_threshold']:.4g} at α = {ev['alpha']:g})"
         )
+    leaves = f"; leaving a {_level(ev)} -- at {lvl}" if _level(ev) else ""
     if o == "explained":
-        return f"outcome: explained by {ev['winner']}: {_mag(rows[ev['winner']])}"
+        return f"outcome: explained by {ev['winner']}: {_mag(rows[ev['winner']])}{leaves}"
     if o == "ambiguous":
         s = "; ".join(f"{n}: {_mag(rows[n])}" for n in ev["ambiguous_set"])
         p = res.get("proposal") or {}
@@ -113,8 +133,18 @@ def verdict_line(res: dict) -> str:
             if rec
             else ""
         )
-        return f"outcome: ambiguous, cannot be told apart with these phantoms: {s}{tail}"
-    return f"outcome: unexplained by the candidates (best {ev['best']}, held-out reduced χ² {ev['ranking'][0]['reduced_chi2_cv']:.3g})"
+        return f"outcome: explained, ambiguous -- cannot be told apart with these phantoms: {s}{leaves}{tail}"
+    top = ev["ranking"][0]
+    rank = ", ".join(r["effect"] for r in ev["ranking"][:3])
+    if ev.get("residual_level") and ev["residual_level"]["beyond"] and top["passes"]:
+        why = f"its residual's {', '.join(ev['residual_level']['beyond'])} beyond 3 × the prior scale"
+    elif top["passes"] and top["at_grid_edge"]:
+        why = f"its fit pinned at the end of its range, held-out reduced χ² {top['reduced_chi2_cv']:.3g}"
+    elif top["passes"] and ev.get("model_form"):
+        why = f"its 95 % interval holds its nominal (no effect), held-out reduced χ² {top['reduced_chi2_cv']:.3g}"
+    else:
+        why = f"held-out reduced χ² {top['reduced_chi2_cv']:.3g}"
+    return f"outcome: unexplained: a residual beyond {lvl} remains (best {ev['best']}, {why}; ranking {rank})"
 
 
 REPORT_FILES = ("diagnosis.json", "report.md", "report.html", "adopted-sensor.toml")  # the last: gap/adopt.py
@@ -187,7 +217,10 @@ def markdown(res: dict, figs: list[str]) -> str:
         f"Baseline χ² = {ev['chi2_baseline']:.4g} over N = {ev['n_terms']} terms (reduced {ev['reduced_chi2_baseline']:.3g}, "
         f"p = {ev['p_value_baseline']:.3g}); the calibrated threshold χ²_N(1 − α) at α = {ev['alpha']:g} is "
         f"{ev['chi2_threshold']:.4g}.  A candidate passes when its held-out χ² is below the same threshold; "
-        f"candidates within Δscore ≤ {res['settings']['ambiguity_margin']:g} of a passing best cannot be told apart."
+        f"candidates within Δscore ≤ {res['settings']['ambiguity_margin']:g} of a passing best cannot be told apart; "
+        f"a pair of effects leads only when it beats every single effect by more than that.  "
+        f"Error budget: noise, the measured discretisation error and the model-form level -- "
+        f"{ev.get('model_form_note', 'none')}."
     )
     if ev["outcome"] == "ambiguous" and res.get("proposal"):
         L += _md_proposal(res["proposal"])

@@ -1,11 +1,19 @@
 """Selection: the calibrated tests, the held-out ranking, and which effects are reported
-(docs/gap.md, 'Method').
+(docs/gap.md, 'Method' and 'Model-form level').
 
-χ²_c = Σ_iq ((y − f_c)/S)² over N = n · Q terms.  The gap is **significant** when the baseline's
+χ²_c = Σ_i |L_i⁻¹ (y_i − f_c,i)|² over N = n · Q terms, Σ_i = L_i L_iᵀ the phantom's error
+covariance: noise, the measured discretisation error and the model-form level
+(:mod:`elastimap.gap.model_form`).  The gap is **significant** when the baseline's
 χ²_0 > χ²_N(1 − α); a candidate **passes** when its held-out (leave-one-phantom-out, or 10-fold
-for n > 15) χ² ≤ χ²_N(1 − α).  score_c = held-out χ²_c + k_c ln N; every candidate within
-``Settings.ambiguity_margin`` of a passing best is reported with it (one: **explained**,
-several: **ambiguous**); nothing passes: **unexplained**.
+for n > 15) χ² ≤ χ²_N(1 − α).  score_c = held-out χ²_c + k_c ln N.  When no single effect or
+family passes, pairs of single effects (two effects at once, k = 2) are ranked beside them and
+lead only when both their effects are needed and they beat every single effect and family by more
+than ``Settings.ambiguity_margin`` (sparse: one effect unless the data ask for two).  Every candidate of the leader's kind within the margin of a passing best is
+reported with it (one: **explained**, several: **ambiguous**), provided what the best leaves is at
+the model-form level (its modes' mean within :data:`~elastimap.identify.discrepancy.BEYOND` × τ₀)
+and, with the model-form level, its fit is neither pinned at the end of its range nor holding its
+nominal within its interval (:func:`_unsure`); otherwise, or when nothing passes: **unexplained**.  The three verdicts a user acts on
+(:func:`verdict`): "no gap beyond the model-form level", "explained", "unexplained".
 """
 
 from __future__ import annotations
@@ -16,8 +24,26 @@ import numpy as np
 from scipy import stats
 
 from . import effects as fx
-from .fit_models import chi2, jackknife_interval, with_systematic
+from .fit_models import Pair, Single, chi2, jackknife_interval, with_systematic
+from .model_form import Metric, residual_level
 from .settings import Settings
+
+#: the three verdicts of a diagnosis (docs/gap.md, 'The three outcomes'), by the outcome they summarise
+VERDICTS = {
+    "no significant gap": "no gap beyond the model-form level",
+    "explained": "explained",
+    "ambiguous": "explained",
+    "unexplained": "unexplained",
+}
+
+
+def verdict(outcome: str, model_form: bool = True) -> str:
+    """The verdict a user acts on for an ``outcome`` ("no significant gap", "explained",
+    "ambiguous", "unexplained"); an ambiguous set is explained by one of its members."""
+    v = VERDICTS[outcome]
+    if not model_form and outcome == "no significant gap":
+        return "no gap beyond the model's own tolerance"
+    return v
 
 
 def folds(n: int, seed: int) -> list[np.ndarray]:
@@ -28,21 +54,80 @@ def folds(n: int, seed: int) -> list[np.ndarray]:
     return [perm[k::10] for k in range(10)]
 
 
-def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread=None) -> dict:
-    """Calibrated significance, per-candidate held-out fit, ranking, ambiguity set, outcome."""
+def pairs(models: list, rows: list[dict], st: Settings, y0: np.ndarray) -> list:
+    """Two effects at once: a :class:`~elastimap.gap.fit_models.Pair` of every two of the best
+    ``st.pair_top`` single effects by score (not two members of one family, which the family holds)."""
+    if st.pair_top < 2:
+        return []
+    byname = {m.name: m for m in models if isinstance(m, Single)}
+    top = [r["effect"] for r in rows if r["effect"] in byname][: st.pair_top]
+    fam_of = {n: f.name for f in fx.FAMILIES.values() for n in f.members}
+    out = []
+    for a in range(len(top)):
+        for b in range(a + 1, len(top)):
+            na, nb = top[a], top[b]
+            if fam_of.get(na) is not None and fam_of.get(na) == fam_of.get(nb):
+                continue
+            out.append(Pair(byname[na], byname[nb], y0))
+    return out
+
+
+def both_needed(row: dict) -> bool:
+    """Whether every member of a pair row is needed: its 95 % interval excludes its nominal."""
+    return all(not (lo <= nom <= hi) for (lo, hi), nom in zip(row["magnitude_ci"], row["nominal"]))
+
+
+def _pair_charge(row: dict, st: Settings) -> float:
+    """What a pair row is charged in the ordering beyond its score: the ambiguity margin when both
+    its effects are needed, else infinity (a pair with a member at its nominal is that member's single
+    effect, whose own row stands for it; its larger interpolation error would flatter it)."""
+    row["both_needed"] = both_needed(row)
+    return st.ambiguity_margin if row["both_needed"] else math.inf
+
+
+def needed(row: dict) -> bool:
+    """Whether a row's fit needs its effect: some member's 95 % interval excludes its nominal."""
+    return any(not (lo <= nom <= hi) for (lo, hi), nom in zip(row["magnitude_ci"], row["nominal"]))
+
+
+def _unsure(row: dict) -> bool:
+    """With the model-form level, a passing best is no confident answer when its fit is pinned at the
+    end of its range, or when its interval holds the nominal (no effect) although the gap is
+    significant (chosen on variant worlds: docs/gap.md, 'Out-of-library safety')."""
+    return bool(row["at_grid_edge"]) or not needed(row)
+
+
+def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread=None, mf: dict | None = None) -> dict:
+    """Calibrated significance, per-candidate held-out fit, ranking (pairs beside the single effects
+    when the gap is significant), ambiguity set, outcome and verdict.  ``S0``: the error model (a
+    :class:`~elastimap.gap.model_form.Metric`, or the diagonal sd); ``mf``: the model-form level
+    (:func:`elastimap.gap.model_form.level`; None: the closed-world budget)."""
+    S0 = S0 if isinstance(S0, Metric) else Metric(S0)
     N = y.size
     chi0 = float(chi2(y, y0, S0).sum())
     thr = float(stats.chi2.ppf(1 - st.alpha, N))
     F = folds(n, st.seed)
-    rows = [_row(mdl, y, S0, F, chi0, thr, sl, sys, spread) for mdl in models]
+    coherent = mf["coherent"] if mf else []
+    rows = [_row(mdl, y, S0, F, chi0, thr, sl, sys, spread, coherent) for mdl in models]
     rows.sort(key=lambda r: r["score"])
     significant = chi0 > thr
+    if significant and not rows[0]["passes"]:  # two effects only where one is not enough
+        rows += [_row(p, y, S0, F, chi0, thr, sl, sys, spread, coherent) for p in pairs(models, rows, st, y0)]
+        # a pair leads only when both its effects are needed (each member's interval excludes its
+        # nominal) and it beats every single effect and family by more than the margin
+        rows.sort(key=lambda r: r["score"] + (_pair_charge(r, st) if r.get("pair") else 0.0))
     best = rows[0] if rows else None
-    ambiguity, reported = [], {}
+    ambiguity, reported, level = [], {}, None
+    if best is not None and mf is not None:  # what the best leaves (no gap: what the baseline leaves)
+        f, Sb = (best["_model"].predict(best["_theta"]), best["_S"]) if significant else (y0, S0)
+        level = residual_level(y, f, Sb, mf["phi"], mf["disc"])
+        level["of"] = best["effect"] if significant else "baseline"
     if not significant:
         outcome = "no significant gap"
-    elif best and best["passes"]:
-        reported = reported_set([r for r in rows if r["score"] - best["score"] <= st.ambiguity_margin], rows)
+    elif best and best["passes"] and not (level and level["beyond"]) and not (mf is not None and _unsure(best)):
+        kind = bool(best.get("pair"))
+        close = [r for r in rows if bool(r.get("pair")) == kind and r["score"] - best["score"] <= st.ambiguity_margin]
+        reported = reported_set(close, rows)
         ambiguity = list(reported)
         outcome = "explained" if len(ambiguity) == 1 else "ambiguous"
     else:
@@ -57,8 +142,12 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
         "reduced_chi2_baseline": chi0 / N,
         "p_value_baseline": float(stats.chi2.sf(chi0, N)),
         "significant": significant,
+        "model_form": mf is not None,
+        "model_form_note": mf["note"] if mf else "none: noise and the measured discretisation error only",
         "ranking": rows,
         "outcome": outcome,
+        "verdict": verdict(outcome, mf is not None),
+        "residual_level": level,
         "winner": ambiguity[0] if outcome == "explained" else None,
         "ambiguous_set": ambiguity if outcome in ("explained", "ambiguous") else [],
         "reported": reported,
@@ -67,12 +156,12 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
     }
 
 
-def _row(mdl, y, S0, F: list, chi0: float, thr: float, sl: dict, sys, spread) -> dict:
+def _row(mdl, y, S0: Metric, F: list, chi0: float, thr: float, sl: dict, sys, spread, coherent=()) -> dict:
     """One candidate's ranking row: its held-out χ² over the folds ``F``, its fit on every
-    phantom with the likelihood interval (widened by the model-error modes ``sys``) and the
-    jackknife interval, and its score."""
+    phantom with the likelihood interval (widened by the model-error modes ``sys`` and the coherent
+    model-form modes ``coherent``) and the jackknife interval, and its score."""
     n, N = y.shape[0], y.size
-    S = np.sqrt(S0**2 + mdl.interp**2)
+    S = S0.plus(mdl.interp)
     pred = np.zeros_like(y)
     th_folds = []
     for te in F:
@@ -80,17 +169,19 @@ def _row(mdl, y, S0, F: list, chi0: float, thr: float, sl: dict, sys, spread) ->
         th_k = mdl.fit(y, S, tr)
         th_folds.append(th_k)
         pred[te] = mdl.predict(th_k)[te]
-    held = ((y - pred) / S) ** 2
+    held = S.z(y - pred) ** 2
     ssr_cv = float(held.sum())
     th = mdl.fit(y, S, np.arange(n))
     own = mdl.own_delta(th) if (spread is not None and hasattr(mdl, "own_delta")) else None
-    modes = sys if own is None else [sys[0], spread * own]
+    mesh = [] if sys is None else (list(sys) if isinstance(sys, (list, tuple)) else [sys])
+    modes = (mesh if own is None else [mesh[0], spread * own]) + list(coherent)
     ci_lik = with_systematic(mdl, y, S, th, mdl.interval(y, S, th), modes)
     ci_jk = jackknife_interval(mdl, th, np.array(th_folds))
     ci = [(min(a[0], b[0]), max(a[1], b[1])) for a, b in zip(ci_lik, ci_jk)] if ci_jk else ci_lik
     f = mdl.predict(th)
     return {
         "effect": mdl.name,
+        "pair": isinstance(mdl, Pair),
         "members": mdl.labels,
         "stage": mdl.stage,
         "unit": mdl.unit,

@@ -12,7 +12,8 @@ is what makes the data's discretisation differ from the error mesh's, by 0.02–
 O3 and the plate force of two bench phantoms.)  Trials cycle through
 three kinds:
 
-* **none** -- no effect at all: the right answer is "no significant gap";
+* **none** -- no effect at all: the right answer is "no significant gap" (with the model-form
+  level: "no gap beyond the model-form level");
 * **in** -- one effect drawn from the candidates, magnitude uniform over its ``blind`` range:
   right when the reported set (the winner, or the ambiguity set) holds it; its fitted magnitude
   is scored against its 95 % interval;
@@ -197,18 +198,28 @@ def _score(rec: dict, truth: dict, ev: dict) -> None:
     if truth["kind"] == "none":
         rec["right"] = ev["outcome"] == "no significant gap"
     elif truth["kind"] == "in":
-        rec["right"] = truth["effect"] in ev["ambiguous_set"]
-        rec["via"] = ev["reported"][truth["effect"]]["via"] if rec["right"] else None
+        # the reported set holds the truth: by name, or as a member of a reported pair of effects
+        pair = next(
+            (
+                n
+                for n in ev["ambiguous_set"]
+                if n in rows and rows[n].get("pair") and truth["effect"] in rows[n]["members"]
+            ),
+            None,
+        )
+        rec["right"] = truth["effect"] in ev["ambiguous_set"] or pair is not None
+        rec["via"] = (pair or ev["reported"][truth["effect"]]["via"]) if rec["right"] else None
         rec["family_member_right"] = rec["right"] or any(
             family_isolates(rows[n], truth["effect"]) for n in ev["ambiguous_set"] if n in rows
         )
-        # the magnitude scored: the reported one (a family's member fit when reported via it)
-        r = ev["reported"][truth["effect"]] if rec["right"] else rows.get(truth["effect"])
+        # the magnitude scored: the reported one (a family's member fit when reported via it, a pair's member)
+        r = ev["reported"][truth["effect"]] if rec["right"] and pair is None else rows.get(pair or truth["effect"])
         if r is not None:
-            rec["fitted_magnitude"], rec["fitted_ci"] = r["magnitude"][0], r["magnitude_ci"][0]
-            rec["ci_covers_truth"] = bool(r["magnitude_ci"][0][0] <= truth["magnitude"] <= r["magnitude_ci"][0][1])
+            j = r["members"].index(truth["effect"]) if pair is not None else 0
+            rec["fitted_magnitude"], rec["fitted_ci"] = r["magnitude"][j], r["magnitude_ci"][j]
+            rec["ci_covers_truth"] = bool(r["magnitude_ci"][j][0] <= truth["magnitude"] <= r["magnitude_ci"][j][1])
             eff = fx.get(truth["effect"])
-            rec["magnitude_error_rel_effect"] = abs(r["magnitude"][0] - truth["magnitude"]) / abs(
+            rec["magnitude_error_rel_effect"] = abs(r["magnitude"][j] - truth["magnitude"]) / abs(
                 truth["magnitude"] - eff.nominal
             )
     else:

@@ -12,6 +12,7 @@ from elastimap.errors import UserError
 
 from .candidates import phantom_params
 from .measured import FEATURES, Measured
+from .model_form import Metric
 from .settings import Settings
 from .simulate import Simulator, base_params
 from .views import sim_views
@@ -29,8 +30,9 @@ def shrink_features(meas: Measured, y, y0, S, mdl, names) -> dict:
     tr, te = withheld_split(meas.n)
     th = mdl.fit(y, S, tr)
     f = mdl.predict(th)
-    before = float(np.sqrt(np.mean(((y[te] - y0[te]) / S[te]) ** 2)))
-    after = float(np.sqrt(np.mean(((y[te] - f[te]) / S[te]) ** 2)))
+    z = S[te].z if isinstance(S, Metric) else (lambda r: r / S[te])
+    before = float(np.sqrt(np.mean(z(y[te] - y0[te]) ** 2)))
+    after = float(np.sqrt(np.mean(z(y[te] - f[te]) ** 2)))
     ff = mdl.predict(th, ["features"])
     yf = meas.y
     y0f = mdl.predict(np.asarray(mdl.nominal(), float), ["features"])

@@ -54,6 +54,16 @@ def radial_profile(D: np.ndarray, pixel_mm: float, edges=EDGES) -> np.ndarray:
     return np.array([D[b].mean() if b.any() else 0.0 for b in _bins(D.shape, pixel_mm, edges)])
 
 
+def profile_matrix(shape, pixel_mm: float, edges=EDGES) -> np.ndarray:
+    """(K, p) the annulus means of :func:`radial_profile` as a matrix on the flattened image
+    (``profile = B @ D.ravel()``)."""
+    out = []
+    for b in _bins(shape, pixel_mm, edges):
+        row = b.ravel().astype(float)
+        out.append(row / row.sum() if row.any() else row)
+    return np.array(out)
+
+
 def profile_se(se_map: np.ndarray, pixel_mm: float, smooth_px: float, edges=EDGES) -> np.ndarray:
     """(K,) standard error of :func:`radial_profile` from a per-pixel standard-error map."""
     se_map = np.asarray(se_map, float)
