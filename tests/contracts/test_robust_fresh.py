@@ -15,6 +15,8 @@ from test_bad_inputs import BIN, assert_refused, invoke, make_calibration, make_
 
 SOLVE = ["--d", "8", "--h", "8", "--E", "60", "--mesh", "tiny"]
 SWEEP = ["run", "--mesh", "tiny", "--n", "1", "--jobs", "1", "--no-progress"]
+INFER = ["--model", "{A}/model", "--calibration", "{A}/cal.json"]
+FEATS = ["--features", "1", "2", "3", "--identifiability", "none"]
 TRAIN = ["--synthetic", "30", "--repeats", "1", "--epochs", "2", "--hidden", "3", "--no-progress"]
 
 
@@ -51,94 +53,11 @@ def assets(tmp_path_factory):
 
 CASES = [
     # an output onto one of the command's inputs (it was overwritten)
-    (
-        "infer",
-        [
-            "--model",
-            "{A}/model",
-            "--calibration",
-            "{A}/cal.json",
-            "--features",
-            "1",
-            "2",
-            "3",
-            "--identifiability",
-            "none",
-            "--out",
-            "{A}/cal.json",
-        ],
-        "--out",
-    ),  # fmt: skip
-    (
-        "infer",
-        [
-            "--model",
-            "{A}/model",
-            "--calibration",
-            "{A}/cal.json",
-            "--csv",
-            "{A}/feats.csv",
-            "--identifiability",
-            "none",
-            "--out",
-            "{A}/feats.csv",
-        ],
-        "--out",
-    ),  # fmt: skip
-    (
-        "infer",
-        [
-            "--model",
-            "{A}/model",
-            "--calibration",
-            "{A}/cal.json",
-            "--features",
-            "1",
-            "2",
-            "3",
-            "--identifiability",
-            "none",
-            "--out",
-            "{A}/model/model.json",
-        ],
-        "--out",
-    ),  # fmt: skip
-    (
-        "infer",
-        [
-            "--model",
-            "{A}/model",
-            "--calibration",
-            "{A}/cal.json",
-            "--features",
-            "1",
-            "2",
-            "3",
-            "--identifiability",
-            "none",
-            "--out",
-            "r.txt",
-        ],
-        "--out",
-    ),  # fmt: skip
-    (
-        "infer",
-        [
-            "--model",
-            "{A}/model",
-            "--calibration",
-            "{A}/cal.json",
-            "--features",
-            "1",
-            "2",
-            "3",
-            "--identifiability",
-            "none",
-            "--background",
-            "x*.png",
-        ],
-        "--background",
-    ),  # fmt: skip
+    ("infer", [*INFER, *FEATS, "--out", "{A}/cal.json"], "--out"),
+    ("infer", [*INFER, "--csv", "{A}/feats.csv", "--identifiability", "none", "--out", "{A}/feats.csv"], "--out"),
+    ("infer", [*INFER, *FEATS, "--out", "{A}/model/model.json"], "--out"),
+    ("infer", [*INFER, *FEATS, "--out", "r.txt"], "--out"),
+    ("infer", [*INFER, *FEATS, "--background", "x*.png"], "--background"),
     (
         "calibrate",
         ["--mesh", "tiny", "--frames", "2", "--phantoms", "{A}/phantoms.csv", "--out", "{A}/phantoms.csv"],
