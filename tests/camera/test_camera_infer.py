@@ -259,34 +259,15 @@ def test_end_to_end_with_trained_ensemble_cli_images(chain, tmp_path):
     assert row["E"] == pytest.approx(E, rel=0.35), row
 
 
-def test_image_model_from_synthetic_camera_frames(chain, tmp_path):
+def test_image_model_from_synthetic_camera_frames(chain, toy_image_model, tmp_path):
     """Camera frames -> difference image on the FEM grid (inverse sensor response) -> image model.
     TOY forward model, SYNTHETIC camera; the image model is a small SCG ensemble (ln E target) on
     the toy table's images.  Tolerance 25 % on d and h (a 2-member, 8-neuron net).  The real-FEM
     version of this chain is tests/camera/test_camera_frames_fem.py."""
     from elastimap.camera.infer import difference_of_frames
-    from elastimap.identify.image_model import fit_image_model
-    from elastimap.identify.measure import Data
-    from elastimap.training.experiment import TrainConfig
+    from elastimap.identify.image_model import ImageModel
 
-    tab = toy_table()
-    res = [toy_solve(*row[:3]) for row in tab]
-    n = len(tab)
-    data = Data(
-        theta=tab[:, :3],
-        features=tab[:, 3:],
-        images=np.stack([r.image.ravel() for r in res]),
-        dforce=np.zeros(n),
-        force_ref=np.ones(n),
-        tags=np.array(["design"] * n),
-        ids=np.array([f"t{i:04d}" for i in range(n)]),
-        shape=res[0].image.shape,
-        pixel=res[0].pixel,
-        source="TOY",
-    )
-    model = fit_image_model(
-        data, "scg", repeats=2, cfg=TrainConfig(hidden=((8, "tansig"),), epochs=200, progress=False), k=6, log_e=True
-    )
+    model = ImageModel.load(str(toy_image_model))  # the module's toy image model (fixture below)
     m = chain["sensor"].replace(seed=5)
     r = toy_solve(*TRUTH)
     F, B = render_pair(m, r.image_raw, r.image, r.pixel, 30)
