@@ -586,18 +586,16 @@ def infer(
 
     from .calibration import Calibration
 
-    cal = given_cal = Calibration.load(calibration) if calibration is not None else None
+    cal = Calibration.load(calibration) if calibration is not None else None
     sensor = _check_sensor(load_sensor(sensor_path) if sensor_path else None, model, cal)
     sensor_hash = None if sensor is None else sensor.hash()
-    ests, cal = _estimates(
-        model, idm, threshold, refine, calibration, feats, images, background, csv_path, fem_image, allow_outside
-    )
+    ests = _estimates(model, idm, threshold, refine, cal, feats, images, background, csv_path, fem_image, allow_outside)
     if refine:
         from tqdm import tqdm
 
         from .infer import refine_estimates
 
-        form = _model_form(given_cal, mesh, correct)  # also for --fem-image given with --calibration
+        form = _model_form(cal, mesh, correct)  # also for --fem-image given with --calibration
         with tqdm(total=len(ests), desc="refine (FEM fit)", unit="lesion", disable=len(ests) < 2) as bar:
             ests = refine_estimates(
                 ests,
@@ -631,7 +629,7 @@ def infer(
                 + "   "
                 + ("ok" if r["ok"] else f"FLAGGED: {r['flags']}")
             )
-    if cal is not None and cal.synthetic:
+    if cal is not None and fem_image is None and cal.synthetic:
         click.echo("note: the calibration was made with the SYNTHETIC camera", err=True)
 
 
@@ -727,11 +725,8 @@ def _refine_correct(refine: bool, mesh: str, correct: str) -> str | None:
     return None
 
 
-def _estimates(
-    model, idm, threshold, refine, calibration, feats, images, background, csv_path, fem_image, allow_outside=False
-):
-    """The estimates of the one input given (``infer``'s options), and the calibration used (or None)."""
-    from .calibration import Calibration
+def _estimates(model, idm, threshold, refine, cal, feats, images, background, csv_path, fem_image, allow_outside=False):
+    """The estimates of the one input given (``infer``'s options); ``cal`` the loaded calibration or None."""
     from .frames import expand
     from .infer import estimate, estimate_fem_images, estimate_images, estimate_lesions_csv, fem_image_stack
 
@@ -741,21 +736,19 @@ def _estimates(
         except Exception as exc:
             raise UserError("--fem-image", f"{fem_image}: not a .npy array ({exc})") from None
         arr = fem_image_stack(arr, model, "--fem-image", fem_image)
-        return estimate_fem_images(arr, model, identifiability=idm, threshold=threshold), None
-    if calibration is None and not csv_path:
+        return estimate_fem_images(arr, model, identifiability=idm, threshold=threshold)
+    if cal is None and not csv_path:
         raise UserError("--calibration", "camera features and frames need the FEM<->camera calibration file")
-    cal = Calibration.load(calibration) if calibration is not None else None
     if images:
         if not background:
             raise UserError("background", "--images needs --background frames (the same press without the lesion)")
         im, bg = expand(list(images)), expand(list(background), param="background")
-        return [estimate_images(im, bg, cal, model, "1", idm, threshold, keep_image=refine)], cal
+        return [estimate_images(im, bg, cal, model, "1", idm, threshold, keep_image=refine)]
     if csv_path:
-        ests = estimate_lesions_csv(
+        return estimate_lesions_csv(
             csv_path, cal, model, idm, threshold, keep_image=refine, allow_outside=allow_outside
         )
-        return ests, cal
-    return estimate(np.array([feats]), cal, model, ["1"], idm, threshold), cal
+    return estimate(np.array([feats]), cal, model, ["1"], idm, threshold)
 
 
 def _write_rows(rows: list[dict], out: str) -> None:
