@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from elastimap.identify.discrepancy import Discrepancy, envelope, modes
+from elastimap.identify.discrepancy import Discrepancy, correlation_factors, envelope, modes
 
 from .views import profile_matrix
 
@@ -115,12 +115,7 @@ def _profile_parts(D: np.ndarray, pixel: float, disc: Discrepancy) -> tuple[np.n
     W = B * (disc.rho * envelope(D))[None, :]  # (K, p): B A
     if disc.ell > 0:
         ny, nx = D.shape
-
-        def k1(n):
-            t = np.arange(n) * pixel
-            return np.exp(-0.5 * ((t[:, None] - t[None, :]) / disc.ell) ** 2)
-
-        Ky, Kx = k1(ny), k1(nx)
+        Ky, Kx = correlation_factors(D.shape, pixel, disc.ell)
         KW = np.array([(Ky @ w.reshape(ny, nx) @ Kx.T).ravel() for w in W])
         R = W @ KW.T
     else:

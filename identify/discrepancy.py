@@ -142,18 +142,24 @@ def envelope(m: np.ndarray, px: float = ENVELOPE_PX) -> np.ndarray:
     return ndimage.gaussian_filter(np.abs(np.asarray(m, dtype=float)), px, mode="nearest").ravel()
 
 
-def correlation(shape, pixel: float, ell: float) -> np.ndarray:
-    """``K_ℓ`` ``(p, p)``: the Gaussian correlation ``exp(−|x − x'|² / 2ℓ²)`` of the pixel centres (mm) of
-    an image of ``shape`` (flattened like ``ravel``; the identity for ``ℓ = 0``)."""
-    ny, nx = shape
-    if ell <= 0:
-        return np.eye(ny * nx)
+def correlation_factors(shape, pixel: float, ell: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(K_y, K_x)``: the Kronecker factors of :func:`correlation` (``ℓ > 0``), the 1-D Gaussian
+    correlations of the rows' and the columns' pixel centres (mm): ``K_ℓ = K_y ⊗ K_x``."""
 
     def k1(n):
         t = np.arange(n) * pixel
         return np.exp(-0.5 * ((t[:, None] - t[None, :]) / ell) ** 2)
 
-    return np.kron(k1(ny), k1(nx))
+    ny, nx = shape
+    return k1(ny), k1(nx)
+
+
+def correlation(shape, pixel: float, ell: float) -> np.ndarray:
+    """``K_ℓ`` ``(p, p)``: the Gaussian correlation ``exp(−|x − x'|² / 2ℓ²)`` of the pixel centres (mm) of
+    an image of ``shape`` (flattened like ``ravel``; the identity for ``ℓ = 0``)."""
+    if ell <= 0:
+        return np.eye(shape[0] * shape[1])
+    return np.kron(*correlation_factors(shape, pixel, ell))
 
 
 class Whitener:
