@@ -383,20 +383,7 @@ def calibrate(
         results = [fem_fn(float(x["d"]), float(x["h"]), float(x["E"])) for _, x in ph.iterrows()]
         fem = fem_given if fem_given is not None else np.array([[r.O1, r.O2, r.O3] for r in results])
     defl = C.deflection_calibration(results, pairs, model)
-    disc = None
-    if level is not None:
-        click.echo(f"learning the model-form error for the --refine fit at level {level} ...", err=True)
-        disc = C.learn_discrepancy(ph, pairs, defl, level, model, description=desc)
-        if report_loo:
-
-            def said(name, row):
-                click.echo(
-                    f"  {name:14s} fit {row['theta'][0]:.3g}/{row['theta'][1]:.3g}/{row['theta'][2]:.3g}  "
-                    f"covered d/h/E {'/'.join('yes' if c else 'no' for c in row['covered'])}",
-                    err=True,
-                )
-
-            disc["fits"] = C.loo_fits(disc, ph, pairs, defl, model, said, description=desc)
+    disc = None if level is None else _learn_model_form(ph, pairs, defl, level, model, desc, report_loo)
     cal = C.fit_calibration(
         ph,
         fem,
@@ -424,6 +411,26 @@ def calibrate(
     write_or_fallback(lambda f: C.plot_calibration(cal, f), png, "--plot")
     click.echo(cal.report())
     click.echo(f"wrote {out} and {png}")
+
+
+def _learn_model_form(ph, pairs, defl: dict, level: str, model, desc, report_loo: bool) -> dict:
+    """``calibrate``'s model-form record (:func:`elastimap.camera.calibration.learn_discrepancy`) for the
+    --refine fit at ``level``, with the leave-one-phantom-out fits printed when ``report_loo``."""
+    from . import calibration as C
+
+    click.echo(f"learning the model-form error for the --refine fit at level {level} ...", err=True)
+    disc = C.learn_discrepancy(ph, pairs, defl, level, model, description=desc)
+    if report_loo:
+
+        def said(name, row):
+            click.echo(
+                f"  {name:14s} fit {row['theta'][0]:.3g}/{row['theta'][1]:.3g}/{row['theta'][2]:.3g}  "
+                f"covered d/h/E {'/'.join('yes' if c else 'no' for c in row['covered'])}",
+                err=True,
+            )
+
+        disc["fits"] = C.loo_fits(disc, ph, pairs, defl, model, said, description=desc)
+    return disc
 
 
 # -------------------------------------------------------------------- infer
