@@ -45,7 +45,7 @@ def _seconds(walltime: str) -> int:
     return ((days * 24 + h) * 60 + m) * 60 + s
 
 
-def main() -> int:
+def _parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--workers", type=int, default=8, help="dask workers = SLURM jobs (one core each), kept up")
     ap.add_argument("--partition", default=None, help="SLURM partition (queue)")
@@ -73,23 +73,14 @@ def main() -> int:
         default=None,
         help="network interface the scheduler and the workers listen on (e.g. ib0; lo keeps a one-node check on loopback)",
     )
-    args = ap.parse_args()
-    if args.workers < 1 or not 0 <= args.wait_workers <= args.workers:
-        print("error: --workers must be >= 1 and --wait-workers in [0, --workers]", file=sys.stderr)
-        return 2
-    try:
-        wall = _seconds(args.walltime)
-    except ValueError:
-        print(f"error: --walltime: expected [D-]HH:MM:SS (got {args.walltime!r})", file=sys.stderr)
-        return 2
+    return ap.parse_args()
 
+
+def _make_cluster(args: argparse.Namespace, wall: int):
+    """The SLURMCluster: one job per worker, one core and one thread each, retiring before its
+    wall time; its scheduler (in this process) has the sweep's retry policy."""
     from dask_jobqueue import SLURMCluster  # optional extra 'slurm' (make slurm)
 
-    stop = []
-    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
-    address_file = os.path.abspath(args.address_file)
-    if os.path.exists(address_file):
-        os.unlink(address_file)  # an earlier run's address must never be read as this one's
     # Retire each worker before SLURM kills it: a gracefully closing worker hands its task back
     # without counting it as a crash.  Leave 1/6 of the wall time (at most 5 min) and stagger by
     # up to a third of that, so that workers started together do not all leave together.
@@ -107,7 +98,7 @@ def main() -> int:
             "distributed.deploy.lost-worker-timeout": "5s",
         }
     )
-    cluster = SLURMCluster(
+    return SLURMCluster(
         cores=1,
         processes=1,
         interface=args.interface,
@@ -126,7 +117,78 @@ def main() -> int:
         worker_extra_args=lifetime,
         scheduler_options={"dashboard_address": args.dashboard},
     )
+
+
+def _write_address(cluster, address_file: str) -> None:
+    """The scheduler's address into ``address_file``, atomically (a reader never sees half a line)."""
+    tmp = f"{address_file}.{os.getpid()}.tmp"
+    with open(tmp, "w") as fh:
+        fh.write(cluster.scheduler_address + "\n")
+    os.replace(tmp, address_file)
+
+
+def _remove_address(cluster, address_file: str) -> None:
+    """Remove ``address_file`` if it still holds this cluster's address (not a later run's)."""
+    try:
+        with open(address_file) as fh:
+            mine = fh.read().strip() == cluster.scheduler_address
+        if mine:
+            os.unlink(address_file)
+    except FileNotFoundError:
+        pass
+
+
+def _keep_up(cluster, args: argparse.Namespace, address_file: str, stop: list) -> None:
+    """Keep the cluster at ``--workers`` jobs until ``stop`` is set (SIGTERM) or Ctrl-C; write
+    the address once ``--wait-workers`` have joined."""
+    t0 = time.monotonic()
+    last_note = t0
+    jobs = {}  # worker name -> SLURM job id
     written = False
+    while not stop:
+        n = len(cluster.scheduler_info.get("workers", {}))
+        if not written and n >= args.wait_workers:
+            _write_address(cluster, address_file)
+            written = True
+            print(
+                f"{n} worker(s) joined after {time.monotonic() - t0:.0f} s; address written to "
+                f"{address_file}; Ctrl-C or SIGTERM stops the cluster",
+                flush=True,
+            )
+        # SpecCluster forgets a worker whose job ended (after distributed.deploy.lost-worker-timeout)
+        # but keeps it in its spec: scale() opens a new job for every such name.
+        cluster.scale(jobs=args.workers)
+        time.sleep(5)
+        now = time.monotonic()
+        new = {name: getattr(w, "job_id", None) for name, w in list(cluster.workers.items())}
+        replaced = [f"job {jobs[k]} by job {v}" for k, v in new.items() if jobs.get(k) and v and v != jobs[k]]
+        jobs.update({k: v for k, v in new.items() if v})
+        if replaced or now - last_note > 300:
+            print(
+                f"[{time.strftime('%H:%M:%S')}] {n} worker(s) joined, {len(new)} job(s)"
+                + (f"; replaced {', '.join(replaced)}" if replaced else ""),
+                flush=True,
+            )
+            last_note = now
+
+
+def main() -> int:
+    args = _parse_args()
+    if args.workers < 1 or not 0 <= args.wait_workers <= args.workers:
+        print("error: --workers must be >= 1 and --wait-workers in [0, --workers]", file=sys.stderr)
+        return 2
+    try:
+        wall = _seconds(args.walltime)
+    except ValueError:
+        print(f"error: --walltime: expected [D-]HH:MM:SS (got {args.walltime!r})", file=sys.stderr)
+        return 2
+
+    stop = []
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    address_file = os.path.abspath(args.address_file)
+    if os.path.exists(address_file):
+        os.unlink(address_file)  # an earlier run's address must never be read as this one's
+    cluster = _make_cluster(args, wall)
     try:
         cluster.scale(jobs=args.workers)
         print(
@@ -135,48 +197,11 @@ def main() -> int:
             flush=True,
         )
         print(cluster.job_script(), flush=True)
-        t0 = time.monotonic()
-        last_note = t0
-        jobs = {}  # worker name -> SLURM job id
-        while not stop:
-            n = len(cluster.scheduler_info.get("workers", {}))
-            if not written and n >= args.wait_workers:
-                tmp = f"{address_file}.{os.getpid()}.tmp"
-                with open(tmp, "w") as fh:
-                    fh.write(cluster.scheduler_address + "\n")
-                os.replace(tmp, address_file)
-                written = True
-                print(
-                    f"{n} worker(s) joined after {time.monotonic() - t0:.0f} s; address written to "
-                    f"{address_file}; Ctrl-C or SIGTERM stops the cluster",
-                    flush=True,
-                )
-            # SpecCluster forgets a worker whose job ended (after distributed.deploy.lost-worker-timeout)
-            # but keeps it in its spec: scale() opens a new job for every such name.
-            cluster.scale(jobs=args.workers)
-            time.sleep(5)
-            now = time.monotonic()
-            new = {name: getattr(w, "job_id", None) for name, w in list(cluster.workers.items())}
-            replaced = [f"job {jobs[k]} by job {v}" for k, v in new.items() if jobs.get(k) and v and v != jobs[k]]
-            jobs.update({k: v for k, v in new.items() if v})
-            if replaced or now - last_note > 300:
-                print(
-                    f"[{time.strftime('%H:%M:%S')}] {n} worker(s) joined, {len(new)} job(s)"
-                    + (f"; replaced {', '.join(replaced)}" if replaced else ""),
-                    flush=True,
-                )
-                last_note = now
+        _keep_up(cluster, args, address_file, stop)
     except KeyboardInterrupt:
         pass
     finally:
-        if written:
-            try:
-                with open(address_file) as fh:
-                    mine = fh.read().strip() == cluster.scheduler_address
-                if mine:
-                    os.unlink(address_file)
-            except FileNotFoundError:
-                pass
+        _remove_address(cluster, address_file)  # only if it holds this cluster's address
         cluster.close()
     return 0
 
