@@ -144,28 +144,12 @@ def stored_surrogate(path: str):
     return IdentifiabilityMap(base.d, base.u, base.E, rel, base.thickness, origin), origin
 
 
-def compute(
-    data_path: str,
-    out: str,
-    k: int = 16,
-    fd_scale: bool = True,
-    fd_grid: str | None = None,
-    install: str | None = None,
-    surrogate_from: str | None = None,
-    command: str = "python -m elastimap.workflows.studies.crbmap",
-):
-    """Fit (or, with ``surrogate_from``, read), bound and plot (see the module docstring); with
-    ``install`` (a path) the map is also written there by :func:`install_map`.  ``command`` is
-    recorded in the map's ``source``.  Returns ``{set: (n_grid, 3)}`` relative std."""
-    if install:
-        check_install_target(install)
-    from elastimap.identify.bounds import Surrogate, crb_relstd, fisher, grid
+def _surrogate(data_path: str, k: int, surrogate_from: str | None, T: np.ndarray, noise):
+    """The raw surrogate bounds on the grid ``T`` (``{set: (n, 3)}``), a function giving them at
+    other points, and where they came from: a GP surrogate fitted to the sweep ``data_path``, or
+    the ``<set>_surrogate`` entries of the map file ``surrogate_from`` interpolated."""
+    from elastimap.identify.bounds import Surrogate, crb_relstd, fisher
 
-    from .fd_check import NOISE as noise
-    from .fd_check import POINTS, fd_crb
-
-    T, (ds, us, Es) = grid()
-    P = np.array(POINTS)
     if surrogate_from:
         smap, sur_src = stored_surrogate(surrogate_from)
         R0 = {s: smap.relstd[s].reshape(-1, 3) for s in SETS}
@@ -175,99 +159,90 @@ def compute(
 
         sur_src = f"{sur_src} (raw bounds read from {surrogate_from}, interpolated at the FD points)"
         click.echo(f"surrogate: {sur_src}")
-    else:
-        from elastimap.identify.measure import load
+        return R0, sur_bounds, sur_src
+    from elastimap.identify.measure import load
 
-        data = load(data_path)
-        sur = Surrogate.fit(data, k=k, progress=True)
-        F = fisher(sur.jacobians(T), noise)
-        R0 = {s: crb_relstd(F[s], T) for s in SETS}
+    data = load(data_path)
+    sur = Surrogate.fit(data, k=k, progress=True)
+    F = fisher(sur.jacobians(T), noise)
+    R0 = {s: crb_relstd(F[s], T) for s in SETS}
 
-        def sur_bounds(th: np.ndarray) -> dict:
-            Fs = fisher(sur.jacobians(th), noise)
-            return {s: crb_relstd(Fs[s], th) for s in SETS}
+    def sur_bounds(th: np.ndarray) -> dict:
+        Fs = fisher(sur.jacobians(th), noise)
+        return {s: crb_relstd(Fs[s], th) for s in SETS}
 
-        sur_src = f"GP surrogate (k={k}) of {data_path} ({data.n} rows)"
-    Rp = sur_bounds(P)
+    return R0, sur_bounds, f"GP surrogate (k={k}) of {data_path} ({data.n} rows)"
+
+
+def _echo_bounds(label: str, points, R: dict) -> None:
+    """One line per set and point: the Cramér–Rao relative std of d, h, E in %."""
     for s in SETS:
-        for th, rr in zip(POINTS, Rp[s] * 100):
+        for th, rr in zip(points, R[s] * 100):
             click.echo(
-                f"surrogate d={th[0]:g} h={th[1]:g} E={th[2]:g}  {s:12s} CRB rel std %: "
+                f"{label} d={th[0]:g} h={th[1]:g} E={th[2]:g}  {s:12s} CRB rel std %: "
                 f"d {rr[0]:.3g}  h {rr[1]:.3g}  E {rr[2]:.3g}"
             )
-    scale = {s: np.ones(3) for s in SETS}
-    npts = 0
-    use_grid = fd_scale and bool(fd_grid) and os.path.isfile(fd_grid)
-    if fd_scale:
-        fd = fd_crb(POINTS, noise)
-        for s in SETS:
-            for th, rr in zip(POINTS, fd[s] * 100):
-                click.echo(
-                    f"real FD   d={th[0]:g} h={th[1]:g} E={th[2]:g}  {s:12s} CRB rel std %: "
-                    f"d {rr[0]:.3g}  h {rr[1]:.3g}  E {rr[2]:.3g}"
-                )
-        ratios = {s: [fd[s] / Rp[s]] for s in SETS}
-        npts = len(POINTS)
-        if use_grid:
-            from .mapcheck import fd_bounds
 
-            tg, fdg = fd_bounds(fd_grid)
-            Rg = sur_bounds(tg)
-            for s in SETS:
-                ratios[s].append(fdg[s] / Rg[s])
-            npts += tg.shape[0]
-            fd_geometry = fd_grid_geometry(fd_grid)
-            click.echo(f"FD grid {fd_grid} ({fd_geometry}): {tg.shape[0]} more points")
+
+def _fd_scales(Rp: dict, sur_bounds, noise, fd_grid: str | None) -> dict:
+    """Real-FD bounds at fd_check's points (and at the ``fd_grid`` points when that file exists)
+    and, per set and output, the conservative scale max(1, q90 of real-FD / surrogate) over them.
+    Returns ``scale``, ``npts``, ``fd`` (at fd_check's points) and, with a grid, ``grid``
+    (its points, its FD bounds) and ``geometry`` (the grid's)."""
+    from .fd_check import POINTS, fd_crb
+
+    fd = fd_crb(POINTS, noise)
+    _echo_bounds("real FD  ", POINTS, fd)
+    ratios = {s: [fd[s] / Rp[s]] for s in SETS}
+    out = {"fd": fd, "npts": len(POINTS), "grid": None, "geometry": None}
+    if fd_grid and os.path.isfile(fd_grid):
+        from .mapcheck import fd_bounds
+
+        tg, fdg = fd_bounds(fd_grid)
+        Rg = sur_bounds(tg)
         for s in SETS:
-            q = np.concatenate(ratios[s])
-            q = q[np.isfinite(q).all(axis=1)]
-            scale[s] = np.maximum(1.0, np.percentile(q, FD_SCALE_QUANTILE, axis=0))
-            click.echo(
-                f"conservative scale {s:12s}: d x{scale[s][0]:.3g}  h x{scale[s][1]:.3g}  E x{scale[s][2]:.3g}"
-                f"  ({FD_SCALE_QUANTILE:g}th percentile of FD / surrogate over {len(q)} points)"
-            )
-    R = {s: R0[s] * scale[s] for s in SETS}
-    if use_grid:
-        # the surrogate of the three features disagrees with real FD by up to ~100x (O3 is a thresholded
-        # area); no single scale fits, so the features entry is the real-FD bound itself, interpolated
-        R["features"] = fd_interpolate(np.vstack([P, tg]), np.vstack([fd["features"], fdg["features"]]), T)
-        click.echo("features: map = real-FD bound interpolated from the FD points (linear in d, u, ln E of ln r)")
-    os.makedirs(out, exist_ok=True)
-    fd_how = "real-FD"
-    if fd_scale:
-        geoms = {"morph"} | ({fd_geometry} if use_grid else set())  # fd_check's points: the morphed map
-        fd_how = f"real-FD ({' + '.join(sorted(geoms))} geometry)"
-    src = (
-        sur_src
-        + (
-            f", scaled per output by max(1, {FD_SCALE_QUANTILE:g}th percentile of {fd_how} / surrogate over "
-            f"{npts} FD points)"
-            if fd_scale
-            else ""
+            ratios[s].append(fdg[s] / Rg[s])
+        out.update(npts=out["npts"] + tg.shape[0], grid=(tg, fdg), geometry=fd_grid_geometry(fd_grid))
+        click.echo(f"FD grid {fd_grid} ({out['geometry']}): {tg.shape[0]} more points")
+    out["scale"] = {}
+    for s in SETS:
+        q = np.concatenate(ratios[s])
+        q = q[np.isfinite(q).all(axis=1)]
+        out["scale"][s] = sc = np.maximum(1.0, np.percentile(q, FD_SCALE_QUANTILE, axis=0))
+        click.echo(
+            f"conservative scale {s:12s}: d x{sc[0]:.3g}  h x{sc[1]:.3g}  E x{sc[2]:.3g}"
+            f"  ({FD_SCALE_QUANTILE:g}th percentile of FD / surrogate over {len(q)} points)"
         )
-        + ("; features entry: real-FD bound interpolated from those points" if use_grid else "")
-        + "; Cramér–Rao relative std, noise 1 % features, 1 % of the image peak per pixel, 0.1 % force; "
-        + command
+    return out
+
+
+def _source(sur_src: str, fd: dict | None, command: str) -> str:
+    """The map's ``source`` line: the surrogate, the FD scaling (``fd``: :func:`_fd_scales`'s
+    answer, None without), the noise model and the command."""
+    src = sur_src
+    if fd is not None:
+        geoms = {"morph"} | ({fd["geometry"]} if fd["grid"] else set())  # fd_check's points: the morphed map
+        fd_how = f"real-FD ({' + '.join(sorted(geoms))} geometry)"
+        src += (
+            f", scaled per output by max(1, {FD_SCALE_QUANTILE:g}th percentile of {fd_how} / surrogate over "
+            f"{fd['npts']} FD points)"
+        )
+        if fd["grid"]:
+            src += "; features entry: real-FD bound interpolated from those points"
+    return (
+        src + "; Cramér–Rao relative std, noise 1 % features, 1 % of the image peak per pixel, 0.1 % force; " + command
     )
-    grid_file = os.path.join(out, "crb_grid.npz")
-    np.savez(
-        grid_file,
-        theta=T,
-        d=ds,
-        u=us,
-        E=Es,
-        thickness=THICKNESS,
-        source=src,
-        surrogate_source=sur_src,
-        **{s: R[s] for s in SETS},
-        **{f"{s}_surrogate": R0[s] for s in SETS},
-        **{f"scale_{s}": scale[s] for s in SETS},
-    )
+
+
+def _plot(out: str, R: dict, R0: dict, axes, fd_scale: bool, use_grid: bool) -> None:
+    """``identifiability_crb_<set>.png``: the fraction of the depths at which d, h, E have a CRB
+    relative std <= 10 %, over (d, E); prints each set's identifiable fraction of the grid."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    ds, us, Es = axes
     for s in SETS:
         ok = (R[s] <= 0.10).reshape(len(ds), len(us), len(Es), 3).mean(axis=1)
         fig, axs = plt.subplots(1, 3, figsize=(12, 3.6), constrained_layout=True)
@@ -291,6 +266,59 @@ def compute(
             f"{s:12s} grid fraction identifiable within 10 %: d {frac[0]:.0f} %  h {frac[1]:.0f} %  "
             f"E {frac[2]:.0f} %   (unscaled surrogate: d {frac0[0]:.0f} %  h {frac0[1]:.0f} %  E {frac0[2]:.0f} %)"
         )
+
+
+def compute(
+    data_path: str,
+    out: str,
+    k: int = 16,
+    fd_scale: bool = True,
+    fd_grid: str | None = None,
+    install: str | None = None,
+    surrogate_from: str | None = None,
+    command: str = "python -m elastimap.workflows.studies.crbmap",
+):
+    """Fit (or, with ``surrogate_from``, read), bound and plot (see the module docstring); with
+    ``install`` (a path) the map is also written there by :func:`install_map`.  ``command`` is
+    recorded in the map's ``source``.  Returns ``{set: (n_grid, 3)}`` relative std."""
+    if install:
+        check_install_target(install)
+    from elastimap.identify.bounds import grid
+
+    from .fd_check import NOISE as noise
+    from .fd_check import POINTS
+
+    T, (ds, us, Es) = grid()
+    P = np.array(POINTS)
+    R0, sur_bounds, sur_src = _surrogate(data_path, k, surrogate_from, T, noise)
+    Rp = sur_bounds(P)
+    _echo_bounds("surrogate", POINTS, Rp)
+    fd = _fd_scales(Rp, sur_bounds, noise, fd_grid) if fd_scale else None
+    R = {s: R0[s] * (fd["scale"][s] if fd else 1.0) for s in SETS}
+    use_grid = fd is not None and fd["grid"] is not None
+    if use_grid:
+        # the surrogate of the three features disagrees with real FD by up to ~100x (O3 is a thresholded
+        # area); no single scale fits, so the features entry is the real-FD bound itself, interpolated
+        tg, fdg = fd["grid"]
+        R["features"] = fd_interpolate(np.vstack([P, tg]), np.vstack([fd["fd"]["features"], fdg["features"]]), T)
+        click.echo("features: map = real-FD bound interpolated from the FD points (linear in d, u, ln E of ln r)")
+    os.makedirs(out, exist_ok=True)
+    grid_file = os.path.join(out, "crb_grid.npz")
+    scale = {s: fd["scale"][s] if fd else np.ones(3) for s in SETS}
+    np.savez(
+        grid_file,
+        theta=T,
+        d=ds,
+        u=us,
+        E=Es,
+        thickness=THICKNESS,
+        source=_source(sur_src, fd, command),
+        surrogate_source=sur_src,
+        **{s: R[s] for s in SETS},
+        **{f"{s}_surrogate": R0[s] for s in SETS},
+        **{f"scale_{s}": scale[s] for s in SETS},
+    )
+    _plot(out, R, R0, (ds, us, Es), fd_scale, use_grid)
     if install:
         click.echo(f"installed {grid_file} as the shipped map {install_map(grid_file, install)}")
     return R
