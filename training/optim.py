@@ -121,6 +121,33 @@ def _lm_step_torch(jj, je, mu, idx=None):
     return -torch.cholesky_solve(g.unsqueeze(-1), U, upper=True).squeeze(-1), info == 0
 
 
+def _lm_trials(o, system, theta: torch.Tensor, mu_t: torch.Tensor, gidx: torch.Tensor, mus) -> None:
+    """One epoch's Levenberg–Marquardt trials for the problems ``gidx`` (global indices) whose
+    ``system`` = (JᵀJ, Jᵀr, θ, E) was just computed: each tries Δθ = -(JᵀJ + μI)⁻¹Jᵀr and
+    accepts it when it lowers E (θ updated in ``theta``, μ *= mu_dec, floored at 1e-20), else
+    μ *= mu_inc and tries again, until accepted or μ > mu_max (``mus`` = (mu_dec, mu_inc,
+    mu_max)); ``mu_t`` is updated in place."""
+    jj, je, th, E = system
+    mu_dec, mu_inc, mu_max = mus
+    searching = torch.ones(gidx.numel(), dtype=torch.bool, device=theta.device)
+    while True:
+        q = searching.nonzero().squeeze(1)
+        if q.numel() == 0:
+            return
+        m_q = mu_t[gidx[q]]
+        dx, info = lm_step(jj, je, m_q, None if q.numel() == jj.shape[0] else q)
+        cand = th[q] + dx
+        E2 = o.subset(q).sse(cand)
+        ok = info & torch.isfinite(E2) & (E2 < E[q])
+        acc = q[ok]
+        theta[gidx[acc]] = cand[ok]
+        mu_t[gidx[acc]] = torch.clamp(m_q[ok] * mu_dec, min=1e-20)
+        searching[acc] = False
+        rej = q[~ok]
+        mu_t[gidx[rej]] = m_q[~ok] * mu_inc
+        searching[rej[mu_t[gidx[rej]] > mu_max]] = False
+
+
 def train_lm(
     obj,
     theta0: torch.Tensor,
@@ -193,24 +220,7 @@ def train_lm(
         if loc.numel() < keep.numel():  # (indexing copies; skip it while every network runs)
             jj, je, th, E = jj[loc], je[loc], th[loc], E[loc]
             o = o.subset(loc)
-        gidx = active[loc]
-        searching = torch.ones(loc.numel(), dtype=torch.bool, device=dev)
-        while True:
-            q = searching.nonzero().squeeze(1)
-            if q.numel() == 0:
-                break
-            m_q = mu_t[gidx[q]]
-            dx, info = lm_step(jj, je, m_q, None if q.numel() == jj.shape[0] else q)
-            cand = th[q] + dx
-            E2 = o.subset(q).sse(cand)
-            ok = info & torch.isfinite(E2) & (E2 < E[q])
-            acc = q[ok]
-            theta[gidx[acc]] = cand[ok]
-            mu_t[gidx[acc]] = torch.clamp(m_q[ok] * mu_dec, min=1e-20)
-            searching[acc] = False
-            rej = q[~ok]
-            mu_t[gidx[rej]] = m_q[~ok] * mu_inc
-            searching[rej[mu_t[gidx[rej]] > mu_max]] = False
+        _lm_trials(o, (jj, je, th, E), theta, mu_t, active[loc], (mu_dec, mu_inc, mu_max))
         active = active[keep]
         if progress is not None:
             progress(epoch)
