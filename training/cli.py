@@ -213,9 +213,8 @@ def _run(samples, cfg, spec: RunSpec, out: str, overwrite: bool) -> None:
     finished run goes to a temporary folder that the error line names)."""
     from elastimap.outputs import write_dir
 
-    from .api import fit_ensemble
-    from .data import data_hash, prepare
-    from .experiment import check_trainable, run_validation
+    from .data import data_hash
+    from .experiment import check_trainable
     from .report import markdown, table
 
     check_trainable(samples.n, cfg.arch, "data set")  # every fold is smaller: refuse before any output
@@ -225,18 +224,8 @@ def _run(samples, cfg, spec: RunSpec, out: str, overwrite: bool) -> None:
         f"{cfg.resolved_device()}, {spec.threads} thread(s)",
         err=True,
     )
-
-    results = []
     t0 = time.perf_counter()
-    for v in spec.validations:
-        for a in spec.algos:
-            r = run_validation(samples, a, v, spec.repeats, cfg, seed=spec.seed, test_split=spec.test_split)
-            results.append(r)
-            click.echo(
-                f"{a} {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s "
-                f"({r.row['trainings_per_s']:.2f}/s); stops {r.row['stops']}",
-                err=True,
-            )
+    results = _validate_all(samples, cfg, spec)
     df = table(results)
     df.insert(0, "data_sha256", data_hash(samples.df))
     df.insert(0, "data", samples.source)
@@ -248,35 +237,68 @@ def _run(samples, cfg, spec: RunSpec, out: str, overwrite: bool) -> None:
     md = markdown(df, title)
     click.echo(md)
 
-    ensembles = {}
-    if spec.save_models:
-        drop_test = spec.validations == ["hov"]
-        for a in spec.algos:
-            s = samples
-            if drop_test:
-                from .experiment import rng_for, split_rows
-
-                test_rows, _ = split_rows(samples, "hov", spec.test_split, rng_for(spec.seed, "hov")[0])
-                s = prepare(samples.df[~test_rows], source=samples.source)
-                s.n_failed = samples.n_failed
-            ensembles[a] = (
-                fit_ensemble(
-                    s,
-                    algo=a,
-                    repeats=spec.repeats,
-                    epochs=cfg.epochs,
-                    hidden=cfg.hidden,
-                    seed=spec.seed,
-                    feature_noise=cfg.feature_noise,
-                    val_fraction=cfg.val_fraction,
-                    device=cfg.device,
-                    progress=cfg.progress,
-                    dtype=cfg.dtype,
-                ),
-                s.n,
-            )
+    ensembles = _fit_models(samples, cfg, spec) if spec.save_models else {}
     models = {a: os.path.join(out, f"model-{a}") for a in ensembles}
-    doc = {
+    doc = _run_doc(samples, cfg, spec, models, time.perf_counter() - t0)
+    write_dir(out, lambda folder: _write(folder, results, df, md, ensembles, doc), "out", overwrite=overwrite)
+    for a, (ens, n) in ensembles.items():
+        click.echo(f"saved {ens.n_members}-member {a} ensemble ({n} training rows) to {models[a]}", err=True)
+
+
+def _validate_all(samples, cfg, spec: RunSpec) -> list:
+    """Every (validation, algorithm) pair of ``spec`` trained and scored, in that order."""
+    from .experiment import run_validation
+
+    results = []
+    for v in spec.validations:
+        for a in spec.algos:
+            r = run_validation(samples, a, v, spec.repeats, cfg, seed=spec.seed, test_split=spec.test_split)
+            results.append(r)
+            click.echo(
+                f"{a} {v}: {r.row['trainings']} trainings in {r.wall_s:.1f} s "
+                f"({r.row['trainings_per_s']:.2f}/s); stops {r.row['stops']}",
+                err=True,
+            )
+    return results
+
+
+def _fit_models(samples, cfg, spec: RunSpec) -> dict:
+    """``{algo: (ensemble, training rows)}``: the ensembles ``--save-models`` keeps, trained on every
+    row (with ``--validate hov`` alone: every row but the hold-out test rows)."""
+    from .api import fit_ensemble
+    from .data import prepare
+
+    s = samples
+    if spec.validations == ["hov"]:
+        from .experiment import rng_for, split_rows
+
+        test_rows, _ = split_rows(samples, "hov", spec.test_split, rng_for(spec.seed, "hov")[0])
+        s = prepare(samples.df[~test_rows], source=samples.source)
+        s.n_failed = samples.n_failed
+    ensembles = {}
+    for a in spec.algos:
+        ens = fit_ensemble(
+            s,
+            algo=a,
+            repeats=spec.repeats,
+            epochs=cfg.epochs,
+            hidden=cfg.hidden,
+            seed=spec.seed,
+            feature_noise=cfg.feature_noise,
+            val_fraction=cfg.val_fraction,
+            device=cfg.device,
+            progress=cfg.progress,
+            dtype=cfg.dtype,
+        )
+        ensembles[a] = (ens, s.n)
+    return ensembles
+
+
+def _run_doc(samples, cfg, spec: RunSpec, models: dict, wall_s: float) -> dict:
+    """``run.json``: the data, the settings and where the models went."""
+    from .data import data_hash
+
+    return {
         "data": samples.source,
         "n_samples": samples.n,
         "n_failed_excluded": samples.n_failed,
@@ -295,12 +317,9 @@ def _run(samples, cfg, spec: RunSpec, out: str, overwrite: bool) -> None:
         "threads": spec.threads,
         "workers": cfg.workers,
         "dtype": str(cfg.dtype),
-        "wall_s": round(time.perf_counter() - t0, 3),
+        "wall_s": round(wall_s, 3),
         "models": models,
     }
-    write_dir(out, lambda folder: _write(folder, results, df, md, ensembles, doc), "out", overwrite=overwrite)
-    for a, (ens, n) in ensembles.items():
-        click.echo(f"saved {ens.n_members}-member {a} ensemble ({n} training rows) to {models[a]}", err=True)
 
 
 def _write(folder, results, df, md: str, ensembles: dict, doc: dict) -> None:
