@@ -8,8 +8,10 @@ covariance: noise, the measured discretisation error and the model-form level
 for n > 15) χ² ≤ χ²_N(1 − α).  score_c = held-out χ²_c + k_c ln N.  When no single effect or
 family passes, pairs of single effects (two effects at once, k = 2) are ranked beside them and
 lead only when both their effects are needed and they beat every single effect and family by more
-than ``Settings.ambiguity_margin`` (sparse: one effect unless the data ask for two).  Every candidate of the leader's kind within the margin of a passing best is
-reported with it (one: **explained**, several: **ambiguous**), provided what the best leaves is at
+than ``Settings.ambiguity_margin`` (sparse: one effect unless the data ask for two).  Every candidate of the leader's kind
+the phantoms do not tell from a passing best (:func:`told_apart`: within the margin, or -- with the model-form
+level -- a passing candidate whose deficit is within the noise z_{1−α} 2 √D_ab of the χ² difference of the two
+fits) is reported with it (one: **explained**, several: **ambiguous**), provided what the best leaves is at
 the model-form level (its modes' mean within :data:`~elastimap.identify.discrepancy.BEYOND` × τ₀)
 and, with the model-form level, its fit is neither pinned at the end of its range nor holding its
 nominal within its interval (:func:`_unsure`); otherwise, or when nothing passes: **unexplained**.  The three verdicts a user acts on
