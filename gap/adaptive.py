@@ -64,8 +64,9 @@ def refine(
     (:func:`~elastimap.gap.model_error.correct_own`): the baseline's discretisation error does not carry over to another
     mesh (on the coarse mesh it moved by up to 1 % of the profile's peak between slab
     thicknesses of 20 and 23.8 mm).  Those error-mesh solves cost several coarse ones, so they
-    are made only for the rows that could be reported this round (within ``ambiguity_margin``
-    of the best score); a candidate refined farther behind keeps the baseline's correction.
+    are made only for the rows that could be reported this round (:func:`_reportable`: within
+    ``ambiguity_margin`` of the best score, or a look-alike of the best); every such row is refined
+    however far behind; a candidate refined farther behind keeps the baseline's correction.
     Returns (solves, rounds, error-mesh solve seconds); each candidate adds its solve seconds."""
     byname = {c.effect.name: c for c in C}
     solves = rounds = 0
@@ -98,20 +99,28 @@ def _targets(rows: list[dict], byname: dict, st: Settings):
     best = rows[0]["score"]
     want: dict[str, list[float]] = {}
     rendered: dict[str, list[float]] = {}  # no-solve effects: rendered exactly at the fit
-    close: set[str] = set()  # effects of the rows that could be reported (within the ambiguity margin)
+    close: set[str] = set()  # effects of the rows that could be reported (_reportable)
     # rows whose emulator extrapolates at their fit (beyond every solved magnitude): their
     # score there is not measured, so the best refine_extrapolated of them are refined too
     extrap = [i for i, r in enumerate(rows) if extrapolated(r, byname, st.refine_tol)]
     extra = set(extrap[: st.refine_extrapolated])
     for i, r in enumerate(rows):
-        if i >= st.refine_top and r["score"] - best > st.refine_margin and i not in extra:
+        could = _reportable(r, best, st)
+        if i >= st.refine_top and r["score"] - best > st.refine_margin and i not in extra and not could:
             continue
-        if r["score"] - best <= st.ambiguity_margin:
+        if could:
             close.update(r["members"])
         single = len(r["members"]) == 1
         for name, th in zip(r["members"], r["magnitude"]):
             _target(byname.get(name), name, th, single, want, rendered, st)
     return want, rendered, close
+
+
+def _reportable(row: dict, best: float, st: Settings) -> bool:
+    """Whether a ranking row could be reported with the best this round: within the ambiguity margin
+    of the best score, or not told apart from the best by the look-alike rule
+    (:func:`elastimap.gap.selection.told_apart`, recorded as ``vs_best``)."""
+    return row["score"] - best <= st.ambiguity_margin or not row.get("vs_best", {"told_apart": True})["told_apart"]
 
 
 def _target(c: Candidate | None, name: str, th: float, single: bool, want: dict, rendered: dict, st: Settings):

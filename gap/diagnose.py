@@ -36,7 +36,9 @@ candidate c's prediction f_c(θ)_iq (θ its magnitude(s)).
   members' dense grids; interval ±1.96 · sqrt(c · [2 H⁻¹]_ll) from the numerical Hessian H.
 * **Selection and ambiguity.**  score_c = held-out χ²_c + k_c ln N.  If the best candidate
   passes, every candidate within ``ambiguity_margin`` (Δscore ≤ 2 ln 10 = 4.6, a likelihood
-  ratio below 10) of it is reported with it: one → **explained**, several → **ambiguous**
+  ratio below 10) of it is reported with it, and with the model-form level every passing
+  look-alike whose deficit is within the noise of the two fits' χ² difference
+  (:func:`elastimap.gap.selection.told_apart`): one → **explained**, several → **ambiguous**
   ("cannot be told apart with these phantoms").  Nothing passes → **unexplained**.  A family
   in the set whose fit moves one member only is reported as that member, one that moves all
   members by one factor as its nested common-factor effect (:func:`elastimap.gap.selection.reported_set`).

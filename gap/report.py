@@ -217,7 +217,9 @@ def markdown(res: dict, figs: list[str]) -> str:
         f"Baseline χ² = {ev['chi2_baseline']:.4g} over N = {ev['n_terms']} terms (reduced {ev['reduced_chi2_baseline']:.3g}, "
         f"p = {ev['p_value_baseline']:.3g}); the calibrated threshold χ²_N(1 − α) at α = {ev['alpha']:g} is "
         f"{ev['chi2_threshold']:.4g}.  A candidate passes when its held-out χ² is below the same threshold; "
-        f"candidates within Δscore ≤ {res['settings']['ambiguity_margin']:g} of a passing best cannot be told apart; "
+        f"candidates within Δscore ≤ {res['settings']['ambiguity_margin']:g} of a passing best cannot be told apart, "
+        f"nor (with the model-form level) a passing candidate whose deficit is within the noise of a χ² difference "
+        f"between the two fitted predictions, z_(1−α) · 2 √D_ab (docs/gap.md, 'Look-alikes'); "
         f"a pair of effects leads only when it beats every single effect by more than that.  "
         f"Error budget: noise, the measured discretisation error and the model-form level -- "
         f"{ev.get('model_form_note', 'none')}."
@@ -273,6 +275,16 @@ def _md_proposal(p: dict) -> list[str]:
     return L
 
 
+def _vs_best(v: dict | None) -> str:
+    """A ranking row against the best (:func:`elastimap.gap.selection.told_apart`): D_ab, the noise
+    2 √D_ab of the χ² difference and whether the phantoms tell it apart ("—" when not compared)."""
+    if not v:
+        return "—"
+    why = [w for k, w in (("margin", "margin"), ("within_noise", "within the noise")) if v[k]]
+    verdict = "told apart" if v["told_apart"] else "not told apart (" + ", ".join(why) + ")"
+    return f"{v['separation']:.3g}, {v['noise']:.3g}: {verdict}"
+
+
 def _md_ranking(ev: dict) -> list[str]:
     """The report's ranking table and its table of every view."""
     L: list[str] = []
@@ -280,8 +292,8 @@ def _md_ranking(ev: dict) -> list[str]:
         "",
         "## Which effect (cross-validated ranking)",
         "",
-        "| rank | effect | k | fitted magnitude [95 % interval] | held-out χ² | red. | passes | Δscore | explained | χ² by view (held-out) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| rank | effect | k | fitted magnitude [95 % interval] | held-out χ² | red. | passes | Δscore | explained | χ² by view (held-out) | vs the best: D_ab, 2 √D_ab |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for k, r in enumerate(ev["ranking"], 1):
         edge = " (end of its range)" if r["at_grid_edge"] else ""
@@ -294,9 +306,16 @@ def _md_ranking(ev: dict) -> list[str]:
         byv = ", ".join(f"{a} {b:.3g}" for a, b in r["chi2_cv_by_view"].items())
         L.append(
             f"| {k} | {r['effect']} | {r['n_params']} | {_mag(r)}{edge} | {r['ssr_cv']:.4g} | {r['reduced_chi2_cv']:.3g} | "
-            f"{'yes' if r['passes'] else 'no'} | {r['delta_score']:.3g} | {100 * r['explained_fraction']:.1f} % | {byv} |"
+            f"{'yes' if r['passes'] else 'no'} | {r['delta_score']:.3g} | {100 * r['explained_fraction']:.1f} % | {byv} | "
+            f"{_vs_best(r.get('vs_best'))} |"
         )
-    L += ["", "score = held-out χ² + k ln N; explained = 1 − held-out χ² / baseline χ² (descriptive only).", ""]
+    L += [
+        "",
+        "score = held-out χ² + k ln N; explained = 1 − held-out χ² / baseline χ² (descriptive only); "
+        "D_ab: the fitted predictions' separation from the best's in error units, 2 √D_ab: the sd of a χ² "
+        "difference between them from the error alone (docs/gap.md, 'Look-alikes').",
+        "",
+    ]
     L += [
         "## Every view",
         "",

@@ -8,8 +8,10 @@ covariance: noise, the measured discretisation error and the model-form level
 for n > 15) χ² ≤ χ²_N(1 − α).  score_c = held-out χ²_c + k_c ln N.  When no single effect or
 family passes, pairs of single effects (two effects at once, k = 2) are ranked beside them and
 lead only when both their effects are needed and they beat every single effect and family by more
-than ``Settings.ambiguity_margin`` (sparse: one effect unless the data ask for two).  Every candidate of the leader's kind within the margin of a passing best is
-reported with it (one: **explained**, several: **ambiguous**), provided what the best leaves is at
+than ``Settings.ambiguity_margin`` (sparse: one effect unless the data ask for two).  Every candidate of the leader's kind
+the phantoms do not tell from a passing best (:func:`told_apart`: within the margin, or -- with the model-form
+level -- a passing candidate whose deficit is within the noise z_{1−α} 2 √D_ab of the χ² difference of the two
+fits) is reported with it (one: **explained**, several: **ambiguous**), provided what the best leaves is at
 the model-form level (its modes' mean within :data:`~elastimap.identify.discrepancy.BEYOND` × τ₀)
 and, with the model-form level, its fit is neither pinned at the end of its range nor holding its
 nominal within its interval (:func:`_unsure`); otherwise, or when nothing passes: **unexplained**.  The three verdicts a user acts on
@@ -97,6 +99,42 @@ def _unsure(row: dict) -> bool:
     return bool(row["at_grid_edge"]) or not needed(row)
 
 
+def told_apart(a: dict, b: dict, S: Metric, st: Settings, model_form: bool = True) -> dict:
+    """Whether these phantoms tell candidate row ``b`` from the best row ``a`` (docs/gap.md,
+    'Look-alikes').  They do not when
+
+    * **margin**: Δscore = score_b − score_a ≤ ``st.ambiguity_margin`` (a likelihood ratio below 10), or
+    * **within the noise of Δscore** (with the model-form level only): b passes, would be a
+      confident answer itself (:func:`_unsure` false), and its deficit is within what the error
+      alone makes of a χ² difference between the two fitted predictions.  With whitened data
+      y = μ + e, e ~ N(0, I), χ²_b − χ²_a = |f_b − μ|² − |f_a − μ|² + 2 eᵀ(f_a − f_b), whose noise
+      has the sd 2 √D_ab,
+
+          D_ab = Σ_i |L_i⁻¹ (f_a,i(θ̂_a) − f_b,i(θ̂_b))|²     (Σ_i = L_i L_iᵀ: noise, discretisation,
+                                                             model-form level)
+
+      so a leads b only when Δscore > z_{1−α} · 2 √D_ab (one-sided, α = ``st.alpha``).  The fixed
+      margin is right for near-identical predictions; two effects whose predictions differ by a
+      large D_ab (a different shape over the phantoms) trade χ² differences far larger than 4.6 on
+      the error alone, and on data whose model-form difference is structured over the phantoms,
+      more than that.
+
+    Returns {"delta_score", "separation" (D_ab), "noise" (2 √D_ab), "margin", "within_noise", "told_apart"}."""
+    dscore = float(b["score"] - a["score"])
+    sep = float(S.chi2(a["_model"].predict(a["_theta"]), b["_model"].predict(b["_theta"])).sum())
+    noise = 2.0 * math.sqrt(max(sep, 0.0))
+    margin = dscore <= st.ambiguity_margin
+    within = model_form and bool(b["passes"]) and not _unsure(b) and dscore <= stats.norm.ppf(1 - st.alpha) * noise
+    return {
+        "delta_score": dscore,
+        "separation": sep,
+        "noise": noise,
+        "margin": bool(margin),
+        "within_noise": bool(within),
+        "told_apart": not (margin or within),
+    }
+
+
 def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread=None, mf: dict | None = None) -> dict:
     """Calibrated significance, per-candidate held-out fit, ranking (pairs beside the single effects
     when the gap is significant), ambiguity set, outcome and verdict.  ``S0``: the error model (a
@@ -126,7 +164,10 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
         outcome = "no significant gap"
     elif best and best["passes"] and not (level and level["beyond"]) and not (mf is not None and _unsure(best)):
         kind = bool(best.get("pair"))
-        close = [r for r in rows if bool(r.get("pair")) == kind and r["score"] - best["score"] <= st.ambiguity_margin]
+        same = [r for r in rows[1:] if bool(r.get("pair")) == kind]
+        for r in same:
+            r["vs_best"] = told_apart(best, r, S0, st, mf is not None)
+        close = [best] + [r for r in same if not r["vs_best"]["told_apart"]]
         reported = reported_set(close, rows)
         ambiguity = list(reported)
         outcome = "explained" if len(ambiguity) == 1 else "ambiguous"
