@@ -439,6 +439,28 @@ def valley_interval(X: FitCoords, x, lo, hi, prior: DesignPrior, lb, ub) -> tupl
     return lo, hi
 
 
+def depth_shift(X: FitCoords, x, Cx, disc: Discrepancy, lb, ub) -> tuple[np.ndarray, np.ndarray]:
+    """The estimate ``x`` and its covariance ``Cx`` (fit coordinates) under the discrepancy's depth mode
+    (:meth:`~elastimap.identify.discrepancy.Discrepancy.depth_shift`, ``β ~ N(μ_h, v_h)``; unchanged
+    without one).  The mode ``h ∂m/∂h`` is the map's own derivative along h, so the world's image is
+    ``m(d, h (1 + β), E)`` and the closed world's estimate is ``ĥ ≈ h (1 + β)``:
+
+        ln h ← ln ĥ − μ_h,      C_x ← C_x + v_h w wᵀ,      w = ∂x/∂ln h = (0, h ∂u/∂h, 0)
+
+    (``u`` the depth fraction, :class:`~elastimap.identify.coords.FitCoords`; first order in β).  d and E
+    do not move: unlike the image modes' mean (which the valley turns into a large move of d), the
+    phantoms' mean depth error is a shift of h alone."""
+    dv = disc.depth_shift()
+    if dv is None:
+        return x, Cx
+    mu, var = dv
+    h, dh_du = X.theta(x)[1], X.dtheta(x)[1, 1]  # h is linear in u at fixed d
+    w = np.array([0.0, h / dh_du, 0.0])
+    x = np.array(x, float)
+    x[1] -= h * (1.0 - math.exp(-mu)) / dh_du  # h ← ĥ exp(−μ_h)
+    return np.clip(x, lb, ub), Cx + var * np.outer(w, w)
+
+
 #: an estimate of d or E within this fraction of the design box's limit (in mm or kPa) is on its edge: E's
 #: contrast coordinate saturates at the stiff end, so 1e-3 of the box in it is about 2 kPa at 200 kPa
 EDGE_REL = 0.01
@@ -507,6 +529,7 @@ class ImageFit:
             if shape is None:
                 raise UserError("image", "a fit carrying a discrepancy needs the 2-D image (its modes are images)")
             Cx, chi2 = self._marginal(model, I, s_tot, shape, x, J * s_tot[:, None])
+            x, Cx = depth_shift(X, x, Cx, disc, lb, ub)
         Gx = X.dtheta(x)
         th = X.theta(x)
         sd = np.sqrt(np.clip(np.diag(Gx @ Cx @ Gx.T), 0, None))
