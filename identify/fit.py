@@ -67,7 +67,10 @@ problem, prior and misfit apart from the optimisers), each declared in :class:`F
   (:class:`~elastimap.identify.discrepancy.Marginal`: the generalised least squares of the pixels under
   ``Σ = D + Φ C Φᵀ``, its modes built from the map's image at the estimate; ``χ²_m`` the marginal misfit
   there).  The interval is ``θ̂ ± 1.96 sd`` from it (``k = 1``: the calibrated scales are the closed
-  world's), and a parameter whose relative sd exceeds the threshold is reported as its interval.  A fit
+  world's), and a parameter whose relative sd exceeds the threshold is reported as its interval.  A term
+  with the depth mode (``β_h`` a relative error of the depth, learnt from the phantoms) shifts ``ln ĥ`` by
+  ``−μ_h`` and adds ``v_h`` to its variance (:func:`depth_shift`: the mode is the map's own ``h ∂m/∂h``, so
+  it is Kennedy–O'Hagan's posterior for h and moves neither d nor E).  A fit
   that ends with E on the design box's edge reports the valley's interval (:func:`valley_interval`: E
   over the box, d along the valley of equal amplitude across it).  Why
   not the marginal optimum: the marginal misfit is flat along the valley (the amplitude mode absorbs
