@@ -517,7 +517,12 @@ def calculix_check(path: str, mesh: str, cache: str) -> list[dict]:
 @click.option("--frames", default=30, show_default=True, type=click.IntRange(2, 1000), help="Camera frames per press.")
 @click.option("--draws", default=20, show_default=True, type=click.IntRange(1, 1000), help="Noise draws per phantom.")
 @click.option("--seed", default=0, show_default=True, type=int, help="Noise seed.")
-@click.option("--modes", default="amplitude,width", show_default=True, help="The discrepancy's modes.")
+@click.option(
+    "--modes",
+    default="amplitude,width",
+    show_default=True,
+    help="The discrepancy's modes: amplitude, width, tail; depth (h dm/dh) with --product only.",
+)
 @click.option("--prior-weight", default=2.0, show_default=True, type=float, help="ν₀ of the prior scale.")
 @click.option(
     "--ell-grid", default=None, help="The remainder's correlation lengths to choose from, mm (default ELL_GRID)."
