@@ -398,12 +398,20 @@ def loo_fits(record: dict, phantoms, pairs, deflection: dict, sensor=None, progr
     maps = fit_maps(mesh, correct, sensor=description)
     f = maps.forward_fine or maps.forward
     pixel = float(record["pixel"])
-    models = [np.asarray(f(*th).image, float) for th in thetas]
+    models, depths = dy.forward_images(f, thetas)
+    which = tuple(record["term"]["modes"])
+    if dy.DEPTH not in which:
+        depths = None
     rows, n = [], len(idx)
     for i in range(n):
         rest = [j for j in range(n) if j != i]
         disc = dy.learn(
-            [rec[j].image - models[j] for j in rest], [models[j] for j in rest], [rec[j].sigma for j in rest], pixel
+            [rec[j].image - models[j].reshape(rec[j].image.shape) for j in rest],
+            [models[j].reshape(rec[j].image.shape) for j in rest],
+            [rec[j].sigma for j in rest],
+            pixel,
+            which=which,
+            depths=None if depths is None else [depths[j] for j in rest],
         )
         start = np.array(
             [thetas[rest, 0].mean(), thetas[rest, 1].mean(), float(np.exp(np.log(thetas[rest, 2]).mean()))]

@@ -449,8 +449,9 @@ def refine_estimates(
     ``discrepancy``: the model-form error the fit carries
     (:class:`elastimap.identify.discrepancy.Discrepancy`, learnt by ``camera calibrate`` from the lab's
     phantoms, :meth:`~elastimap.camera.calibration.Calibration.model_form`) on images of ``pixel`` mm: the fit's estimate stays its
-    own, its covariance is the marginal one with the term integrated out, and an E on the design edge
-    gets the valley's interval (docs/model-form.md, 'How the fit carries it'); None: the closed world
+    own (but for h, shifted by the term's depth mode, :func:`elastimap.identify.fit.depth_shift`), its
+    covariance is the marginal one with the term integrated out, and an E on the design edge gets the
+    valley's interval (docs/model-form.md, 'How the fit carries it'); None: the closed world
     (noise and discretisation only).
 
     Each estimate's mean becomes the fitted (d, h, E), ``lo``/``hi`` its 95 % interval and ``sd``/``crb``

@@ -67,7 +67,10 @@ problem, prior and misfit apart from the optimisers), each declared in :class:`F
   (:class:`~elastimap.identify.discrepancy.Marginal`: the generalised least squares of the pixels under
   ``Σ = D + Φ C Φᵀ``, its modes built from the map's image at the estimate; ``χ²_m`` the marginal misfit
   there).  The interval is ``θ̂ ± 1.96 sd`` from it (``k = 1``: the calibrated scales are the closed
-  world's), and a parameter whose relative sd exceeds the threshold is reported as its interval.  A fit
+  world's), and a parameter whose relative sd exceeds the threshold is reported as its interval.  A term
+  with the depth mode (``β_h`` a relative error of the depth, learnt from the phantoms) shifts ``ln ĥ`` by
+  ``−μ_h`` and adds ``v_h`` to its variance (:func:`depth_shift`: the mode is the map's own ``h ∂m/∂h``, so
+  it is Kennedy–O'Hagan's posterior for h and moves neither d nor E).  A fit
   that ends with E on the design box's edge reports the valley's interval (:func:`valley_interval`: E
   over the box, d along the valley of equal amplitude across it).  Why
   not the marginal optimum: the marginal misfit is flat along the valley (the amplitude mode absorbs
@@ -439,6 +442,28 @@ def valley_interval(X: FitCoords, x, lo, hi, prior: DesignPrior, lb, ub) -> tupl
     return lo, hi
 
 
+def depth_shift(X: FitCoords, x, Cx, disc: Discrepancy, lb, ub) -> tuple[np.ndarray, np.ndarray]:
+    """The estimate ``x`` and its covariance ``Cx`` (fit coordinates) under the discrepancy's depth mode
+    (:meth:`~elastimap.identify.discrepancy.Discrepancy.depth_shift`, ``β ~ N(μ_h, v_h)``; unchanged
+    without one).  The mode ``h ∂m/∂h`` is the map's own derivative along h, so the world's image is
+    ``m(d, h (1 + β), E)`` and the closed world's estimate is ``ĥ ≈ h (1 + β)``:
+
+        ln h ← ln ĥ − μ_h,      C_x ← C_x + v_h w wᵀ,      w = ∂x/∂ln h = (0, h ∂u/∂h, 0)
+
+    (``u`` the depth fraction, :class:`~elastimap.identify.coords.FitCoords`; first order in β).  d and E
+    do not move: unlike the image modes' mean (which the valley turns into a large move of d), the
+    phantoms' mean depth error is a shift of h alone."""
+    dv = disc.depth_shift()
+    if dv is None:
+        return x, Cx
+    mu, var = dv
+    h, dh_du = X.theta(x)[1], X.dtheta(x)[1, 1]  # h is linear in u at fixed d
+    w = np.array([0.0, h / dh_du, 0.0])
+    x = np.array(x, float)
+    x[1] -= h * (1.0 - math.exp(-mu)) / dh_du  # h ← ĥ exp(−μ_h)
+    return np.clip(x, lb, ub), Cx + var * np.outer(w, w)
+
+
 #: an estimate of d or E within this fraction of the design box's limit (in mm or kPa) is on its edge: E's
 #: contrast coordinate saturates at the stiff end, so 1e-3 of the box in it is about 2 kPa at 200 kPa
 EDGE_REL = 0.01
@@ -507,6 +532,7 @@ class ImageFit:
             if shape is None:
                 raise UserError("image", "a fit carrying a discrepancy needs the 2-D image (its modes are images)")
             Cx, chi2 = self._marginal(model, I, s_tot, shape, x, J * s_tot[:, None])
+            x, Cx = depth_shift(X, x, Cx, disc, lb, ub)
         Gx = X.dtheta(x)
         th = X.theta(x)
         sd = np.sqrt(np.clip(np.diag(Gx @ Cx @ Gx.T), 0, None))

@@ -64,6 +64,9 @@ def test_frames_with_sweep_features_calibrate_refine_and_the_model_form_error(tm
     assert ref.shape == (50, 50) and pixel == 0.5
     disc, level, px = cal.model_form()
     assert level == "tiny" and px == 0.5 and disc.n_phantoms == 9
+    # the morphed map's exact derivative gives the depth mode (h dm/dh), carried by --refine as a shift of h
+    assert disc.modes == ("amplitude", "width", "depth") and disc.depth_shift() is not None
+    assert all(len(r["z"]) == 3 for r in cal.discrepancy["loo"]) and "depth mean" in r.stdout
     assert len(cal.discrepancy["loo"]) == 9
     fits = cal.discrepancy["fits"]
     assert fits["n"] == 9 and len(fits["rows"]) == 9 and all(0 <= c <= 9 for c in fits["covered"])

@@ -396,6 +396,7 @@ def product_check(world, fit_mesh, correct, frames, seed, which, prior_weight, s
     import time
 
     from elastimap.camera.optics import deflection_noise_map
+    from elastimap.errors import UserError
     from elastimap.identify import discrepancy as dy
     from elastimap.identify.fit import fit_image
     from elastimap.identify.forward_maps import fit_maps
@@ -403,15 +404,23 @@ def product_check(world, fit_mesh, correct, frames, seed, which, prior_weight, s
     rng = np.random.default_rng(seed)
     maps = fit_maps(fit_mesh, correct)
     level = maps.forward_fine or maps.forward
-    models = [np.asarray(level(*(float(v) for v in ph["theta"])).image, float) for ph in world]
+    models, depths = dy.forward_images(level, [ph["theta"] for ph in world])
+    models = [m.reshape(ph["diff"].shape) for m, ph in zip(models, world, strict=True)]
+    if dy.DEPTH in which and depths is None:
+        raise UserError("--modes", "the depth mode needs a map with an exact derivative (a morphed map)")
     cal = []
     for ph, m in zip(world[:N_CAL], models, strict=False):
         sigma = deflection_noise_map(ph["ref"], PIXEL, frames)
         cal.append((ph["diff"] + sigma * rng.standard_normal(sigma.shape) - m, m, sigma))
     rows = []
     for i, ph in enumerate(world):
+        rest = [j for j in range(len(cal)) if j != i]
         disc = dy.learn(
-            *zip(*[c for j, c in enumerate(cal) if j != i], strict=True), PIXEL, which=which, prior_weight=prior_weight
+            *zip(*[cal[j] for j in rest], strict=True),
+            PIXEL,
+            which=which,
+            prior_weight=prior_weight,
+            depths=[depths[j] for j in rest] if dy.DEPTH in which else None,
         )
         th = np.asarray(ph["theta"], float)
         sigma = deflection_noise_map(ph["ref"], PIXEL, frames)
@@ -508,7 +517,12 @@ def calculix_check(path: str, mesh: str, cache: str) -> list[dict]:
 @click.option("--frames", default=30, show_default=True, type=click.IntRange(2, 1000), help="Camera frames per press.")
 @click.option("--draws", default=20, show_default=True, type=click.IntRange(1, 1000), help="Noise draws per phantom.")
 @click.option("--seed", default=0, show_default=True, type=int, help="Noise seed.")
-@click.option("--modes", default="amplitude,width", show_default=True, help="The discrepancy's modes.")
+@click.option(
+    "--modes",
+    default="amplitude,width",
+    show_default=True,
+    help="The discrepancy's modes: amplitude, width, tail; depth (h dm/dh) with --product only.",
+)
 @click.option("--prior-weight", default=2.0, show_default=True, type=float, help="ν₀ of the prior scale.")
 @click.option(
     "--ell-grid", default=None, help="The remainder's correlation lengths to choose from, mm (default ELL_GRID)."
@@ -571,9 +585,11 @@ def main(
     if out and os.path.exists(out):
         raise UserError("--out", f"{out} exists; choose another name")
     which = tuple(v.strip() for v in modes.split(",") if v.strip())
-    bad = [v for v in which if v not in dy.ALL_MODES]
+    bad = [v for v in which if v not in (*dy.ALL_MODES, dy.DEPTH)]
     if not which or bad:
-        raise UserError("--modes", f"comma-separated among {', '.join(dy.ALL_MODES)} (got {modes!r})")
+        raise UserError("--modes", f"comma-separated among {', '.join((*dy.ALL_MODES, dy.DEPTH))} (got {modes!r})")
+    if dy.DEPTH in which and product_mesh is None:
+        raise UserError("--modes", "the depth mode is scored by the product's fit only (--product)")
     try:
         grid = None if ell_grid is None else tuple(float(v) for v in ell_grid.split(","))
     except ValueError:
