@@ -60,14 +60,15 @@ __all__ = ["Model", "Solution", "SolverError"]
 #: a linear solve whose inclusion modulus differs by more than this factor from the one its
 #: factors were made with factorises afresh (:class:`~elastimap.solver.reduction.Recycled`)
 RECYCLE_MAX_RATIO = 2.0
-#: an inclusion press that would factorise afresh on a large mesh (block low-rank factors,
-#: ``Recycled.blr_min`` unknowns or more) is first tried by CG on the reference press's factors
+#: an inclusion press that would factorise afresh on a large mesh (BORROW_MIN_UNKNOWNS unknowns or
+#: more: the `default` and `fine` levels) is first tried by CG on the reference press's factors
 #: on the same mesh when the moduli differ by at most this factor (κ ≤ the ratio; measured on
 #: the `fine` quarter model at d/h 12/10: 13-41 iterations for E/E_tissue 2-20, a sample's two
 #: presses 8.9-10.1 s -> 5.8-7.6 s; docs/forward-model.md "Speed"), in at most BORROW_MAX_IT
 #: iterations
 BORROW_MAX_RATIO = 20.0
 BORROW_MAX_IT = 50
+BORROW_MIN_UNKNOWNS = 25_000
 #: the inclusion press right after the reference press was factorised on the same mesh, active set
 #: and plate travel (every sample's second press): CG on the reference press's factors for the difference
 #: of the two presses, K(E) v = f − K(E) ū_ref (``Recycled.borrow(start=)``), on any mesh size,
@@ -266,7 +267,7 @@ class Model:
         ):
             rtol = max(PRESS_RTOL, self.cg_rtol)
             return rec.borrow(donor, K, f, key, PRESS_MAX_IT, tag=E_inclusion, start=ref[4], rtol=rtol)
-        if rec.blr_min is None or K.getSize()[0] < rec.blr_min or ratio > BORROW_MAX_RATIO:
+        if K.getSize()[0] < BORROW_MIN_UNKNOWNS or ratio > BORROW_MAX_RATIO:
             return None
         return rec.borrow(donor, K, f, key, BORROW_MAX_IT, tag=E_inclusion)
 

@@ -247,7 +247,8 @@ def test_inclusion_press_on_the_reference_press_factors(monkeypatch):
             plain = f.solve(*theta).image.astype(float)
             plain_J = f.solve_tangent(*theta)[1]
             assert inclusion_solver(f).borrowed == 0
-        m.setattr(fem, "Recycled", functools.partial(Recycled, blr_min=1))  # every size borrows
+        m.setattr(fem, "BORROW_MIN_UNKNOWNS", 1)  # every size borrows
+        m.setattr(fem, "Recycled", functools.partial(Recycled, blr_min=1))  # with block low-rank factors
         with MorphedForward(TINY) as f:
             img = f.solve(*theta).image.astype(float)
             rec = inclusion_solver(f)
@@ -255,18 +256,18 @@ def test_inclusion_press_on_the_reference_press_factors(monkeypatch):
             np.testing.assert_allclose(img, plain, rtol=0, atol=1e-6 * np.abs(plain).max())
             f.solve(theta[0], theta[1], 300.0)  # beyond BORROW_MAX_RATIO of the tissue: its own factors
             assert rec.borrowed == 1 and rec.factorisations == 1
-    with MorphedForward(TINY) as f:  # the difference press (the shipped rule)
+    with MorphedForward(TINY) as f:  # the difference press (the shipped rule, to fem.PRESS_RTOL = 1e-5)
         img = f.solve(*theta).image.astype(float)
         rec = inclusion_solver(f)
         assert rec.borrowed == 1 and rec.factorisations == 0
-        np.testing.assert_allclose(img, plain, rtol=0, atol=1e-6 * np.abs(plain).max())
+        np.testing.assert_allclose(img, plain, rtol=0, atol=1e-5 * np.abs(plain).max())
         f.solve(theta[0], theta[1], 1.2 * fem.PRESS_MAX_RATIO * TINY.tissue.E)  # beyond PRESS_MAX_RATIO
         assert rec.borrowed == 1 and rec.factorisations == 1
     with MorphedForward(TINY) as f:
         _res, J = f.solve_tangent(*theta)
         rec = inclusion_solver(f)
         assert rec.borrowed == 1 and rec.factorisations == 1  # the tangent's back-solves factorised it
-        np.testing.assert_allclose(J, plain_J, rtol=0, atol=1e-6 * np.abs(plain_J).max())
+        np.testing.assert_allclose(J, plain_J, rtol=0, atol=1e-5 * np.abs(plain_J).max())  # PRESS_RTOL
 
 
 def test_a_looser_cg_tolerance_reaches_the_solvers_and_keeps_the_image(monkeypatch):
@@ -280,6 +281,7 @@ def test_a_looser_cg_tolerance_reaches_the_solvers_and_keeps_the_image(monkeypat
     from elastimap.solver.morph import MorphedForward
     from elastimap.solver.reduction import CG_RTOL, Recycled
 
+    monkeypatch.setattr(fem, "BORROW_MIN_UNKNOWNS", 1)
     monkeypatch.setattr(fem, "Recycled", functools.partial(Recycled, blr_min=1))
     monkeypatch.setattr(fem, "PRESS_MAX_RATIO", 0.0)  # the full press by CG, not the difference of the two
     theta = (8.3, 7.2, 40.0)
