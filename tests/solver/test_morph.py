@@ -256,18 +256,18 @@ def test_inclusion_press_on_the_reference_press_factors(monkeypatch):
             np.testing.assert_allclose(img, plain, rtol=0, atol=1e-6 * np.abs(plain).max())
             f.solve(theta[0], theta[1], 300.0)  # beyond BORROW_MAX_RATIO of the tissue: its own factors
             assert rec.borrowed == 1 and rec.factorisations == 1
-    with MorphedForward(TINY) as f:  # the difference press (the shipped rule, to fem.PRESS_RTOL = 1e-5)
+    with MorphedForward(TINY) as f:  # the difference press (the shipped rule)
         img = f.solve(*theta).image.astype(float)
         rec = inclusion_solver(f)
         assert rec.borrowed == 1 and rec.factorisations == 0
-        np.testing.assert_allclose(img, plain, rtol=0, atol=1e-5 * np.abs(plain).max())
+        np.testing.assert_allclose(img, plain, rtol=0, atol=1e-6 * np.abs(plain).max())
         f.solve(theta[0], theta[1], 1.2 * fem.PRESS_MAX_RATIO * TINY.tissue.E)  # beyond PRESS_MAX_RATIO
         assert rec.borrowed == 1 and rec.factorisations == 1
     with MorphedForward(TINY) as f:
         _res, J = f.solve_tangent(*theta)
         rec = inclusion_solver(f)
         assert rec.borrowed == 1 and rec.factorisations == 1  # the tangent's back-solves factorised it
-        np.testing.assert_allclose(J, plain_J, rtol=0, atol=1e-5 * np.abs(plain_J).max())  # PRESS_RTOL
+        np.testing.assert_allclose(J, plain_J, rtol=0, atol=1e-6 * np.abs(plain_J).max())
 
 
 def test_a_looser_cg_tolerance_reaches_the_solvers_and_keeps_the_image(monkeypatch):
