@@ -60,21 +60,26 @@ __all__ = ["Model", "Solution", "SolverError"]
 #: a linear solve whose inclusion modulus differs by more than this factor from the one its
 #: factors were made with factorises afresh (:class:`~elastimap.solver.reduction.Recycled`)
 RECYCLE_MAX_RATIO = 2.0
-#: an inclusion press that would factorise afresh on a large mesh (block low-rank factors,
-#: ``Recycled.blr_min`` unknowns or more) is first tried by CG on the reference press's factors
+#: an inclusion press that would factorise afresh on a large mesh (BORROW_MIN_UNKNOWNS unknowns or
+#: more: the `default` and `fine` levels) is first tried by CG on the reference press's factors
 #: on the same mesh when the moduli differ by at most this factor (κ ≤ the ratio; measured on
 #: the `fine` quarter model at d/h 12/10: 13-41 iterations for E/E_tissue 2-20, a sample's two
 #: presses 8.9-10.1 s -> 5.8-7.6 s; docs/forward-model.md "Speed"), in at most BORROW_MAX_IT
 #: iterations
 BORROW_MAX_RATIO = 20.0
 BORROW_MAX_IT = 50
+BORROW_MIN_UNKNOWNS = 25_000
 #: the inclusion press right after the reference press was factorised on the same mesh, active set
 #: and plate travel (every sample's second press): CG on the reference press's factors for the difference
 #: of the two presses, K(E) v = f − K(E) ū_ref (``Recycled.borrow(start=)``), on any mesh size,
 #: for moduli within PRESS_MAX_RATIO of the tissue's, to PRESS_RTOL relative to that residual, in
 #: at most PRESS_MAX_IT iterations (about what a factorisation costs on the `default` mesh; else
 #: the inclusion's own factorisation).  Measured on `default` (docs/forward-model.md, "Shared
-#: presses"): E 10-200 kPa in 6-20 iterations, O1 and O2 within 5e-7 of the factorised press's
+#: presses"): E 10-200 kPa in 9-18 iterations, O1 and O2 within 5e-7 of the factorised press's.
+#: Looser was measured and not kept: 1e-5 (7-14 iterations, features within 5e-6) moved the
+#: camera fit from frames (tests/camera/test_camera_frames_fem.py) from d 8.6 [7.3, 10.0] to
+#: 9.9 [9.7, 10.1] mm, the truth 8 outside, since the fit differentiates the forward map and a
+#: CG tolerance is noise in it; 1e-4 moved O3 (counted in 1/64 pixels) by 1.5e-4 on one of 8 samples
 PRESS_MAX_RATIO = 100.0
 PRESS_MAX_IT = 32
 PRESS_RTOL = 1e-6
@@ -120,7 +125,7 @@ class Model:
         kt = 0.0 if bonded else float(p.disc.friction_kt)
         self.friction = Friction(self.interface, kt, space.ndofs) if kt > 0 else None
         self.sampler = ImageSampler(space, p)
-        self.A = fpetsc.create_matrix(self.a)
+        self._A_values, self.A = _stiffness_matrix(self.a)
         # Pᵀ(K + S)P, the elastic stiffness with the rigid modes constrained, is solved by CG on
         # the factors of the last variant of the same solve kind (the inclusion's and the
         # reference's stiffness differ by the inclusion's modulus), with friction (whose K is
@@ -264,7 +269,7 @@ class Model:
         ):
             rtol = max(PRESS_RTOL, self.cg_rtol)
             return rec.borrow(donor, K, f, key, PRESS_MAX_IT, tag=E_inclusion, start=ref[4], rtol=rtol)
-        if rec.blr_min is None or K.getSize()[0] < rec.blr_min or ratio > BORROW_MAX_RATIO:
+        if K.getSize()[0] < BORROW_MIN_UNKNOWNS or ratio > BORROW_MAX_RATIO:
             return None
         return rec.borrow(donor, K, f, key, BORROW_MAX_IT, tag=E_inclusion)
 
@@ -313,8 +318,8 @@ class Model:
                 self.A.axpy(E_inclusion - at[1], self._unit_inclusion(), PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
             self._A_at = (self._version, E_inclusion)
             return at[1]
-        self.A.zeroEntries()
-        fpetsc.assemble_matrix(self.A, self.a)
+        self._A_values.set_value(0.0)
+        fem.assemble_matrix(self._A_values, self.a)  # into A's values (``_stiffness_matrix``)
         self.A.assemble()
         self._A_at = (self._version, E_inclusion)
         return None
@@ -434,7 +439,27 @@ class Model:
                 part.destroy()
         if self.A is not None:
             self.A.destroy()
-            self.A = None
+            self.A = self._A_values = None
+
+
+def _stiffness_matrix(a: fem.Form):
+    """The stiffness matrix of the bilinear form ``a`` as DOLFINx's own CSR matrix and a PETSc AIJ
+    matrix on the same value array (no copy; PETSc's ``seqaij`` layout, the rows' columns sorted,
+    block size and local-to-global map as ``dolfinx.fem.petsc.create_matrix`` gives them).
+    DOLFINx assembles into its CSR matrix by array offsets, about a quarter less CPU than through
+    PETSc's MatSetValues (0.10 against 0.13-0.15 s on the `default` mesh; docs/forward-model.md,
+    'Shared presses'); everything else (PᵀAP, products, A += s A₁) runs on the PETSc matrix."""
+    from dolfinx import la
+
+    values = fem.create_matrix(a, block_mode=la.BlockMode.expanded)
+    n = len(values.indptr) - 1  # one process: no ghost rows
+    bs = a.function_spaces[0].dofmap.index_map_bs
+    indptr = values.indptr.astype(PETSc.IntType)
+    A = PETSc.Mat().createAIJWithArrays((n, n), (indptr, values.indices, values.data), comm=MPI.COMM_SELF)
+    A.setBlockSizes(bs, bs)
+    lgmap = PETSc.LGMap().create(np.arange(n // bs, dtype=PETSc.IntType), bsize=bs, comm=MPI.COMM_SELF)
+    A.setLGMap(lgmap, lgmap)
+    return values, A
 
 
 def _mult(A: PETSc.Mat, x: np.ndarray) -> np.ndarray:

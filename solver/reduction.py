@@ -263,8 +263,11 @@ class LU:
 
 #: :class:`Recycled` factorises a matrix of at least this many unknowns by MUMPS's block low-rank
 #: Cholesky with this dropping tolerance (a `fine` sample's solves: 41 % less time; CG on the factors
-#: keeps every solve at its tolerance)
-BLR_MIN_UNKNOWNS = 25_000
+#: keeps every solve at its tolerance).  The `default` level (about 27 000-33 000) stays below it:
+#: there exact factors cost 7 % less factorisation-and-solve CPU (the block low-rank analysis and the
+#: reference press's CG step outweigh the cheaper numeric factorisation; docs/forward-model.md,
+#: 'Shared presses')
+BLR_MIN_UNKNOWNS = 40_000
 BLR_TOLERANCE = 1e-8
 #: :class:`Recycled`'s relative tolerance of CG (preconditioned residual) unless told otherwise
 CG_RTOL = 1e-12
@@ -297,9 +300,9 @@ class Recycled:
     solve with K's own factors is then CG preconditioned by them to ``rtol`` as well (two
     iterations on the `fine` level, measured), not one back-substitution: every solve meets
     ``rtol`` as before.  Measured on the quarter model (docs/forward-model.md): a `fine` sample's
-    two factorisations and solves (66 851 unknowns) 14.0 → 8.3 s, `default` (28 381) 2.5 → 2.2 s;
-    `coarse` (18 191) would be slower (0.84 → 0.93 s), so it stays below the size.  None: exact
-    factors always.
+    two factorisations and solves (66 851 unknowns) 14.0 → 8.3 s; `coarse` (18 191) would be slower
+    (0.84 → 0.93 s) and a `default` sample's factorisation and solves 7 % slower, so both stay below the
+    size.  None: exact factors always.
 
     Another solver's factors (:meth:`borrow`): a solve of another kind on the same mesh and
     constraints (the inclusion press on the reference press's factors) by CG, without

@@ -247,7 +247,8 @@ def test_inclusion_press_on_the_reference_press_factors(monkeypatch):
             plain = f.solve(*theta).image.astype(float)
             plain_J = f.solve_tangent(*theta)[1]
             assert inclusion_solver(f).borrowed == 0
-        m.setattr(fem, "Recycled", functools.partial(Recycled, blr_min=1))  # every size borrows
+        m.setattr(fem, "BORROW_MIN_UNKNOWNS", 1)  # every size borrows
+        m.setattr(fem, "Recycled", functools.partial(Recycled, blr_min=1))  # with block low-rank factors
         with MorphedForward(TINY) as f:
             img = f.solve(*theta).image.astype(float)
             rec = inclusion_solver(f)
@@ -280,6 +281,7 @@ def test_a_looser_cg_tolerance_reaches_the_solvers_and_keeps_the_image(monkeypat
     from elastimap.solver.morph import MorphedForward
     from elastimap.solver.reduction import CG_RTOL, Recycled
 
+    monkeypatch.setattr(fem, "BORROW_MIN_UNKNOWNS", 1)
     monkeypatch.setattr(fem, "Recycled", functools.partial(Recycled, blr_min=1))
     monkeypatch.setattr(fem, "PRESS_MAX_RATIO", 0.0)  # the full press by CG, not the difference of the two
     theta = (8.3, 7.2, 40.0)

@@ -327,21 +327,32 @@ def test_recycled_factors_solve_nearby_matrices_like_a_direct_solver():
         rec.destroy()
     # a 3D Laplacian of 32 768 unknowns, where MUMPS really compresses the fronts: at a loose
     # tolerance its factors are visibly approximate (CG needs several iterations; exact factors take
-    # one), yet the solution meets rtol; at the shipped tolerance (the default blr_min engages here)
-    # two iterations
+    # one), yet the solution meets rtol; at the shipped tolerance (blr_min 25 000, the size the
+    # `default` level had block low-rank factors from before they were found slower there) two
+    # iterations
     m = 32
     T = sp.diags([-np.ones(m - 1), 2 * np.ones(m), -np.ones(m - 1)], [-1, 0, 1])
     Id = sp.identity(m)
     L = (sp.kron(sp.kron(T, Id), Id) + sp.kron(sp.kron(Id, T), Id) + sp.kron(sp.kron(Id, Id), T)).tocsr()
     g3 = np.random.default_rng(1).standard_normal(L.shape[0])
-    for kw, more_than in (({"blr_min": 1, "blr_tol": 1e-2}, 3), ({}, 1)):
+    for kw, more_than in (({"blr_min": 1, "blr_tol": 1e-2}, 3), ({"blr_min": 25_000}, 1)):
         rec = Recycled("t_recycled_blr3d", **kw)
         try:
             u = rec.solve(petsc(L), PETSc.Vec().createWithArray(g3.copy(), comm=PETSc.COMM_SELF), b"a").getArray()
             assert rec.blr and rec.ksp.getIterationNumber() > more_than, (kw, rec.ksp.getIterationNumber())
+            assert rec.ksp.getPC().getFactorMatrix().getMumpsIcntl(35) == 2, kw  # MUMPS was told so
             assert np.linalg.norm(L @ u - g3) <= 1e-9 * np.linalg.norm(g3), kw  # the residual, by scipy
         finally:
             rec.destroy()
+    # the shipped size (BLR_MIN_UNKNOWNS): a matrix of the `default` level's size (32 768 unknowns)
+    # gets exact factors, solved by one back-substitution
+    rec = Recycled("t_recycled_default_size")
+    try:
+        u = rec.solve(petsc(L), PETSc.Vec().createWithArray(g3.copy(), comm=PETSc.COMM_SELF), b"a").getArray()
+        assert not rec.blr and rec.ksp.getPC().getFactorMatrix().getMumpsIcntl(35) == 0
+        assert np.linalg.norm(L @ u - g3) <= 1e-9 * np.linalg.norm(g3)
+    finally:
+        rec.destroy()
     rec = Recycled("t_recycled_small")  # the default blr_min: exact factors for a small matrix
     try:
         rec.solve(petsc(stiffness(k0)), PETSc.Vec().createWithArray(b.copy(), comm=PETSc.COMM_SELF), b"a")

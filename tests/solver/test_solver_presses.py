@@ -68,6 +68,32 @@ def test_the_inclusion_press_updates_the_matrices_and_borrows_the_factors():
             model.destroy()
 
 
+def test_the_stiffness_is_assembled_by_dolfinx_into_the_values_petsc_solves_with():
+    """``Model.A`` is a PETSc matrix on the value array of DOLFINx's CSR matrix: DOLFINx's assembly
+    (``Model._assemble``) equals PETSc's MatSetValues assembly of the same form to round-off, and a
+    change of the CSR values is what PETSc sees (no copy)."""
+    p = TINY.with_inclusion(d=8.0, h=7.0, E=80.0)
+    model = _model(p)  # imports the solver first (solver/_boot.py), then DOLFINx may be
+    from dolfinx.fem import petsc as fpetsc
+
+    try:
+        model._assemble(p.inclusion.E)
+        want = fpetsc.assemble_matrix(model.a)
+        want.assemble()
+        assert model.A.getBlockSize() == want.getBlockSize() == 3
+        diff = want.copy()
+        diff.axpy(-1.0, model.A, structure=diff.Structure.DIFFERENT_NONZERO_PATTERN)
+        assert diff.norm() <= 1e-14 * want.norm()
+        norm = model.A.norm()
+        model._A_values.data[:] *= 2.0
+        model.A.assemble()
+        assert model.A.norm() == pytest.approx(2.0 * norm, rel=1e-14)
+        for m in (want, diff):
+            m.destroy()
+    finally:
+        model.destroy()
+
+
 def test_new_moduli_or_a_moved_mesh_assemble_afresh():
     """``Model.set_params`` (another tissue modulus: the batch's variants) and ``Model.moved`` (the
     morphed mesh) drop what the matrices held: the next presses equal a fresh model's."""
