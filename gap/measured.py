@@ -154,45 +154,9 @@ def load(path: str | os.PathLike, sensor: Sensor | None = None, *, allow_outside
     ``sensor_description``, else the paper's mechanics with the sidecar's camera."""
     tp = _table_path(Path(path))
     base = tp.parent
-    if tp.suffix == ".parquet":
-        try:
-            df = pd.read_parquet(tp)
-        except Exception as exc:  # pyarrow raises many types for a damaged file
-            raise UserError("measured", f"{tp}: not a readable table ({exc})") from None
-    else:
-        df = read_csv(tp, "measured")
-    if len(df) == 0:
-        raise UserError("measured", f"{tp}: no rows")
-    if len(df) < 4:
-        raise UserError("measured", f"{tp}: need at least 4 phantoms for a cross-validated diagnosis (got {len(df)})")
-    missing = [c for c in ("id", "d", "h", "E") if c not in df.columns]
-    if missing:
-        raise UserError("measured", f"{tp}: missing column(s) {', '.join(missing)} (need id, d, h, E)")
-    df["id"] = df["id"].astype(str)
-    for id_ in df["id"]:
-        check_name(id_, "measured", f"{tp}: id")
-    dup = sorted(set(df["id"][df["id"].duplicated()]))
-    if dup:
-        raise UserError("measured", f"{tp}: duplicate id(s) {dup[:5]}")
-    for c in ("d", "h", "E"):
-        v = pd.to_numeric(df[c], errors="coerce")
-        bad = df["id"][v.isna() | ~(v > 0) | ~np.isfinite(v.astype(float))].tolist()
-        if bad:
-            raise UserError("measured", f"{tp}: column {c} must be a positive number (rows {bad[:5]})")
-        df[c] = v.astype(float)
-    side = {}
+    df = _read_table(tp)
     sp = base / SIDECAR
-    if sp.exists():
-        try:
-            side = json.loads(sp.read_text())
-        except json.JSONDecodeError as exc:
-            raise UserError("measured", f"{sp}: not valid JSON ({exc})") from None
-        if not isinstance(side, dict):
-            raise UserError("measured", f"{sp}: must hold a JSON object")
-        if side.get("kind") != KIND:
-            raise UserError("measured", f"{sp}: not an elastimap gap measured-data sidecar (kind {side.get('kind')!r})")
-        if side.get("version", -1) != VERSION:
-            raise UserError("measured", f"{sp}: version {side.get('version')!r} not supported (expected {VERSION})")
+    side = _read_sidecar(sp)
     sensor_cam = side.get("sensor")
     settings = side.get("feature_settings", {})
     _check_sidecar(sp, sensor_cam, settings, side)
@@ -203,101 +167,10 @@ def load(path: str | os.PathLike, sensor: Sensor | None = None, *, allow_outside
             raise UserError("measured", f"{sp}: sensor_description: {exc.param}: {exc.message}") from None
     if sensor is not None:
         sensor_cam = SensorModel.of(sensor).to_dict()
+    y, se, from_frames = _features(df, tp, sensor_cam, settings, allow_outside)
+    diffs, dses = _difference_images(df, tp, from_frames, allow_outside)
+    force, force_se = _force(df, tp)
     n = len(df)
-    has_feat = all(k in df.columns for k in FEATURES)
-    has_img = "images" in df.columns and "background" in df.columns
-    if not has_feat and not has_img:
-        raise UserError("measured", f"{tp}: needs camera features O1,O2,O3 or frame columns images,background")
-    y = np.full((n, 3), np.nan)
-    se = np.zeros((n, 3))
-    if has_feat:
-        y = df[list(FEATURES)].apply(pd.to_numeric, errors="coerce").to_numpy(float)
-    for j, k in enumerate(FEATURES):
-        if f"{k}_se" in df.columns:
-            v = pd.to_numeric(df[f"{k}_se"], errors="coerce").to_numpy(float)
-            if np.any(v[np.isfinite(v)] < 0):
-                raise UserError("measured", f"{tp}: {k}_se must be >= 0")
-            se[:, j] = np.where(np.isfinite(v), v, 0.0)
-    need = ~np.all(np.isfinite(y), axis=1)
-    from_frames: dict[int, dict] = {}
-    if need.any() and not has_img:
-        raise UserError("measured", f"{tp}: non-numeric features for {df['id'][need].tolist()[:5]}")
-    if has_img:
-        # frames given: features (where not in the table), the difference image and its
-        # per-pixel noise always come from the frames, so the residual map is never lost
-        sm = SensorModel.from_dict(sensor_cam) if sensor_cam else SensorModel()
-        fs = FeatureSettings.from_dict(settings or {})
-        for i in range(n):
-            r = df.iloc[i]
-            if not isinstance(r["images"], str) or not r["images"].strip():
-                continue
-            where = f"{tp}, {r['id']!r}"
-            F, fs1 = read_stack(
-                _files(r, "images", base, where, allow_outside), sm.shape, sm.window, "measured", bits=sm.bits
-            )
-            B, fs2 = read_stack(
-                _files(r, "background", base, where, allow_outside), sm.shape, sm.window, "measured", bits=sm.bits
-            )
-            if fs1 != fs2:
-                raise UserError("measured", f"{where}: the background frames' bit depth differs from the lesion frames")
-            v = views_from_frames(F, B, sm, fs, fs1)
-            from_frames[i] = v
-            if need[i]:
-                y[i], se[i] = v["values"], v["se"]
-
-    miss = [df["id"].iloc[i] for i in np.flatnonzero(~np.all(np.isfinite(y), axis=1))]
-    if miss:
-        raise UserError("measured", f"{tp}: no features and no frames for {miss[:5]}")
-
-    def npy(col, i, what):
-        f = df[col].iloc[i] if col in df.columns else None
-        if f is None or (isinstance(f, float) and np.isnan(f)) or str(f).strip() == "":
-            return None
-        fp = base / str(f)
-        if not allow_outside and not _inside(fp, base):
-            raise UserError(
-                "measured",
-                f"{tp}: {what} {f} of {df['id'].iloc[i]} lies outside the folder {base} (a table's files are "
-                "read only inside its folder; give --allow-outside to allow it)",
-            )
-        if not fp.is_file():
-            raise UserError("measured", f"{tp}: {what} {fp} of {df['id'].iloc[i]} does not exist")
-        try:
-            a = np.load(fp, allow_pickle=False)
-        except Exception as exc:
-            raise UserError("measured", f"{fp}: not a .npy array ({exc})") from None
-        if a.ndim != 2 or not np.all(np.isfinite(a)):
-            raise UserError("measured", f"{fp}: must be a finite 2-D array (got shape {a.shape})")
-        return a.astype(float)
-
-    diffs, dses = [], []
-    for i in range(n):
-        a, b = npy("difference", i, "difference image"), npy("difference_se", i, "difference standard-error image")
-        if a is None and i in from_frames:
-            a = from_frames[i]["difference"]
-        if b is None and i in from_frames:
-            b = from_frames[i]["difference_se"]
-        if b is not None and a is not None and b.shape != a.shape:
-            raise UserError(
-                "measured", f"{tp}: difference_se of {df['id'].iloc[i]} has shape {b.shape}, its image {a.shape}"
-            )
-        if b is not None and np.any(b < 0):
-            raise UserError("measured", f"{tp}: difference_se of {df['id'].iloc[i]} must be >= 0")
-        diffs.append(a)
-        dses.append(b)
-    shapes = {a.shape for a in diffs if a is not None}
-    if len(shapes) > 1:
-        raise UserError("measured", f"{tp}: difference images have different shapes {sorted(shapes)}")
-    force, force_se = np.full(n, np.nan), np.zeros(n)
-    if "force" in df.columns:
-        force = pd.to_numeric(df["force"], errors="coerce").to_numpy(float)
-        if np.any(force[np.isfinite(force)] <= 0):
-            raise UserError("measured", f"{tp}: force must be > 0 mN")
-        if "force_se" in df.columns:
-            v = pd.to_numeric(df["force_se"], errors="coerce").to_numpy(float)
-            if np.any(v[np.isfinite(v)] < 0):
-                raise UserError("measured", f"{tp}: force_se must be >= 0")
-            force_se = np.where(np.isfinite(v), v, 0.0)
     tE = (
         pd.to_numeric(df["tissue_E"], errors="coerce").to_numpy(float)
         if "tissue_E" in df.columns
@@ -326,6 +199,169 @@ def load(path: str | os.PathLike, sensor: Sensor | None = None, *, allow_outside
         force_se,
         sensor,
     )
+
+
+def _read_table(tp: Path) -> pd.DataFrame:
+    """The table with its ids checked (file-name safe, unique) and d, h, E positive numbers."""
+    if tp.suffix == ".parquet":
+        try:
+            df = pd.read_parquet(tp)
+        except Exception as exc:  # pyarrow raises many types for a damaged file
+            raise UserError("measured", f"{tp}: not a readable table ({exc})") from None
+    else:
+        df = read_csv(tp, "measured")
+    if len(df) == 0:
+        raise UserError("measured", f"{tp}: no rows")
+    if len(df) < 4:
+        raise UserError("measured", f"{tp}: need at least 4 phantoms for a cross-validated diagnosis (got {len(df)})")
+    missing = [c for c in ("id", "d", "h", "E") if c not in df.columns]
+    if missing:
+        raise UserError("measured", f"{tp}: missing column(s) {', '.join(missing)} (need id, d, h, E)")
+    df["id"] = df["id"].astype(str)
+    for id_ in df["id"]:
+        check_name(id_, "measured", f"{tp}: id")
+    dup = sorted(set(df["id"][df["id"].duplicated()]))
+    if dup:
+        raise UserError("measured", f"{tp}: duplicate id(s) {dup[:5]}")
+    for c in ("d", "h", "E"):
+        v = pd.to_numeric(df[c], errors="coerce")
+        bad = df["id"][v.isna() | ~(v > 0) | ~np.isfinite(v.astype(float))].tolist()
+        if bad:
+            raise UserError("measured", f"{tp}: column {c} must be a positive number (rows {bad[:5]})")
+        df[c] = v.astype(float)
+    return df
+
+
+def _read_sidecar(sp: Path) -> dict:
+    """The sidecar's JSON object ({} without a sidecar), its kind and version checked."""
+    if not sp.exists():
+        return {}
+    try:
+        side = json.loads(sp.read_text())
+    except json.JSONDecodeError as exc:
+        raise UserError("measured", f"{sp}: not valid JSON ({exc})") from None
+    if not isinstance(side, dict):
+        raise UserError("measured", f"{sp}: must hold a JSON object")
+    if side.get("kind") != KIND:
+        raise UserError("measured", f"{sp}: not an elastimap gap measured-data sidecar (kind {side.get('kind')!r})")
+    if side.get("version", -1) != VERSION:
+        raise UserError("measured", f"{sp}: version {side.get('version')!r} not supported (expected {VERSION})")
+    return side
+
+
+def _features(df: pd.DataFrame, tp: Path, sensor_cam, settings, allow_outside: bool):
+    """Camera features ``y`` (n, 3) and their standard errors ``se`` from the table, and where the
+    table names frames, ``{row: views}`` computed from them (features where the table has none,
+    and always the difference image with its per-pixel noise, so the residual map is never lost)."""
+    n = len(df)
+    has_feat = all(k in df.columns for k in FEATURES)
+    has_img = "images" in df.columns and "background" in df.columns
+    if not has_feat and not has_img:
+        raise UserError("measured", f"{tp}: needs camera features O1,O2,O3 or frame columns images,background")
+    y = np.full((n, 3), np.nan)
+    se = np.zeros((n, 3))
+    if has_feat:
+        y = df[list(FEATURES)].apply(pd.to_numeric, errors="coerce").to_numpy(float)
+    for j, k in enumerate(FEATURES):
+        if f"{k}_se" in df.columns:
+            v = pd.to_numeric(df[f"{k}_se"], errors="coerce").to_numpy(float)
+            if np.any(v[np.isfinite(v)] < 0):
+                raise UserError("measured", f"{tp}: {k}_se must be >= 0")
+            se[:, j] = np.where(np.isfinite(v), v, 0.0)
+    need = ~np.all(np.isfinite(y), axis=1)
+    from_frames: dict[int, dict] = {}
+    if need.any() and not has_img:
+        raise UserError("measured", f"{tp}: non-numeric features for {df['id'][need].tolist()[:5]}")
+    if has_img:
+        sm = SensorModel.from_dict(sensor_cam) if sensor_cam else SensorModel()
+        fs = FeatureSettings.from_dict(settings or {})
+        for i in range(n):
+            r = df.iloc[i]
+            if not isinstance(r["images"], str) or not r["images"].strip():
+                continue
+            where = f"{tp}, {r['id']!r}"
+            F, fs1 = read_stack(
+                _files(r, "images", tp.parent, where, allow_outside), sm.shape, sm.window, "measured", bits=sm.bits
+            )
+            B, fs2 = read_stack(
+                _files(r, "background", tp.parent, where, allow_outside), sm.shape, sm.window, "measured", bits=sm.bits
+            )
+            if fs1 != fs2:
+                raise UserError("measured", f"{where}: the background frames' bit depth differs from the lesion frames")
+            v = views_from_frames(F, B, sm, fs, fs1)
+            from_frames[i] = v
+            if need[i]:
+                y[i], se[i] = v["values"], v["se"]
+    miss = [df["id"].iloc[i] for i in np.flatnonzero(~np.all(np.isfinite(y), axis=1))]
+    if miss:
+        raise UserError("measured", f"{tp}: no features and no frames for {miss[:5]}")
+    return y, se, from_frames
+
+
+def _npy(df: pd.DataFrame, tp: Path, col: str, i: int, what: str, allow_outside: bool) -> np.ndarray | None:
+    """Row ``i``'s ``.npy`` image named in column ``col`` (None where there is none): inside the
+    table's folder unless ``allow_outside``, a finite 2-D array."""
+    base = tp.parent
+    f = df[col].iloc[i] if col in df.columns else None
+    if f is None or (isinstance(f, float) and np.isnan(f)) or str(f).strip() == "":
+        return None
+    fp = base / str(f)
+    if not allow_outside and not _inside(fp, base):
+        raise UserError(
+            "measured",
+            f"{tp}: {what} {f} of {df['id'].iloc[i]} lies outside the folder {base} (a table's files are "
+            "read only inside its folder; give --allow-outside to allow it)",
+        )
+    if not fp.is_file():
+        raise UserError("measured", f"{tp}: {what} {fp} of {df['id'].iloc[i]} does not exist")
+    try:
+        a = np.load(fp, allow_pickle=False)
+    except Exception as exc:
+        raise UserError("measured", f"{fp}: not a .npy array ({exc})") from None
+    if a.ndim != 2 or not np.all(np.isfinite(a)):
+        raise UserError("measured", f"{fp}: must be a finite 2-D array (got shape {a.shape})")
+    return a.astype(float)
+
+
+def _difference_images(df: pd.DataFrame, tp: Path, from_frames: dict, allow_outside: bool):
+    """Each row's difference image and its standard-error image (mm; None where neither the table
+    nor the frames give one): the table's ``.npy`` files first, else the frames'."""
+    diffs, dses = [], []
+    for i in range(len(df)):
+        a = _npy(df, tp, "difference", i, "difference image", allow_outside)
+        b = _npy(df, tp, "difference_se", i, "difference standard-error image", allow_outside)
+        if a is None and i in from_frames:
+            a = from_frames[i]["difference"]
+        if b is None and i in from_frames:
+            b = from_frames[i]["difference_se"]
+        if b is not None and a is not None and b.shape != a.shape:
+            raise UserError(
+                "measured", f"{tp}: difference_se of {df['id'].iloc[i]} has shape {b.shape}, its image {a.shape}"
+            )
+        if b is not None and np.any(b < 0):
+            raise UserError("measured", f"{tp}: difference_se of {df['id'].iloc[i]} must be >= 0")
+        diffs.append(a)
+        dses.append(b)
+    shapes = {a.shape for a in diffs if a is not None}
+    if len(shapes) > 1:
+        raise UserError("measured", f"{tp}: difference images have different shapes {sorted(shapes)}")
+    return diffs, dses
+
+
+def _force(df: pd.DataFrame, tp: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Plate forces (mN; NaN where not measured) and their standard errors (0 where not given)."""
+    n = len(df)
+    force, force_se = np.full(n, np.nan), np.zeros(n)
+    if "force" in df.columns:
+        force = pd.to_numeric(df["force"], errors="coerce").to_numpy(float)
+        if np.any(force[np.isfinite(force)] <= 0):
+            raise UserError("measured", f"{tp}: force must be > 0 mN")
+        if "force_se" in df.columns:
+            v = pd.to_numeric(df["force_se"], errors="coerce").to_numpy(float)
+            if np.any(v[np.isfinite(v)] < 0):
+                raise UserError("measured", f"{tp}: force_se must be >= 0")
+            force_se = np.where(np.isfinite(v), v, 0.0)
+    return force, force_se
 
 
 def _inside(path: Path, folder: Path) -> bool:
