@@ -467,12 +467,7 @@ def refine_estimates(
 
     if not 0 < image_noise < 1:
         raise UserError("image_noise", f"must be in (0, 1) (got {image_noise:g})")
-    if images is None:
-        if any(e.image is None for e in ests):
-            raise UserError("images", "an estimate carries no image to refine against")
-        imgs = [np.asarray(e.image, dtype=float) for e in ests]
-    else:
-        imgs = list(np.asarray(images, dtype=float).reshape(len(ests), -1))
+    imgs = _images_to_refine(ests, images)
     check_correct(mesh, correct)
     given = forward is not None or forward_alt is not None or forward_fine is not None
     if forward is None:
@@ -502,24 +497,38 @@ def refine_estimates(
                 discrepancy=discrepancy,
                 pixel=pixel,
             )
-            e.mean = r.theta
-            e.crb = r.relstd_calibrated
-            e.sd = r.sd * r.scale
-            e.lo, e.hi = r.lo, r.hi
-            e.flags = [
-                f for f in e.flags if not f.startswith("non_identifiable:") and f != "outside_identifiability_map"
-            ]
-            e.flags += [f"non_identifiable:{q}" for j, q in enumerate(TARGETS) if not e.crb[j] <= threshold]
-            e.flags = [f for f in e.flags if not f.startswith("at_design_edge:")]
-            e.flags += [f"at_design_edge:{q}" for q in r.at_bound]
-            if r.chi2_red > chi2_limit:
-                e.flags.append("model_mismatch")
-            e.input = e.input + "+fem_refined"
-            e.fit = r
-            _plausibility([e])
+            _take_fit(e, r, threshold, chi2_limit)
         if progress:
             progress(i + 1, len(ests))
     return ests
+
+
+def _images_to_refine(ests: list[Estimate], images) -> list[np.ndarray]:
+    """The images the fit refines against: ``images`` (one per estimate) or each estimate's own."""
+    if images is None:
+        if any(e.image is None for e in ests):
+            raise UserError("images", "an estimate carries no image to refine against")
+        return [np.asarray(e.image, dtype=float) for e in ests]
+    return list(np.asarray(images, dtype=float).reshape(len(ests), -1))
+
+
+def _take_fit(e: Estimate, r, threshold: float, chi2_limit: float) -> None:
+    """Estimate ``e`` becomes the fit ``r``'s: mean, interval, sd and relative sd, its
+    identifiability and design-edge flags re-decided, ``model_mismatch`` when the reduced chi²
+    exceeds ``chi2_limit``, ``+fem_refined`` in its input (see :func:`refine_estimates`)."""
+    e.mean = r.theta
+    e.crb = r.relstd_calibrated
+    e.sd = r.sd * r.scale
+    e.lo, e.hi = r.lo, r.hi
+    e.flags = [f for f in e.flags if not f.startswith("non_identifiable:") and f != "outside_identifiability_map"]
+    e.flags += [f"non_identifiable:{q}" for j, q in enumerate(TARGETS) if not e.crb[j] <= threshold]
+    e.flags = [f for f in e.flags if not f.startswith("at_design_edge:")]
+    e.flags += [f"at_design_edge:{q}" for q in r.at_bound]
+    if r.chi2_red > chi2_limit:
+        e.flags.append("model_mismatch")
+    e.input = e.input + "+fem_refined"
+    e.fit = r
+    _plausibility([e])
 
 
 def sensor_of(calibration: Calibration):
