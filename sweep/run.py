@@ -564,18 +564,13 @@ def _handle_sigterm():
     return lambda: signal.signal(signal.SIGTERM, old)
 
 
-def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remote=None) -> None:
-    from distributed import as_completed
-    from tqdm import tqdm
-
-    base = plan.base.to_dict()
-    out = str(plan.out.resolve())
-    solver = cfg.solver
-    t0 = time.perf_counter()
+def _warm_up(solver, plan: Plan, remote) -> None:
+    """Compile the forward model's forms before the first sample.  Local workers share this
+    machine's JIT cache: compile once here, with the base inclusion, not a sampled one (a sample
+    whose geometry fails must fail as a sample, not stop the sweep); if the warm-up itself fails the
+    workers compile on first use.  Remote workers have their own caches (node-local on SLURM): a
+    worker plugin warms each worker once, now for those present and later for every one that joins."""
     if remote is None:
-        # The local workers share this machine's JIT cache: compile the forms once here, with the
-        # base inclusion, not a sampled one (a sample whose geometry fails must fail as a sample,
-        # not stop the sweep).  If the warm-up itself fails the workers compile on first use.
         try:
             jobs.warmup(solver, plan.base)
         except Exception as exc:
@@ -585,11 +580,46 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                 file=sys.stderr,
             )
     elif solver is None or hasattr(solver, "warmup"):
-        # Remote workers have their own caches (node-local on SLURM): a worker plugin warms each
-        # worker once, now for those present and later for every worker that joins.
         from .cluster import WarmUpWorkers
 
-        remote[0].register_plugin(WarmUpWorkers(functools.partial(jobs.warmup, solver), base), name="elastimap-warmup")
+        plugin = WarmUpWorkers(functools.partial(jobs.warmup, solver), plan.base.to_dict())
+        remote[0].register_plugin(plugin, name="elastimap-warmup")
+
+
+def _progress_bar(total: int, progress: bool):
+    """The sweep's tqdm bar on stderr: every 0.5 s on a terminal, every 15 s into a log; a
+    pseudo-terminal of size 0x0 (some CI runners, `script`) gets a fixed width, or tqdm would print
+    nothing."""
+    from tqdm import tqdm
+
+    tty = sys.stderr.isatty()
+    try:
+        size = os.get_terminal_size(sys.stderr.fileno())
+    except (OSError, ValueError):
+        size = os.terminal_size((0, 0))
+    sized = size.columns > 0 and size.lines > 0
+    return tqdm(
+        total=total,
+        desc="sweep",
+        unit="sample",
+        file=sys.stderr,
+        disable=not progress,
+        mininterval=0.5 if tty else 15.0,
+        dynamic_ncols=sized,
+        ncols=None if sized else 100,
+        nrows=None if sized else 50,
+        smoothing=0.1,
+    )
+
+
+def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remote=None) -> None:
+    from distributed import as_completed
+
+    base = plan.base.to_dict()
+    out = str(plan.out.resolve())
+    solver = cfg.solver
+    t0 = time.perf_counter()
+    _warm_up(solver, plan, remote)
     summary["warmup_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     client, cluster = remote if remote is not None else _start_client(cfg)
@@ -615,25 +645,7 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
         )
         by_future = dict(zip(futures, todo))
         resubmitted: dict[str, int] = {}
-        tty = sys.stderr.isatty()
-        try:
-            size = os.get_terminal_size(sys.stderr.fileno())
-        except (OSError, ValueError):
-            size = os.terminal_size((0, 0))
-        # a pseudo-terminal of size 0x0 (some CI runners, `script`) would make tqdm print nothing
-        sized = size.columns > 0 and size.lines > 0
-        bar = tqdm(
-            total=len(todo),
-            desc="sweep",
-            unit="sample",
-            file=sys.stderr,
-            disable=not cfg.progress,
-            mininterval=0.5 if tty else 15.0,
-            dynamic_ncols=sized,
-            ncols=None if sized else 100,
-            nrows=None if sized else 50,
-            smoothing=0.1,
-        )
+        bar = _progress_bar(len(todo), cfg.progress)
         since_compact = 0
         pending = as_completed(list(by_future))
         watch = _WorkerWatch(client, cfg, cluster is not None)
