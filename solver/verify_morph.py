@@ -35,7 +35,7 @@ import click
 import numpy as np
 from tqdm import tqdm
 
-from elastimap.cli_util import run
+from elastimap.cli_util import mesh_option, run
 
 from .params import MESH_LEVELS, SIZINGS, Discretisation, SolveParams
 
@@ -318,7 +318,7 @@ def _csv(text: str, name: str, cast=float) -> tuple:
     show_default=True,
     help="Element size near the inclusion: fixed or by_d (scaled with d).",
 )
-@click.option("--mesh", type=click.Choice(MESH_LEVELS), default="default", show_default=True, help="smoothness, edges")
+@mesh_option(help="smoothness, edges")
 @click.option(
     "--points", default=",".join(f"{d:g}:{h:g}" for d, h in POINTS), show_default=True, help="d:h pairs (smoothness)"
 )

@@ -40,7 +40,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from elastimap.solver.params import MESH_LEVELS
+from elastimap.cli_util import MeshLevel, mesh_option
 
 #: the withheld effect of the study in the docs, chosen before any result: the tissue-side probe
 #: layer is 200 kPa where the lab (the paper) says 300 kPa, a PDMS batch softer by a third.
@@ -308,16 +308,10 @@ def table_md(doc: dict) -> str:
     show_default=True,
     help="NAME=VALUE of the true sensor's withheld effect ('none': no effect).",
 )
-@click.option(
-    "--mesh",
-    type=click.Choice(MESH_LEVELS),
-    default="coarse",
-    show_default=True,
-    help="Mesh level of the lab's model (sweep, calibrate, diagnose).",
-)
+@mesh_option(default="coarse", help="Mesh level of the lab's model (sweep, calibrate, diagnose).")
 @click.option(
     "--data-mesh",
-    type=click.Choice(MESH_LEVELS),
+    type=MeshLevel(),
     default="default",
     show_default=True,
     help="Mesh level of the lab's SYNTHETIC data.",
