@@ -269,6 +269,14 @@ class LU:
 #: 'Shared presses')
 BLR_MIN_UNKNOWNS = 40_000
 BLR_TOLERANCE = 1e-8
+#: :class:`Recycled` factorises a matrix of at least this many unknowns and below ``BLR_MIN_UNKNOWNS``
+#: (the `default` quarter model) in **single precision** (MUMPS's ``smumps``, PETSc's
+#: ``-pc_precision single``): the numeric factorisation and every back-substitution in float32, CG in
+#: double on those factors to the solver's tolerance.  On five `default` samples the reference press
+#: (factorise, then CG to 1e-12: 3 iterations) and the inclusion press (the same 9-18 iterations, each
+#: cheaper) took 0.60-0.84 instead of 0.90-1.30 s of CPU (mean 0.73 against 1.14 s; docs/forward-model.md,
+#: 'Shared presses'); a factorisation that fails in single precision is redone in double
+SINGLE_MIN_UNKNOWNS = 25_000
 #: :class:`Recycled`'s relative tolerance of CG (preconditioned residual) unless told otherwise
 CG_RTOL = 1e-12
 
@@ -304,6 +312,13 @@ class Recycled:
     (0.84 → 0.93 s) and a `default` sample's factorisation and solves 7 % slower, so both stay below the
     size.  None: exact factors always.
 
+    Single-precision factors (``single_min``): a matrix of at least ``single_min`` unknowns that is
+    not factorised block low-rank is factorised in float32 (MUMPS ``smumps``); CG in double on those
+    factors meets ``rtol`` as with block low-rank factors (about three iterations on the `default`
+    level).  Should MUMPS fail in single precision (a pivot lost to rounding) or CG not converge on
+    K's own single-precision factors, this solver factorises in double from then on.  None: double
+    always.
+
     Another solver's factors (:meth:`borrow`): a solve of another kind on the same mesh and
     constraints (the inclusion press on the reference press's factors) by CG, without
     factorising (``fem.Model._borrow`` decides when)."""
@@ -316,6 +331,7 @@ class Recycled:
         refactor_after: int | None = None,
         blr_min: int | None = BLR_MIN_UNKNOWNS,
         blr_tol: float = BLR_TOLERANCE,
+        single_min: int | None = SINGLE_MIN_UNKNOWNS,
     ):
         self.prefix = f"elastimap_{id(self)}_{name}_"
         # no option before the first factorisation: a solver that only borrows (the inclusion press
@@ -324,6 +340,8 @@ class Recycled:
         self.ksp.setTolerances(rtol=rtol, atol=0.0, max_it=max_it)
         self.blr_min, self.blr_tol = blr_min, float(blr_tol)
         self.blr = False  # whether the factors of K₀ are block low-rank (approximate)
+        self.single_min = single_min
+        self.single = False  # whether the factors of K₀ are single precision (approximate)
         self.K0: PETSc.Mat | None = None  # the factorised matrix
         self.key: bytes | None = None
         self.tag = None  # what the caller said of K₀ when it was factorised (``solve(tag=)``)
@@ -342,11 +360,14 @@ class Recycled:
                 self.K0.destroy()
             self.ksp.reset()  # new constraint set: new symbolic factorisation
             self.K0 = K.duplicate(copy=True)
-            self.blr = self.blr_min is not None and K.getSize()[0] >= self.blr_min
+            n = K.getSize()[0]
+            self.blr = self.blr_min is not None and n >= self.blr_min
+            self.single = not self.blr and self.single_min is not None and n >= self.single_min
             opts = PETSc.Options()
             mumps_workspace(self.prefix)
             opts[f"{self.prefix}mat_mumps_icntl_35"] = 2 if self.blr else 0  # read at the symbolic factorisation
             opts[f"{self.prefix}mat_mumps_cntl_7"] = self.blr_tol if self.blr else 0.0
+            opts[f"{self.prefix}pc_precision"] = "single" if self.single else "double"
         self.K0.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         self.K0.setOption(PETSc.Mat.Option.SPD, True)
         self.key, self.tag = key, tag
@@ -372,16 +393,28 @@ class Recycled:
         self.last = (0, tag)
         if not equal:  # new constraints, far from K₀, or CG did not converge: K's own factors
             self._factorise(K, key, tag)
-        self.ksp.setOperators(K, self.K0)
-        if not self.blr:
-            self.ksp.setType("preonly")  # its own exact factors: one back-substitution, as LU.solve
-        self.ksp.solve(f, x)  # block low-rank factors: CG on them to rtol
-        reason = self.ksp.getConvergedReason()
-        self.ksp.setType("cg")
+        reason = self._own_solve(K, f, x)
+        if reason <= 0 and self.single:  # float32 factors failed or too poor: double from now on
+            self.single_min = None
+            self.K0.destroy()
+            self.K0 = None
+            self._factorise(K, key, tag)
+            reason = self._own_solve(K, f, x)
         if reason <= 0:
             x.destroy()
             raise SolverError(f"linear solve failed (PETSc reason {reason})")
         return x
+
+    def _own_solve(self, K: PETSc.Mat, f: PETSc.Vec, x: PETSc.Vec) -> int:
+        """x = K⁻¹ f on K's own factors (K₀ = K): one back-substitution when they are exact, else CG
+        on them to rtol; returns PETSc's converged reason."""
+        self.ksp.setOperators(K, self.K0)
+        if not (self.blr or self.single):
+            self.ksp.setType("preonly")  # its own exact factors: one back-substitution, as LU.solve
+        self.ksp.solve(f, x)  # approximate factors: CG on them to rtol
+        reason = self.ksp.getConvergedReason()
+        self.ksp.setType("cg")
+        return reason
 
     def borrow(
         self,
@@ -462,5 +495,5 @@ class Recycled:
                 obj.destroy()
         self.ksp = self.K0 = None
         opts = PETSc.Options()
-        for name in ("mat_mumps_icntl_14", "mat_mumps_icntl_35", "mat_mumps_cntl_7"):
+        for name in ("mat_mumps_icntl_14", "mat_mumps_icntl_35", "mat_mumps_cntl_7", "pc_precision"):
             opts.delValue(f"{self.prefix}{name}")

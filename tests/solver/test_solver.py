@@ -344,15 +344,18 @@ def test_recycled_factors_solve_nearby_matrices_like_a_direct_solver():
             assert np.linalg.norm(L @ u - g3) <= 1e-9 * np.linalg.norm(g3), kw  # the residual, by scipy
         finally:
             rec.destroy()
-    # the shipped size (BLR_MIN_UNKNOWNS): a matrix of the `default` level's size (32 768 unknowns)
-    # gets exact factors, solved by one back-substitution
-    rec = Recycled("t_recycled_default_size")
-    try:
-        u = rec.solve(petsc(L), PETSc.Vec().createWithArray(g3.copy(), comm=PETSc.COMM_SELF), b"a").getArray()
-        assert not rec.blr and rec.ksp.getPC().getFactorMatrix().getMumpsIcntl(35) == 0
-        assert np.linalg.norm(L @ u - g3) <= 1e-9 * np.linalg.norm(g3)
-    finally:
-        rec.destroy()
+    # the shipped sizes (BLR_MIN_UNKNOWNS, SINGLE_MIN_UNKNOWNS): a matrix of the `default` level's
+    # size (32 768 unknowns) gets no block low-rank factors but single-precision ones, so CG runs on
+    # them (more than one iteration) to rtol; with single_min=None exact factors, one back-substitution
+    for kw, single in (({}, True), ({"single_min": None}, False)):
+        rec = Recycled("t_recycled_default_size", **kw)
+        try:
+            u = rec.solve(petsc(L), PETSc.Vec().createWithArray(g3.copy(), comm=PETSc.COMM_SELF), b"a").getArray()
+            assert not rec.blr and rec.ksp.getPC().getFactorMatrix().getMumpsIcntl(35) == 0
+            assert rec.single == single and (rec.ksp.getIterationNumber() > 1) == single, kw
+            assert np.linalg.norm(L @ u - g3) <= 1e-9 * np.linalg.norm(g3)
+        finally:
+            rec.destroy()
     rec = Recycled("t_recycled_small")  # the default blr_min: exact factors for a small matrix
     try:
         rec.solve(petsc(stiffness(k0)), PETSc.Vec().createWithArray(b.copy(), comm=PETSc.COMM_SELF), b"a")
@@ -379,6 +382,34 @@ def test_recycled_factors_solve_nearby_matrices_like_a_direct_solver():
         assert np.abs(v - spla.spsolve(M.tocsc(), g)).max() <= 1e-9 * np.abs(v).max()
     finally:
         rec.destroy()
+
+
+def test_single_precision_factors_that_fail_are_redone_in_double():
+    """A matrix too ill-conditioned for float32 factors (a free 1D bar held by a spring of 1e-9,
+    κ ≈ 1e13): MUMPS's single-precision Cholesky fails or CG on it does not converge, so
+    :class:`Recycled` factorises in double from then on and solves as scipy does; a well-conditioned
+    one keeps single-precision factors and meets rtol."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+    from petsc4py import PETSc
+
+    from elastimap.solver.reduction import Recycled
+
+    n = 2000
+    T = sp.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tolil()
+    T[0, 0] = T[-1, -1] = 1.0
+    b = np.random.default_rng(0).standard_normal(n)
+    for spring, single in ((1e-9, False), (1e-2, True)):
+        M = (T + spring * sp.identity(n)).tocsr()
+        K = PETSc.Mat().createAIJ(size=M.shape, csr=(M.indptr, M.indices, M.data), comm=PETSc.COMM_SELF)
+        rec = Recycled("t_single_fallback", single_min=1)
+        try:
+            u = rec.solve(K, PETSc.Vec().createWithArray(b.copy(), comm=PETSc.COMM_SELF), b"a").getArray()
+            assert rec.single == single and rec.factorisations == (1 if single else 2), spring
+            ref = spla.spsolve(M.tocsc(), b)
+            assert np.abs(u - ref).max() <= 1e-6 * np.abs(ref).max(), spring
+        finally:
+            rec.destroy()
 
 
 def test_borrowed_factors_solve_another_kind_without_factorising():

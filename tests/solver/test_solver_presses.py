@@ -36,6 +36,27 @@ def test_shared_presses_give_the_separate_presses_numbers(p):
     assert np.abs(b.image_raw.astype(float) - a.image_raw).max() <= 1e-6 * np.abs(a.image_raw).max()
 
 
+def test_single_precision_factors_keep_a_default_sample(monkeypatch):
+    """At the `default` level (SINGLE_MIN_UNKNOWNS) the presses run on single-precision factors,
+    CG in double to the same tolerances: the sample's features and forces are those of double
+    factors (single_min=None) to within the presses' CG tolerance."""
+    import functools
+
+    from elastimap.solver import fem
+    from elastimap.solver.api import solve
+    from elastimap.solver.reduction import Recycled
+
+    p = SolveParams(disc=Discretisation(mesh="default")).with_inclusion(d=8.0, h=7.0, E=50.0)
+    a = solve(p)
+    monkeypatch.setattr(fem, "Recycled", functools.partial(Recycled, single_min=None))
+    b = solve(p)
+    for k in ("O1", "O2", "O3"):
+        assert getattr(a, k) == pytest.approx(getattr(b, k), rel=1e-5, abs=1e-12), k
+    for k in ("force", "force_ref"):
+        assert getattr(a, k) == pytest.approx(getattr(b, k), rel=1e-8), k
+    assert np.abs(a.image.astype(float) - b.image).max() <= 1e-5 * np.abs(b.image).max()
+
+
 def _model(p):
     from elastimap.solver.fem import Model
     from elastimap.solver.geometry import build_mesh
