@@ -51,7 +51,7 @@ from .interface import Friction, Interface, active_set
 from .materials import CellMaterials, psi_blended
 from .newton import Newton
 from .params import SolveParams
-from .reduction import CG_RTOL, LU, Recycled, Reduction, Solution, ptap
+from .reduction import CG_RTOL, LU, SINGLE_MIN_UNKNOWNS, Recycled, Reduction, Solution, ptap
 from .sampler import ImageSampler
 from .space import Space
 
@@ -160,7 +160,7 @@ class Model:
     @property
     def share_presses(self) -> bool:
         """False: every press assembles and reduces its whole matrix (by PETSc's default PᵀAP) and
-        factorises for itself, the inclusion press first: the path before the shared presses
+        factorises for itself in double precision, the inclusion press first: the path before the shared presses
         (``solve(presses="separate")``, the baseline of ``sweep bench --compare``)."""
         return self._share
 
@@ -218,7 +218,11 @@ class Model:
         if friction is None:
             kind = "reference" if E_inclusion == self.p.tissue.E else "inclusion"
             if kind not in self.recycled:
-                self.recycled[kind] = Recycled(kind, rtol=self.cg_rtol, refactor_after=self.refactor_after)
+                # single-precision factors on the shared path only: ``separate`` stays the path before
+                single_min = SINGLE_MIN_UNKNOWNS if self.share_presses else None
+                self.recycled[kind] = Recycled(
+                    kind, rtol=self.cg_rtol, refactor_after=self.refactor_after, single_min=single_min
+                )
             rec = self.last_linear = self.recycled[kind]
             # an inclusion modulus far from the factorised one (rec.tag): cond(K₀⁻¹K) up to the
             # ratio, more CG iterations than a factorisation costs (a sweep's E, not a variant's)

@@ -37,19 +37,17 @@ def test_shared_presses_give_the_separate_presses_numbers(p):
 
 
 def test_single_precision_factors_keep_a_default_sample(monkeypatch):
-    """At the `default` level (SINGLE_MIN_UNKNOWNS) the presses run on single-precision factors,
-    CG in double to the same tolerances: the sample's features and forces are those of double
-    factors (single_min=None) to within the presses' CG tolerance."""
-    import functools
-
+    """At the `default` level (SINGLE_MIN_UNKNOWNS) the shared presses run on single-precision
+    factors, CG in double to the same tolerances: the sample's features and forces are those of
+    double factors to within the presses' CG tolerance; the separate path keeps double factors."""
     from elastimap.solver import fem
     from elastimap.solver.api import solve
-    from elastimap.solver.reduction import Recycled
 
     p = SolveParams(disc=Discretisation(mesh="default")).with_inclusion(d=8.0, h=7.0, E=50.0)
     a = solve(p)
-    monkeypatch.setattr(fem, "Recycled", functools.partial(Recycled, single_min=None))
+    monkeypatch.setattr(fem, "SINGLE_MIN_UNKNOWNS", None)
     b = solve(p)
+    assert solve(p, presses="separate").O1 == pytest.approx(b.O1, rel=1e-5)  # separate: double factors
     for k in ("O1", "O2", "O3"):
         assert getattr(a, k) == pytest.approx(getattr(b, k), rel=1e-5, abs=1e-12), k
     for k in ("force", "force_ref"):
@@ -85,6 +83,23 @@ def test_the_inclusion_press_updates_the_matrices_and_borrows_the_factors():
             model.A.assemble()
             A.axpy(-1.0, model.A)
             assert A.norm() <= 1e-13 * model.A.norm()
+        finally:
+            model.destroy()
+
+
+def test_only_the_shared_path_factorises_in_single_precision(monkeypatch):
+    """``separate`` stays the path before: double-precision factors whatever the size; the shared
+    presses' reference factors are single precision from SINGLE_MIN_UNKNOWNS (here every size)."""
+    from elastimap.solver import fem
+
+    monkeypatch.setattr(fem, "SINGLE_MIN_UNKNOWNS", 1)
+    p = TINY.with_inclusion(d=8.0, h=7.0, E=80.0)
+    for share in (True, False):
+        model = _model(p)
+        model.share_presses = share
+        try:
+            model.solve(p.tissue.E, 3.0)
+            assert model.recycled["reference"].single == share
         finally:
             model.destroy()
 
