@@ -210,9 +210,9 @@ class Model:
         A_before = self._assemble(E_inclusion)
         t = self._tick("assemble", t)
 
-        Pm, Psp, uD, new_pattern = self.reduction.operator(delta, active)
-        friction = self.friction.matrices(active, Psp) if self.friction is not None else None
-        K, f = self._reduce(E_inclusion, A_before, key, Pm, Psp, uD, new_pattern, friction)
+        Pm, uD, new_pattern = self.reduction.operator(delta, active)
+        friction = self.friction.matrices(active, self.reduction.P_csr) if self.friction is not None else None
+        K, f = self._reduce(E_inclusion, A_before, key, Pm, uD, new_pattern, friction)
         t = self._tick("ptap", t)
 
         if friction is None:
@@ -328,7 +328,7 @@ class Model:
         self._A_at = (self._version, E_inclusion)
         return None
 
-    def _reduce(self, E_inclusion: float, A_before, key: bytes, Pm, Psp, uD, new_pattern: bool, friction):
+    def _reduce(self, E_inclusion: float, A_before, key: bytes, Pm, uD, new_pattern: bool, friction):
         """The reduced (K, f) of A(E_inclusion): K updated by the inclusion's cells when it holds
         Pᵀ A P of this mesh at another modulus on the same active set (``Reduction.increment``),
         else K = PᵀAP afresh (``Reduction.reduce``)."""
@@ -340,9 +340,9 @@ class Model:
             and at is not None
             and at[:2] == (self._version, key)
         ):
-            K, f = self.reduction.increment(self.A, Pm, Psp, uD, self._unit_inclusion(key, Pm), E_inclusion - at[2])
+            K, f = self.reduction.increment(self.A, Pm, uD, self._unit_inclusion(key, Pm), E_inclusion - at[2])
         else:
-            K, f, _new = self.reduction.reduce(self.A, Pm, Psp, uD, new_pattern, friction)
+            K, f, _new = self.reduction.reduce(self.A, Pm, uD, new_pattern, friction)
         self._K_at = (self._version, key, E_inclusion) if friction is None else None
         return K, f
 
@@ -360,7 +360,8 @@ class Model:
         active = self._all_closed() if active is None else active
         lin = self.solve_linear(E_inclusion, delta, active)
         t = time.perf_counter()
-        Pm, Psp, _uD, _ = self.reduction.operator(delta, active)
+        Pm, _uD, _ = self.reduction.operator(delta, active)
+        Psp = self.reduction.P_csr
         friction = self.friction.matrices(active, Psp) if self.friction is not None else None
         # warm start from the last converged solution with the same prescribed values (the
         # reference solve after the inclusion solve: a few Newton steps instead of ~20)
@@ -383,13 +384,15 @@ class Model:
                 else:
                     s = k / load_steps
                     lin_k = Solution(u=s * lin.u, reaction=s * lin.reaction, iterations=lin.iterations)
-                Pk, Pks, _uk, _ = self.reduction.operator(dk, active)
+                Pk, _uk, _ = self.reduction.operator(dk, active)
+                Pks = self.reduction.P_csr
                 fk = self.friction.matrices(active, Pks) if self.friction is not None else None
                 st = None if corr is None else lin_k.u + (k / (k - 1)) ** 2 * corr
                 s_k = self.newton.solve(lin_k, Pk, Pks, key[2], fk, rtol=1e-4, max_iter=max_iter, start=st)
                 corr, pre = s_k.u - lin_k.u, pre + s_k.iterations
             start = lin.u + (load_steps / (load_steps - 1)) ** 2 * corr
-            Pm, Psp, _uD, _ = self.reduction.operator(delta, active)
+            Pm, _uD, _ = self.reduction.operator(delta, active)
+            Psp = self.reduction.P_csr
         sol = self.newton.solve(lin, Pm, Psp, key[2], friction, rtol=rtol, max_iter=max_iter, start=start)
         sol.iterations += pre if cold else 0
         self._warm = (key, sol.u)
@@ -438,7 +441,7 @@ class Model:
 
     def destroy(self) -> None:
         self.moved()  # drops the unit-modulus matrices and the reference solution
-        for part in (self.lu, *self.recycled.values(), self.reduction, self.friction, self.newton):
+        for part in (self.lu, *self.recycled.values(), self.reduction, self.friction, self.newton, self.interface):
             if part is not None:
                 part.destroy()
         if self.A is not None:

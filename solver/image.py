@@ -33,22 +33,17 @@ def upsample_bilinear(img: np.ndarray, factor: int) -> np.ndarray:
         c = (np.arange(n * factor) + 0.5) / factor - 0.5  # sub-cell centre in pixel-index units
         return np.clip(c, 0, n - 1)
 
-    def weights(n):
-        # bilinear interpolation is separable: out = W_y · img · W_xᵀ, each (sparse) row of W
-        # holding the two weights (1 − t, t) of a sub-cell centre between its pixel centres
-        import scipy.sparse as sp
-
+    def along_rows(a: np.ndarray, n: int) -> np.ndarray:
+        # bilinear interpolation is separable: each sub-cell centre mixes the two pixel centres
+        # around it with the weights (1 − t, t), rows first, then columns
         c = coords(n)
-        rows = np.arange(c.size)
         if n == 1:
-            return sp.csr_matrix((np.ones(c.size), (rows, np.zeros(c.size, int))), shape=(c.size, 1))
+            return np.repeat(a[:1], c.size, axis=0)
         i0 = np.minimum(np.floor(c).astype(int), n - 2)
-        t = c - i0
-        return sp.csr_matrix(
-            (np.r_[1 - t, t], (np.r_[rows, rows], np.r_[i0, np.minimum(i0 + 1, n - 1)])), shape=(c.size, n)
-        )
+        t = (c - i0)[:, None]
+        return (1 - t) * a[i0] + t * a[np.minimum(i0 + 1, n - 1)]
 
-    return np.asarray((weights(nx) @ (weights(ny) @ img).T).T)
+    return along_rows(along_rows(img, ny).T, nx).T
 
 
 def features(

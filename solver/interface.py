@@ -25,8 +25,9 @@ from . import _boot  # noqa: F401  (must precede dolfinx)
 
 # isort: split
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import scipy.sparse as sp
 import ufl
 from dolfinx import fem
 from dolfinx import mesh as dmesh
@@ -36,6 +37,9 @@ from petsc4py import PETSc
 
 from .errors import SolverError
 from .space import Space
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 
 class Interface:
@@ -59,11 +63,24 @@ class Interface:
             raise SolverError("interface node pairs do not coincide")
         self.pair_probe, self.pair_tissue = gp, gt
         self.npairs = len(gt)
-        self.M_gamma = self._surface_mass(space)
-        # patch incidence: S_ij = 1 when interface nodes i and j share a facet
-        self.S_patch = (abs(self.M_gamma) > 0).astype(float).tocsr()
+        # M_Γ as CSR arrays (indptr, indices, values) over the pairs; held by numpy and PETSc, not
+        # scipy, so that a linear solve needs no scipy (0.13 s of a `solve` process's imports)
+        self.M_csr = self._surface_mass(space)
+        indptr, indices, values = self.M_csr
+        # patch incidence: S_ij = 1 when interface nodes i and j share a facet (the pattern of M_Γ)
+        nz = values != 0
+        self._patch = (np.repeat(np.arange(self.npairs), np.diff(indptr))[nz], indices[nz])
+        self._mass_ksp = None  # M_Γ's factorisation (``contact_pressure``), made on first use
 
-    def _surface_mass(self, space: Space) -> sp.csc_matrix:
+    @property
+    def M_gamma(self) -> sp.csr_matrix:
+        """M_Γ as a scipy CSR matrix (:class:`Friction`)."""
+        import scipy.sparse as sp
+
+        indptr, indices, values = self.M_csr
+        return sp.csr_matrix((values, indices, indptr), shape=(self.npairs, self.npairs))
+
+    def _surface_mass(self, space: Space) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         r"""Consistent surface mass matrix of the tissue side of Γ at the pairs (mm²):
 
         $$ (M_\Gamma)_{ij} = \int_{\Gamma} \phi_i \, \phi_j \, {\rm d}s , $$
@@ -82,10 +99,8 @@ class Interface:
         M = fpetsc.assemble_matrix(fem.form(u[2] * v[2] * ds(1)))
         M.assemble()
         Mi, Mj, Mv = M.getValuesCSR()
-        Mfull = sp.csr_matrix((Mv, Mj, Mi), shape=M.getSize())
         M.destroy()
-        idx = 3 * self.pair_tissue + 2
-        return sp.csc_matrix(Mfull[idx][:, idx])
+        return _submatrix(Mi, Mj, Mv, 3 * self.pair_tissue + 2)
 
     # ------------------------------------------------------------------ measures of a solution
     def gap(self, u: np.ndarray) -> np.ndarray:
@@ -98,9 +113,27 @@ class Interface:
 
         $$ M_\Gamma \, p = -r_\Gamma . $$
         """
-        from scipy.sparse.linalg import spsolve
-
-        return -spsolve(self.M_gamma, reaction[3 * self.pair_tissue + 2])
+        if self._mass_ksp is None:
+            indptr, indices, values = self.M_csr
+            M = PETSc.Mat().createAIJ(
+                size=(self.npairs, self.npairs),
+                csr=(indptr.astype(PETSc.IntType), indices.astype(PETSc.IntType), values),
+                comm=MPI.COMM_SELF,
+            )
+            M.assemble()
+            ksp = PETSc.KSP().create(MPI.COMM_SELF)
+            ksp.setType("preonly")
+            ksp.getPC().setType("lu")  # PETSc's own sparse LU: M_Γ is small (a few hundred pairs)
+            ksp.setOperators(M)
+            M.destroy()  # the KSP holds it
+            self._mass_ksp = ksp
+        b = PETSc.Vec().createWithArray(-reaction[3 * self.pair_tissue + 2], comm=MPI.COMM_SELF)
+        p = b.duplicate()
+        self._mass_ksp.solve(b, p)
+        out = p.getArray().copy()
+        b.destroy()
+        p.destroy()
+        return out
 
     def patch_force(self, reaction: np.ndarray) -> np.ndarray:
         r"""Compressive normal force (mN) on each pair's patch of facets,
@@ -112,7 +145,8 @@ class Interface:
         pressure next to the flat-punch edge singularity.  It is the tension criterion
         of the active set and of the tied-interface check.
         """
-        return self.S_patch @ (-reaction[3 * self.pair_tissue + 2])
+        rows, cols = self._patch
+        return np.bincount(rows, weights=-reaction[3 * self.pair_tissue + 2][cols], minlength=self.npairs)
 
     def diagnostics(self, u: np.ndarray, reaction: np.ndarray, active: np.ndarray) -> dict[str, float]:
         """Pressure range (kPa), tensile patch fraction, open pairs, smallest gap (mm)."""
@@ -128,6 +162,28 @@ class Interface:
             "open_pair_fraction": float(np.mean(~active)),
             "gap_min_mm": float(np.min(self.gap(u))),
         }
+
+    def destroy(self) -> None:
+        if self._mass_ksp is not None:
+            self._mass_ksp.destroy()
+            self._mass_ksp = None
+
+
+def _submatrix(indptr: np.ndarray, indices: np.ndarray, values: np.ndarray, idx: np.ndarray):
+    """CSR arrays (indptr, indices, values) of M[idx][:, idx] -- rows and columns in the order of
+    ``idx``, each row's columns ascending -- from M's CSR arrays."""
+    pos = np.full(len(indptr) - 1, -1)
+    pos[idx] = np.arange(len(idx))
+    starts, counts = indptr[idx], indptr[idx + 1] - indptr[idx]
+    first = np.cumsum(counts) - counts  # where each row's entries start in the gathered arrays
+    flat = np.repeat(starts - first, counts) + np.arange(counts.sum())
+    rows = np.repeat(np.arange(len(idx)), counts)
+    cols = pos[indices[flat]]
+    keep = cols >= 0
+    rows, cols, vals = rows[keep], cols[keep], values[flat][keep]
+    order = np.lexsort((cols, rows))
+    new_ptr = np.concatenate(([0], np.cumsum(np.bincount(rows, minlength=len(idx)))))
+    return new_ptr, cols[order], vals[order]
 
 
 class Friction:
@@ -157,6 +213,8 @@ class Friction:
 
     def matrix(self, active: np.ndarray) -> sp.csr_matrix:
         """S over the active pairs (mN/mm, all flat dofs; scipy)."""
+        import scipy.sparse as sp
+
         itf, n = self.interface, self.ndofs
         m = itf.npairs
         D = sp.diags(active.astype(float))

@@ -360,7 +360,8 @@ class _Entry:
                 rm = residual()
                 g[:, :] = x_here
                 Au[name] = (rp - rm) / (2 * eps)
-        _Pm, Psp, _uD, _new = model.reduction.operator(delta, np.ones(model.interface.npairs, dtype=bool))
+        model.reduction.operator(delta, np.ones(model.interface.npairs, dtype=bool))
+        Psp = model.reduction.P_csr
         out = {}
         for name, v in Au.items():
             b = PETSc.Vec().createWithArray(-(Psp.T @ v))

@@ -32,15 +32,18 @@ from . import _boot  # noqa: F401  (must precede dolfinx)
 # isort: split
 
 import os
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
 from dolfinx import fem
 from dolfinx.fem import petsc as fpetsc
 from petsc4py import PETSc
 
 from .errors import SolverError
 from .reduction import LU, Solution, ptap
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 _DEBUG = bool(os.environ.get("ELASTIMAP_NEWTON_DEBUG"))
 
