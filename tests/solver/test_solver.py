@@ -271,7 +271,7 @@ def test_recycled_factors_solve_nearby_matrices_like_a_direct_solver():
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
 
-    from elastimap.solver.reduction import PETSc, Recycled  # PETSc booted by the solver
+    from elastimap.solver.reduction import SINGLE_ORDERING, PETSc, Recycled  # PETSc booted by the solver
 
     n = 400
     x = np.linspace(0, 1, n + 1)
@@ -345,14 +345,17 @@ def test_recycled_factors_solve_nearby_matrices_like_a_direct_solver():
         finally:
             rec.destroy()
     # the shipped sizes (BLR_MIN_UNKNOWNS, SINGLE_MIN_UNKNOWNS): a matrix of the `default` level's
-    # size (32 768 unknowns) gets no block low-rank factors but single-precision ones, so CG runs on
-    # them (more than one iteration) to rtol; with single_min=None exact factors, one back-substitution
+    # size (32 768 unknowns) gets no block low-rank factors but single-precision ones (ordered by
+    # SINGLE_ORDERING), so CG runs on them (more than one iteration) to rtol; with single_min=None
+    # exact factors, one back-substitution
     for kw, single in (({}, True), ({"single_min": None}, False)):
         rec = Recycled("t_recycled_default_size", **kw)
         try:
             u = rec.solve(petsc(L), PETSc.Vec().createWithArray(g3.copy(), comm=PETSc.COMM_SELF), b"a").getArray()
             assert not rec.blr and rec.ksp.getPC().getFactorMatrix().getMumpsIcntl(35) == 0
             assert rec.single == single and (rec.ksp.getIterationNumber() > 1) == single, kw
+            ordering = rec.ksp.getPC().getFactorMatrix().getMumpsInfog(7)  # the one MUMPS used
+            assert (ordering == SINGLE_ORDERING) == single, (kw, ordering)
             assert np.linalg.norm(L @ u - g3) <= 1e-9 * np.linalg.norm(g3)
         finally:
             rec.destroy()
