@@ -61,6 +61,7 @@ def _solve(params: SolveParams, vtx_path: str | None = None, presses: str | None
     try:
         raw = build_mesh(p)
         model = Model(raw, p)
+        model.single_factors = True  # a remeshed sample: single-precision factors (fem.PRESS_RTOL_SINGLE)
         if presses is not None:
             model.share_presses = presses == "shared"
     except (MeshError, SolverError) as exc:

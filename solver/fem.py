@@ -83,6 +83,13 @@ BORROW_MIN_UNKNOWNS = 25_000
 PRESS_MAX_RATIO = 100.0
 PRESS_MAX_IT = 32
 PRESS_RTOL = 1e-6
+#: the same difference press on **single-precision** reference factors (``Model.single_factors``:
+#: a remeshed sample's `default` level; :data:`~elastimap.solver.reduction.SINGLE_MIN_UNKNOWNS`):
+#: CG on float32 factors stagnates near 1e-7 of the difference field, and at PRESS_RTOL the features
+#: moved by up to 4.4e-5 from the separate presses' (64 `default` samples; stiff inclusions, E 145-200
+#: kPa); at 1e-8 by up to 1.3e-6, in 26-30 instead of 17-18 iterations (docs/forward-model.md,
+#: 'Shared presses')
+PRESS_RTOL_SINGLE = 1e-8
 #: the environment variable that sets how every new :class:`Model` shares its presses
 #: (``shared``, the default, or ``separate``: the path before, each press factorised for itself):
 #: a whole command (``infer --refine``, ``gap diagnose``) can be timed on the path before without a
@@ -147,6 +154,10 @@ class Model:
         # reference press (linear, no friction)
         self._reference = None
         self.share_presses = default_presses() == "shared"
+        # whether the shared presses may factorise in single precision (SINGLE_MIN_UNKNOWNS and up):
+        # set by ``api.solve`` for a remeshed sample (a sweep, a single ``solve``); morphed maps (a
+        # fit differentiates them) and batched variants keep double factors
+        self.single_factors = False
         self.timings = {"setup": time.perf_counter() - t0}
 
     def set_params(self, p: SolveParams) -> None:
@@ -218,8 +229,9 @@ class Model:
         if friction is None:
             kind = "reference" if E_inclusion == self.p.tissue.E else "inclusion"
             if kind not in self.recycled:
-                # single-precision factors on the shared path only: ``separate`` stays the path before
-                single_min = SINGLE_MIN_UNKNOWNS if self.share_presses else None
+                # single-precision factors on the shared path of a model that allows them only:
+                # ``separate`` stays the path before, morphed and batched models keep double factors
+                single_min = SINGLE_MIN_UNKNOWNS if self.share_presses and self.single_factors else None
                 self.recycled[kind] = Recycled(
                     kind, rtol=self.cg_rtol, refactor_after=self.refactor_after, single_min=single_min
                 )
@@ -271,7 +283,7 @@ class Model:
             and ref[5]
             and ratio <= PRESS_MAX_RATIO
         ):
-            rtol = max(PRESS_RTOL, self.cg_rtol)
+            rtol = max(PRESS_RTOL_SINGLE if donor.single else PRESS_RTOL, self.cg_rtol)
             return rec.borrow(donor, K, f, key, PRESS_MAX_IT, tag=E_inclusion, start=ref[4], rtol=rtol)
         if K.getSize()[0] < BORROW_MIN_UNKNOWNS or ratio > BORROW_MAX_RATIO:
             return None
