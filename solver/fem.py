@@ -87,9 +87,14 @@ PRESS_RTOL = 1e-6
 #: a remeshed sample's `default` level; :data:`~elastimap.solver.reduction.SINGLE_MIN_UNKNOWNS`):
 #: CG on float32 factors stagnates near 1e-7 of the difference field, and at PRESS_RTOL the features
 #: moved by up to 4.4e-5 from the separate presses' (64 `default` samples; stiff inclusions, E 145-200
-#: kPa); at 1e-8 by up to 1.3e-6, in 26-30 instead of 17-18 iterations (docs/forward-model.md,
+#: kPa); at 1e-8 by up to 1.3e-6, in 26-34 instead of 17-18 iterations (docs/forward-model.md,
 #: 'Shared presses')
 PRESS_RTOL_SINGLE = 1e-8
+#: ... in at most this many iterations: 30-34 at E/E_t = 40, the design's stiffest (d/h/E 12/8/199,
+#: 2.5/4/200, 8/12/200: 30-31; 13/9/180, 15/9.5/200, 14.5/10/200: 32-34, which PRESS_MAX_IT would
+#: have sent to a factorisation of their own); a float32 factorisation and its own solve cost about
+#: 40 iterations of 12-15 ms
+PRESS_MAX_IT_SINGLE = 48
 #: the environment variable that sets how every new :class:`Model` shares its presses
 #: (``shared``, the default, or ``separate``: the path before, each press factorised for itself):
 #: a whole command (``infer --refine``, ``gap diagnose``) can be timed on the path before without a
@@ -284,7 +289,8 @@ class Model:
             and ratio <= PRESS_MAX_RATIO
         ):
             rtol = max(PRESS_RTOL_SINGLE if donor.single else PRESS_RTOL, self.cg_rtol)
-            return rec.borrow(donor, K, f, key, PRESS_MAX_IT, tag=E_inclusion, start=ref[4], rtol=rtol)
+            max_it = PRESS_MAX_IT_SINGLE if donor.single else PRESS_MAX_IT
+            return rec.borrow(donor, K, f, key, max_it, tag=E_inclusion, start=ref[4], rtol=rtol)
         if K.getSize()[0] < BORROW_MIN_UNKNOWNS or ratio > BORROW_MAX_RATIO:
             return None
         return rec.borrow(donor, K, f, key, BORROW_MAX_IT, tag=E_inclusion)
