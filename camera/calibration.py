@@ -206,6 +206,17 @@ class Calibration:
                 f"  difference images from frames (inverse response): scale {self.deflection['scale']:.4f}, "
                 f"relative rms vs FEM {100 * min(rel):.2g}-{100 * max(rel):.2g} % over the phantoms"
             )
+            pc = self.deflection.get("press_correction")
+            if pc:
+                d, sd = np.asarray(pc["delta"], float), np.asarray(pc["sd"], float)
+                told = sd < 0.5 * float(pc["settings"]["prior_mm"])  # where the phantoms inform δ
+                ref = np.max(np.abs(np.asarray(self.deflection["reference"], float)))
+                lines.append(
+                    f"  press correction from the phantoms' frames: |δ| up to {np.max(np.abs(d)):.3g} mm "
+                    f"({100 * np.max(np.abs(d)) / ref:.2g} % of the reference press's maximum); informed on "
+                    f"{100 * told.mean():.0f} % of the footprint (sd there {np.min(sd):.2g}-"
+                    f"{np.max(sd[told]) if told.any() else float('nan'):.2g} mm)"
+                )
         if self.discrepancy:
             lines.extend(discrepancy_report(self.discrepancy))
         return "\n".join(lines)
