@@ -152,7 +152,6 @@ class _Inverse:
 
     dw: np.ndarray  # mm, Δw per camera pixel
     var: np.ndarray  # mm², its variance from the frames' scatter
-    dwb: np.ndarray  # ∂Δw/∂w_b (dimensionless): how Δw moves with the assumed background press
     saturated: np.ndarray  # bool, inverse response clipped
 
 
@@ -167,9 +166,16 @@ def _invert(uF, uB, vF, vB, wb: np.ndarray, s) -> _Inverse:
     dw = -s.w_sat * np.log((1.0 - sF) / (1.0 - sb))
     gF = s.w_sat * (c + sb) / ((1.0 - sF) * uB)
     gB = -s.w_sat * (c + sF) / ((1.0 - sF) * uB)
-    # d Δw / d w_b = (u_F/u_B)(1 - s_b)/(1 - s_F) - 1, zero where the response is clipped at w_b < 0
-    dwb = np.where(wb > 0, (uF / uB) * (1.0 - sb) / (1.0 - sF) - 1.0, 0.0)
-    return _Inverse(dw, gF**2 * vF + gB**2 * vB, dwb, sat)
+    return _Inverse(dw, gF**2 * vF + gB**2 * vB, sat)
+
+
+def _press_slope(wb: np.ndarray, dw: np.ndarray, s) -> np.ndarray:
+    """``∂Δw/∂w_b`` (dimensionless) of the inverse response at background press ``wb`` and difference
+    ``dw`` (mm): ``(c + s(w_b + Δw)) / (c + s(w_b)) exp(Δw / w_sat) - 1``; 0 where ``w_b <= 0`` (the
+    response is clipped there)."""
+    c = s.stray / s.level
+    r = (c + s.scatter(wb + dw)) / (c + s.scatter(wb))
+    return np.where(wb > 0, r * np.exp(dw / s.w_sat) - 1.0, 0.0)
 
 
 def difference_image(
@@ -289,10 +295,11 @@ def press_correction(
 
     A phantom's frames fix the ratio ``u_F / u_B = (c + s(w_b + Δw)) / (c + s(w_b))`` per camera pixel,
     which depends on the true background press ``w_b``: with a wrong ``w_b`` the recovered ``Δw`` (steps
-    2-3 of the module docstring) is off by ``∂Δw/∂w_b δ``, where (dimensionless)::
+    2-3 of the module docstring) is off by ``∂Δw/∂w_b δ``, where (dimensionless, at the phantom's FEM
+    ``Δw = t / λ``, noise-free)::
 
-        ∂Δw/∂w_b = (u_F / u_B) (1 - s(w_b)) / (1 - s_F) - 1   (≈ Δw (1 - 2a + c) / (w_sat (1 + c - a)),
-                                                               a = exp(-w_b / w_sat), c = stray / level)
+        ∂Δw/∂w_b = (c + s(w_b + Δw)) / (c + s(w_b)) exp(Δw / w_sat) - 1
+                 ≈ Δw (1 - 2a + c) / (w_sat (1 + c - a)),     a = exp(-w_b / w_sat), c = stray / level
 
     Gauss-Newton on ``δ`` (``iterations`` passes) with, per pass, the global factor ``λ`` (FEM ≈ λ
     recovered, :func:`fit_scale`) refitted first and ``δ`` taken as locally constant over a Gaussian
@@ -337,14 +344,17 @@ def press_correction(
 
     delta = np.zeros_like(ref)
     for _ in range(iterations):
-        invs = [_invert(*m, on_camera(ref + delta), s) for m in means]
+        wb = on_camera(ref + delta)
+        invs = [_invert(*m, wb, s) for m in means]
         lam, _ = fit_scale([P @ v.dw @ P.T for v in invs], fem)
         num, den = np.zeros((n, n)), np.full((n, n), 1.0 / prior_mm**2)
         d_cam = on_camera(delta)
         for v, t in zip(invs, T):
             ok = ~v.saturated
             w = np.where(ok, 1.0 / np.maximum(v.var, 1e-24), 0.0)
-            J = np.where(ok, v.dwb, 0.0)
+            # the slope at the phantom's FEM image, not at its measured one: the latter carries the same
+            # frame noise as the residual, and their product a bias of -var ∂J/∂Δw (errors in variables)
+            J = np.where(ok, _press_slope(wb, t / lam, s), 0.0)
             a = kernel(w * J**2)  # the kernel's mean information (per camera pixel)
             e = kernel(w * J * (t / lam - v.dw)) / np.maximum(a, 1e-300)  # this phantom's local step
             u = 1.0 / np.maximum(n_eff * a, 1e-300) + (form * np.max(np.abs(t)) / lam) ** 2 / np.maximum(
