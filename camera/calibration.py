@@ -281,12 +281,12 @@ def _check_loaded(p: str, fits: dict, fem: np.ndarray, cam: np.ndarray, d: dict)
             raise bad(exc.message) from None
 
 
-def deflection_calibration(results, pairs, sensor=None, press: bool | dict = True) -> dict:
+def deflection_calibration(results, pairs, sensor=None, press: bool | dict = False) -> dict:
     """The deflection calibration from the phantoms' FEM results and their (lesion, background)
     frame stacks: the reference press (mean of the phantoms' ``image_raw - image``; they share
-    tissue and press), its correction ``δ`` learnt from the phantoms' frames
+    tissue and press), with ``press`` its correction ``δ`` learnt from the phantoms' frames
     (:func:`elastimap.camera.deflection.press_correction`, with the settings ``press`` where it is a
-    dict; ``press=False``: none, the record of before), the factor ``scale`` with FEM image ≈ scale x recovered image over all nine, and the
+    dict; off by default: docs/camera.md, 'The press correction'), the factor ``scale`` with FEM image ≈ scale x recovered image over all nine, and the
     per-phantom relative rms residual after it."""
     from .deflection import difference_image, fit_scale, press_correction
     from .optics import SensorModel, background_deflection

@@ -53,7 +53,7 @@ def test_the_correction_recovers_a_known_press_error(noise):
     s = SensorModel(noise_scale=noise)
     results, pairs = phantoms(REF + DELTA, s)
     before = C.deflection_calibration(results, pairs, s, press=False)
-    after = C.deflection_calibration(results, pairs, s)
+    after = C.deflection_calibration(results, pairs, s, press=True)
     err_before, err_after = lesion_error(before, REF + DELTA, s), lesion_error(after, REF + DELTA, s)
     told = [SimpleNamespace(image=r.image, image_raw=r.image_raw + DELTA, pixel=PIXEL) for r in results]
     truth = C.deflection_calibration(told, pairs, s, press=False)  # a lab told the world's own press
@@ -100,7 +100,8 @@ def test_a_calibration_without_the_correction_keeps_its_reference(tmp_path):
 
     ph = pd.DataFrame([{"name": f"T{i}", "d": 5.0, "h": 7.0, "E": 50.0} for i in range(3)])
     fem, cam = np.ones((3, 3)) + np.arange(3)[:, None], np.arange(9.0).reshape(3, 3) + 1
-    for defl in (old, C.deflection_calibration(results, pairs, s)):
+    assert C.deflection_calibration(results, pairs, s) == old  # off by default
+    for defl in (old, C.deflection_calibration(results, pairs, s, press=True)):
         C.fit_calibration(ph, fem, cam, {}, s.to_dict(), True, {}, defl).save(tmp_path / "cal.json")
         ref, pixel = C.Calibration.load(tmp_path / "cal.json").reference_image()
         np.testing.assert_allclose(ref, C.deflection_reference(defl), rtol=0, atol=1e-15)
