@@ -18,7 +18,8 @@ and sensor settings the calibration never saw):
 1. ``u = (mean frames - dark) / FS`` for the lesion (``u_F``) and the background (``u_B``) stack;
 2. flat field from the background press: ``G = u_B / (stray + level s(w_b))``, with ``w_b`` the
    FEM's reference press (no inclusion; :func:`elastimap.camera.optics.background_deflection`)
-   resampled onto the camera pixels.  Whatever the illumination, vignetting or exposure of the
+   plus, where the calibration has one, the correction ``δ`` learnt from its phantoms' frames
+   (:func:`press_correction`; off by default), resampled onto the camera pixels.  Whatever the illumination, vignetting or exposure of the
    session are, they cancel here, because the background frames were taken with them;
 3. inverse response of the lesion stack: ``s_F = (u_F / G - stray) / level`` and
    ``Δw = w_F - w_b = -w_sat ln((1 - s_F) / (1 - s(w_b)))`` (mm, per camera pixel);
@@ -37,7 +38,8 @@ propagated through steps 2-4 to first order::
     c = stray / level,  var(I) = (P∘P) var(Δw) (P∘P)ᵀ  (neighbouring pixels' covariance ignored).
 
 What it assumes: the response *shape* (``w_sat``, ``stray / level``, the dark offset) of the
-calibration's sensor and the reference press of the FEM.  What it does not assume: the
+calibration's sensor and the background press (the FEM's reference, or that plus ``δ``; docs/camera.md,
+'The press correction').  What it does not assume: the
 illumination, LED powers, vignetting or exposure (absorbed by the flat field), nor the noise
 level (measured from the frames).
 """
