@@ -206,17 +206,6 @@ class Calibration:
                 f"  difference images from frames (inverse response): scale {self.deflection['scale']:.4f}, "
                 f"relative rms vs FEM {100 * min(rel):.2g}-{100 * max(rel):.2g} % over the phantoms"
             )
-            pc = self.deflection.get("press_correction")
-            if pc:
-                d, sd = np.asarray(pc["delta"], float), np.asarray(pc["sd"], float)
-                told = sd < 0.5 * float(pc["settings"]["prior_mm"])  # where the phantoms inform δ
-                ref = np.max(np.abs(np.asarray(self.deflection["reference"], float)))
-                lines.append(
-                    f"  press correction from the phantoms' frames: |δ| up to {np.max(np.abs(d)):.3g} mm "
-                    f"({100 * np.max(np.abs(d)) / ref:.2g} % of the reference press's maximum); informed on "
-                    f"{100 * told.mean():.0f} % of the footprint (sd there {np.min(sd):.2g}-"
-                    f"{np.max(sd[told]) if told.any() else float('nan'):.2g} mm)"
-                )
         if self.discrepancy:
             lines.extend(discrepancy_report(self.discrepancy))
         return "\n".join(lines)
@@ -232,8 +221,7 @@ class Calibration:
         return Discrepancy.from_dict(z["term"]), str(z["level"]), float(z["pixel"])
 
     def reference_image(self) -> tuple[np.ndarray, float]:
-        """The background press (mm; the FEM reference plus its press correction,
-        :func:`deflection_reference`) and its pixel side (mm), for :mod:`elastimap.camera.deflection`."""
+        """The FEM reference press (mm) and its pixel side (mm), for :mod:`elastimap.camera.deflection`."""
         if not self.deflection:
             raise UserError(
                 "calibration",
@@ -241,7 +229,7 @@ class Calibration:
                 "version or without FEM solves): recalibrate to use camera frames "
                 "with an image model or --refine",
             )
-        return deflection_reference(self.deflection), float(self.deflection["pixel"])
+        return np.asarray(self.deflection["reference"], float), float(self.deflection["pixel"])
 
 
 def _check_loaded(p: str, fits: dict, fem: np.ndarray, cam: np.ndarray, d: dict) -> None:
@@ -281,14 +269,12 @@ def _check_loaded(p: str, fits: dict, fem: np.ndarray, cam: np.ndarray, d: dict)
             raise bad(exc.message) from None
 
 
-def deflection_calibration(results, pairs, sensor=None, press: bool | dict = False) -> dict:
+def deflection_calibration(results, pairs, sensor=None) -> dict:
     """The deflection calibration from the phantoms' FEM results and their (lesion, background)
     frame stacks: the reference press (mean of the phantoms' ``image_raw - image``; they share
-    tissue and press), with ``press`` its correction ``δ`` learnt from the phantoms' frames
-    (:func:`elastimap.camera.deflection.press_correction`, with the settings ``press`` where it is a
-    dict; off by default: docs/camera.md, 'The press correction'), the factor ``scale`` with FEM image ≈ scale x recovered image over all nine, and the
-    per-phantom relative rms residual after it."""
-    from .deflection import difference_image, fit_scale, press_correction
+    tissue and press), the factor ``scale`` with FEM image ≈ scale x recovered image over all nine,
+    and the per-phantom relative rms residual after it."""
+    from .deflection import difference_image, fit_scale
     from .optics import SensorModel, background_deflection
 
     sensor = sensor or SensorModel()
@@ -306,27 +292,17 @@ def deflection_calibration(results, pairs, sensor=None, press: bool | dict = Fal
             "(different tissue or press): one deflection calibration needs one press",
         )
     pixel = float(results[0].pixel)
-    fem = [np.asarray(r.image, float) for r in results]
-    out = {
+    rec = [difference_image(F, B, sensor, ref, pixel).image for F, B in pairs]
+    k, rel = fit_scale(rec, [np.asarray(r.image, float) for r in results])
+    return {
         "model": "FEM difference image = scale x inverse-response image (elastimap.camera.deflection)",
         "reference": ref.tolist(),
         "pixel": pixel,
         "shape": list(ref.shape),
+        "scale": k,
+        "rel_rms": rel,
+        "reference_spread": spread,
     }
-    if press:
-        kw = press if isinstance(press, dict) else {}
-        out["press_correction"] = press_correction(pairs, fem, sensor, ref, pixel, **kw).to_dict()
-    rec = [difference_image(F, B, sensor, deflection_reference(out), pixel).image for F, B in pairs]
-    k, rel = fit_scale(rec, fem)
-    return dict(out, scale=k, rel_rms=rel, reference_spread=spread)
-
-
-def deflection_reference(deflection: dict) -> np.ndarray:
-    """The background press (mm) the frames are flat-fielded with: the FEM reference plus its press
-    correction where the calibration has one (made before it: the FEM reference alone)."""
-    ref = np.asarray(deflection["reference"], float)
-    pc = deflection.get("press_correction")
-    return ref if not pc else ref + np.asarray(pc["delta"], float)
 
 
 def recovered_images(pairs, deflection: dict, sensor=None) -> list:
@@ -336,7 +312,7 @@ def recovered_images(pairs, deflection: dict, sensor=None) -> list:
     from .optics import SensorModel
 
     sensor = sensor or SensorModel()
-    ref = deflection_reference(deflection)
+    ref = np.asarray(deflection["reference"], float)
     return [
         difference_image(F, B, sensor, ref, float(deflection["pixel"]), scale=float(deflection["scale"]))
         for F, B in pairs

@@ -297,13 +297,6 @@ def features(images, background, sensor_json, threshold, smooth_px, combine, as_
     "from the others, and report (and store) the 95 % intervals' leave-one-phantom-out coverage "
     "(about 30-60 s CPU a phantom).",
 )
-@click.option(
-    "--press-correction/--no-press-correction",
-    default=False,
-    show_default=True,
-    help="Learn a correction of the FEM reference press from the phantoms' frames for the flat field "
-    "(docs/camera.md, 'The press correction'; off by default: on the independent dev set it did not help).",
-)
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="Calibration JSON to write.")
 @click.option(
     "--plot", type=click.Path(dir_okay=False), default=None, help="PNG of the three fits (default <out>.png)."
@@ -322,7 +315,6 @@ def calibrate(
     fmt,
     refine_level,
     report_loo,
-    press_correction,
     out,
     plot,
     sensor_json,
@@ -390,7 +382,7 @@ def calibrate(
         # also where the features come from a sweep (--fem-features)
         results = [fem_fn(float(x["d"]), float(x["h"]), float(x["E"])) for _, x in ph.iterrows()]
         fem = fem_given if fem_given is not None else np.array([[r.O1, r.O2, r.O3] for r in results])
-    defl = C.deflection_calibration(results, pairs, model, press=press_correction)
+    defl = C.deflection_calibration(results, pairs, model)
     disc = None if level is None else _learn_model_form(ph, pairs, defl, level, model, desc, report_loo)
     cal = C.fit_calibration(
         ph,

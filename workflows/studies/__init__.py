@@ -24,7 +24,6 @@ STUDIES = {
     "valleyfit": "Re-fit frames-benchmark lesions with one ingredient changed (image, start, maps, fit).",
     "interval_calibration": "The calibrated interval scales of the physics fit from frames-benchmark records.",
     "modelform": "The fit's error budget with and without the learnt model-form error, on another model's phantoms.",
-    "pressfield": "The flat field's press correction learnt from the phantoms' frames, on a variant world.",
 }
 
 
