@@ -108,3 +108,50 @@ def test_evaluate_reports_a_look_alike_set_and_keeps_a_clear_answer():
     y = y0 + 0.5 * d + 0.05 * rng.standard_normal((n, Q))
     ev = evaluate(y, S, y0, other, n, st, sl, mf=mf)
     assert ev["outcome"] == "explained" and ev["winner"] == "friction", ev["ranking"][1].get("vs_best")
+
+
+def test_a_passing_unsure_candidate_within_the_noise_shadows_the_best():
+    """A passing candidate within the noise of the best's lead that is no confident answer itself
+    (pinned at the end of its range, or holding its nominal) is a shadow: not reported, but the best
+    is then not told apart from an answer the library does not hold."""
+    fa, fb, S = _pair(55.0)
+    a, st = _row(fa, 10.0), Settings()
+    assert told_apart(a, _row(fb, 19.4, edge=True), S, st)["shadow"]
+    assert told_apart(a, _row(fb, 19.4, ci=(4.0, 6.0)), S, st)["shadow"]
+    assert not told_apart(a, _row(fb, 19.4), S, st)["shadow"]  # confident: a look-alike, reported
+    assert not told_apart(a, _row(fb, 19.4, edge=True, passes=False), S, st)["shadow"]  # rejected by the data
+    assert not told_apart(a, _row(fb, 10.0 + 1.01 * Z * 2 * math.sqrt(55.0), edge=True), S, st)["shadow"]
+    assert not told_apart(a, _row(fb, 19.4, edge=True), S, st, model_form=False)["shadow"]  # closed world
+
+
+def test_evaluate_calls_a_best_shadowed_by_a_pinned_look_alike_unexplained():
+    """SYNTHETIC: the sweeps of the look-alike test, nonlinearity's grid ending at 0.48 below the
+    0.496 its signature needs (the look-alike pinned at the end of its range, still passing, within the
+    noise of friction's lead): with the model-form level "unexplained", the shadow named; with the
+    grid reaching 1, the ambiguous set of before; the closed-world budget keeps its margin."""
+    rng = np.random.default_rng(3)
+    n, Q = 12, 8
+    y0 = rng.uniform(50, 100, (n, Q))
+    d = rng.standard_normal((n, Q)) * 8
+    u = rng.standard_normal((n, Q)) * 0.9
+    sl, st = {"profile": slice(0, Q)}, Settings()
+    mf = level({"profile": y0}, None, ["profile"], 0.5)
+    S = Metric(np.full((n, Q), 0.5), mf["M"])
+    y = y0 + 0.5 * d + 0.3 * u + 0.05 * rng.standard_normal((n, Q))
+    fr = Single(_sweep("friction", np.linspace(0, 1, 5), y0, d), ["profile"])
+
+    def run(top, metric=S, form=mf):
+        nl = Single(_sweep("nonlinearity", np.linspace(0, top, 5), y0, d + u / 0.5), ["profile"])
+        return evaluate(y, metric, y0, [fr, nl], n, st, sl, mf=form)
+
+    ev = run(0.48)
+    nl = ev["ranking"][1]
+    assert ev["best"] == "friction" and nl["at_grid_edge"] and nl["passes"], nl["magnitude"]
+    assert nl["vs_best"]["shadow"] and ev["outcome"] == "unexplained" and ev["shadowed_by"] == ["nonlinearity"]
+    assert ev["verdict"] == "unexplained" and ev["winner"] is None and ev["ambiguous_set"] == []
+    full = run(1.0)
+    assert full["outcome"] == "ambiguous" and full["shadowed_by"] == []
+    far = run(0.4)  # pinned farther off: its deficit is beyond the noise, the best told apart
+    assert not far["ranking"][1]["vs_best"]["shadow"] and far["outcome"] == "explained"
+    closed = run(0.48, Metric(np.full((n, Q), 0.5)), None)
+    assert closed["outcome"] == "explained" and closed["winner"] == "friction"
