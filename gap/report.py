@@ -137,10 +137,9 @@ def verdict_line(res: dict) -> str:
     top = ev["ranking"][0]
     rank = ", ".join(r["effect"] for r in ev["ranking"][:3])
     if ev.get("shadowed_by"):
-        many = len(ev["shadowed_by"]) > 1
         why = (
-            f"not told apart from {', '.join(ev['shadowed_by'])}, no confident answer"
-            f"{'s themselves' if many else ' itself'} (end of its range, or its interval holds its nominal)"
+            f"not told apart from {', '.join(ev['shadowed_by'])}, which is no confident answer itself "
+            "(end of its range, or its interval holds its nominal)"
         )
     elif ev.get("residual_level") and ev["residual_level"]["beyond"] and top["passes"]:
         why = f"its residual's {', '.join(ev['residual_level']['beyond'])} beyond 3 × the prior scale"
