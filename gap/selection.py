@@ -14,8 +14,7 @@ level -- a passing candidate whose deficit is within the noise z_{1−α} 2 √D
 fits) is reported with it (one: **explained**, several: **ambiguous**), provided what the best leaves is at
 the model-form level (its modes' mean within :data:`~elastimap.identify.discrepancy.BEYOND` × τ₀)
 and, with the model-form level, its fit is neither pinned at the end of its range nor holding its
-nominal within its interval (:func:`_unsure`), nor within that noise of a passing candidate that is
-itself so unsure (a shadow); otherwise, or when nothing passes: **unexplained**.  The three verdicts a user acts on
+nominal within its interval (:func:`_unsure`); otherwise, or when nothing passes: **unexplained**.  The three verdicts a user acts on
 (:func:`verdict`): "no gap beyond the model-form level", "explained", "unexplained".
 """
 
@@ -120,27 +119,18 @@ def told_apart(a: dict, b: dict, S: Metric, st: Settings, model_form: bool = Tru
       the error alone, and on data whose model-form difference is structured over the phantoms,
       more than that.
 
-    * **shadow** (with the model-form level only): b passes and its deficit is within that noise, but
-      b is no confident answer itself (:func:`_unsure`: pinned at the end of its range, or its
-      interval holding its nominal).  Then the best is not told apart from an answer the library
-      does not hold, so it is no confident answer either (:func:`evaluate`: **unexplained**;
-      docs/gap.md, 'Look-alikes').
-
-    Returns {"delta_score", "separation" (D_ab), "noise" (2 √D_ab), "margin", "within_noise",
-    "shadow", "told_apart"}."""
+    Returns {"delta_score", "separation" (D_ab), "noise" (2 √D_ab), "margin", "within_noise", "told_apart"}."""
     dscore = float(b["score"] - a["score"])
     sep = float(S.chi2(a["_model"].predict(a["_theta"]), b["_model"].predict(b["_theta"])).sum())
     noise = 2.0 * math.sqrt(max(sep, 0.0))
     margin = dscore <= st.ambiguity_margin
-    close = model_form and bool(b["passes"]) and dscore <= stats.norm.ppf(1 - st.alpha) * noise
-    within = close and not _unsure(b)
+    within = model_form and bool(b["passes"]) and not _unsure(b) and dscore <= stats.norm.ppf(1 - st.alpha) * noise
     return {
         "delta_score": dscore,
         "separation": sep,
         "noise": noise,
         "margin": bool(margin),
         "within_noise": bool(within),
-        "shadow": bool(close and _unsure(b)),
         "told_apart": not (margin or within),
     }
 
@@ -165,7 +155,7 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
         # nominal) and it beats every single effect and family by more than the margin
         rows.sort(key=lambda r: r["score"] + (_pair_charge(r, st) if r.get("pair") else 0.0))
     best = rows[0] if rows else None
-    ambiguity, reported, level, shadows = [], {}, None, []
+    ambiguity, reported, level = [], {}, None
     if best is not None and mf is not None:  # what the best leaves (no gap: what the baseline leaves)
         f, Sb = (best["_model"].predict(best["_theta"]), best["_S"]) if significant else (y0, S0)
         level = residual_level(y, f, Sb, mf["phi"], mf["disc"])
@@ -177,14 +167,10 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
         same = [r for r in rows[1:] if bool(r.get("pair")) == kind]
         for r in same:
             r["vs_best"] = told_apart(best, r, S0, st, mf is not None)
-        shadows = [r["effect"] for r in same if r["vs_best"]["shadow"]]
-        if shadows:  # the best is not told apart from an answer the library does not hold
-            outcome = "unexplained"
-        else:
-            close = [best] + [r for r in same if not r["vs_best"]["told_apart"]]
-            reported = reported_set(close, rows)
-            ambiguity = list(reported)
-            outcome = "explained" if len(ambiguity) == 1 else "ambiguous"
+        close = [best] + [r for r in same if not r["vs_best"]["told_apart"]]
+        reported = reported_set(close, rows)
+        ambiguity = list(reported)
+        outcome = "explained" if len(ambiguity) == 1 else "ambiguous"
     else:
         outcome = "unexplained"
     for r in rows:
@@ -207,7 +193,6 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
         "ambiguous_set": ambiguity if outcome in ("explained", "ambiguous") else [],
         "reported": reported,
         "best": best["effect"] if best else None,
-        "shadowed_by": shadows,
         "runner_up": rows[1]["effect"] if len(rows) > 1 else None,
     }
 
