@@ -360,28 +360,12 @@ def calibrate(
         check_out_dir(write_frames, "--write-frames", allow_existing=True)
     synthetic = camera_csv is None
     fem_fn = C.default_fem(mesh, delta, desc)
-    pairs, results = [], None
     if synthetic:
-
-        def progress(name, f, c):
-            click.echo(
-                f"  {name:14s} FEM {f[0]:.4g} {f[1]:.4g} {f[2]:.4g}   camera {c[0]:.4g} {c[1]:.4g} {c[2]:.4g}", err=True
-            )
-
-        fem, cam, results = C.simulate_phantoms(
-            ph, fem_fn, model, settings, frames, model.seed, write_frames, fmt, progress, frames_out=pairs
-        )
-        if fem_given is not None:
-            fem = fem_given
+        fem, cam, results, pairs = _simulated_phantoms(ph, fem_fn, model, settings, frames, write_frames, fmt)
     else:
-        cam = C.camera_features_from_csv(camera_csv, ph, model, settings, frames_out=pairs, allow_outside=allow_outside)
-        few = [str(n) for n, (F, B) in zip(ph["name"], pairs) if min(len(F), len(B)) < MIN_FRAMES]
-        if few:  # the deflection calibration after the solves needs them: say so before
-            raise UserError("--camera-csv", f"{camera_csv}: fewer than {MIN_FRAMES} frames for {', '.join(few[:5])}")
-        # camera frames -> FEM-equivalent difference images (image models, --refine) need the FEM solves,
-        # also where the features come from a sweep (--fem-features)
-        results = [fem_fn(float(x["d"]), float(x["h"]), float(x["E"])) for _, x in ph.iterrows()]
-        fem = fem_given if fem_given is not None else np.array([[r.O1, r.O2, r.O3] for r in results])
+        fem, cam, results, pairs = _measured_phantoms(ph, fem_fn, model, settings, camera_csv, allow_outside)
+    if fem_given is not None:
+        fem = fem_given
     defl = C.deflection_calibration(results, pairs, model)
     disc = None if level is None else _learn_model_form(ph, pairs, defl, level, model, desc, report_loo)
     cal = C.fit_calibration(
@@ -411,6 +395,39 @@ def calibrate(
     write_or_fallback(lambda f: C.plot_calibration(cal, f), png, "--plot")
     click.echo(cal.report())
     click.echo(f"wrote {out} and {png}")
+
+
+def _simulated_phantoms(ph, fem_fn, model, settings, frames: int, write_frames, fmt):
+    """``calibrate`` without --camera-csv: the phantoms' FEM solves and their SYNTHETIC camera frames.
+    Returns the FEM features, the camera features, the solves and the (lesion, background) frames."""
+    from . import calibration as C
+
+    def progress(name, f, c):
+        click.echo(
+            f"  {name:14s} FEM {f[0]:.4g} {f[1]:.4g} {f[2]:.4g}   camera {c[0]:.4g} {c[1]:.4g} {c[2]:.4g}", err=True
+        )
+
+    pairs = []
+    fem, cam, results = C.simulate_phantoms(
+        ph, fem_fn, model, settings, frames, model.seed, write_frames, fmt, progress, frames_out=pairs
+    )
+    return fem, cam, results, pairs
+
+
+def _measured_phantoms(ph, fem_fn, model, settings, camera_csv: str, allow_outside):
+    """``calibrate --camera-csv``: the lab's frames of the phantoms (features and frame stacks) and the
+    FEM solves at their known (d, h, E), which the FEM-equivalent difference images (image models,
+    --refine) need also where the FEM features come from a sweep (--fem-features)."""
+    from . import calibration as C
+    from .deflection import MIN_FRAMES
+
+    pairs = []
+    cam = C.camera_features_from_csv(camera_csv, ph, model, settings, frames_out=pairs, allow_outside=allow_outside)
+    few = [str(n) for n, (F, B) in zip(ph["name"], pairs) if min(len(F), len(B)) < MIN_FRAMES]
+    if few:  # the deflection calibration after the solves needs them: say so before
+        raise UserError("--camera-csv", f"{camera_csv}: fewer than {MIN_FRAMES} frames for {', '.join(few[:5])}")
+    results = [fem_fn(float(x["d"]), float(x["h"]), float(x["E"])) for _, x in ph.iterrows()]
+    return np.array([[r.O1, r.O2, r.O3] for r in results]), cam, results, pairs
 
 
 def _learn_model_form(ph, pairs, defl: dict, level: str, model, desc, report_loo: bool) -> dict:
