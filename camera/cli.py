@@ -578,20 +578,7 @@ def infer(
     """
     from .infer import load_identifiability, load_model
 
-    given = sum(x for x in (feats is not None, bool(images), csv_path is not None, fem_image is not None))
-    if given != 1:
-        raise UserError(
-            "input",
-            "give exactly one of --features O1 O2 O3, --images ... --background ..., --csv FILE, --fem-image FILE.npy",
-        )
-    if not 0 < threshold < 10:
-        raise UserError("--crb-limit", f"must be in (0, 10) (got {threshold:g})")
-    if not identifiability.strip():
-        raise UserError("--identifiability", "must be a crb_grid.npz file, 'default' or 'none' (got '')")
-    if refine and feats is not None:
-        raise UserError("--refine", "needs an image (--fem-image, --images or --csv) and an image model, not features")
-    if refine and not 0 < image_noise < 1:
-        raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
+    _check_infer_inputs(feats, images, csv_path, fem_image, threshold, identifiability, refine, image_noise)
     correct = _refine_correct(refine, mesh, correct)
     if fem_image is not None and not os.path.isfile(fem_image):
         raise UserError("--fem-image", f"{fem_image}: no such file")
@@ -615,24 +602,7 @@ def infer(
     sensor_hash = None if sensor is None else sensor.hash()
     ests = _estimates(model, idm, threshold, refine, cal, feats, images, background, csv_path, fem_image, allow_outside)
     if refine:
-        from tqdm import tqdm
-
-        from .infer import refine_estimates
-
-        form = _model_form(cal, mesh, correct)  # also for --fem-image given with --calibration
-        with tqdm(total=len(ests), desc="refine (FEM fit)", unit="lesion", disable=len(ests) < 2) as bar:
-            ests = refine_estimates(
-                ests,
-                None,
-                image_noise=image_noise,
-                mesh=mesh,
-                correct=correct,
-                threshold=threshold,
-                progress=lambda i, n: bar.update(1),
-                sensor=sensor,
-                discrepancy=form[0] if form else None,
-                pixel=form[2] if form else None,
-            )
+        ests = _refined(ests, cal, mesh, correct, image_noise, threshold, sensor)
     from elastimap.provenance import stamp
 
     prov = stamp()
@@ -646,15 +616,61 @@ def infer(
     if as_json:
         click.echo(json.dumps(rows, indent=2))
     else:
-        for r in rows:
-            click.echo(
-                f"{r['id']}: "
-                + "   ".join(_quantity(r, q, u) for q, u in (("d", "mm"), ("h", "mm"), ("E", "kPa")))
-                + "   "
-                + ("ok" if r["ok"] else f"FLAGGED: {r['flags']}")
-            )
+        _echo_rows(rows)
     if cal is not None and fem_image is None and cal.synthetic:
         click.echo("note: the calibration was made with the SYNTHETIC camera", err=True)
+
+
+def _check_infer_inputs(feats, images, csv_path, fem_image, threshold, identifiability, refine, image_noise):
+    """``infer``'s one-line refusals of its input kind and settings, before anything is read."""
+    given = sum(x for x in (feats is not None, bool(images), csv_path is not None, fem_image is not None))
+    if given != 1:
+        raise UserError(
+            "input",
+            "give exactly one of --features O1 O2 O3, --images ... --background ..., --csv FILE, --fem-image FILE.npy",
+        )
+    if not 0 < threshold < 10:
+        raise UserError("--crb-limit", f"must be in (0, 10) (got {threshold:g})")
+    if not identifiability.strip():
+        raise UserError("--identifiability", "must be a crb_grid.npz file, 'default' or 'none' (got '')")
+    if refine and feats is not None:
+        raise UserError("--refine", "needs an image (--fem-image, --images or --csv) and an image model, not features")
+    if refine and not 0 < image_noise < 1:
+        raise UserError("--image-noise", f"must be in (0, 1) (got {image_noise:g})")
+
+
+def _refined(ests, cal, mesh: str, correct, image_noise: float, threshold: float, sensor):
+    """``infer --refine``: each estimate refined by the physics fit (docs/camera.md, 'Physics fit
+    (--refine)'), carrying the calibration's model-form error where it has one."""
+    from tqdm import tqdm
+
+    from .infer import refine_estimates
+
+    form = _model_form(cal, mesh, correct)  # also for --fem-image given with --calibration
+    with tqdm(total=len(ests), desc="refine (FEM fit)", unit="lesion", disable=len(ests) < 2) as bar:
+        return refine_estimates(
+            ests,
+            None,
+            image_noise=image_noise,
+            mesh=mesh,
+            correct=correct,
+            threshold=threshold,
+            progress=lambda i, n: bar.update(1),
+            sensor=sensor,
+            discrepancy=form[0] if form else None,
+            pixel=form[2] if form else None,
+        )
+
+
+def _echo_rows(rows) -> None:
+    """``infer``'s table: one line a lesion, a quantity printed as its interval where not reportable."""
+    for r in rows:
+        click.echo(
+            f"{r['id']}: "
+            + "   ".join(_quantity(r, q, u) for q, u in (("d", "mm"), ("h", "mm"), ("E", "kPa")))
+            + "   "
+            + ("ok" if r["ok"] else f"FLAGGED: {r['flags']}")
+        )
 
 
 def _check_sensor(sensor, model, cal):
