@@ -98,9 +98,12 @@ class Interface:
         u, v = ufl.TrialFunction(space.V), ufl.TestFunction(space.V)
         M = fpetsc.assemble_matrix(fem.form(u[2] * v[2] * ds(1)))
         M.assemble()
-        Mi, Mj, Mv = M.getValuesCSR()
-        M.destroy()
-        return _submatrix(Mi, Mj, Mv, 3 * self.pair_tissue + 2)
+        rows = PETSc.IS().createGeneral((3 * self.pair_tissue + 2).astype(PETSc.IntType), comm=MPI.COMM_SELF)
+        Mp = M.createSubMatrix(rows, rows)  # M[idx][:, idx] in the pairs' order, columns ascending
+        indptr, indices, values = (a.copy() for a in Mp.getValuesCSR())
+        for obj in (Mp, rows, M):
+            obj.destroy()
+        return indptr, indices, values
 
     # ------------------------------------------------------------------ measures of a solution
     def gap(self, u: np.ndarray) -> np.ndarray:
@@ -167,23 +170,6 @@ class Interface:
         if self._mass_ksp is not None:
             self._mass_ksp.destroy()
             self._mass_ksp = None
-
-
-def _submatrix(indptr: np.ndarray, indices: np.ndarray, values: np.ndarray, idx: np.ndarray):
-    """CSR arrays (indptr, indices, values) of M[idx][:, idx] -- rows and columns in the order of
-    ``idx``, each row's columns ascending -- from M's CSR arrays."""
-    pos = np.full(len(indptr) - 1, -1)
-    pos[idx] = np.arange(len(idx))
-    starts, counts = indptr[idx], indptr[idx + 1] - indptr[idx]
-    first = np.cumsum(counts) - counts  # where each row's entries start in the gathered arrays
-    flat = np.repeat(starts - first, counts) + np.arange(counts.sum())
-    rows = np.repeat(np.arange(len(idx)), counts)
-    cols = pos[indices[flat]]
-    keep = cols >= 0
-    rows, cols, vals = rows[keep], cols[keep], values[flat][keep]
-    order = np.lexsort((cols, rows))
-    new_ptr = np.concatenate(([0], np.cumsum(np.bincount(rows, minlength=len(idx)))))
-    return new_ptr, cols[order], vals[order]
 
 
 class Friction:
