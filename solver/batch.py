@@ -46,6 +46,12 @@ def geometry_key(p: SolveParams) -> str:
     return json.dumps(d, sort_keys=True)
 
 
+def inclusion_modulus_only(a: SolveParams, b: SolveParams) -> bool:
+    """Whether ``b`` differs from ``a`` by the inclusion's modulus alone (then both have the same
+    reference press: the inclusion's modulus set to the tissue's)."""
+    return a.with_inclusion(E=b.inclusion.E) == b
+
+
 def group_by_geometry(params_list: Sequence[SolveParams]) -> list[list[int]]:
     """Indices of ``params_list`` grouped by :func:`geometry_key` (first-seen order)."""
     groups: dict[str, list[int]] = {}
@@ -58,12 +64,20 @@ def solve_group(
     params_list: Sequence[SolveParams],
     on_result: Callable[[int, SolveResult | Exception], None] | None = None,
     errors: str = "raise",
+    single_factors: bool = False,
 ) -> list[SolveResult | Exception]:
     """Every sample of one geometry (:func:`geometry_key` equal for all) on one mesh and model.
 
     The first result's ``seconds`` and ``timings`` carry the mesh and the model setup.
     ``errors="return"`` puts the :class:`~elastimap.solver.errors.SolverError` of a failed
-    sample in its place instead of raising (a failed mesh fails every sample of the group)."""
+    sample in its place instead of raising (a failed mesh fails every sample of the group).
+
+    A sample that differs from the one before by the inclusion's modulus alone (a sweep's moduli
+    of one mesh, ``sweep run --moduli-per-mesh``) keeps that sample's reference press, which does
+    not depend on it, and its factors: its inclusion press is the difference of the two presses by
+    CG on them, as the first sample's (docs/forward-model.md, 'Shared presses').
+    ``single_factors``: the reference press may factorise in single precision as a single
+    ``solve`` does (``fem.Model.single_factors``); batched variants of other moduli keep double."""
     from .api import solve
     from .errors import SolverError
     from .fem import Model
@@ -100,20 +114,30 @@ def solve_group(
         for i in range(len(ps)):
             land(i, err)
         return out
+    model.single_factors = single_factors
+    reference = None  # the reference press of the sample before (run_sample's)
     try:
         for i, p in enumerate(ps):
             try:
-                model.set_params(p)
+                if reference is not None and inclusion_modulus_only(ps[i - 1], p):
+                    model.set_inclusion_modulus(p)
+                else:
+                    model.set_params(p)
+                    reference = None
                 # the first variant carries the mesh and the model setup (its t0 is the group's)
-                res: SolveResult | Exception = run_sample(
-                    model, p, t0 if i == 0 else time.perf_counter(), {"mesh": raw.seconds} if i == 0 else {}
-                )[0]
+                res, reference = run_sample(
+                    model,
+                    p,
+                    t0 if i == 0 else time.perf_counter(),
+                    {"mesh": raw.seconds} if i == 0 else {},
+                    reference=reference,
+                )
                 if i > 0:
                     res.timings.pop("setup", None)
             except SolverError as exc:
                 if errors == "raise":
                     raise
-                res = exc
+                res, reference = exc, None
             land(i, res)
     finally:
         model.destroy()

@@ -173,6 +173,14 @@ class Model:
         self.reduction.tilt = float(p.loading.tilt)
         self.moved()
 
+    def set_inclusion_modulus(self, p: SolveParams) -> None:
+        """Switch to ``p``, which differs from this model's parameters by the inclusion's modulus
+        alone: the matrices, the factors and the last reference press stay valid (each press sets
+        the inclusion's cells itself, ``solve_linear``; :func:`elastimap.solver.batch.solve_group`)."""
+        if self.p.with_inclusion(E=p.inclusion.E) != p:
+            raise ValueError("set_inclusion_modulus: the parameters differ by more than the inclusion's modulus")
+        self.p = self.materials.p = p
+
     @property
     def share_presses(self) -> bool:
         """False: every press assembles and reduces its whole matrix (by PETSc's default PᵀAP) and

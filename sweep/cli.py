@@ -5,6 +5,7 @@
     elastimap sweep run --samples table.csv --out sweeps/mine
     elastimap sweep bench --n 16 --mesh tiny             # samples/min at --jobs 1 and 2, driver overhead
     elastimap sweep bench --compare --n 64 --jobs-list 2 # the presses before vs as shipped, side by side
+    elastimap sweep run --n 512 --moduli-per-mesh 8      # 64 geometries x 8 moduli: one mesh and factorisation each
     elastimap sweep bench --compare --paths separate,shared,morph --n 64 --jobs-list 2  # and morph/by_d
     elastimap sweep timeit --repeat 3 -- elastimap solve --d 8 --h 7 --E 50 --json  # any command, both presses
 
@@ -58,6 +59,15 @@ _common = options(
         default="lhs",
         show_default=True,
         help="lhs (Latin hypercube) or sobol (scrambled)",
+    ),
+    click.option(
+        "--moduli-per-mesh",
+        type=int,
+        default=1,
+        show_default=True,
+        help="K inclusion moduli per design geometry: n/K (d, h) points, each with one E in each of K strata "
+        "of the E range; the K samples share one mesh and reference press (docs/sweep.md, 'What it samples'); "
+        "--n must be a multiple of K",
     ),
     click.option(
         "--ranges",
@@ -146,6 +156,7 @@ def run_cmd(
     mesh,
     interface,
     design,
+    moduli_per_mesh,
     ranges,
     samples,
     phantoms,
@@ -182,6 +193,7 @@ def run_cmd(
         geometry=geometry,
         sizing=sizing,
         design=design,
+        moduli_per_mesh=moduli_per_mesh,
         ranges=dsg.parse_ranges_text(ranges),
         samples=samples,
         phantoms=phantoms,
@@ -242,7 +254,22 @@ def run_cmd(
     "morph = geometry morph, sizing by_d, morph-fixed = geometry morph, sizing fixed",
 )
 @out_option(help="keep the datasets under OUT/jobs<k> (with --compare OUT/<path>-jobs<k>; default: a temporary dir)")
-def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solver_spec, jobs_list, compare, paths, out):
+def bench_cmd(
+    n,
+    seed,
+    mesh,
+    interface,
+    design,
+    moduli_per_mesh,
+    ranges,
+    samples,
+    phantoms,
+    solver_spec,
+    jobs_list,
+    compare,
+    paths,
+    out,
+):
     """Time the same sweep at several --jobs: samples/min, speed-up, driver overhead per sample."""
     from .bench import bench, format_bench, format_compare, parse_paths
     from .bench import compare as compare_paths
@@ -263,6 +290,7 @@ def bench_cmd(n, seed, mesh, interface, design, ranges, samples, phantoms, solve
         mesh=mesh,
         interface=interface or "tied",
         design=design,
+        moduli_per_mesh=moduli_per_mesh,
         ranges=dsg.parse_ranges_text(ranges),
         samples=samples,
         phantoms=phantoms,

@@ -41,6 +41,8 @@ NAMES = TARGETS
 DEFAULT_RANGES = "d={:g}:{:g},h=auto,E={:g}:{:g}:log".format(*DESIGN_BOX["d"], *DESIGN_BOX["E"])
 DESIGNS = ("lhs", "sobol")
 MAX_N = 1_000_000
+#: the most inclusion moduli a design geometry may carry (``sweep run --moduli-per-mesh``)
+MAX_MODULI_PER_MESH = 64
 OVERRIDES = ("tissue_E", "tissue_thickness")
 
 
@@ -182,9 +184,22 @@ def check_n(n: int) -> int:
     return int(n)
 
 
-def design_points(n: int, design: str, seed: int, ranges: dict[str, Range], thickness: float = THICKNESS) -> list[dict]:
-    """``n`` samples of the space-filling design, with stable ids."""
+def design_points(
+    n: int, design: str, seed: int, ranges: dict[str, Range], thickness: float = THICKNESS, moduli_per_mesh: int = 1
+) -> list[dict]:
+    """``n`` samples of the space-filling design, with stable ids.
+
+    ``moduli_per_mesh`` k > 1: n / k geometries (d, h) of the design, each with k inclusion moduli,
+    one in each of k equal strata of the E range (the design's third coordinate u_E gives the
+    geometry's offset in its stratum: E_j = E(( j + u_E ) / k), j = 0 … k−1); so E stays uniform over
+    its range (in log E by default), and the k samples of a geometry share its mesh, its model and
+    its reference press (:func:`elastimap.sweep.jobs.run_group`).  ``n`` must be a multiple of k."""
     check_n(n)
+    k = moduli_per_mesh
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= MAX_MODULI_PER_MESH:
+        raise UserError("moduli-per-mesh", f"must be an integer in [1, {MAX_MODULI_PER_MESH}] (got {k!r})")
+    if n % k:
+        raise UserError("moduli-per-mesh", f"--n must be a multiple of it (got --n {n}, --moduli-per-mesh {k})")
     if design not in DESIGNS:
         raise UserError("design", f"must be one of {', '.join(DESIGNS)} (got {design!r})")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -195,11 +210,14 @@ def design_points(n: int, design: str, seed: int, ranges: dict[str, Range], thic
 
     rng = np.random.default_rng(seed)
     if design == "lhs":
-        u = qmc.LatinHypercube(d=3, rng=rng).random(n)
+        u = qmc.LatinHypercube(d=3, rng=rng).random(n // k)
     else:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "balance properties" warning for n not a power of 2
-            u = qmc.Sobol(d=3, scramble=True, rng=rng).random(n)
+            u = qmc.Sobol(d=3, scramble=True, rng=rng).random(n // k)
+    if k > 1:  # each geometry k times, its moduli one in each stratum of E
+        u = np.repeat(u, k, axis=0)
+        u[:, 2] = (np.tile(np.arange(k), n // k) + u[:, 2]) / k
     d = ranges["d"].map(u[:, 0])
     lo, hi = depth_range(d, thickness)
     h_rng = ranges["h"]
@@ -210,6 +228,8 @@ def design_points(n: int, design: str, seed: int, ranges: dict[str, Range], thic
     key = {"design": design, "seed": seed, "ranges": ranges_text(ranges), "thickness": thickness}
     if design == "lhs":
         key["n"] = n
+    if k > 1:
+        key["moduli_per_mesh"] = k
     tag = hashlib.sha1(json.dumps(key, sort_keys=True).encode()).hexdigest()[:6]
     width = max(5, len(str(n - 1)))
     return [

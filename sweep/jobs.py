@@ -1,4 +1,5 @@
-"""One sample as one job: sample dict -> SolveParams -> solve -> one landed row.
+"""One sample as one job: sample dict -> SolveParams -> solve -> one landed row (or the samples
+of one geometry as one job: :func:`run_group`).
 
 The solver is passed in explicitly: ``solver=None`` is the forward model
 (:func:`elastimap.solver.solve`, warmed up by :func:`elastimap.solver.warmup`); tests pass the
@@ -8,7 +9,7 @@ pickles by module path (a module-level function or an instance of a module-level
 driver hands it to the dask workers as a task argument.  Its ``solver_name`` attribute labels
 the rows (``solver`` column; ``fem`` for the forward model).
 
-:func:`run_sample` runs in a dask worker.  It lands its row itself
+:func:`run_sample` (:func:`run_group`) runs in a dask worker.  It lands its row itself
 (atomically, see :mod:`elastimap.dataset.io`) before returning, so a result exists on disk as
 soon as its solve ends and nothing is held only in memory; it returns a small summary (no
 image) to the driver.  Every row carries the solve key (:mod:`elastimap.dataset.store`), so a
@@ -171,6 +172,10 @@ def attempts(out_dir: str, sample_id: str) -> int:
         return 0
 
 
+def _summary(row: dict) -> dict:
+    return {"sample_id": row["sample_id"], "status": row["status"], "seconds": row["seconds"], "error": row["error"]}
+
+
 def run_sample(
     sample: dict, base: dict, out_dir: str, timeout: float | None = None, solver: Callable | None = None
 ) -> dict:
@@ -220,7 +225,121 @@ def run_sample(
     finally:
         if watchdog is not None:
             watchdog.cancel()
-    return {"sample_id": row["sample_id"], "status": row["status"], "seconds": row["seconds"], "error": row["error"]}
+    return _summary(row)
+
+
+#: at most this many samples of one geometry go to a worker as one task (``sweep run
+#: --moduli-per-mesh``): they share its mesh, its model and its reference press
+#: (:func:`elastimap.solver.batch.solve_group`); a worker that dies loses at most one task
+GROUP_MAX = 16
+
+
+def _geometry(sample: dict) -> tuple:
+    return (sample["d"], sample["h"], *(sample.get(k) for k in ("tissue_E", "tissue_thickness")))
+
+
+def group_samples(samples: list[dict]) -> list[list[dict]]:
+    """``samples`` as tasks: the samples of one geometry (equal d, h and tissue overrides) together,
+    in first-seen order, at most :data:`GROUP_MAX` a task; every other sample a task of its own."""
+    groups: dict[tuple, list[list[dict]]] = {}
+    order: list[list[dict]] = []
+    for s in samples:
+        chunks = groups.setdefault(_geometry(s), [])
+        if not chunks or len(chunks[-1]) >= GROUP_MAX:
+            chunks.append([])
+            order.append(chunks[-1])
+        chunks[-1].append(s)
+    return order
+
+
+def run_group(
+    samples: list[dict], base: dict, out_dir: str, timeout: float | None = None, solver: Callable | None = None
+) -> list[dict]:
+    """Solve the samples of one geometry (:func:`group_samples`) and land each row as it is
+    solved; return their summaries (:func:`run_sample`'s).  With the forward model (``solver`` None)
+    they share one mesh, model and reference press (:func:`elastimap.solver.batch.solve_group`, its
+    reference press in single precision as a single ``solve``'s); any other solver, or a group of
+    one, runs :func:`run_sample` sample by sample.  ``timeout`` (s) is each sample's, as in
+    :func:`run_sample`; a sample that timed out before (its marker) is not solved again."""
+    if solver is not None or len(samples) == 1:
+        return [run_sample(s, base, out_dir, timeout, solver) for s in samples]
+    from elastimap.solver.batch import solve_group
+
+    label = store.solver_label(solver)
+    done: list[dict] = []
+    live: list[tuple[dict, SolveParams]] = []
+    for s in samples:
+        if timeout and _mark(out_dir, "timeout", s["sample_id"]).exists():
+            msg = f"Timeout: no result after {timeout:g} s; the worker was stopped"
+            done.append({"sample_id": s["sample_id"], "status": "failed", "seconds": float(timeout), "error": msg})
+        else:
+            live.append((s, sample_params(s, SolveParams.from_dict(base))))
+    if not live:
+        return done
+    watch = _Watchdog(out_dir, timeout, label)
+    landed = [False] * len(live)
+
+    def land(i: int, res) -> None:
+        s, p = live[i]
+        if isinstance(res, Exception):
+            msg = str(res).strip().replace("\n", " ")
+            row = failed_row(s, p, f"{type(res).__name__}: {msg}"[:2000], float("nan"), label)
+            io.land_rows(out_dir, [row])
+        else:
+            row = result_row(s, p, res, res.seconds, label)
+            ok = row["status"] == "ok"
+            io.land_rows(out_dir, [row], *((tuple(np.shape(res.image)), float(res.pixel)) if ok else ()))
+        landed[i] = True
+        done.append(_summary(row))
+        if i + 1 < len(live):
+            watch.start(*live[i + 1])
+
+    watch.start(*live[0])
+    try:
+        solve_group([p for _, p in live], land, errors="return", single_factors=True)
+    except Exception as exc:  # a failing group is data, not a crash of the sweep
+        msg = str(exc).strip().replace("\n", " ")
+        for i, (s, p) in enumerate(live):
+            if not landed[i]:
+                row = failed_row(s, p, f"{type(exc).__name__}: {msg}"[:2000], float("nan"), label)
+                io.land_rows(out_dir, [row])
+                done.append(_summary(row))
+    finally:
+        watch.stop()
+    return done
+
+
+class _Watchdog:
+    """One sample's timeout inside a group (:func:`run_group`): ``start(sample, params)`` records
+    the sample's start and (re)arms a timer that lands its ``failed`` row, leaves its marker and ends
+    the worker process, as :func:`run_sample`'s does."""
+
+    def __init__(self, out_dir: str, timeout: float | None, label: str):
+        self.out_dir, self.timeout, self.label, self.timer = out_dir, timeout, label, None
+
+    def start(self, sample: dict, p: SolveParams) -> None:
+        self.stop()
+        sid = sample["sample_id"]
+        record_start(self.out_dir, sid)
+        if not self.timeout:
+            return
+        msg = f"Timeout: no result after {self.timeout:g} s; the worker was stopped"
+
+        def _fire():
+            try:
+                io.land_rows(self.out_dir, [failed_row(sample, p, msg, float(self.timeout), self.label)])
+                _mark(self.out_dir, "timeout", sid).write_text(sid)
+            finally:
+                os._exit(75)
+
+        self.timer = threading.Timer(self.timeout, _fire)
+        self.timer.daemon = True
+        self.timer.start()
+
+    def stop(self) -> None:
+        if self.timer is not None:
+            self.timer.cancel()
+            self.timer = None
 
 
 def land_failure(sample: dict, base: dict, out_dir: str, error: str, solver: Callable | None = None) -> None:

@@ -86,6 +86,7 @@ class SweepConfig:
     geometry: str = "remesh"  # or "morph": reference meshes moved to each (d, h) (solver/morph.py)
     sizing: str = "fixed"  # or "by_d": element size near the inclusion scaled with d (solver/geometry.py)
     design: str = "lhs"
+    moduli_per_mesh: int = 1  # k inclusion moduli per design geometry, sharing its mesh (design.design_points)
     ranges: dict | None = None
     samples: str | None = None
     phantoms: bool = False
@@ -118,6 +119,7 @@ class SweepConfig:
         "geometry": [Options(GEOMETRIES)],
         "sizing": [Options(SIZINGS)],
         "design": [Options(dsg.DESIGNS)],
+        "moduli_per_mesh": [Interval(int, 1, dsg.MAX_MODULI_PER_MESH)],
         "ranges": [None, Predicate(lambda r: isinstance(r, dict), "a dict {name: (lo, hi[, scale])}")],
         "batch_rows": [Interval(int, 1, None)],
         "timeout": [None, Interval(float, 0, None, unit="s")],
@@ -173,7 +175,7 @@ def default_out(cfg: SweepConfig, n: int) -> str:
     if cfg.samples:
         parts.append(Path(cfg.samples).stem)
     if n:
-        parts.append(f"{cfg.design}{n}-s{cfg.seed}")
+        parts.append(f"{cfg.design}{n}-s{cfg.seed}" + (f"-m{cfg.moduli_per_mesh}" if cfg.moduli_per_mesh > 1 else ""))
     if cfg.phantoms:
         parts.append("phantoms")
     return str(Path("sweeps") / "-".join(parts))
@@ -191,7 +193,7 @@ def make_plan(cfg: SweepConfig) -> Plan:
     sensor = sweep_sensor(cfg).validate()
     base = from_sensor(sensor, disc=disc).validate()
     ranges = dsg.check_ranges(cfg.ranges, base.tissue.thickness)
-    samples = dsg.design_points(n, cfg.design, cfg.seed, ranges, base.tissue.thickness)
+    samples = dsg.design_points(n, cfg.design, cfg.seed, ranges, base.tissue.thickness, cfg.moduli_per_mesh)
     if cfg.samples:
         samples += dsg.load_samples(cfg.samples)
     if cfg.phantoms:
@@ -254,6 +256,7 @@ def make_plan(cfg: SweepConfig) -> Plan:
         "n": n,
         "seed": cfg.seed,
         "ranges": dsg.ranges_text(ranges) if n else None,
+        **({"moduli_per_mesh": cfg.moduli_per_mesh} if cfg.moduli_per_mesh > 1 else {}),
         "samples": cfg.samples,
         "phantoms": cfg.phantoms,
     }
@@ -270,6 +273,7 @@ _DESIGN_FLAGS = (
     ("seed", "--seed"),
     ("n", "--n"),
     ("design", "--design"),
+    ("moduli_per_mesh", "--moduli-per-mesh"),
     ("ranges", "--ranges"),
     ("samples", "--samples"),
     ("phantoms", "--phantoms"),
@@ -299,6 +303,8 @@ def _design_text(d: dict) -> str:
     parts = []
     if d.get("n"):
         parts.append(f"--design {d.get('design')} --n {d.get('n')} --seed {d.get('seed')} --ranges {d.get('ranges')}")
+        if d.get("moduli_per_mesh", 1) > 1:
+            parts.append(f"--moduli-per-mesh {d['moduli_per_mesh']}")
     if d.get("samples"):
         parts.append(f"--samples {d['samples']}")
     if d.get("phantoms"):
@@ -309,10 +315,13 @@ def _design_text(d: dict) -> str:
 def _design_conflict(out: Path, man: dict, design: dict, new_ids: int) -> str:
     rec = _recorded_designs(man)
     last = rec[-1] if rec else {}
+    def value(d: dict, k: str):
+        return d.get(k, 1 if k == "moduli_per_mesh" else None)  # recorded only when above 1
+
     differ = [
-        f"{flag} {design[k]!s} (folder: {last.get(k)!s})"
+        f"{flag} {value(design, k)!s} (folder: {value(last, k)!s})"
         for k, flag in _DESIGN_FLAGS
-        if last and design.get(k) != last.get(k) and not (k == "ranges" and not design.get("n"))
+        if last and value(design, k) != value(last, k) and not (k == "ranges" and not design.get("n"))
     ]
     what = ", ".join(differ) if differ else "other sample rows"
     return (
@@ -632,18 +641,20 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
         cpu0 = time.process_time()
         token = uuid.uuid4().hex[:8]
         # one map call: the whole batch reaches the scheduler at once, as one task group, so dask
-        # queues it and hands each one-thread worker one sample at a time (worker-saturation 1.0)
+        # queues it and hands each one-thread worker one task at a time (worker-saturation 1.0); a
+        # task is one sample, or the samples of one geometry (``--moduli-per-mesh``, jobs.group_samples)
+        groups = jobs.group_samples(todo)
         futures = client.map(
-            jobs.run_sample,
-            todo,
+            jobs.run_group,
+            groups,
             base=base,
             out_dir=out,
             timeout=cfg.timeout or None,
             solver=solver,
-            key=[f"sweep-sample-{i:07d}-{token}" for i in range(len(todo))],
+            key=[f"sweep-task-{i:07d}-{token}" for i in range(len(groups))],
             pure=False,
         )
-        by_future = dict(zip(futures, todo))
+        by_future = dict(zip(futures, groups))
         resubmitted: dict[str, int] = {}
         bar = _progress_bar(len(todo), cfg.progress)
         since_compact = 0
@@ -657,63 +668,67 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                 time.sleep(0.05)
                 continue
             for fut in ready:
-                s = by_future.pop(fut)
+                group = by_future.pop(fut)
                 try:
                     # bounded: a result held by a worker that is gone before it is read makes an
                     # unbounded result() wait for a recompute that, with no worker left, never comes
-                    r = fut.result(timeout=watch.fetch_timeout)
+                    results = fut.result(timeout=watch.fetch_timeout)
                 except Exception as exc:  # KilledWorker (its worker died on every attempt) or a bug in the job
                     if _not_failed(fut, exc):
                         # not the task's error: its result was lost with its worker (dask runs it
                         # again when a worker joins), or fetching it took too long; wait for it
                         # again, with the watch in between
-                        by_future[fut] = s
+                        by_future[fut] = group
                         pending.add(fut)
                         continue
+                    fut.release()
                     name = type(exc).__name__
-                    sid = s["sample_id"]
-                    n_started = jobs.attempts(out, sid)
-                    if name == "KilledWorker" and n_started < 2 and resubmitted.get(sid, 0) < 3:
-                        # dask blames every task a dying worker held; this one did not crash twice
-                        # itself (it was waiting next to a crashing sample): run it again
-                        resubmitted[sid] = resubmitted.get(sid, 0) + 1
-                        again = client.submit(
-                            jobs.run_sample,
-                            s,
-                            base=base,
-                            out_dir=out,
-                            timeout=cfg.timeout or None,
-                            solver=solver,
-                            key=f"sweep-retry-{uuid.uuid4().hex}",
-                            pure=False,
+                    results = []
+                    for s in group:
+                        sid = s["sample_id"]
+                        n_started = jobs.attempts(out, sid)
+                        if name == "KilledWorker" and n_started < 2 and resubmitted.get(sid, 0) < 3:
+                            # dask blames every task a dying worker held; this sample did not crash
+                            # twice itself (it waited next to a crashing one): run it again, alone
+                            resubmitted[sid] = resubmitted.get(sid, 0) + 1
+                            again = client.submit(
+                                jobs.run_group,
+                                [s],
+                                base=base,
+                                out_dir=out,
+                                timeout=cfg.timeout or None,
+                                solver=solver,
+                                key=f"sweep-retry-{uuid.uuid4().hex}",
+                                pure=False,
+                            )
+                            by_future[again] = [s]
+                            pending.add(again)
+                            continue
+                        tries = f"all {n_started} attempts" if n_started > 1 else f"{n_started} attempt(s)"
+                        msg = (
+                            f"worker crashed on {tries} at this sample (segfault, abort, out of memory, "
+                            f"or a worker job ended): {name}"
+                            if name == "KilledWorker"
+                            else f"{name}: {exc}"
                         )
-                        by_future[again] = s
-                        pending.add(again)
-                        fut.release()
-                        continue
-                    tries = f"all {n_started} attempts" if n_started > 1 else f"{n_started} attempt(s)"
-                    msg = (
-                        f"worker crashed on {tries} at this sample (segfault, abort, out of memory, "
-                        f"or a worker job ended): {name}"
-                        if name == "KilledWorker"
-                        else f"{name}: {exc}"
-                    )
-                    jobs.land_failure(s, base, out, msg[:2000], solver)
-                    r = {"sample_id": s["sample_id"], "status": "failed", "seconds": float("nan"), "error": msg}
-                fut.release()
-                summary["done"] += 1
-                if r["status"] == "ok":
-                    summary["ok"] += 1
-                    solve_seconds += r["seconds"]
+                        jobs.land_failure(s, base, out, msg[:2000], solver)
+                        results.append({"sample_id": sid, "status": "failed", "seconds": float("nan"), "error": msg})
                 else:
-                    summary["failed"] += 1
-                    errors.append((r["sample_id"], r["error"]))
-                bar.set_postfix(ok=summary["ok"], failed=summary["failed"], refresh=False)
-                bar.update(1)
-                since_compact += 1
-                if cfg.compact and since_compact >= cfg.batch_rows:
-                    io.compact(plan.out, cfg.batch_rows, only_rows=True)
-                    since_compact = 0
+                    fut.release()
+                for r in results:
+                    summary["done"] += 1
+                    if r["status"] == "ok":
+                        summary["ok"] += 1
+                        solve_seconds += r["seconds"]
+                    else:
+                        summary["failed"] += 1
+                        errors.append((r["sample_id"], r["error"]))
+                    bar.set_postfix(ok=summary["ok"], failed=summary["failed"], refresh=False)
+                    bar.update(1)
+                    since_compact += 1
+                    if cfg.compact and since_compact >= cfg.batch_rows:
+                        io.compact(plan.out, cfg.batch_rows, only_rows=True)
+                        since_compact = 0
         bar.close()
         fan_wall = time.perf_counter() - t_fan
         summary["fan_out_s"] = fan_wall

@@ -221,3 +221,34 @@ def test_an_explicit_presses_overrides_the_environment(monkeypatch):
     monkeypatch.delenv(PRESSES_ENV)
     sep = solve(p, presses="separate")
     assert (env.O1, env.O2, env.O3, env.force) == (sep.O1, sep.O2, sep.O3, sep.force)  # bit for bit
+
+
+def test_a_group_of_inclusion_moduli_keeps_its_reference_press(monkeypatch):
+    """``solve_group`` over samples that differ by the inclusion's modulus alone (a sweep's
+    ``--moduli-per-mesh``) solves the reference press once and each inclusion press as the
+    difference of the two on its factors: the numbers of a single ``solve`` of each sample."""
+    from elastimap.solver import batch, sample
+    from elastimap.solver.api import solve
+
+    base = TINY.with_inclusion(d=8.0, h=7.0, E=10.0)
+    ps = [base.with_inclusion(E=E) for E in (10.0, 35.0, 120.0, 200.0)]
+    given = []
+    run = sample.run_sample
+
+    def spy(model, p, t0, extra, **kw):
+        given.append(kw.get("reference") is not None)
+        return run(model, p, t0, extra, **kw)
+
+    monkeypatch.setattr(sample, "run_sample", spy)  # solve_group imports it when called
+    got = batch.solve_group(ps, single_factors=True)
+    assert given == [False, True, True, True]  # the first sample's reference press serves the others
+    for p, r in zip(ps, got):
+        want = solve(p)
+        for k in ("O1", "O2", "O3", "force", "force_ref"):
+            assert getattr(r, k) == pytest.approx(getattr(want, k), rel=1e-9, abs=1e-12), (p.inclusion.E, k)
+    # another modulus of the tissue changes the reference press: a group of those solves it again
+    q = ps[1].replace(tissue=dataclasses.replace(ps[1].tissue, E=6.5))
+    given.clear()
+    batch.solve_group([ps[0], q])
+    assert given == [False, False]
+    assert batch.inclusion_modulus_only(ps[0], ps[2]) and not batch.inclusion_modulus_only(ps[0], q)

@@ -331,3 +331,45 @@ def test_external_scheduler_real_solves(tmp_path):
     assert r.returncode == 0, r.stderr
     df = io.read_samples(out)
     assert len(df) == 3 and (df["ndofs"] > 0).all()
+
+
+def test_moduli_per_mesh_design():
+    """``--moduli-per-mesh k``: n/k geometries, each with k moduli, one in each stratum of log E."""
+    r = dsg.parse_ranges(None)
+    pts = dsg.design_points(64, "lhs", 3, r, moduli_per_mesh=8)
+    assert pts == dsg.design_points(64, "lhs", 3, r, moduli_per_mesh=8)
+    assert len({p["sample_id"] for p in pts}) == 64
+    assert not {p["sample_id"] for p in pts} & {p["sample_id"] for p in dsg.design_points(64, "lhs", 3, r)}
+    lo, hi = np.log(10.0), np.log(200.0)
+    for g in range(8):
+        grp = pts[8 * g : 8 * g + 8]
+        assert len({(p["d"], p["h"]) for p in grp}) == 1  # one geometry
+        strata = np.floor(8 * (np.log([p["E"] for p in grp]) - lo) / (hi - lo)).astype(int)
+        assert sorted(strata) == list(range(8))  # one modulus in each eighth of log E
+    assert len({(p["d"], p["h"]) for p in pts}) == 8
+    with pytest.raises(UserError, match="multiple"):
+        dsg.design_points(60, "lhs", 3, r, moduli_per_mesh=8)
+    with pytest.raises(UserError, match="moduli-per-mesh"):
+        dsg.design_points(64, "lhs", 3, r, moduli_per_mesh=0)
+
+
+def test_moduli_per_mesh_sweep_shares_a_mesh_and_gives_each_samples_solve(tmp_path):
+    """A sweep with --moduli-per-mesh runs each geometry's samples as one task on one mesh; every
+    row holds what a single ``solve`` of its sample gives (tiny mesh, real solves)."""
+    from elastimap.solver.api import solve
+    from elastimap.solver.params import Discretisation, SolveParams
+
+    out = tmp_path / "ds"
+    args = ["run", "--n", "8", "--moduli-per-mesh", "4", "--mesh", "tiny", "--jobs", "2", "--out", str(out)]
+    r = _sweep([*args, "--no-progress"], _env())
+    assert r.returncode == 0, r.stderr
+    df = io.read_samples(out, status=None).sort_values("sample_id")
+    assert len(df) == 8 and (df["status"] == "ok").all() and df[["d", "h"]].drop_duplicates().shape[0] == 2
+    for _, row in df.iloc[[0, 3, 5]].iterrows():
+        want = solve(SolveParams(disc=Discretisation(mesh="tiny")).with_inclusion(d=row.d, h=row.h, E=row.E))
+        for k in ("O1", "O2", "O3", "force"):
+            assert row[k] == pytest.approx(getattr(want, k), rel=1e-9, abs=1e-12), k
+    again = _sweep([*args, "--no-progress"], _env())  # resumes: nothing left to run
+    assert again.returncode == 0 and "8 skipped" in again.stdout
+    other = _sweep(["run", "--n", "8", "--mesh", "tiny", "--out", str(out), "--no-progress"], _env())
+    assert other.returncode == 2 and "--moduli-per-mesh" in other.stderr  # another design: refused, names it
