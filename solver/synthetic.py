@@ -119,7 +119,8 @@ class SyntheticSolver:
 
     ``seconds``: each solve sleeps this long.  ``crash_d`` / ``hang_d`` / ``fail_d``: inclusion
     diameters (mm) at which the process dies with SIGSEGV (as a crashing solver would), sleeps
-    an hour (a hung solve) or raises :class:`SyntheticSolverError`.  ``log``: a file that gets
+    an hour (a hung solve) or raises :class:`SyntheticSolverError`; ``crash_E``: inclusion moduli
+    (kPa) at which it dies (one sample of a geometry's group, ``sweep run --moduli-per-mesh``).  ``log``: a file that gets
     one line ``d h E pid`` per solve started.  Instances pickle by module path, so dask workers
     receive them as task arguments.
     """
@@ -128,12 +129,13 @@ class SyntheticSolver:
     crash_d: tuple[float, ...] = ()
     hang_d: tuple[float, ...] = ()
     fail_d: tuple[float, ...] = ()
+    crash_E: tuple[float, ...] = ()
     log: str | None = None
 
     solver_name: ClassVar[str] = SOLVER_NAME
 
     def __post_init__(self):
-        for name in ("crash_d", "hang_d", "fail_d"):
+        for name in ("crash_d", "hang_d", "fail_d", "crash_E"):
             object.__setattr__(self, name, _diameters(getattr(self, name)))
 
     @classmethod
@@ -146,9 +148,10 @@ class SyntheticSolver:
         kw: dict = {}
         for item in filter(None, (s.strip() for s in rest.split(","))):
             key, eq, value = item.partition("=")
-            if not eq or key not in ("seconds", "crash_d", "hang_d", "fail_d", "log"):
+            if not eq or key not in ("seconds", "crash_d", "hang_d", "fail_d", "crash_E", "log"):
                 raise UserError(
-                    "solver", f"unknown synthetic option {item!r} (known: seconds, crash_d, hang_d, fail_d, log)"
+                    "solver",
+                    f"unknown synthetic option {item!r} (known: seconds, crash_d, hang_d, fail_d, crash_E, log)",
                 )
             try:
                 kw[key] = (
@@ -174,7 +177,7 @@ class SyntheticSolver:
             os.close(fd)
         t0 = time.perf_counter()
         time.sleep(self.seconds)
-        if any(abs(d - v) < 1e-9 for v in self.crash_d):
+        if any(abs(d - v) < 1e-9 for v in self.crash_d) or any(abs(p.inclusion.E - v) < 1e-9 for v in self.crash_E):
             ctypes.string_at(0)  # SIGSEGV
         if any(abs(d - v) < 1e-9 for v in self.hang_d):
             time.sleep(3600)

@@ -33,6 +33,7 @@ import dataclasses
 import datetime as _dt
 import functools
 import json
+import math
 import os
 import signal
 import sys
@@ -315,6 +316,7 @@ def _design_text(d: dict) -> str:
 def _design_conflict(out: Path, man: dict, design: dict, new_ids: int) -> str:
     rec = _recorded_designs(man)
     last = rec[-1] if rec else {}
+
     def value(d: dict, k: str):
         return d.get(k, 1 if k == "moduli_per_mesh" else None)  # recorded only when above 1
 
@@ -684,8 +686,13 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                     fut.release()
                     name = type(exc).__name__
                     results = []
+                    # a task of several samples: those it landed before its worker died are done
+                    landed = io.landed_status(out) if len(group) > 1 else {}
                     for s in group:
                         sid = s["sample_id"]
+                        if sid in landed:
+                            results.append({"sample_id": sid, "status": landed[sid], "seconds": math.nan, "error": ""})
+                            continue
                         n_started = jobs.attempts(out, sid)
                         if name == "KilledWorker" and n_started < 2 and resubmitted.get(sid, 0) < 3:
                             # dask blames every task a dying worker held; this sample did not crash
@@ -719,7 +726,7 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                     summary["done"] += 1
                     if r["status"] == "ok":
                         summary["ok"] += 1
-                        solve_seconds += r["seconds"]
+                        solve_seconds += r["seconds"] if math.isfinite(r["seconds"]) else 0.0
                     else:
                         summary["failed"] += 1
                         errors.append((r["sample_id"], r["error"]))

@@ -373,3 +373,23 @@ def test_moduli_per_mesh_sweep_shares_a_mesh_and_gives_each_samples_solve(tmp_pa
     assert again.returncode == 0 and "8 skipped" in again.stdout
     other = _sweep(["run", "--n", "8", "--mesh", "tiny", "--out", str(out), "--no-progress"], _env())
     assert other.returncode == 2 and "--moduli-per-mesh" in other.stderr  # another design: refused, names it
+
+
+def test_a_worker_dying_inside_a_geometrys_task_loses_only_that_sample(tmp_path):
+    """A task of several samples (one geometry) whose worker dies at its third sample: the two
+    landed before stay landed once, the crashing one is recorded failed after its retry, the one
+    after it runs again alone and lands."""
+    table = tmp_path / "t.csv"
+    table.write_text("d,h,E\n5,6,20\n5,6,40\n5,6,60\n5,6,80\n7,8,30\n7,8,50\n")
+    out = tmp_path / "ds"
+    log = tmp_path / "starts.log"
+    args = ["run", "--samples", str(table), "--jobs", "2", "--mesh", "tiny", "--out", str(out)]
+    r = _sweep([*args, *_synthetic(crash_E=60, log=log, seconds=0.1)])
+    assert r.returncode == 0, r.stderr
+    df = io.read_samples(out, status=None)
+    assert len(df) == 6 and df["sample_id"].is_unique
+    df = df.set_index("E")
+    assert df.loc[60.0, "status"] == "failed" and "worker crashed" in df.loc[60.0, "error"]
+    assert (df.drop(index=60.0)["status"] == "ok").all(), df[["status", "error"]]
+    starts = [float(ln.split()[2]) for ln in log.read_text().splitlines()]
+    assert starts.count(60.0) == 2 and starts.count(80.0) == 1  # the task's retry, then 80 alone
