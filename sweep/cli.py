@@ -66,8 +66,7 @@ _common = options(
         default=1,
         show_default=True,
         help="K inclusion moduli per design geometry: n/K (d, h) points, each with one E in each of K strata "
-        "of the E range; the K samples share one mesh and reference press (docs/sweep.md, 'What it samples'); "
-        "--n must be a multiple of K",
+        "of the E range; the K samples share one mesh and reference press (docs/sweep.md, 'What it samples')",
     ),
     click.option(
         "--ranges",

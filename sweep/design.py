@@ -189,17 +189,15 @@ def design_points(
 ) -> list[dict]:
     """``n`` samples of the space-filling design, with stable ids.
 
-    ``moduli_per_mesh`` k > 1: n / k geometries (d, h) of the design, each with k inclusion moduli,
-    one in each of k equal strata of the E range (the design's third coordinate u_E gives the
-    geometry's offset in its stratum: E_j = E(( j + u_E ) / k), j = 0 … k−1); so E stays uniform over
-    its range (in log E by default), and the k samples of a geometry share its mesh, its model and
-    its reference press (:func:`elastimap.sweep.jobs.run_group`).  ``n`` must be a multiple of k."""
+    ``moduli_per_mesh`` k > 1: ⌈n / k⌉ geometries (d, h) of the design, each with k inclusion moduli
+    (the last with what is left of n), one in each of its c equal strata of the E range (the design's
+    third coordinate u_E gives the geometry's offset in its stratum: E_j = E((j + u_E) / c),
+    j = 0 … c−1); so E stays uniform over its range (in log E by default), and the samples of a
+    geometry share its mesh, its model and its reference press (:func:`elastimap.sweep.jobs.run_group`)."""
     check_n(n)
     k = moduli_per_mesh
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= MAX_MODULI_PER_MESH:
         raise UserError("moduli-per-mesh", f"must be an integer in [1, {MAX_MODULI_PER_MESH}] (got {k!r})")
-    if n % k:
-        raise UserError("moduli-per-mesh", f"--n must be a multiple of it (got --n {n}, --moduli-per-mesh {k})")
     if design not in DESIGNS:
         raise UserError("design", f"must be one of {', '.join(DESIGNS)} (got {design!r})")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -209,15 +207,19 @@ def design_points(
     from scipy.stats import qmc
 
     rng = np.random.default_rng(seed)
+    m = -(-n // k)  # geometries
     if design == "lhs":
-        u = qmc.LatinHypercube(d=3, rng=rng).random(n // k)
+        u = qmc.LatinHypercube(d=3, rng=rng).random(m)
     else:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "balance properties" warning for n not a power of 2
-            u = qmc.Sobol(d=3, scramble=True, rng=rng).random(n // k)
-    if k > 1:  # each geometry k times, its moduli one in each stratum of E
-        u = np.repeat(u, k, axis=0)
-        u[:, 2] = (np.tile(np.arange(k), n // k) + u[:, 2]) / k
+            u = qmc.Sobol(d=3, scramble=True, rng=rng).random(m)
+    if k > 1:  # each geometry c times (k, the last what is left), its moduli one in each stratum of E
+        count = np.full(m, k)
+        count[-1] = n - k * (m - 1)
+        g = np.repeat(np.arange(m), count)
+        u = u[g]
+        u[:, 2] = (np.concatenate([np.arange(c) for c in count]) + u[:, 2]) / count[g]
     d = ranges["d"].map(u[:, 0])
     lo, hi = depth_range(d, thickness)
     h_rng = ranges["h"]

@@ -347,8 +347,10 @@ def test_moduli_per_mesh_design():
         strata = np.floor(8 * (np.log([p["E"] for p in grp]) - lo) / (hi - lo)).astype(int)
         assert sorted(strata) == list(range(8))  # one modulus in each eighth of log E
     assert len({(p["d"], p["h"]) for p in pts}) == 8
-    with pytest.raises(UserError, match="multiple"):
-        dsg.design_points(60, "lhs", 3, r, moduli_per_mesh=8)
+    odd = dsg.design_points(60, "lhs", 3, r, moduli_per_mesh=8)  # 7 geometries of 8, the last of 4
+    assert len(odd) == 60 and len({(p["d"], p["h"]) for p in odd}) == 8
+    last = np.log([p["E"] for p in odd[56:]])
+    assert sorted(np.floor(4 * (last - lo) / (hi - lo)).astype(int)) == [0, 1, 2, 3]
     with pytest.raises(UserError, match="moduli-per-mesh"):
         dsg.design_points(64, "lhs", 3, r, moduli_per_mesh=0)
 
