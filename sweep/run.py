@@ -684,42 +684,15 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                         pending.add(fut)
                         continue
                     fut.release()
-                    name = type(exc).__name__
-                    results = []
-                    # a task of several samples: those it landed before its worker died are done
-                    landed = io.landed_status(out) if len(group) > 1 else {}
-                    for s in group:
-                        sid = s["sample_id"]
-                        if sid in landed:
-                            results.append({"sample_id": sid, "status": landed[sid], "seconds": math.nan, "error": ""})
-                            continue
-                        n_started = jobs.attempts(out, sid)
-                        if name == "KilledWorker" and n_started < 2 and resubmitted.get(sid, 0) < 3:
-                            # dask blames every task a dying worker held; this sample did not crash
-                            # twice itself (it waited next to a crashing one): run it again, alone
-                            resubmitted[sid] = resubmitted.get(sid, 0) + 1
-                            again = client.submit(
-                                jobs.run_group,
-                                [s],
-                                base=base,
-                                out_dir=out,
-                                timeout=cfg.timeout or None,
-                                solver=solver,
-                                key=f"sweep-retry-{uuid.uuid4().hex}",
-                                pure=False,
-                            )
-                            by_future[again] = [s]
-                            pending.add(again)
-                            continue
-                        tries = f"all {n_started} attempts" if n_started > 1 else f"{n_started} attempt(s)"
-                        msg = (
-                            f"worker crashed on {tries} at this sample (segfault, abort, out of memory, "
-                            f"or a worker job ended): {name}"
-                            if name == "KilledWorker"
-                            else f"{name}: {exc}"
-                        )
-                        jobs.land_failure(s, base, out, msg[:2000], solver)
-                        results.append({"sample_id": sid, "status": "failed", "seconds": float("nan"), "error": msg})
+                    submit = functools.partial(
+                        client.submit,
+                        jobs.run_group,
+                        base=base,
+                        out_dir=out,
+                        timeout=cfg.timeout or None,
+                        solver=solver,
+                    )
+                    results = _task_failed(group, exc, out, base, solver, resubmitted, submit, by_future, pending)
                 else:
                     fut.release()
                 for r in results:
@@ -756,6 +729,38 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                 client.close()
             finally:
                 cluster.close()
+
+
+def _task_failed(group, exc, out, base, solver, resubmitted, submit, by_future, pending) -> list[dict]:
+    """The summaries of a task that failed with ``exc`` (KilledWorker: its worker died on every
+    attempt; or a bug in the job): a sample it landed before is done; a sample its worker died at
+    twice (started twice, not landed) is recorded failed; every other one runs again alone
+    (``submit([sample])``, at most three times: dask blames every task a dying worker held)."""
+    name = type(exc).__name__
+    results = []
+    # a task of several samples: those it landed before its worker died are done
+    landed = io.landed_status(out) if len(group) > 1 else {}
+    for s in group:
+        sid = s["sample_id"]
+        if sid in landed:
+            results.append({"sample_id": sid, "status": landed[sid], "seconds": math.nan, "error": ""})
+            continue
+        n_started = jobs.attempts(out, sid)
+        if name == "KilledWorker" and n_started < 2 and resubmitted.get(sid, 0) < 3:
+            resubmitted[sid] = resubmitted.get(sid, 0) + 1
+            again = submit([s], key=f"sweep-retry-{uuid.uuid4().hex}", pure=False)
+            by_future[again] = [s]
+            pending.add(again)
+            continue
+        tries = f"all {n_started} attempts" if n_started > 1 else f"{n_started} attempt(s)"
+        msg = (
+            f"worker crashed on {tries} at this sample (segfault, abort, out of memory, or a worker job ended): {name}"
+            if name == "KilledWorker"
+            else f"{name}: {exc}"
+        )
+        jobs.land_failure(s, base, out, msg[:2000], solver)
+        results.append({"sample_id": sid, "status": "failed", "seconds": float("nan"), "error": msg})
+    return results
 
 
 def _not_failed(fut, exc: BaseException) -> bool:
