@@ -489,42 +489,7 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
             todo.sort(key=_ref)
         summary["skipped"] = len(plan.samples) - len(todo)
         summary["todo"] = len(todo)
-        man = io.read_manifest(out) or {
-            "format": "elastimap-sweep",
-            "schema_version": io.SCHEMA_VERSION,
-            "created": _now(),
-            "base_params": _jsonable(plan.base.to_dict()),
-            "solver": store.solver_label(cfg.solver),
-            "planned": [],
-            "runs": [],
-        }
-        man.update(sweep_sensor(cfg).record())  # an old manifest (no record) is the paper's sensor's
-        known = set(man["planned"])
-        new = [s["sample_id"] for s in plan.samples if s["sample_id"] not in known]
-        man["planned"] += new
-        designs = man.setdefault("designs", _recorded_designs(man) if man["runs"] else [])
-        if new or not designs:
-            designs.append(
-                {**plan.design, "added": _now(), "new_samples": len(new), "append": bool(known) and cfg.append}
-            )
-        run_log = {
-            "started": _now(),
-            "argv": cfg.argv,
-            "n": cfg.n,
-            "design": cfg.design,
-            "seed": cfg.seed,
-            "ranges": dsg.ranges_text(plan.ranges),
-            "samples": cfg.samples,
-            "phantoms": cfg.phantoms,
-            "append": cfg.append,
-            "jobs": cfg.jobs,
-            "scheduler": cfg.scheduler,
-            "code_version": code_version(),
-            "versions": library_versions(),
-            "host": host(),
-        }
-        man["runs"].append(run_log)
-        io.write_manifest(out, man)
+        _record_run(cfg, plan)
         if todo:
             _fan_out(cfg, plan, todo, summary, remote)
     except KeyboardInterrupt as exc:
@@ -556,6 +521,48 @@ def run(cfg: SweepConfig, plan: Plan | None = None) -> dict:
             if remote is not None:
                 _close_remote(remote[0])
     return summary
+
+
+def _record_run(cfg: SweepConfig, plan: Plan) -> None:
+    """Write the run into the folder's manifest before anything is solved: the planned ids it adds,
+    the design that added them, and this run's log (command, options, code and library versions,
+    host; its summary is added when it ends)."""
+    out = plan.out
+    man = io.read_manifest(out) or {
+        "format": "elastimap-sweep",
+        "schema_version": io.SCHEMA_VERSION,
+        "created": _now(),
+        "base_params": _jsonable(plan.base.to_dict()),
+        "solver": store.solver_label(cfg.solver),
+        "planned": [],
+        "runs": [],
+    }
+    man.update(sweep_sensor(cfg).record())  # an old manifest (no record) is the paper's sensor's
+    known = set(man["planned"])
+    new = [s["sample_id"] for s in plan.samples if s["sample_id"] not in known]
+    man["planned"] += new
+    designs = man.setdefault("designs", _recorded_designs(man) if man["runs"] else [])
+    if new or not designs:
+        designs.append({**plan.design, "added": _now(), "new_samples": len(new), "append": bool(known) and cfg.append})
+    run_log = {
+        "started": _now(),
+        "argv": cfg.argv,
+        "n": cfg.n,
+        "design": cfg.design,
+        "moduli_per_mesh": cfg.moduli_per_mesh,
+        "seed": cfg.seed,
+        "ranges": dsg.ranges_text(plan.ranges),
+        "samples": cfg.samples,
+        "phantoms": cfg.phantoms,
+        "append": cfg.append,
+        "jobs": cfg.jobs,
+        "scheduler": cfg.scheduler,
+        "code_version": code_version(),
+        "versions": library_versions(),
+        "host": host(),
+    }
+    man["runs"].append(run_log)
+    io.write_manifest(out, man)
 
 
 def _handle_sigterm():
