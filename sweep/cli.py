@@ -253,22 +253,7 @@ def run_cmd(
     "morph = geometry morph, sizing by_d, morph-fixed = geometry morph, sizing fixed",
 )
 @out_option(help="keep the datasets under OUT/jobs<k> (with --compare OUT/<path>-jobs<k>; default: a temporary dir)")
-def bench_cmd(
-    n,
-    seed,
-    mesh,
-    interface,
-    design,
-    moduli_per_mesh,
-    ranges,
-    samples,
-    phantoms,
-    solver_spec,
-    jobs_list,
-    compare,
-    paths,
-    out,
-):
+def bench_cmd(jobs_list, compare, paths, out, **common):
     """Time the same sweep at several --jobs: samples/min, speed-up, driver overhead per sample."""
     from .bench import bench, format_bench, format_compare, parse_paths
     from .bench import compare as compare_paths
@@ -282,21 +267,14 @@ def bench_cmd(
         raise UserError("jobs_list", f"expected integers like 1,2 (got {jobs_list!r})") from None
     run_bench, show = (compare_paths, format_compare) if compare else (bench, format_bench)
     extra = {"paths": parse_paths(paths)} if compare else {}
-    res = run_bench(
-        counts,
-        n=16 if n is None and not samples else n,
-        seed=seed,
-        mesh=mesh,
-        interface=interface or "tied",
-        design=design,
-        moduli_per_mesh=moduli_per_mesh,
-        ranges=dsg.parse_ranges_text(ranges),
-        samples=samples,
-        phantoms=phantoms,
-        out=out,
-        solver=resolve_solver(solver_spec),
-        **extra,
+    n = common.pop("n")  # the sweep's options (_common), as SweepConfig takes them
+    common.update(
+        n=16 if n is None and not common["samples"] else n,
+        interface=common["interface"] or "tied",
+        ranges=dsg.parse_ranges_text(common["ranges"]),
+        solver=resolve_solver(common.pop("solver_spec")),
     )
+    res = run_bench(counts, out=out, **common, **extra)
     click.echo(show(res))
     return 0
 
