@@ -6,7 +6,7 @@ Every module of ``solver`` that touches DOLFINx imports this module first.
   environment and imports ``mpi4py.MPI`` first, which makes the wheel's bundled MPI/PETSc
   libraries loadable (without it dolfinx fails with ``libmpi.so.12`` not found).
 * One solve runs on one core: OpenMP/BLAS threads are pinned to 1 so that
-  parallel sweep workers do not oversubscribe the machine.
+  parallel sweep workers do not oversubscribe the machine (:mod:`._threads`).
 * PETSc is initialised on ``MPI.COMM_SELF`` so that independent worker
   processes (dask, mpi4py.futures) never wait on each other.
 * The DOLFINx JIT cache is checked for the poison left by a process killed
@@ -19,8 +19,7 @@ from __future__ import annotations
 import os
 import sys
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+from . import _threads  # noqa: F401  (OpenMP/BLAS threads pinned to 1)
 
 
 def _distribution_names() -> list[str]:

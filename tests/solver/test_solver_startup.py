@@ -32,10 +32,9 @@ def test_distribution_names_from_folders_are_those_of_the_metadata():
     assert "dolfinx-solver-real" in by_metadata
 
 
-def _python(code: str, **env) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env={**os.environ, **env}
-    )
+def _python(code: str, drop: tuple[str, ...] = (), **env) -> subprocess.CompletedProcess:
+    environ = {k: v for k, v in {**os.environ, **env}.items() if k not in drop}
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=environ)
 
 
 def test_guard_still_refuses_a_petsc4py_distribution(tmp_path):
@@ -99,3 +98,25 @@ def test_petsc_matrix_is_dolfinx_petsc_assembly_bit_for_bit():
         M.destroy()
     finally:
         model.destroy()
+
+
+def test_the_solve_command_pins_blas_threads_before_numpy_loads():
+    """`elastimap solve` imports numpy only after OpenMP/BLAS threads are pinned to 1 (solver/_threads.py):
+    numpy's OpenBLAS starts no thread per core in a process that solves on one core."""
+    code = (
+        "import os, sys\n"
+        "class Hook:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name == 'numpy':\n"
+        "            print('AT NUMPY', os.environ.get('OPENBLAS_NUM_THREADS'), os.environ.get('OMP_NUM_THREADS'))\n"
+        "            sys.meta_path.remove(self)\n"
+        "sys.meta_path.insert(0, Hook())\n"
+        "from elastimap.cli import main\n"
+        "try:\n"
+        "    main(['solve', '--d', '8', '--h', '7', '--E', '50', '--mesh', 'tiny', '--json'])\n"
+        "except SystemExit as e:\n"
+        "    assert not e.code, e.code\n"
+    )
+    r = _python(code, drop=("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"))
+    assert r.returncode == 0, r.stderr[-800:]
+    assert "AT NUMPY 1 1" in r.stdout, r.stdout[-500:]
