@@ -50,9 +50,9 @@ def _guard():
     from the wheel's own file with the installed distributions' names read from their folder names
     (:func:`_distribution_names`; the guard takes that list as an argument, its checks and messages
     unchanged).  Its default reads them by parsing the ``METADATA`` file of every installed
-    distribution, 0.03 s of CPU plus 0.02 s for importing ``importlib.metadata`` and ``email`` in a
-    `solve` process (docs/forward-model.md, 'Speed').  Where the wheel's layout differs from the
-    one read here, ``import dolfinx_solver`` runs the guard as it ships."""
+    distribution: 0.02-0.05 s more CPU in a `solve` process (docs/forward-model.md, 'Speed').
+    Where the wheel's layout differs from the one read here, ``import dolfinx_solver`` runs the
+    guard as it ships."""
     import importlib.util
 
     try:
