@@ -9,6 +9,10 @@ image w_E − w_ref (see :mod:`elastimap.solver.image`).
 
 from __future__ import annotations
 
+from . import _threads  # noqa: F401  (before numpy: one solve, one core)
+
+# isort: split
+
 import time
 
 from .params import SolveParams, SolveResult

@@ -41,7 +41,6 @@ from . import _boot  # noqa: F401  (must precede dolfinx)
 import numpy as np
 import ufl
 from dolfinx import fem
-from dolfinx.fem import petsc as fpetsc
 from mpi4py import MPI
 from petsc4py import PETSc
 
@@ -53,7 +52,7 @@ from .newton import Newton
 from .params import SolveParams
 from .reduction import CG_RTOL, LU, SINGLE_MIN_UNKNOWNS, Recycled, Reduction, Solution, ptap
 from .sampler import ImageSampler
-from .space import Space
+from .space import Space, petsc_matrix
 
 __all__ = ["Model", "Solution", "SolverError"]
 
@@ -137,7 +136,7 @@ class Model:
         kt = 0.0 if bonded else float(p.disc.friction_kt)
         self.friction = Friction(self.interface, kt, space.ndofs) if kt > 0 else None
         self.sampler = ImageSampler(space, p)
-        self._A_values, self.A = _stiffness_matrix(self.a)
+        self._A_values, self.A = petsc_matrix(self.a)
         # Pᵀ(K + S)P, the elastic stiffness with the rigid modes constrained, is solved by CG on
         # the factors of the last variant of the same solve kind (the inclusion's and the
         # reference's stiffness differ by the inclusion's modulus), with friction (whose K is
@@ -335,7 +334,9 @@ class Model:
             dx = ufl.Measure("dx", domain=self.mesh, subdomain_data=tags)
             u, v = ufl.TrialFunction(self.V), ufl.TestFunction(self.V)
             self._a1 = fem.form(ufl.inner(sigma(u, 1.0, self.materials.nu), epsilon(v)) * dx(INCLUSION))
-        A1 = fpetsc.assemble_matrix(self._a1)
+        # A₁'s values live in the CSR matrix ``_a1_values`` (kept with the form; ``petsc_matrix``)
+        self._a1_values, A1 = petsc_matrix(self._a1)
+        fem.assemble_matrix(self._a1_values, self._a1)
         A1.assemble()
         return A1
 
@@ -349,7 +350,7 @@ class Model:
             self._A_at = (self._version, E_inclusion)
             return at[1]
         self._A_values.set_value(0.0)
-        fem.assemble_matrix(self._A_values, self.a)  # into A's values (``_stiffness_matrix``)
+        fem.assemble_matrix(self._A_values, self.a)  # into A's values (``space.petsc_matrix``)
         self.A.assemble()
         self._A_at = (self._version, E_inclusion)
         return None
@@ -473,26 +474,6 @@ class Model:
         if self.A is not None:
             self.A.destroy()
             self.A = self._A_values = None
-
-
-def _stiffness_matrix(a: fem.Form):
-    """The stiffness matrix of the bilinear form ``a`` as DOLFINx's own CSR matrix and a PETSc AIJ
-    matrix on the same value array (no copy; PETSc's ``seqaij`` layout, the rows' columns sorted,
-    block size and local-to-global map as ``dolfinx.fem.petsc.create_matrix`` gives them).
-    DOLFINx assembles into its CSR matrix by array offsets, about a quarter less CPU than through
-    PETSc's MatSetValues (0.10 against 0.13-0.15 s on the `default` mesh; docs/forward-model.md,
-    'Shared presses'); everything else (PᵀAP, products, A += s A₁) runs on the PETSc matrix."""
-    from dolfinx import la
-
-    values = fem.create_matrix(a, block_mode=la.BlockMode.expanded)
-    n = len(values.indptr) - 1  # one process: no ghost rows
-    bs = a.function_spaces[0].dofmap.index_map_bs
-    indptr = values.indptr.astype(PETSc.IntType)
-    A = PETSc.Mat().createAIJWithArrays((n, n), (indptr, values.indices, values.data), comm=MPI.COMM_SELF)
-    A.setBlockSizes(bs, bs)
-    lgmap = PETSc.LGMap().create(np.arange(n // bs, dtype=PETSc.IntType), bsize=bs, comm=MPI.COMM_SELF)
-    A.setLGMap(lgmap, lgmap)
-    return values, A
 
 
 def _mult(A: PETSc.Mat, x: np.ndarray) -> np.ndarray:

@@ -31,12 +31,11 @@ import numpy as np
 import ufl
 from dolfinx import fem
 from dolfinx import mesh as dmesh
-from dolfinx.fem import petsc as fpetsc
 from mpi4py import MPI
 from petsc4py import PETSc
 
 from .errors import SolverError
-from .space import Space
+from .space import Space, petsc_matrix
 
 if TYPE_CHECKING:
     import scipy.sparse as sp
@@ -96,7 +95,9 @@ class Interface:
         ft = dmesh.meshtags(msh, fdim, np.sort(tissue_facets), np.ones(len(tissue_facets), dtype=np.int32))
         ds = ufl.Measure("ds", domain=msh, subdomain_data=ft)
         u, v = ufl.TrialFunction(space.V), ufl.TestFunction(space.V)
-        M = fpetsc.assemble_matrix(fem.form(u[2] * v[2] * ds(1)))
+        m = fem.form(u[2] * v[2] * ds(1))
+        values, M = petsc_matrix(m)
+        fem.assemble_matrix(values, m)
         M.assemble()
         rows = PETSc.IS().createGeneral((3 * self.pair_tissue + 2).astype(PETSc.IntType), comm=MPI.COMM_SELF)
         Mp = M.createSubMatrix(rows, rows)  # M[idx][:, idx] in the pairs' order, columns ascending

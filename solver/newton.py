@@ -36,7 +36,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from dolfinx import fem
-from dolfinx.fem import petsc as fpetsc
 from petsc4py import PETSc
 
 from .errors import SolverError
@@ -54,6 +53,8 @@ class Newton:
 
     def __init__(self, R_form, J_form, u_fun: fem.Function):
         self.R_form, self.J_form, self.u_fun = R_form, J_form, u_fun
+        from dolfinx.fem import petsc as fpetsc  # only here: its import costs a linear solve 0.03 s
+
         self.Jmat = fpetsc.create_matrix(J_form)
         self._KJ = None
         self._KJ_key = None
@@ -71,6 +72,8 @@ class Newton:
 
     def _reduced_jacobian(self, Pm: PETSc.Mat, key: bytes, Sm: PETSc.Mat | None) -> tuple[PETSc.Mat, bool]:
         """Pᵀ(J + S)P at the current ``u_fun``, and whether its pattern is new."""
+        from dolfinx.fem import petsc as fpetsc
+
         self.Jmat.zeroEntries()
         fpetsc.assemble_matrix(self.Jmat, self.J_form)
         self.Jmat.assemble()

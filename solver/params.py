@@ -14,12 +14,14 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from elastimap.constraints import Interval, Options, check_range, validate_params
 from elastimap.errors import UserError
 from elastimap.sensor import InterfaceSpec, Layer, LoadingSpec, ProbeSpec, SlabSpec
+
+if TYPE_CHECKING:  # numpy is not imported with the parameters (the `solve` command pins BLAS first)
+    import numpy as np
 
 MESH_LEVELS = ("tiny", "coarse", "default", "fine", "finer")
 
@@ -472,6 +474,8 @@ class SolveResult:
             "timings": self.timings,
             "interface_check": self.interface,
         }
+        import numpy as np
+
         return {k: (float(v) if isinstance(v, (np.floating,)) else v) for k, v in out.items()}
 
 
