@@ -137,8 +137,9 @@ def verdict_line(res: dict) -> str:
     top = ev["ranking"][0]
     rank = ", ".join(r["effect"] for r in ev["ranking"][:3])
     if ev.get("shadowed_by"):
+        held = "a family held at its" if len(ev["shadowed_by"]) == 1 else "families held at their"
         why = (
-            f"not told apart from {', '.join(ev['shadowed_by'])}, a family held at its members' grid ends "
+            f"not told apart from {', '.join(ev['shadowed_by'])}, {held} members' grid ends "
             "(the data may ask for more than the library holds)"
         )
     elif ev.get("residual_level") and ev["residual_level"]["beyond"] and top["passes"]:

@@ -97,7 +97,7 @@ def needed(row: dict) -> bool:
 def _unsure(row: dict) -> bool:
     """With the model-form level, a passing best is no confident answer when its fit is pinned at the
     end of its range, or when its interval holds the nominal (no effect) although the gap is
-    significant (chosen on variant worlds: docs/gap.md, 'Out-of-library safety')."""
+    significant (chosen on variant worlds: docs/gap.md, 'Method', 'Out-of-library safety')."""
     return bool(row["at_grid_edge"]) or not needed(row)
 
 
