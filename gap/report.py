@@ -136,10 +136,19 @@ def verdict_line(res: dict) -> str:
         return f"outcome: explained, ambiguous -- cannot be told apart with these phantoms: {s}{leaves}{tail}"
     top = ev["ranking"][0]
     rank = ", ".join(r["effect"] for r in ev["ranking"][:3])
-    if ev.get("residual_level") and ev["residual_level"]["beyond"] and top["passes"]:
+    if ev.get("shadowed_by"):
+        held = "a family held at its" if len(ev["shadowed_by"]) == 1 else "families held at their"
+        why = (
+            f"not told apart from {', '.join(ev['shadowed_by'])}, {held} members' grid ends "
+            "(the data may ask for more than the library holds)"
+        )
+    elif ev.get("residual_level") and ev["residual_level"]["beyond"] and top["passes"]:
         why = f"its residual's {', '.join(ev['residual_level']['beyond'])} beyond 3 × the prior scale"
     elif top["passes"] and top["at_grid_edge"]:
         why = f"its fit pinned at the end of its range, held-out reduced χ² {top['reduced_chi2_cv']:.3g}"
+    elif top["passes"] and ev.get("beyond_design"):
+        span = ", ".join(f"[{a:.4g}, {b:.4g}]" for a, b in top["design_range"])
+        why = f"{_mag(top)}: its 95 % interval wholly beyond the magnitudes the library was built for, {span}"
     elif top["passes"] and ev.get("model_form"):
         why = f"its 95 % interval holds its nominal (no effect), held-out reduced χ² {top['reduced_chi2_cv']:.3g}"
     else:
@@ -282,6 +291,8 @@ def _vs_best(v: dict | None) -> str:
         return "—"
     why = [w for k, w in (("margin", "margin"), ("within_noise", "within the noise")) if v[k]]
     verdict = "told apart" if v["told_apart"] else "not told apart (" + ", ".join(why) + ")"
+    if v.get("shadow"):
+        verdict += "; a family held at its grid ends within the noise: the best is not confident"
     return f"{v['separation']:.3g}, {v['noise']:.3g}: {verdict}"
 
 

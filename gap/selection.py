@@ -14,7 +14,9 @@ level -- a passing candidate whose deficit is within the noise z_{1−α} 2 √D
 fits) is reported with it (one: **explained**, several: **ambiguous**), provided what the best leaves is at
 the model-form level (its modes' mean within :data:`~elastimap.identify.discrepancy.BEYOND` × τ₀)
 and, with the model-form level, its fit is neither pinned at the end of its range nor holding its
-nominal within its interval (:func:`_unsure`); otherwise, or when nothing passes: **unexplained**.  The three verdicts a user acts on
+nominal within its interval (:func:`_unsure`), nor within that noise of a passing family held at its
+members' grid ends (a shadow, :func:`held_at_grid_ends`), nor with its whole interval beyond the
+magnitudes the library was built for (:func:`beyond_design`); otherwise, or when nothing passes: **unexplained**.  The three verdicts a user acts on
 (:func:`verdict`): "no gap beyond the model-form level", "explained", "unexplained".
 """
 
@@ -95,8 +97,29 @@ def needed(row: dict) -> bool:
 def _unsure(row: dict) -> bool:
     """With the model-form level, a passing best is no confident answer when its fit is pinned at the
     end of its range, or when its interval holds the nominal (no effect) although the gap is
-    significant (chosen on variant worlds: docs/gap.md, 'Out-of-library safety')."""
+    significant (chosen on variant worlds: docs/gap.md, 'Method', 'Out-of-library safety')."""
     return bool(row["at_grid_edge"]) or not needed(row)
+
+
+def held_at_grid_ends(row: dict) -> bool:
+    """Whether a row is a family (several single effects fitted together, not a pair) whose fit is
+    held at the end of a member's grid.  A family's members are held inside their effects' grids
+    (``Composed.bounds``, the library's design range, never extended), so such a fit says the data
+    ask for more of it than the library holds -- unlike a single effect, whose range is extended
+    up to its physical limits, so that a single effect at its end is at physics' end, not the
+    library's."""
+    return len(row.get("members", [])) > 1 and not row.get("pair") and bool(row["at_grid_edge"])
+
+
+def beyond_design(row: dict) -> bool:
+    """Whether a row's 95 % interval lies wholly outside the magnitudes the library was built for
+    (some member's interval entirely below or above its effect's grid, ``design_range``).  A single
+    effect's range is extended beyond its grid when its fit sits at the grid's end, so that an
+    effect just past the grid is found (its interval then reaches back to the grid); an interval
+    that excludes the whole grid says the data want a magnitude the library's design did not
+    expect -- what a look-alike does when it stands in for an effect the library does not hold,
+    by moving further than the real effect would."""
+    return any(hi < a or lo > b for (lo, hi), (a, b) in zip(row["magnitude_ci"], row["design_range"]))
 
 
 def told_apart(a: dict, b: dict, S: Metric, st: Settings, model_form: bool = True) -> dict:
@@ -119,18 +142,26 @@ def told_apart(a: dict, b: dict, S: Metric, st: Settings, model_form: bool = Tru
       the error alone, and on data whose model-form difference is structured over the phantoms,
       more than that.
 
-    Returns {"delta_score", "separation" (D_ab), "noise" (2 √D_ab), "margin", "within_noise", "told_apart"}."""
+    * **shadow** (with the model-form level only): b passes, its deficit is within that noise, and b
+      is a family held at its members' grid ends (:func:`held_at_grid_ends`).  Then the best is not
+      told apart from an answer beyond what the library holds, so it is no confident answer
+      (:func:`evaluate`: **unexplained**; docs/gap.md, 'Look-alikes').
+
+    Returns {"delta_score", "separation" (D_ab), "noise" (2 √D_ab), "margin", "within_noise",
+    "shadow", "told_apart"}."""
     dscore = float(b["score"] - a["score"])
     sep = float(S.chi2(a["_model"].predict(a["_theta"]), b["_model"].predict(b["_theta"])).sum())
     noise = 2.0 * math.sqrt(max(sep, 0.0))
     margin = dscore <= st.ambiguity_margin
-    within = model_form and bool(b["passes"]) and not _unsure(b) and dscore <= stats.norm.ppf(1 - st.alpha) * noise
+    close = model_form and bool(b["passes"]) and dscore <= stats.norm.ppf(1 - st.alpha) * noise
+    within = close and not _unsure(b)
     return {
         "delta_score": dscore,
         "separation": sep,
         "noise": noise,
         "margin": bool(margin),
         "within_noise": bool(within),
+        "shadow": bool(close and held_at_grid_ends(b)),
         "told_apart": not (margin or within),
     }
 
@@ -155,22 +186,31 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
         # nominal) and it beats every single effect and family by more than the margin
         rows.sort(key=lambda r: r["score"] + (_pair_charge(r, st) if r.get("pair") else 0.0))
     best = rows[0] if rows else None
-    ambiguity, reported, level = [], {}, None
+    ambiguity, reported, level, shadows = [], {}, None, []
     if best is not None and mf is not None:  # what the best leaves (no gap: what the baseline leaves)
         f, Sb = (best["_model"].predict(best["_theta"]), best["_S"]) if significant else (y0, S0)
         level = residual_level(y, f, Sb, mf["phi"], mf["disc"])
         level["of"] = best["effect"] if significant else "baseline"
     if not significant:
         outcome = "no significant gap"
-    elif best and best["passes"] and not (level and level["beyond"]) and not (mf is not None and _unsure(best)):
+    elif (
+        best
+        and best["passes"]
+        and not (level and level["beyond"])
+        and not (mf is not None and (_unsure(best) or beyond_design(best)))
+    ):
         kind = bool(best.get("pair"))
         same = [r for r in rows[1:] if bool(r.get("pair")) == kind]
         for r in same:
             r["vs_best"] = told_apart(best, r, S0, st, mf is not None)
-        close = [best] + [r for r in same if not r["vs_best"]["told_apart"]]
-        reported = reported_set(close, rows)
-        ambiguity = list(reported)
-        outcome = "explained" if len(ambiguity) == 1 else "ambiguous"
+        shadows = [r["effect"] for r in same if r["vs_best"]["shadow"]]
+        if shadows:  # the best is not told apart from an answer beyond the library's grids
+            outcome = "unexplained"
+        else:
+            close = [best] + [r for r in same if not r["vs_best"]["told_apart"]]
+            reported = reported_set(close, rows)
+            ambiguity = list(reported)
+            outcome = "explained" if len(ambiguity) == 1 else "ambiguous"
     else:
         outcome = "unexplained"
     for r in rows:
@@ -193,6 +233,8 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
         "ambiguous_set": ambiguity if outcome in ("explained", "ambiguous") else [],
         "reported": reported,
         "best": best["effect"] if best else None,
+        "shadowed_by": shadows,
+        "beyond_design": bool(significant and mf is not None and best is not None and beyond_design(best)),
         "runner_up": rows[1]["effect"] if len(rows) > 1 else None,
     }
 
@@ -242,6 +284,7 @@ def _row(mdl, y, S0: Metric, F: list, chi0: float, thr: float, sl: dict, sys, sp
         "chi2_cv_by_view": {k: float(held[:, s].sum()) for k, s in sl.items()},
         "score": ssr_cv + mdl.k * math.log(N),
         "at_grid_edge": mdl.at_edge(th),
+        "design_range": [[float(m.effect.lo), float(m.effect.hi)] for m in getattr(mdl, "members", [mdl])],
         "dropped_magnitudes": getattr(getattr(mdl, "c", None), "dropped", []),
         "_model": mdl,
         "_theta": th,
