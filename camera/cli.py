@@ -377,9 +377,12 @@ def calibrate(
         fem = fem_given
     defl = C.deflection_calibration(results, pairs, model)
     if press_uncertainty:
+        from .deflection import PRESS_POWER, uninformed
+
         click.echo("solving the press's alternatives (contact, neighbouring level) ...", err=True)
         th0 = [float(ph.iloc[0][k]) for k in ("d", "h", "E")]
-        defl["press_sd"] = C.press_uncertainty(th0, results[0], mesh, delta, desc).tolist()
+        sd = C.press_uncertainty(th0, results[0], mesh, delta, desc)
+        defl["press_sd"] = uninformed(sd, [r.image for r in results], PRESS_POWER).tolist()
     disc = None if level is None else _learn_model_form(ph, pairs, defl, level, model, desc, report_loo)
     cal = C.fit_calibration(
         ph,

@@ -220,6 +220,9 @@ def fit_scale(recovered: list[np.ndarray], fem: list[np.ndarray]) -> tuple[float
 PRESS_STEP = 3.0
 PRESS_WIDTH = 3.0
 PRESS_SMOOTH_MM = 1.0  # Gaussian sigma (mm) over which the press spread's square is averaged
+#: the press sd is carried where the calibration phantoms do not see it, σ_s (1 − q)^PRESS_POWER
+#: (:func:`uninformed`; chosen on the SYNTHETIC variant worlds, docs/camera.md, 'The flat field's press uncertainty')
+PRESS_POWER = 1.0
 
 
 def press_sensitivity(dw, w_b, sensor) -> np.ndarray:
