@@ -27,7 +27,11 @@ problem, prior and misfit apart from the optimisers), each declared in :class:`F
   ``σ_model,i = sqrt(mean_{3x3 around i} δ²)`` (a local rms, so that a pixel where the two levels
   happen to cross does not claim a perfect model).  It is measured where each pass starts (with
   ``forward_fine`` only where the first corrected pass starts, held for the later passes) and again
-  at the estimate for the covariance.
+  at the estimate for the covariance.  Optionally (``shared``, :class:`FitConfig`) a low-rank error
+  ``U γ``, ``γ ~ N(0, I)``, shared by the whole image (the flat field's press uncertainty,
+  :class:`elastimap.camera.deflection.PressTerm`; docs/camera.md, 'The flat field's press uncertainty'):
+  the pixels' covariance is then ``diag σ² + U Uᵀ``, whitened by :class:`Whiten` in the passes and the
+  covariance alike.
 * **prior** (:class:`DesignPrior`): the design box, a box in the fit's coordinates
   ``x = (d, u, e)`` (:class:`~elastimap.identify.coords.FitCoords`: ``u`` the depth fraction,
   ``e = ln c(E)`` Eshelby's contrast, in which the d–E valley of equal images is nearly straight,
