@@ -206,6 +206,11 @@ class Calibration:
                 f"  difference images from frames (inverse response): scale {self.deflection['scale']:.4f}, "
                 f"relative rms vs FEM {100 * min(rel):.2g}-{100 * max(rel):.2g} % over the phantoms"
             )
+            if self.deflection.get("press_sd") is not None:
+                lines.append(
+                    "  flat field's press uncertainty (sd, µm by distance from the axis): "
+                    + press_bands(np.asarray(self.deflection["press_sd"], float), float(self.deflection["pixel"]))
+                )
         if self.discrepancy:
             lines.extend(discrepancy_report(self.discrepancy))
         return "\n".join(lines)
@@ -305,6 +310,34 @@ def deflection_calibration(results, pairs, sensor=None) -> dict:
     }
 
 
+def press_uncertainty(theta, reference_result, mesh: str, delta: float | None = None, sensor=None) -> np.ndarray:
+    """The flat field's press sd ``σ_s`` (mm, FEM grid; :func:`elastimap.camera.deflection.press_spread`):
+    how far elastimap's own other models of the background press lie from the calibration's -- the same
+    phantom (``theta``: d, h, E) solved with the unilateral **contact** interface at ``mesh`` and tied at
+    the **neighbouring level** (finer, else coarser), against ``reference_result`` (its tied solve at
+    ``mesh``).  A stated prior of the press's model-form error, from elastimap's own evidence, not a
+    measurement of the world's press (docs/camera.md, 'The flat field's press uncertainty').  Two
+    solves."""
+    from elastimap.sensor import Sensor
+    from elastimap.solver import solve  # noqa: PLC0415 - keeps DOLFINx out of import time
+    from elastimap.solver.params import Discretisation, Inclusion, coarser, finer, from_sensor
+
+    from .deflection import press_spread
+    from .optics import background_deflection
+
+    sensor = sensor or Sensor()
+    if delta is not None:
+        sensor = sensor.replace(loading=dataclasses.replace(sensor.loading, delta=delta))
+    d, h, E = (float(v) for v in theta)
+    inc = Inclusion(d=d, h=h, E=E, nu=sensor.tissue.nu)
+    alts = []
+    for disc in (Discretisation(mesh=mesh, interface="contact"), Discretisation(mesh=finer(mesh) or coarser(mesh))):
+        r = solve(from_sensor(sensor, inc, disc))
+        alts.append(background_deflection(r.image_raw, r.image))
+    ref = background_deflection(reference_result.image_raw, reference_result.image)
+    return press_spread(ref, alts)
+
+
 def recovered_images(pairs, deflection: dict, sensor=None) -> list:
     """The phantoms' FEM-equivalent difference images from their (lesion, background) frame stacks
     through the deflection calibration (:class:`elastimap.camera.deflection.DeflectionImage` each)."""
@@ -367,6 +400,28 @@ def learn_discrepancy(
     }
 
 
+def press_bands(sd: np.ndarray, pixel: float, edges=(0, 3, 6, 9, 12, 18)) -> str:
+    """``σ_s`` (mm on a grid of ``pixel`` mm) as its rms in bands of the distance from the axis (µm), and its maximum."""
+    ny, nx = sd.shape
+    y = (np.arange(ny) - (ny - 1) / 2) * pixel
+    x = (np.arange(nx) - (nx - 1) / 2) * pixel
+    r = np.hypot(*np.meshgrid(y, x, indexing="ij"))
+    parts = [
+        f"{a:g}-{b:g} mm {1e3 * np.sqrt(np.mean(sd[(r >= a) & (r < b)] ** 2)):.2g}"
+        for a, b in zip(edges[:-1], edges[1:], strict=True)
+    ]
+    return ", ".join(parts) + f"; max {1e3 * sd.max():.2g}"
+
+
+def press_term(deflection: dict | None, sensor=None):
+    """The fit's press-uncertainty term of a deflection record (:class:`elastimap.camera.deflection.PressTerm`;
+    None where the record holds no ``press_sd``: the fit is then as before)."""
+    from .deflection import PressTerm
+    from .optics import SensorModel
+
+    return PressTerm.of(deflection, sensor or SensorModel())
+
+
 def refine_levels(level: str) -> tuple[str, str | None]:
     """``(--mesh, --refine-correct)`` of the ``infer --refine`` fit that stands for mesh ``level``: `coarse`
     corrected by `fine` for `fine` (the default fit), else ``level`` alone."""
@@ -398,6 +453,7 @@ def loo_fits(record: dict, phantoms, pairs, deflection: dict, sensor=None, progr
     maps = fit_maps(mesh, correct, sensor=description)
     f = maps.forward_fine or maps.forward
     pixel = float(record["pixel"])
+    press = press_term(deflection, sensor)
     models, depths = dy.forward_images(f, thetas)
     which = tuple(record["term"]["modes"])
     if dy.DEPTH not in which:
@@ -425,6 +481,7 @@ def loo_fits(record: dict, phantoms, pairs, deflection: dict, sensor=None, progr
             forward_fine=maps.forward_fine,
             discrepancy=disc,
             pixel=pixel,
+            shared=press,
         )
         cov = [bool(r.lo[j] <= thetas[i, j] <= r.hi[j]) for j in range(3)]
         rep = [bool(r.relstd[j] <= 0.10 and not r.at_bound) for j in range(3)]  # as infer prints them

@@ -297,6 +297,16 @@ def features(images, background, sensor_json, threshold, smooth_px, combine, as_
     "from the others, and report (and store) the 95 % intervals' leave-one-phantom-out coverage "
     "(about 30-60 s CPU a phantom).",
 )
+@click.option(
+    "--press-uncertainty/--no-press-uncertainty",
+    default=False,
+    show_default=True,
+    help="Carry the flat field's press uncertainty into infer --refine (and --report-loo): the spread of "
+    "elastimap's own models of the background press (contact interface, neighbouring mesh level; two extra "
+    "solves) where the phantoms do not see it, as a low-rank error of the recovered image.  Off by default: "
+    "it helped the independent dev set and one variant world, not h on the other (docs/camera.md, 'The flat "
+    "field's press uncertainty').",
+)
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="Calibration JSON to write.")
 @click.option(
     "--plot", type=click.Path(dir_okay=False), default=None, help="PNG of the three fits (default <out>.png)."
@@ -315,6 +325,7 @@ def calibrate(
     fmt,
     refine_level,
     report_loo,
+    press_uncertainty,
     out,
     plot,
     sensor_json,
@@ -367,6 +378,13 @@ def calibrate(
     if fem_given is not None:
         fem = fem_given
     defl = C.deflection_calibration(results, pairs, model)
+    if press_uncertainty:
+        from .deflection import PRESS_POWER, uninformed
+
+        click.echo("solving the press's alternatives (contact, neighbouring level) ...", err=True)
+        th0 = [float(ph.iloc[0][k]) for k in ("d", "h", "E")]
+        sd = C.press_uncertainty(th0, results[0], mesh, delta, desc)
+        defl["press_sd"] = uninformed(sd, [r.image for r in results], PRESS_POWER).tolist()
     disc = None if level is None else _learn_model_form(ph, pairs, defl, level, model, desc, report_loo)
     cal = C.fit_calibration(
         ph,
@@ -644,7 +662,8 @@ def _refined(ests, cal, mesh: str, correct, image_noise: float, threshold: float
     (--refine)'), carrying the calibration's model-form error where it has one."""
     from tqdm import tqdm
 
-    from .infer import refine_estimates
+    from . import calibration as C
+    from .infer import refine_estimates, sensor_of
 
     form = _model_form(cal, mesh, correct)  # also for --fem-image given with --calibration
     with tqdm(total=len(ests), desc="refine (FEM fit)", unit="lesion", disable=len(ests) < 2) as bar:
@@ -659,6 +678,7 @@ def _refined(ests, cal, mesh: str, correct, image_noise: float, threshold: float
             sensor=sensor,
             discrepancy=form[0] if form else None,
             pixel=form[2] if form else None,
+            press=C.press_term(cal.deflection, sensor_of(cal)) if cal is not None else None,
         )
 
 

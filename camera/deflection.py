@@ -212,3 +212,102 @@ def fit_scale(recovered: list[np.ndarray], fem: list[np.ndarray]) -> tuple[float
         for r, f in zip(recovered, fem)
     ]
     return k, rel
+
+
+# ---------------------------------------------------------------- the flat field's press uncertainty
+#: radial modes of the press error: Gaussian bumps in r (mm from the probe axis) every PRESS_STEP mm,
+#: of sd PRESS_WIDTH mm (docs/camera.md, 'The flat field's press uncertainty')
+PRESS_STEP = 3.0
+PRESS_WIDTH = 3.0
+PRESS_SMOOTH_MM = 1.0  # Gaussian sigma (mm) over which the press spread's square is averaged
+#: the press sd is carried where the calibration phantoms do not see it, σ_s (1 − q)^PRESS_POWER
+#: (:func:`uninformed`; chosen on the SYNTHETIC variant worlds, docs/camera.md, 'The flat field's press uncertainty')
+PRESS_POWER = 1.0
+
+
+def press_sensitivity(dw, w_b, sensor) -> np.ndarray:
+    """``J = ∂Δw/∂w_b`` (dimensionless, per pixel): how a recovered difference deflection ``Δw`` (mm)
+    moves when the flat field's background press ``w_b`` (mm) is off, the frames held fixed::
+
+        J = (c + s(w_b + Δw)) / (c + s(w_b)) exp(Δw / w_sat) − 1,     c = stray / level
+
+    (steps 2-3 of :func:`difference_image`: ``s_F = ρ (c + s_b) − c`` with ``ρ = u_F/u_B`` fixed, so
+    ``∂Δw/∂w_b = ρ (1 − s_b)/(1 − s_F) − 1``).  About ``Δw (1 − 2a + c)/(w_sat (1 + c − a))``,
+    ``a = exp(−w_b/w_sat)``: proportional to the lesion's own image."""
+    s = sensor
+    c = s.stray / s.level
+    w_b = np.asarray(w_b, float)
+    dw = np.asarray(dw, float)
+    return (c + s.scatter(w_b + dw)) / (c + s.scatter(w_b)) * np.exp(dw / s.w_sat) - 1.0
+
+
+def press_spread(reference, alternatives) -> np.ndarray:
+    """The press's model-form sd ``σ_s`` (mm, per pixel of the reference's grid): the quadrature sum of
+    the differences of elastimap's other models of the same background press (``alternatives``: the
+    contact interface, the neighbouring mesh level) from ``reference``, each squared and averaged over a
+    Gaussian of :data:`PRESS_SMOOTH_MM` (0.5 mm pixels assumed for the smoothing's width)."""
+    ref = np.asarray(reference, float)
+    sq = sum((np.asarray(a, float) - ref) ** 2 for a in alternatives)
+    return np.sqrt(ndimage.gaussian_filter(sq, PRESS_SMOOTH_MM / 0.5, mode="nearest"))
+
+
+def uninformed(sd, phantom_images, power: float) -> np.ndarray:
+    """``σ_s (1 − q)^power``: the press sd left where the calibration phantoms do not see the press,
+    ``q(x) = max_k |m_k(x)| / max |m_k|`` (the phantoms' FEM difference images, each relative to its
+    peak).  Where a phantom's image is large, the flat field's press error is in its residual and so in
+    the model-form term learnt from it; the press term carries the rest (docs/camera.md, 'The flat
+    field's press uncertainty')."""
+    q = np.max([np.abs(np.asarray(m, float)) / max(float(np.abs(m).max()), 1e-300) for m in phantom_images], axis=0)
+    return np.asarray(sd, float) * (1.0 - np.clip(q, 0.0, 1.0)) ** power
+
+
+def press_modes(sd, pixel: float) -> np.ndarray:
+    """The press error's low-rank basis ``B`` ``(p, K)`` (mm per unit coefficient): a smooth field
+    ``δ(x) = Σ_k γ_k B_k(x)``, ``γ ~ N(0, I)``, with ``B_k = σ_s(x) φ_k(r) / (Σ_j φ_j(r)²)^½`` and
+    ``φ_k`` Gaussian bumps in the distance ``r`` from the probe axis (centres every
+    :data:`PRESS_STEP` mm, sd :data:`PRESS_WIDTH` mm), so that ``sd δ(x) = σ_s(x)`` and the error of
+    one ring is one coefficient shared by every pixel on it (and its neighbours)."""
+    sd = np.asarray(sd, float)
+    ny, nx = sd.shape
+    y = (np.arange(ny) - (ny - 1) / 2) * pixel
+    x = (np.arange(nx) - (nx - 1) / 2) * pixel
+    r = np.hypot(*np.meshgrid(y, x, indexing="ij")).ravel()
+    centres = np.arange(0.0, r.max() + PRESS_STEP, PRESS_STEP)
+    phi = np.exp(-0.5 * ((r[:, None] - centres[None, :]) / PRESS_WIDTH) ** 2)
+    phi /= np.sqrt((phi**2).sum(axis=1, keepdims=True))
+    return sd.ravel()[:, None] * phi
+
+
+@dataclass
+class PressTerm:
+    """The flat field's press uncertainty as a low-rank error of the recovered difference image: with the
+    press off by ``δ = B γ`` (:func:`press_modes`), the recovered image (FEM grid, mm, times ``scale``)
+    is off by ``scale J(m/scale) ⊙ δ`` (:func:`press_sensitivity`, taken at the map's image ``m``, not
+    the measured one, so that the weights carry no frame noise).  Called with ``m`` (mm, flat) it returns
+    ``U = scale J ⊙ B`` ``(p, K)``: the fit's pixel covariance becomes ``diag σ² + U Uᵀ``
+    (:class:`elastimap.identify.fit.FitConfig`, ``shared``).  docs/camera.md, 'The flat field's press
+    uncertainty'."""
+
+    reference: np.ndarray  # (ny, nx) mm, the flat field's background press on the FEM grid
+    basis: np.ndarray  # (p, K) mm, press_modes
+    sensor: object  # the SensorModel whose response the flat field inverts
+    scale: float = 1.0
+
+    def __call__(self, m) -> np.ndarray:
+        dw = np.asarray(m, float).ravel() / self.scale
+        J = press_sensitivity(dw, self.reference.ravel(), self.sensor)
+        return (self.scale * J)[:, None] * self.basis
+
+    @classmethod
+    def of(cls, deflection: dict, sensor) -> PressTerm | None:
+        """The term of a calibration's deflection record (None where it holds no ``press_sd``)."""
+        sd = deflection.get("press_sd") if deflection else None
+        if sd is None:
+            return None
+        ref = np.asarray(deflection["reference"], float)
+        return cls(
+            ref,
+            press_modes(np.asarray(sd, float), float(deflection["pixel"])),
+            sensor,
+            float(deflection.get("scale", 1.0)),
+        )

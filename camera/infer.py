@@ -423,6 +423,7 @@ def refine_estimates(
     sensor=None,
     discrepancy=None,
     pixel: float | None = None,
+    press=None,
 ) -> list[Estimate]:
     """Refine image-model estimates by the maximum-likelihood fit of the forward map
     (:func:`elastimap.identify.fit.fit_image`).
@@ -452,7 +453,10 @@ def refine_estimates(
     own (but for h, shifted by the term's depth mode, :func:`elastimap.identify.fit.depth_shift`), its
     covariance is the marginal one with the term integrated out, and an E on the design edge gets the
     valley's interval (docs/model-form.md, 'How the fit carries it'); None: the closed world
-    (noise and discretisation only).
+    (noise and discretisation only).  ``press``: the flat field's press uncertainty
+    (:class:`elastimap.camera.deflection.PressTerm`, from the calibration; None: none), a low-rank error
+    of the recovered image the fit weighs its pixels by (docs/camera.md, 'The flat field's press
+    uncertainty').
 
     Each estimate's mean becomes the fitted (d, h, E), ``lo``/``hi`` its 95 % interval and ``sd``/``crb``
     the standard deviation that interval stands for (relative for ``crb``): the Gauss–Newton one times
@@ -496,6 +500,7 @@ def refine_estimates(
                 intervals=intervals,
                 discrepancy=discrepancy,
                 pixel=pixel,
+                shared=press,
             )
             _take_fit(e, r, threshold, chi2_limit)
         if progress:

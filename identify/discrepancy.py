@@ -537,9 +537,15 @@ class Marginal:
     ``depth``, the map's ``h ∂m/∂h``; else :meth:`Discrepancy.image_term`).  Holding the basis fixed
     matters when misfits at several points are compared: a covariance that grows with the trial image
     lowers ``rᵀΣ⁻¹r`` where the image is larger, and a fit would drift there (the log-determinant
-    that would balance it is not in a least-squares misfit)."""
+    that would balance it is not in a least-squares misfit).
 
-    def __init__(self, image, sigma, basis_image, pixel: float, disc: Discrepancy | None = None, depth=None):
+    ``shared``: further error columns ``U`` ``(p, K)`` (mm) with coefficients ``γ ~ N(0, I)`` (e.g. the
+    flat field's press uncertainty, :class:`elastimap.camera.deflection.PressTerm`), marginalised beside
+    the modes: ``Σ = D + Φ C Φᵀ + U Uᵀ``."""
+
+    def __init__(
+        self, image, sigma, basis_image, pixel: float, disc: Discrepancy | None = None, depth=None, shared=None
+    ):
         mb = np.asarray(basis_image, float)
         self.I = np.asarray(image, float).ravel()
         self.disc = disc or Discrepancy.none()
@@ -548,6 +554,7 @@ class Marginal:
         self.W = self.disc.whitener(mb, pixel, sigma)
         self.P_w = self.W(self.disc.basis(mb, pixel, depth))
         self.I_w = self.W(self.I)
+        self.U_w = None if shared is None or np.shape(shared)[1] == 0 else self.W(np.asarray(shared, float))
 
     def step(self, m, J=None, systematic=(), birge: bool = False) -> LinearFit:
         """The step from the forward image ``m`` (mm) along ``J`` (None: no parameters, the misfit
@@ -555,6 +562,11 @@ class Marginal:
         J = np.zeros((self.I.size, 0)) if J is None else np.asarray(J, float).reshape(self.I.size, -1)
         r_w = self.W(np.asarray(m, float).ravel()) - self.I_w
         r_a, J_a, keep = augment(r_w, self.W(J) if J.shape[1] else J, self.P_w, self.disc)
+        if self.U_w is not None:  # the shared columns: unknowns γ with the prior |γ|²
+            K, rows = self.U_w.shape[1], J_a.shape[0]
+            U_a = np.vstack([self.U_w, np.zeros((rows - self.I.size, K))])
+            J_a = np.block([[J_a, U_a], [np.zeros((K, J_a.shape[1])), np.eye(K)]])
+            r_a = np.concatenate([r_a, np.zeros(K)])
         step = -np.linalg.lstsq(J_a, r_a, rcond=None)[0]
         Hi = _inverse(J_a.T @ J_a)
         n = J.shape[1]
@@ -566,7 +578,7 @@ class Marginal:
             b = Hi @ (J_a.T @ rhs)
             cov = cov + np.outer(b, b)
         beta = self.disc.mean.copy()
-        beta[keep] = beta[keep] + step[n:]
+        beta[keep] = beta[keep] + step[n : n + int(keep.sum())]
         return LinearFit(step[:n], cov[:n, :n], beta, chi2, dof)
 
 

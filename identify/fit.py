@@ -27,7 +27,11 @@ problem, prior and misfit apart from the optimisers), each declared in :class:`F
   ``σ_model,i = sqrt(mean_{3x3 around i} δ²)`` (a local rms, so that a pixel where the two levels
   happen to cross does not claim a perfect model).  It is measured where each pass starts (with
   ``forward_fine`` only where the first corrected pass starts, held for the later passes) and again
-  at the estimate for the covariance.
+  at the estimate for the covariance.  Optionally (``shared``, :class:`FitConfig`) a low-rank error
+  ``U γ``, ``γ ~ N(0, I)``, shared by the whole image (the flat field's press uncertainty,
+  :class:`elastimap.camera.deflection.PressTerm`; docs/camera.md, 'The flat field's press uncertainty'):
+  the pixels' covariance is then ``diag σ² + U Uᵀ``, whitened by :class:`Whiten` in the passes and the
+  covariance alike.
 * **prior** (:class:`DesignPrior`): the design box, a box in the fit's coordinates
   ``x = (d, u, e)`` (:class:`~elastimap.identify.coords.FitCoords`: ``u`` the depth fraction,
   ``e = ln c(E)`` Eshelby's contrast, in which the d–E valley of equal images is nearly straight,
@@ -161,6 +165,11 @@ class FitConfig:
     #: learnt from the lab's calibration phantoms; None: the closed world) on images of ``pixel`` mm
     discrepancy: Discrepancy | None = None
     pixel: float | None = None
+    #: a low-rank pixel error shared by the whole image (None: none): called with the map's image ``m``
+    #: (mm, flat) it returns ``U`` ``(p, K)`` (mm), the error ``U γ`` with ``γ ~ N(0, I)``, so that the
+    #: pixels' covariance is ``diag σ² + U Uᵀ`` in the passes and the covariance (:class:`Whiten`; e.g.
+    #: :class:`elastimap.camera.deflection.PressTerm`, the flat field's press uncertainty)
+    shared: Callable | None = None
 
     def __post_init__(self):
         if self.discrepancy is not None and not (self.pixel and math.isfinite(self.pixel) and self.pixel > 0):
@@ -190,6 +199,7 @@ class FitConfig:
         intervals: str = "gauss",
         discrepancy: Discrepancy | None = None,
         pixel: float | None = None,
+        shared: Callable | None = None,
     ) -> FitConfig:
         """The configuration from flat keywords (those of :func:`fit_image`)."""
         return cls(
@@ -199,6 +209,7 @@ class FitConfig:
             intervals,
             discrepancy,
             pixel,
+            shared,
         )
 
 
@@ -376,6 +387,30 @@ class PixelNoise:
         return np.hypot(self.s_meas, sm), sm
 
 
+class Whiten:
+    """The whitening of pixel errors with covariance ``Σ = diag s² + U Uᵀ`` (``s`` mm ``(p,)``; ``U`` mm
+    ``(p, K)`` or None): ``W(e)`` ``(p + K,)`` (or ``(p + K, n)`` for a matrix) with ``|W e|² = eᵀ Σ⁻¹ e``,
+    the residual of ``min_γ |S⁻¹(e + U γ)|² + |γ|²`` at its minimum ``γ = −(I + UₛᵀUₛ)⁻¹ Uₛᵀ S⁻¹ e``
+    (``Uₛ = S⁻¹ U``; Woodbury without forming Σ).  Linear in ``e``, so a Jacobian is whitened the
+    same way and least squares on ``W(m(x) − I)`` is generalised least squares under Σ.  Without ``U``:
+    ``e / s``."""
+
+    def __init__(self, s, U=None):
+        self.s = np.asarray(s, float)
+        self.U = None if U is None or np.shape(U)[1] == 0 else np.asarray(U, float)
+        if self.U is not None:
+            self.Us = self.U / self.s[:, None]
+            self.M = np.linalg.inv(np.eye(self.U.shape[1]) + self.Us.T @ self.Us)
+
+    def __call__(self, e) -> np.ndarray:
+        e = np.asarray(e, float)
+        v = e / (self.s[:, None] if e.ndim == 2 else self.s)
+        if self.U is None:
+            return v
+        g = -self.M @ (self.Us.T @ v)
+        return np.concatenate([v + self.Us @ g, g])
+
+
 def broyden_pass(resid: Callable, xs: np.ndarray, J0: np.ndarray, lb, ub, max_nfev: int):
     """One pass of the optimiser: :func:`scipy.optimize.least_squares` (trust-region reflective in
     the box ``[lb, ub]``) of ``½ |resid(x)|²`` from ``xs``, its Jacobian ``J0`` at the start carried
@@ -521,17 +556,23 @@ class ImageFit:
         x, J, moving, msg = self._passes(X, model, noise, I, x0, lb, ub)
         model.measure(x)  # the model error at the estimate
         s_tot, s_mod = noise.sigma(model.delta)
-        if self.tangent or J is None or moving:
-            J = self._jacobian(X, model, x, s_tot, lb, ub)
-        r = (model(x) - I) / s_tot
+        W = self._whiten(model, x, s_tot)
+        J_raw = None
+        if W.U is not None:  # the shared error's whitening differs from the pass's: a fresh Jacobian
+            J_raw = self._jacobian(X, model, x, Whiten(np.ones_like(s_tot)), lb, ub)
+            J = W(J_raw)
+        elif self.tangent or J is None or moving:
+            J = self._jacobian(X, model, x, W, lb, ub)
+        r = W(model(x) - I)
         dof = max(I.size - 3, 1)
         chi2 = float(r @ r) / dof
-        Cx = self._covariance(J, chi2, model.delta, s_tot)
+        Cx = self._covariance(J, chi2, model.delta, W)
         disc = self.config.discrepancy
         if disc is not None:  # the model-form term: its marginal covariance at the estimate
             if shape is None:
                 raise UserError("image", "a fit carrying a discrepancy needs the 2-D image (its modes are images)")
-            Cx, chi2 = self._marginal(model, I, s_tot, shape, x, J * s_tot[:, None])
+            Jx = J * s_tot[:, None] if J_raw is None else J_raw
+            Cx, chi2 = self._marginal(model, I, s_tot, shape, x, Jx, W.U)
             x, Cx = depth_shift(X, x, Cx, disc, lb, ub)
         Gx = X.dtheta(x)
         th = X.theta(x)
@@ -570,14 +611,15 @@ class ImageFit:
             model_form=disc is not None,
         )
 
-    def _marginal(self, model: FitModel, I, s_tot, shape, x, Jx) -> tuple[np.ndarray, float]:
+    def _marginal(self, model: FitModel, I, s_tot, shape, x, Jx, shared=None) -> tuple[np.ndarray, float]:
         """The covariance (x units) and χ² per degree of freedom of the estimate ``x`` under the model-form
         term (see the module docstring, 'model-form term'): the generalised least-squares information of
-        the map's Jacobian ``Jx`` (mm per x unit, not whitened) with the discrepancy marginalised, its
-        basis the map's image at ``x``, plus the discretisation's systematic part and the Birge factor."""
+        the map's Jacobian ``Jx`` (mm per x unit, not whitened) with the discrepancy (and the ``shared``
+        error's columns, :class:`FitConfig`) marginalised, its basis the map's image at ``x``, plus the
+        discretisation's systematic part and the Birge factor."""
         cfg = self.config
         m0 = model(x)
-        M = Marginal(I, s_tot.reshape(shape), m0.reshape(shape), float(cfg.pixel), cfg.discrepancy)
+        M = Marginal(I, s_tot.reshape(shape), m0.reshape(shape), float(cfg.pixel), cfg.discrepancy, shared=shared)
         st = M.step(m0, Jx, model.delta, birge=True)
         return st.cov, st.chi2 / st.dof
 
@@ -642,10 +684,11 @@ class ImageFit:
         for k in range(opt.max_passes + first):
             model.pin(x, correct=k >= first, measure=k == first if corrected else True)
             s_tot, _ = noise.sigma(model.delta)
-            J = self._jacobian(X, model, x, s_tot, lb, ub)
+            W = self._whiten(model, x, s_tot)
+            J = self._jacobian(X, model, x, W, lb, ub)
 
-            def resid(z, s=s_tot):
-                return (model(z, need_j=False) - I) / s
+            def resid(z, W=W):
+                return W(model(z, need_j=False) - I)
 
             xn, res = broyden_pass(resid, x, J, lb, ub, opt.max_nfev)
             msg.append(str(res.message))
@@ -658,14 +701,20 @@ class ImageFit:
             msg.append(f"{STILL_MOVING} after {opt.max_passes} passes")
         return x, J, moving, msg
 
-    def _jacobian(self, X: FitCoords, model: FitModel, x, s, lb, ub) -> np.ndarray:
-        """∂m/∂x whitened by ``s``: the map's exact derivative,
+    def _whiten(self, model: FitModel, x, s_tot) -> Whiten:
+        """The pixels' whitening at ``x``: ``s_tot`` and, with a ``shared`` error (:class:`FitConfig`),
+        its columns at the map's image there."""
+        shared = self.config.shared
+        return Whiten(s_tot, None if shared is None else shared(model(x)))
+
+    def _jacobian(self, X: FitCoords, model: FitModel, x, W: Whiten, lb, ub) -> np.ndarray:
+        """∂m/∂x whitened by ``W``: the map's exact derivative,
         ``[∂m/∂d, ∂m/∂h, E ∂m/∂E] ∂(d, h, ln E)/∂x`` (:meth:`FitCoords.dtheta`), where used; else
         central differences (one-sided at the box) with steps :attr:`Optimiser.fd`, E first (a map
         may reuse its reference solve while (d, h) stay)."""
         if self.tangent:
             jt = model.jacobian(x) * np.array([1.0, 1.0, X.theta(x)[2]])
-            return (jt @ X.dtheta(x)) / s[:, None]
+            return W(jt @ X.dtheta(x))
         fd = self.config.optimiser.fd
         lo, hi = h_range(x[0], self.config.prior.thickness)
         st = np.array([fd[0], fd[1] / (hi - lo), fd[2] / X.dtheta(x)[2, 2]])  # fd[2] in ln E
@@ -680,17 +729,17 @@ class ImageFit:
                 J[:, j] = (model(xp) - model(x)) / st[j]
             else:
                 J[:, j] = (model(x) - model(xm)) / st[j]
-        return J / s[:, None]
+        return W(J)
 
     @staticmethod
-    def _covariance(J, chi2: float, delta: list, s_tot) -> np.ndarray:
+    def _covariance(J, chi2: float, delta: list, W: Whiten) -> np.ndarray:
         """``C_x = (JᵀJ)⁻¹ max(1, χ²_red) + Σ_k b_k b_kᵀ`` in x units: the discretisation error is one
         image, correlated over the pixels, so each level difference (measured at the estimate) enters
-        through the estimator as a systematic shift ``b_k = (JᵀJ)⁻¹ Jᵀ (δ_k / σ)``."""
+        through the estimator as a systematic shift ``b_k = (JᵀJ)⁻¹ Jᵀ W(δ_k)`` (``J`` whitened by ``W``)."""
         JtJi = np.linalg.pinv(J.T @ J)
         Cx = JtJi * max(1.0, chi2)
         for dl in delta:
-            b = JtJi @ J.T @ (dl / s_tot)
+            b = JtJi @ J.T @ W(dl)
             Cx = Cx + np.outer(b, b)
         return Cx
 

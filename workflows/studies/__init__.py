@@ -24,6 +24,7 @@ STUDIES = {
     "valleyfit": "Re-fit frames-benchmark lesions with one ingredient changed (image, start, maps, fit).",
     "interval_calibration": "The calibrated interval scales of the physics fit from frames-benchmark records.",
     "modelform": "The fit's error budget with and without the learnt model-form error, on another model's phantoms.",
+    "pressprior": "The product's fit of a variant world's frames without and with the flat field's press term.",
 }
 
 
