@@ -25,6 +25,7 @@ STUDIES = {
     "interval_calibration": "The calibrated interval scales of the physics fit from frames-benchmark records.",
     "modelform": "The fit's error budget with and without the learnt model-form error, on another model's phantoms.",
     "pressprior": "The product's fit of a variant world's frames without and with the flat field's press term.",
+    "moduli_per_mesh": "A sweep with several moduli per mesh against a Latin hypercube as training data.",
 }
 
 

@@ -1,6 +1,6 @@
 """Is a sweep with several inclusion moduli per mesh as good a training set as a Latin hypercube?
 
-    python -m elastimap.workflows.studies.moduli_per_mesh --mesh coarse --n 256 --k 8 --test 128 --out DIR
+    elastimap study moduli_per_mesh --mesh coarse --n 256 --k 8 --test 128 --out DIR
 
 ``sweep run --moduli-per-mesh k`` (docs/sweep.md, 'What it samples') puts n/k geometries (d, h) in
 the design, each with k moduli, so that a geometry's samples share one mesh, one model and one
@@ -71,7 +71,9 @@ def main(mesh, n, k, n_test, repeats, jobs, out):
     """Train on a Latin hypercube and on k-moduli-per-mesh designs; score each on an independent test set."""
     root = Path(out)
     if root.exists():
-        raise click.UsageError(f"--out: {root} exists; choose a new folder")
+        from elastimap.errors import UserError
+
+        raise UserError("out", f"{root} exists; choose a new folder")
     root.mkdir(parents=True)
     n = n - n % k
     t_all = time.perf_counter()
