@@ -299,13 +299,12 @@ def features(images, background, sensor_json, threshold, smooth_px, combine, as_
 )
 @click.option(
     "--press-uncertainty/--no-press-uncertainty",
-    default=False,
+    default=True,
     show_default=True,
     help="Carry the flat field's press uncertainty into infer --refine (and --report-loo): the spread of "
     "elastimap's own models of the background press (contact interface, neighbouring mesh level; two extra "
-    "solves) where the phantoms do not see it, as a low-rank error of the recovered image.  Off by default: "
-    "it helped the independent dev set and one variant world, not h on the other (docs/camera.md, 'The flat "
-    "field's press uncertainty').",
+    "solves) where the phantoms do not see it, as a low-rank error of the recovered image (docs/camera.md, "
+    "'The flat field's press uncertainty').  --no-press-uncertainty: the calibration before it.",
 )
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="Calibration JSON to write.")
 @click.option(
