@@ -442,7 +442,7 @@ def loo_fits(record: dict, phantoms, pairs, deflection: dict, sensor=None, progr
     the fit calls it identifiable (relative sd ≤ 10 %) and no parameter is on the design box's edge (as
     ``infer`` prints it)."""
     from elastimap.identify import discrepancy as dy
-    from elastimap.identify.fit import fit_image
+    from elastimap.identify.fit import fit_on_maps
     from elastimap.identify.forward_maps import fit_maps
 
     names = record["names"]
@@ -472,17 +472,7 @@ def loo_fits(record: dict, phantoms, pairs, deflection: dict, sensor=None, progr
         start = np.array(
             [thetas[rest, 0].mean(), thetas[rest, 1].mean(), float(np.exp(np.log(thetas[rest, 2]).mean()))]
         )
-        r = fit_image(
-            rec[i].image,
-            rec[i].sigma,
-            start,
-            maps.forward,
-            forward_alt=maps.forward_alt,
-            forward_fine=maps.forward_fine,
-            discrepancy=disc,
-            pixel=pixel,
-            shared=press,
-        )
+        r = fit_on_maps(rec[i].image, rec[i].sigma, start, maps, discrepancy=disc, pixel=pixel, shared=press)
         cov = [bool(r.lo[j] <= thetas[i, j] <= r.hi[j]) for j in range(3)]
         rep = [bool(r.relstd[j] <= 0.10 and not r.at_bound) for j in range(3)]  # as infer prints them
         rows.append(

@@ -786,6 +786,12 @@ def fit_forward(
     :func:`~elastimap.identify.forward_maps.default_intervals`."""
     maps = fit_maps(mesh, correct, geometry)
     config.setdefault("intervals", maps.intervals)
+    return fit_on_maps(image, sigma, theta0, maps, **config)
+
+
+def fit_on_maps(image, sigma, theta0, maps, **config) -> FitResult:
+    """:func:`fit_image` with the maps of ``maps`` (:class:`~elastimap.identify.forward_maps.FitMaps`):
+    its map, the neighbouring level's (the model error) and the correcting one."""
     return fit_image(
         image, sigma, theta0, maps.forward, forward_alt=maps.forward_alt, forward_fine=maps.forward_fine, **config
     )

@@ -398,7 +398,7 @@ def product_check(world, fit_mesh, correct, frames, seed, which, prior_weight, s
     from elastimap.camera.optics import deflection_noise_map
     from elastimap.errors import UserError
     from elastimap.identify import discrepancy as dy
-    from elastimap.identify.fit import fit_image
+    from elastimap.identify.fit import fit_on_maps
     from elastimap.identify.forward_maps import fit_maps
 
     rng = np.random.default_rng(seed)
@@ -428,16 +428,8 @@ def product_check(world, fit_mesh, correct, frames, seed, which, prior_weight, s
         row = {"phantom": ph["phantom"], "theta": th.tolist()}
         for name, dsc in (("closed", None), ("open", disc)):
             t0 = time.process_time()
-            r = fit_image(
-                I,
-                sigma,
-                th * np.asarray(start),
-                maps.forward,
-                forward_alt=maps.forward_alt,
-                forward_fine=maps.forward_fine,
-                intervals=maps.intervals,
-                discrepancy=dsc,
-                pixel=PIXEL,
+            r = fit_on_maps(
+                I, sigma, th * np.asarray(start), maps, intervals=maps.intervals, discrepancy=dsc, pixel=PIXEL
             )
             rel = r.relstd_calibrated
             row[name] = {

@@ -76,7 +76,7 @@ def product_fits(world, pairs, defl, level: str) -> list[dict]:
     from elastimap.camera import calibration as C
     from elastimap.camera.optics import SensorModel
     from elastimap.identify.discrepancy import Discrepancy
-    from elastimap.identify.fit import fit_image
+    from elastimap.identify.fit import fit_on_maps
     from elastimap.identify.forward_maps import fit_maps
 
     ph = pd.DataFrame(
@@ -96,17 +96,7 @@ def product_fits(world, pairs, defl, level: str) -> list[dict]:
     for w, rec in zip(world[mf.N_CAL :], C.recovered_images(pairs[mf.N_CAL :], defl, s), strict=True):
         th = w["theta"]
         t0 = time.process_time()
-        r = fit_image(
-            rec.image,
-            rec.sigma,
-            start,
-            maps.forward,
-            forward_alt=maps.forward_alt,
-            forward_fine=maps.forward_fine,
-            discrepancy=disc,
-            pixel=PIXEL,
-            shared=press,
-        )
+        r = fit_on_maps(rec.image, rec.sigma, start, maps, discrepancy=disc, pixel=PIXEL, shared=press)
         rows.append(
             {
                 "name": w["phantom"],
