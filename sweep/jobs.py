@@ -176,6 +176,21 @@ def _summary(row: dict) -> dict:
     return {"sample_id": row["sample_id"], "status": row["status"], "seconds": row["seconds"], "error": row["error"]}
 
 
+def _failure(exc: BaseException) -> str:
+    """A failed row's error text: the exception's type and message on one line."""
+    msg = str(exc).strip().replace("\n", " ")
+    return f"{type(exc).__name__}: {msg}"[:2000]
+
+
+def _timed_out_before(sample: dict, out_dir: str, timeout: float | None) -> dict | None:
+    """The summary of a sample whose solve timed out before (its marker: dask's retry of its task,
+    which must return at once instead of hanging a second worker), else None."""
+    if timeout and _mark(out_dir, "timeout", sample["sample_id"]).exists():
+        msg = f"Timeout: no result after {timeout:g} s; the worker was stopped"
+        return {"sample_id": sample["sample_id"], "status": "failed", "seconds": float(timeout), "error": msg}
+    return None
+
+
 def run_sample(
     sample: dict, base: dict, out_dir: str, timeout: float | None = None, solver: Callable | None = None
 ) -> dict:
@@ -187,27 +202,13 @@ def run_sample(
     Python); it leaves a marker so that dask's retry of the task returns at once instead of hanging
     a second worker.
     """
+    before = _timed_out_before(sample, out_dir, timeout)
+    if before is not None:
+        return before
     p = sample_params(sample, SolveParams.from_dict(base))
     label = store.solver_label(solver)
-    sid = sample["sample_id"]
-    marker = _mark(out_dir, "timeout", sid) if timeout else None
-    timeout_msg = f"Timeout: no result after {timeout:g} s; the worker was stopped" if timeout else ""
-    if marker is not None and marker.exists():
-        return {"sample_id": sid, "status": "failed", "seconds": float(timeout), "error": timeout_msg}
-    record_start(out_dir, sid)
-    watchdog = None
-    if timeout:
-
-        def _fire():
-            try:
-                io.land_rows(out_dir, [failed_row(sample, p, timeout_msg, float(timeout), label)])
-                marker.write_text(sid)
-            finally:
-                os._exit(75)
-
-        watchdog = threading.Timer(timeout, _fire)
-        watchdog.daemon = True
-        watchdog.start()
+    watch = _Watchdog(out_dir, timeout, label)
+    watch.start(sample, p)
     shape = pixel = None  # a failed row has no image: its file carries no image geometry
     t0 = time.perf_counter()
     try:
@@ -218,13 +219,10 @@ def run_sample(
             if row["status"] == "ok":
                 shape, pixel = tuple(np.shape(res.image)), float(res.pixel)
         except Exception as exc:  # a failing sample is data, not a crash of the sweep
-            seconds = time.perf_counter() - t0
-            msg = str(exc).strip().replace("\n", " ")
-            row = failed_row(sample, p, f"{type(exc).__name__}: {msg}"[:2000], seconds, label)
+            row = failed_row(sample, p, _failure(exc), time.perf_counter() - t0, label)
         io.land_rows(out_dir, [row], shape, pixel)
     finally:
-        if watchdog is not None:
-            watchdog.cancel()
+        watch.stop()
     return _summary(row)
 
 
@@ -269,9 +267,9 @@ def run_group(
     done: list[dict] = []
     live: list[tuple[dict, SolveParams]] = []
     for s in samples:
-        if timeout and _mark(out_dir, "timeout", s["sample_id"]).exists():
-            msg = f"Timeout: no result after {timeout:g} s; the worker was stopped"
-            done.append({"sample_id": s["sample_id"], "status": "failed", "seconds": float(timeout), "error": msg})
+        before = _timed_out_before(s, out_dir, timeout)
+        if before is not None:
+            done.append(before)
         else:
             live.append((s, sample_params(s, SolveParams.from_dict(base))))
     if not live:
@@ -282,8 +280,7 @@ def run_group(
     def land(i: int, res) -> None:
         s, p = live[i]
         if isinstance(res, Exception):
-            msg = str(res).strip().replace("\n", " ")
-            row = failed_row(s, p, f"{type(res).__name__}: {msg}"[:2000], float("nan"), label)
+            row = failed_row(s, p, _failure(res), float("nan"), label)
             io.land_rows(out_dir, [row])
         else:
             row = result_row(s, p, res, res.seconds, label)
@@ -298,10 +295,9 @@ def run_group(
     try:
         solve_group([p for _, p in live], land, errors="return", single_factors=True)
     except Exception as exc:  # a failing group is data, not a crash of the sweep
-        msg = str(exc).strip().replace("\n", " ")
         for i, (s, p) in enumerate(live):
             if not landed[i]:
-                row = failed_row(s, p, f"{type(exc).__name__}: {msg}"[:2000], float("nan"), label)
+                row = failed_row(s, p, _failure(exc), float("nan"), label)
                 io.land_rows(out_dir, [row])
                 done.append(_summary(row))
     finally:
@@ -310,9 +306,9 @@ def run_group(
 
 
 class _Watchdog:
-    """One sample's timeout inside a group (:func:`run_group`): ``start(sample, params)`` records
-    the sample's start and (re)arms a timer that lands its ``failed`` row, leaves its marker and ends
-    the worker process, as :func:`run_sample`'s does."""
+    """A sample's timeout (:func:`run_sample`, each sample of :func:`run_group` in turn):
+    ``start(sample, params)`` records the sample's start and (re)arms a timer that lands its
+    ``failed`` row, leaves its marker and ends the worker process; ``stop()`` disarms it."""
 
     def __init__(self, out_dir: str, timeout: float | None, label: str):
         self.out_dir, self.timeout, self.label, self.timer = out_dir, timeout, label, None
