@@ -335,7 +335,7 @@ def press_uncertainty(theta, reference_result, mesh: str, delta: float | None = 
         r = solve(from_sensor(sensor, inc, disc))
         alts.append(background_deflection(r.image_raw, r.image))
     ref = background_deflection(reference_result.image_raw, reference_result.image)
-    return press_spread(ref, alts)
+    return press_spread(ref, alts, float(reference_result.pixel))
 
 
 def recovered_images(pairs, deflection: dict, sensor=None) -> list:
@@ -402,10 +402,9 @@ def learn_discrepancy(
 
 def press_bands(sd: np.ndarray, pixel: float, edges=(0, 3, 6, 9, 12, 18)) -> str:
     """``σ_s`` (mm on a grid of ``pixel`` mm) as its rms in bands of the distance from the axis (µm), and its maximum."""
-    ny, nx = sd.shape
-    y = (np.arange(ny) - (ny - 1) / 2) * pixel
-    x = (np.arange(nx) - (nx - 1) / 2) * pixel
-    r = np.hypot(*np.meshgrid(y, x, indexing="ij"))
+    from .deflection import radius_grid
+
+    r = radius_grid(sd.shape, pixel)
     parts = [
         f"{a:g}-{b:g} mm {1e3 * np.sqrt(np.mean(sd[(r >= a) & (r < b)] ** 2)):.2g}"
         for a, b in zip(edges[:-1], edges[1:], strict=True)

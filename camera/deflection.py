@@ -225,6 +225,15 @@ PRESS_SMOOTH_MM = 1.0  # Gaussian sigma (mm) over which the press spread's squar
 PRESS_POWER = 1.0
 
 
+def radius_grid(shape, pixel: float) -> np.ndarray:
+    """Distance (mm) of each pixel centre of a centred image of ``shape`` (ny, nx) and ``pixel`` mm
+    from the probe axis."""
+    ny, nx = shape
+    y = (np.arange(ny) - (ny - 1) / 2) * pixel
+    x = (np.arange(nx) - (nx - 1) / 2) * pixel
+    return np.hypot(*np.meshgrid(y, x, indexing="ij"))
+
+
 def press_sensitivity(dw, w_b, sensor) -> np.ndarray:
     """``J = ∂Δw/∂w_b`` (dimensionless, per pixel): how a recovered difference deflection ``Δw`` (mm)
     moves when the flat field's background press ``w_b`` (mm) is off, the frames held fixed::
@@ -241,14 +250,14 @@ def press_sensitivity(dw, w_b, sensor) -> np.ndarray:
     return (c + s.scatter(w_b + dw)) / (c + s.scatter(w_b)) * np.exp(dw / s.w_sat) - 1.0
 
 
-def press_spread(reference, alternatives) -> np.ndarray:
-    """The press's model-form sd ``σ_s`` (mm, per pixel of the reference's grid): the quadrature sum of
-    the differences of elastimap's other models of the same background press (``alternatives``: the
-    contact interface, the neighbouring mesh level) from ``reference``, each squared and averaged over a
-    Gaussian of :data:`PRESS_SMOOTH_MM` (0.5 mm pixels assumed for the smoothing's width)."""
+def press_spread(reference, alternatives, pixel: float) -> np.ndarray:
+    """The press's model-form sd ``σ_s`` (mm, per pixel of the reference's grid of ``pixel`` mm): the
+    quadrature sum of the differences of elastimap's other models of the same background press
+    (``alternatives``: the contact interface, the neighbouring mesh level) from ``reference``, each
+    squared and averaged over a Gaussian of :data:`PRESS_SMOOTH_MM`."""
     ref = np.asarray(reference, float)
     sq = sum((np.asarray(a, float) - ref) ** 2 for a in alternatives)
-    return np.sqrt(ndimage.gaussian_filter(sq, PRESS_SMOOTH_MM / 0.5, mode="nearest"))
+    return np.sqrt(ndimage.gaussian_filter(sq, PRESS_SMOOTH_MM / pixel, mode="nearest"))
 
 
 def uninformed(sd, phantom_images, power: float) -> np.ndarray:
@@ -268,10 +277,7 @@ def press_modes(sd, pixel: float) -> np.ndarray:
     :data:`PRESS_STEP` mm, sd :data:`PRESS_WIDTH` mm), so that ``sd δ(x) = σ_s(x)`` and the error of
     one ring is one coefficient shared by every pixel on it (and its neighbours)."""
     sd = np.asarray(sd, float)
-    ny, nx = sd.shape
-    y = (np.arange(ny) - (ny - 1) / 2) * pixel
-    x = (np.arange(nx) - (nx - 1) / 2) * pixel
-    r = np.hypot(*np.meshgrid(y, x, indexing="ij")).ravel()
+    r = radius_grid(sd.shape, pixel).ravel()
     centres = np.arange(0.0, r.max() + PRESS_STEP, PRESS_STEP)
     phi = np.exp(-0.5 * ((r[:, None] - centres[None, :]) / PRESS_WIDTH) ** 2)
     phi /= np.sqrt((phi**2).sum(axis=1, keepdims=True))

@@ -27,6 +27,7 @@ import warnings
 import numpy as np
 from scipy import ndimage
 
+from elastimap.camera.deflection import radius_grid
 from elastimap.camera.features import camera_features
 
 from .simulate import camera_features_of
@@ -35,16 +36,8 @@ EDGES = (0.0, 1.0, 2.0, 3.0, 4.5, 6.0, 8.0, 10.0, 12.5)  # mm from the probe axi
 VIEWS = ("features", "profile", "force")
 
 
-def _radius(shape, pixel_mm: float) -> np.ndarray:
-    ny, nx = shape
-    y = (np.arange(ny) - (ny - 1) / 2) * pixel_mm
-    x = (np.arange(nx) - (nx - 1) / 2) * pixel_mm
-    X, Y = np.meshgrid(x, y)
-    return np.hypot(X, Y)
-
-
 def _bins(shape, pixel_mm: float, edges=EDGES) -> list[np.ndarray]:
-    R = _radius(shape, pixel_mm)
+    R = radius_grid(shape, pixel_mm)
     return [(R >= a) & (R < b) for a, b in zip(edges[:-1], edges[1:])]
 
 

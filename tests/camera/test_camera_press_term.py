@@ -55,7 +55,7 @@ def test_press_modes_carry_the_stated_sd():
     B = press_modes(sd, 0.5)
     np.testing.assert_allclose(np.sqrt((B**2).sum(axis=1)), sd.ravel(), rtol=1e-12)
     ref = np.zeros((50, 50))
-    assert press_spread(ref, [ref, ref]).max() == 0.0
+    assert press_spread(ref, [ref, ref], 0.5).max() == 0.0
 
 
 @pytest.fixture(scope="module")
