@@ -98,7 +98,7 @@ PRIOR_WEIGHT = 2.0
 #: against the morphed `coarse` map; ``python -m elastimap.workflows.studies.modelform --world-level
 #: default --model-mesh coarse --alt-mesh tiny``), and the generalised least squares then trusted the
 #: image's fine scale, where the map's own mesh is wrong: coverage of d/h/E 57/55/57 % against
-#: 100/100/100 % with ℓ ≤ 2 mm (docs/model-form.md, 'Choosing the settings')
+#: 100/100/100 % with ℓ ≤ 2 mm (docs/model-form.md, 'Choosing the term's settings')
 ELL_GRID = (0.0, 1.0, 2.0)
 #: the pixels the choice of ℓ looks at: envelope at least this fraction of its peak
 SUPPORT = 0.05

@@ -81,7 +81,7 @@ problem, prior and misfit apart from the optimisers), each declared in :class:`F
   what tells d from E), so a fit that minimises it walks wherever the map's shape error points --
   on the dev set to soft, larger inclusions, on the SYNTHETIC variant world (tiny map, coarse world
   2 % stiffer) a profile of it along the valley put 6 mm, 160 kPa at 7.7 mm, 10 kPa with a narrow
-  interval (docs/model-form.md, 'Choosing the formulation').
+  interval (docs/model-form.md, 'Choosing the fit's formulation').
 
 Measured accuracy and coverage: docs/camera.md, 'Inference'.  The fit itself tunes no factor; the
 interval's scales are calibrated on seen benchmark seeds, never on the lesions a table scores.
