@@ -630,6 +630,43 @@ def _progress_bar(total: int, progress: bool):
     )
 
 
+class _Tally:
+    """The fan-out's count of landed summaries: ``summary``'s done/ok/failed, the errors, the solve
+    seconds, the progress bar, and a compaction of the row files every ``cfg.batch_rows`` rows."""
+
+    def __init__(self, summary: dict, cfg: SweepConfig, plan: Plan, bar):
+        self.summary, self.cfg, self.plan, self.bar = summary, cfg, plan, bar
+        self.errors: list[tuple[str, str]] = []
+        self.solve_seconds = 0.0
+        self.since_compact = 0
+
+    def add(self, r: dict) -> None:
+        s = self.summary
+        s["done"] += 1
+        if r["status"] == "ok":
+            s["ok"] += 1
+            self.solve_seconds += r["seconds"] if math.isfinite(r["seconds"]) else 0.0
+        else:
+            s["failed"] += 1
+            self.errors.append((r["sample_id"], r["error"]))
+        self.bar.set_postfix(ok=s["ok"], failed=s["failed"], refresh=False)
+        self.bar.update(1)
+        self.since_compact += 1
+        if self.cfg.compact and self.since_compact >= self.cfg.batch_rows:
+            io.compact(self.plan.out, self.cfg.batch_rows, only_rows=True)
+            self.since_compact = 0
+
+    def close(self, fan_wall: float, driver_cpu: float) -> None:
+        """The fan-out's timings: its wall, the driver's CPU a sample, the mean solve, the workers' use."""
+        self.bar.close()
+        s = self.summary
+        s["fan_out_s"] = fan_wall
+        s["driver_cpu_ms_per_sample"] = 1000.0 * driver_cpu / max(s["done"], 1)
+        s["mean_solve_s"] = self.solve_seconds / s["ok"] if s["ok"] else float("nan")
+        if fan_wall > 0 and s["ok"]:
+            s["worker_utilisation"] = self.solve_seconds / (fan_wall * max(s["workers"], 1))
+
+
 def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remote=None) -> None:
     from distributed import as_completed
 
@@ -643,8 +680,7 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
     client, cluster = remote if remote is not None else _start_client(cfg)
     summary["cluster_start_s"] = time.perf_counter() - t0
     summary["workers"] = len(client.scheduler_info(n_workers=-1)["workers"]) if cluster is None else cfg.jobs
-    errors: list[tuple[str, str]] = []
-    solve_seconds = 0.0
+    tally = _Tally(summary, cfg, plan, _progress_bar(len(todo), cfg.progress))
     try:
         t_fan = time.perf_counter()
         cpu0 = time.process_time()
@@ -665,8 +701,9 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
         )
         by_future = dict(zip(futures, groups))
         resubmitted: dict[str, int] = {}
-        bar = _progress_bar(len(todo), cfg.progress)
-        since_compact = 0
+        submit = functools.partial(
+            client.submit, jobs.run_group, base=base, out_dir=out, timeout=cfg.timeout or None, solver=solver
+        )
         pending = as_completed(list(by_future))
         watch = _WorkerWatch(client, cfg, cluster is not None)
         while not pending.is_empty():
@@ -691,38 +728,12 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
                         pending.add(fut)
                         continue
                     fut.release()
-                    submit = functools.partial(
-                        client.submit,
-                        jobs.run_group,
-                        base=base,
-                        out_dir=out,
-                        timeout=cfg.timeout or None,
-                        solver=solver,
-                    )
                     results = _task_failed(group, exc, out, base, solver, resubmitted, submit, by_future, pending)
                 else:
                     fut.release()
                 for r in results:
-                    summary["done"] += 1
-                    if r["status"] == "ok":
-                        summary["ok"] += 1
-                        solve_seconds += r["seconds"] if math.isfinite(r["seconds"]) else 0.0
-                    else:
-                        summary["failed"] += 1
-                        errors.append((r["sample_id"], r["error"]))
-                    bar.set_postfix(ok=summary["ok"], failed=summary["failed"], refresh=False)
-                    bar.update(1)
-                    since_compact += 1
-                    if cfg.compact and since_compact >= cfg.batch_rows:
-                        io.compact(plan.out, cfg.batch_rows, only_rows=True)
-                        since_compact = 0
-        bar.close()
-        fan_wall = time.perf_counter() - t_fan
-        summary["fan_out_s"] = fan_wall
-        summary["driver_cpu_ms_per_sample"] = 1000.0 * (time.process_time() - cpu0) / max(summary["done"], 1)
-        summary["mean_solve_s"] = solve_seconds / summary["ok"] if summary["ok"] else float("nan")
-        if fan_wall > 0 and summary["ok"]:
-            summary["worker_utilisation"] = solve_seconds / (fan_wall * max(summary["workers"], 1))
+                    tally.add(r)
+        tally.close(time.perf_counter() - t_fan, time.process_time() - cpu0)
     except ClusterLost:
         # nothing of this run stays queued on the scheduler: release() only posts a message,
         # where cancel() would wait for the answer of a scheduler that may be what is gone
@@ -730,7 +741,7 @@ def _fan_out(cfg: SweepConfig, plan: Plan, todo: list[dict], summary: dict, remo
             fut.release()
         raise
     finally:
-        summary["errors"] = errors
+        summary["errors"] = tally.errors
         if cluster is not None:  # a local cluster is ours to stop; a remote client is closed by run()
             try:
                 client.close()
