@@ -14,6 +14,7 @@ magnitudes for the fitting sweep and a "blind" range the self-test draws true ma
 | skin | mechanics | ``Tissue.skin_thickness`` = 1 mm, ``Tissue.skin_E`` | skin modulus (kPa) | none (5) |
 | aspect | mechanics | ``Inclusion.aspect`` | vertical/horizontal axis ratio (-) | 1 |
 | offaxis | mechanics | ``Inclusion.offset_x`` (full model, ~10x cost) | offset (mm) | 0 |
+| core_shell | mechanics | ``Inclusion.core`` = 0.6, ``Inclusion.core_ratio`` | core modulus / shell modulus (-) | 1 |
 | probe_moduli | mechanics | ``Probe.layers`` moduli x factor | factor (-) | 1 |
 | background_E | mechanics | ``Tissue.E`` | tissue modulus (kPa) | 5 |
 | probe_E1, probe_E2, probe_E3 | mechanics | ``Probe.layers[i]`` modulus | layer modulus (kPa) | 300, 150, 50 |
@@ -54,10 +55,17 @@ from dataclasses import dataclass
 from elastimap.errors import UserError
 
 #: effects that change the geometry (or switch to the full model), so each magnitude has its own mesh
-REMESHING = frozenset({"skin", "aspect", "offaxis", "probe_t1", "probe_t2", "probe_t3", "slab_thickness", "tilt"})
+REMESHING = frozenset(
+    {"skin", "aspect", "offaxis", "core_shell", "probe_t1", "probe_t2", "probe_t3", "slab_thickness", "tilt"}
+)
 #: effects whose discretisation error does not carry over from the baseline (``Effect.own_model_error``)
 OWN_ERROR = REMESHING | {"tissue_nu"}
 SKIN_THICKNESS = 1.0  # mm, thickness of the skin layer switched on by the ``skin`` effect
+CORE_FRACTION = 0.6  # core diameter / inclusion diameter of the ``core_shell`` effect
+#: effects never among the default candidates: ``offaxis`` and ``tilt`` (full model, ~10x cost: name
+#: them with ``--effects``) and ``core_shell``, an effect of the lesions themselves kept to test the
+#: library's reach (``gap synth --effect``, ``gap selftest --outside``)
+NOT_DEFAULT = ("offaxis", "tilt", "core_shell")
 
 
 @dataclass(frozen=True)
@@ -138,6 +146,8 @@ class Effect:
             return p.replace(tissue=r(p.tissue, skin_thickness=SKIN_THICKNESS, skin_E=m))
         if self.name == "aspect":
             return p.with_inclusion(aspect=m)
+        if self.name == "core_shell":
+            return p.with_inclusion(core=CORE_FRACTION, core_ratio=m)
         if self.name == "offaxis":
             return p.with_inclusion(offset_x=m).replace(disc=r(p.disc, symmetry="full"))
         if self.name == "probe_moduli":
@@ -243,6 +253,17 @@ EFFECTS: dict[str, Effect] = {
             "inclusion off the probe axis by offset_x (full model)",
             cost=10.0,
             limits=(0.0, None),
+        ),
+        Effect(
+            "core_shell",
+            "mechanics",
+            "-",
+            1.0,
+            (0.3, 0.5, 1.0, 2.0, 3.0, 4.0),
+            (2.0, 4.0),
+            f"core/shell inclusion: a concentric core of {CORE_FRACTION:g} d whose modulus is this factor "
+            "times the shell's (the phantom's E)",
+            limits=(0.05, None),
         ),
         Effect(
             "probe_moduli",
@@ -464,7 +485,7 @@ FAMILIES: dict[str, Family] = {
 }
 
 #: every effect but those that need the full model (about ten quarter-model solves each)
-DEFAULT_CANDIDATES = tuple(n for n in EFFECTS if n not in ("offaxis", "tilt"))
+DEFAULT_CANDIDATES = tuple(n for n in EFFECTS if n not in NOT_DEFAULT)
 DEFAULT_FAMILIES = tuple(FAMILIES)
 
 

@@ -48,8 +48,9 @@ def geometry_key(p: SolveParams) -> str:
 
 def inclusion_modulus_only(a: SolveParams, b: SolveParams) -> bool:
     """Whether ``b`` differs from ``a`` by the inclusion's modulus alone (then both have the same
-    reference press: the inclusion's modulus set to the tissue's)."""
-    return a.with_inclusion(E=b.inclusion.E) == b
+    reference press: the inclusion's modulus set to the tissue's).  Never for a core/shell inclusion,
+    whose core's share of a modulus change depends on E (``materials.core_weight``)."""
+    return a.with_inclusion(E=b.inclusion.E) == b and a.inclusion.core == 0
 
 
 def group_by_geometry(params_list: Sequence[SolveParams]) -> list[list[int]]:

@@ -176,8 +176,10 @@ class Model:
         """Switch to ``p``, which differs from this model's parameters by the inclusion's modulus
         alone: the matrices, the factors and the last reference press stay valid (each press sets
         the inclusion's cells itself, ``solve_linear``; :func:`elastimap.solver.batch.solve_group`)."""
-        if self.p.with_inclusion(E=p.inclusion.E) != p:
-            raise ValueError("set_inclusion_modulus: the parameters differ by more than the inclusion's modulus")
+        if self.p.with_inclusion(E=p.inclusion.E) != p or p.inclusion.core > 0:
+            raise ValueError(
+                "set_inclusion_modulus: the parameters differ by more than the inclusion's modulus (or have a core)"
+            )
         self.p = self.materials.p = p
 
     @property
@@ -321,19 +323,26 @@ class Model:
         return reduced[key]
 
     def _assemble_unit_inclusion(self):
-        from .geometry import INCLUSION
-        from .materials import epsilon, sigma
+        from .geometry import CORE, INCLUSION
+        from .materials import core_weight, epsilon, sigma
 
-        cells = np.flatnonzero(self.space.markers == INCLUSION).astype(np.int32)
+        markers = self.space.markers
+        cells = np.flatnonzero(np.isin(markers, (INCLUSION, CORE))).astype(np.int32)
         if cells.size == 0:
             return None
         if getattr(self, "_a1", None) is None:
             from dolfinx import mesh as dmesh
 
-            tags = dmesh.meshtags(self.mesh, 3, cells, np.full(cells.size, INCLUSION, dtype=np.int32))
+            tags = dmesh.meshtags(self.mesh, 3, cells, markers[cells].astype(np.int32))
             dx = ufl.Measure("dx", domain=self.mesh, subdomain_data=tags)
             u, v = ufl.TrialFunction(self.V), ufl.TestFunction(self.V)
-            self._a1 = fem.form(ufl.inner(sigma(u, 1.0, self.materials.nu), epsilon(v)) * dx(INCLUSION))
+            a1 = ufl.inner(sigma(u, 1.0, self.materials.nu), epsilon(v)) * dx(INCLUSION)
+            if np.any(markers == CORE):  # a core/shell inclusion: the core takes w of each change
+                self._a1_core = fem.Constant(self.mesh, 0.0)
+                a1 = a1 + self._a1_core * ufl.inner(sigma(u, 1.0, self.materials.nu), epsilon(v)) * dx(CORE)
+            self._a1 = fem.form(a1)
+        if getattr(self, "_a1_core", None) is not None:
+            self._a1_core.value = core_weight(self.p)  # w follows the parameters (set_params)
         # A₁'s values live in the CSR matrix ``_a1_values`` (kept with the form; ``petsc_matrix``)
         self._a1_values, A1 = petsc_matrix(self._a1)
         fem.assemble_matrix(self._a1_values, self._a1)

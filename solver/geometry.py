@@ -36,8 +36,8 @@ import numpy as np
 
 from .params import SolveParams
 
-# cell markers
-TISSUE, INCLUSION, SKIN = 1, 2, 3
+# cell markers (CORE: the core of a core/shell inclusion, ``Inclusion.core``; the shell is INCLUSION)
+TISSUE, INCLUSION, SKIN, CORE = 1, 2, 3, 4
 PROBE_LAYER0 = 10  # layer i (0 = tissue side) gets PROBE_LAYER0 + i
 
 # mesh levels: (h0 probe/footprint mm, h_max mm, grading, inclusion resolution = elements per diameter);
@@ -172,17 +172,18 @@ def build_mesh(p: SolveParams) -> RawMesh:
             if p.tissue.skin_thickness > 0:
                 s = p.tissue.skin_thickness
                 parts.append((3, occ.addBox(x0, x0, T - s, L / 2 - x0, L / 2 - x0, s)))
-            sph = occ.addSphere(cx, cy, cz, r)
-            if quarter:
-                clip = occ.addBox(0, 0, 0, L / 2, L / 2, T)
-                sph_parts, _ = occ.intersect([(3, sph)], [(3, clip)])
-            else:
-                sph_parts = [(3, sph)]
-            if inc.aspect != 1.0:
-                # dilate after clipping (the centre lies on the symmetry planes, so they are kept);
-                # dilating the whole sphere first left an open seam loop that gmsh could not mesh
-                occ.dilate(sph_parts, cx, cy, cz, 1.0, 1.0, inc.aspect)
-            parts += sph_parts
+            for radius in (r, inc.core * r) if inc.core > 0 else (r,):
+                sph = occ.addSphere(cx, cy, cz, radius)
+                if quarter:
+                    clip = occ.addBox(0, 0, 0, L / 2, L / 2, T)
+                    sph_parts, _ = occ.intersect([(3, sph)], [(3, clip)])
+                else:
+                    sph_parts = [(3, sph)]
+                if inc.aspect != 1.0:
+                    # dilate after clipping (the centre lies on the symmetry planes, so they are kept);
+                    # dilating the whole sphere first left an open seam loop that gmsh could not mesh
+                    occ.dilate(sph_parts, cx, cy, cz, 1.0, 1.0, inc.aspect)
+                parts += sph_parts
             z = T
             for th, _E in p.probe.layers:
                 parts.append((3, occ.addBox(px0, px0, z, P / 2 - px0, P / 2 - px0, th)))
@@ -208,7 +209,7 @@ def build_mesh(p: SolveParams) -> RawMesh:
                         float(np.sum(rel**2)) < 1.0
                         and occ.getMass(dim, tag) < 1.01 * (4 / 3) * math.pi * r**3 * inc.aspect
                     ):
-                        vol_marker[tag] = INCLUSION
+                        vol_marker[tag] = CORE if _inside_core(occ.getBoundingBox(dim, tag), inc, cz) else INCLUSION
                     elif p.tissue.skin_thickness > 0 and c[2] > T - p.tissue.skin_thickness:
                         vol_marker[tag] = SKIN
                     else:
@@ -250,6 +251,20 @@ def build_mesh(p: SolveParams) -> RawMesh:
     markers = np.concatenate(markers)
     x, cells = split_probe(x, cells, markers >= PROBE_LAYER0)
     return RawMesh(x=x, cells=cells, markers=markers, seconds=time.perf_counter() - t0)
+
+
+def _inside_core(box, inc, cz: float) -> bool:
+    """Whether a volume with bounding box ``box`` (gmsh's x0, y0, z0, x1, y1, z1) lies within the
+    core of a core/shell inclusion (its half-widths at most core · d/2, 1 % slack): the core and the
+    shell both have their centre of mass at the inclusion's centre, their extents tell them apart."""
+    if inc.core <= 0:
+        return False
+    rc = 1.01 * inc.core * inc.d / 2
+    x0, y0, z0, x1, y1, z1 = box
+    return (
+        max(abs(x0 - inc.offset_x), abs(x1 - inc.offset_x), abs(y0 - inc.offset_y), abs(y1 - inc.offset_y)) <= rc
+        and max(abs(z0 - cz), abs(z1 - cz)) <= rc * inc.aspect
+    )
 
 
 def split_probe(x: np.ndarray, cells: np.ndarray, is_probe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

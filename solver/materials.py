@@ -17,7 +17,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
-from .geometry import INCLUSION, PROBE_LAYER0, SKIN, TISSUE
+from .geometry import CORE, INCLUSION, PROBE_LAYER0, SKIN, TISSUE
 from .params import SolveParams
 
 
@@ -89,11 +89,30 @@ def psi_blended(u, E, nu, beta):
     return (1 - beta) * psi_linear(u, E, nu) + beta * psi_neo_hookean(u, E, nu)
 
 
+def core_weight(p: SolveParams) -> float:
+    r"""w, the core's share of an inclusion-modulus change (``Inclusion.core``; 0 without a core).
+
+    A press sets every inclusion cell from one inclusion modulus E_inc (E_inc = E_t: the
+    reference press, the tissue without the inclusion; E_inc = E: the inclusion press).  The
+    core follows it affinely,
+
+    $$ E_{\rm core}(E_{\rm inc}) = E_t + w\,(E_{\rm inc} - E_t), \qquad
+       w = \frac{\kappa E - E_t}{E - E_t}, $$
+
+    so that E_core = E_t in the reference press, κE (κ = ``core_ratio``) in the inclusion press,
+    and the stiffness stays affine in E_inc (A(E) = A(E') + (E − E') A₁, A₁ with weight w on
+    the core: ``fem.Model``'s shared presses hold for a core/shell inclusion too).
+    """
+    inc, Et = p.inclusion, p.tissue.E
+    return (inc.core_ratio * inc.E - Et) / (inc.E - Et) if inc.core > 0 else 0.0
+
+
 class CellMaterials:
     """Piecewise-constant (DG0) fields E (kPa), ν and, with the finite-strain switch, β.
 
     Cells take their values from their marker: tissue (E_t, ν_t), skin (skin_E, ν_t),
-    inclusion (E, ν_inc), probe layer i (E_i, ν_probe).  β is ``Tissue.nonlinearity``
+    inclusion (E, ν_inc), a core/shell inclusion's core (:func:`core_weight`), probe layer i
+    (E_i, ν_probe).  β is ``Tissue.nonlinearity``
     on the tissue bodies and 0 on the probe (the PDMS is 10–60 times stiffer than the
     tissue, so its strains stay small); ``beta`` is None when the switch is off.
     """
@@ -128,6 +147,8 @@ class CellMaterials:
         E[m == TISSUE], nu[m == TISSUE] = p.tissue.E, p.tissue.nu
         E[m == SKIN], nu[m == SKIN] = p.tissue.skin_E, p.tissue.nu
         E[m == INCLUSION], nu[m == INCLUSION] = E_inclusion, p.inclusion.nu
+        w = core_weight(p)
+        E[m == CORE], nu[m == CORE] = p.tissue.E + w * (E_inclusion - p.tissue.E), p.inclusion.nu
         for i, (_th, El) in enumerate(p.probe.layers):
             sel = m == PROBE_LAYER0 + i
             E[sel], nu[sel] = El, p.probe.nu

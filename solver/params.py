@@ -74,6 +74,8 @@ PARAMETER_CONSTRAINTS = {
     "E": [_POSITIVE_KPA],
     "inclusion.nu": [_POISSON],
     "inclusion.aspect": [Interval(float, 0.2, 5.0)],
+    "inclusion.core": [Interval(float, 0, 0.9)],
+    "inclusion.core_ratio": [Interval(float, 0, None, closed="neither")],
     "probe.nu": [_POISSON],
     "force": [None, Interval(float, 0, None, closed="neither", unit="mN")],
     "tilt": [Interval(float, -0.1, 0.1, unit="rad")],
@@ -112,6 +114,8 @@ class Inclusion:
     ``aspect`` scales the vertical semi-axis (1 = sphere; the horizontal
     diameter stays ``d``).  ``offset_x``/``offset_y`` move the centre off the
     probe axis (breaks quarter symmetry: needs ``symmetry='full'``).
+    ``core`` > 0 makes it a core/shell inclusion: a concentric core of the same
+    shape, diameter ``core * d``, modulus ``core_ratio * E`` (``E`` the shell's).
     """
 
     d: float = 8.0  # mm
@@ -121,6 +125,9 @@ class Inclusion:
     aspect: float = 1.0
     offset_x: float = 0.0  # mm
     offset_y: float = 0.0  # mm
+    # effect switch (0 = a uniform inclusion); the core's modulus is core_ratio * E
+    core: float = 0.0
+    core_ratio: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -250,6 +257,8 @@ class SolveParams:
             "E": inc.E,
             "inclusion.nu": inc.nu,
             "inclusion.aspect": inc.aspect,
+            "inclusion.core": inc.core,
+            "inclusion.core_ratio": inc.core_ratio,
             "probe.nu": p.nu,
             "force": ld.force,
             "tilt": ld.tilt,
@@ -273,7 +282,7 @@ class SolveParams:
         """
         t, inc, p, ld, ds, im = self.tissue, self.inclusion, self.probe, self.loading, self.disc, self.image
         validate_params(self._named_values(), PARAMETER_CONSTRAINTS)
-        moduli = {"tissue.E": t.E, "tissue.skin_E": t.skin_E, "E": inc.E}
+        moduli = {"tissue.E": t.E, "tissue.skin_E": t.skin_E, "E": inc.E, "inclusion.core_E": inc.core_ratio * inc.E}
         moduli.update({f"probe.layer{i}.E": E for i, (_, E) in enumerate(p.layers, 1)})
         for name, value in moduli.items():
             check_range(name, value, *MODULUS_RANGE, unit="kPa")
@@ -293,6 +302,10 @@ class SolveParams:
                 f"centre depth must be in [{lo:g}, {hi:g}] mm for d = {inc.d:g} mm "
                 f"(>= 1 mm below the surface, >= 2 mm above the chest wall; got {inc.h:g})",
             )
+        if inc.core > 0 and inc.E == t.E:
+            raise UserError("inclusion.core", "a core needs the shell's modulus E to differ from the tissue's")
+        if inc.core > 0 and ds.geometry == "morph":
+            raise UserError("inclusion.core", "a core/shell inclusion needs geometry 'remesh'")
         if inc.h - half_height < t.skin_thickness:
             raise UserError("h", "the inclusion must lie below the skin layer")
         reach = max(abs(inc.offset_x), abs(inc.offset_y)) + inc.d / 2
@@ -405,6 +418,8 @@ EFFECT_DEFAULTS = {
     ("disc", "geometry"): "remesh",
     ("disc", "sizing"): "fixed",
     ("loading", "tilt"): 0.0,
+    ("inclusion", "core"): 0.0,
+    ("inclusion", "core_ratio"): 1.0,
 }
 
 
