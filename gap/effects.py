@@ -259,7 +259,7 @@ EFFECTS: dict[str, Effect] = {
             "mechanics",
             "-",
             1.0,
-            (0.3, 0.5, 1.0, 2.0, 3.0, 4.0),
+            (0.2, 0.5, 1.0, 2.0, 4.0, 10.0),
             (2.0, 4.0),
             f"core/shell inclusion: a concentric core of {CORE_FRACTION:g} d whose modulus is this factor "
             "times the shell's (the phantom's E)",
