@@ -121,3 +121,23 @@ def test_the_solve_command_pins_blas_threads_before_numpy_loads():
     r = _python(code, drop=("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"))
     assert r.returncode == 0, r.stderr[-800:]
     assert "AT NUMPY 1 1" in r.stdout, r.stdout[-500:]
+
+
+def test_the_first_solve_imports_the_stack_with_the_collector_paused_then_freezes_it():
+    """``api._import_the_stack``: the import objects go to the collector's permanent generation, the
+    collector runs again afterwards (a cycle made later is collected), and a process that imported
+    ``solver.fem`` itself is left as it was."""
+    code = (
+        "import gc, sys\nfrom elastimap.solver import solve\nfrom elastimap.solver.params import Discretisation, SolveParams\n"
+        "FIRST\n"
+        "p = SolveParams(disc=Discretisation(mesh='tiny')).with_inclusion(d=8.0, h=7.0, E=50.0)\n"
+        "r = solve(p)\nfrozen = gc.get_freeze_count()\n"
+        "import weakref\nclass Node: pass\na = Node(); a.me = a; alive = weakref.ref(a); del a\ngc.collect()\n"
+        "print('STATE', gc.isenabled(), frozen > 10000, alive() is None, 'elastimap.solver.fem' in sys.modules, r.O2 > 0)\n"
+    )
+    r = _python(code.replace("FIRST\n", ""))
+    assert r.returncode == 0, r.stderr[-800:]
+    assert "STATE True True True True True" in r.stdout, r.stdout[-500:]
+    r = _python(code.replace("FIRST\n", "import elastimap.solver.fem\n"))
+    assert r.returncode == 0, r.stderr[-800:]
+    assert "STATE True False True True True" in r.stdout, r.stdout[-500:]
