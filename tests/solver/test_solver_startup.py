@@ -141,3 +141,29 @@ def test_the_first_solve_imports_the_stack_with_the_collector_paused_then_freeze
     r = _python(code.replace("FIRST\n", "import elastimap.solver.fem\n"))
     assert r.returncode == 0, r.stderr[-800:]
     assert "STATE True False True True True" in r.stdout, r.stdout[-500:]
+
+
+def test_the_sampler_finds_the_cells_dolfinx_finds_from_all_candidates():
+    """``sampler.near_candidates`` drops only cells farther than its margin: the colliding cells of
+    every pixel (hence the cell each is evaluated in) are DOLFINx's from the whole candidate list."""
+    from elastimap.solver.geometry import build_mesh
+    from elastimap.solver.sampler import ImageSampler, near_candidates
+    from elastimap.solver.space import Space
+
+    # isort: split
+    from dolfinx import geometry  # after the solver's modules (solver/_boot.py)
+
+    cases = [("tiny", "quarter", 8.0, 7.0), ("coarse", "quarter", 3.0, 12.0), ("tiny", "full", 12.0, 9.0)]
+    for mesh, symmetry, d, h in cases:
+        p = SolveParams(disc=Discretisation(mesh=mesh, symmetry=symmetry)).with_inclusion(d=d, h=h, E=50.0)
+        space = Space(build_mesh(p), p)
+        sampler = ImageSampler(space, p)
+        tree = geometry.bb_tree(space.mesh, 3, entities=space.probe_cells)
+        every = geometry.compute_collisions_points(tree, sampler.points)
+        full = geometry.compute_colliding_cells(space.mesh, every, sampler.points)
+        assert len(every.array) > 2 * len(full.array)  # there is something to prune
+        pruned = geometry.compute_colliding_cells(
+            space.mesh, near_candidates(space.mesh, every, sampler.points), sampler.points
+        )
+        assert np.array_equal(pruned.array, full.array) and np.array_equal(pruned.offsets, full.offsets)
+        assert np.array_equal(sampler.cells, [full.links(i)[0] for i in range(len(sampler.points))])
