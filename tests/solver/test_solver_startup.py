@@ -167,3 +167,15 @@ def test_the_sampler_finds_the_cells_dolfinx_finds_from_all_candidates():
         )
         assert np.array_equal(pruned.array, full.array) and np.array_equal(pruned.offsets, full.offsets)
         assert np.array_equal(sampler.cells, [full.links(i)[0] for i in range(len(sampler.points))])
+
+
+def test_ucx_memory_hooks_are_off_unless_the_environment_says_otherwise():
+    """``solver/_boot.py`` sets ``UCX_MEM_EVENTS=no`` before ``mpi4py.MPI`` loads UCX, where the
+    environment does not set it; a given value is kept."""
+    code = "import os\nimport elastimap.solver._boot\nprint('UCX', os.environ['UCX_MEM_EVENTS'])\n"
+    r = _python(code, drop=("UCX_MEM_EVENTS",))
+    assert r.returncode == 0, r.stderr[-800:]
+    assert "UCX no" in r.stdout, r.stdout[-500:]
+    r = _python(code, UCX_MEM_EVENTS="yes")
+    assert r.returncode == 0, r.stderr[-800:]
+    assert "UCX yes" in r.stdout, r.stdout[-500:]
