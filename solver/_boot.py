@@ -9,6 +9,12 @@ Every module of ``solver`` that touches DOLFINx imports this module first.
   parallel sweep workers do not oversubscribe the machine (:mod:`._threads`).
 * PETSc is initialised on ``MPI.COMM_SELF`` so that independent worker
   processes (dask, mpi4py.futures) never wait on each other.
+* UCX, the network layer the wheel's MPICH loads with ``mpi4py.MPI``, is told not to hook the
+  process's memory calls (``UCX_MEM_EVENTS=no`` where the environment does not set it): the hooks
+  (binary patches of mmap/munmap/brk installed when the library loads) exist to keep a cache of
+  RDMA memory registrations valid, and a process here communicates with no other (every
+  communicator is ``COMM_SELF``); without them UCX registers memory uncached.  Loading
+  ``mpi4py.MPI`` then costs 0.01 instead of 0.03-0.05 s of CPU (docs/forward-model.md, 'Speed').
 * The DOLFINx JIT cache is checked for the poison left by a process killed
   mid-compile (a ``.c`` file without its ``.c.cached`` marker), which makes
   every later compile of that form time out; such leftovers are removed.
@@ -20,6 +26,8 @@ import os
 import sys
 
 from . import _threads  # noqa: F401  (OpenMP/BLAS threads pinned to 1)
+
+os.environ.setdefault("UCX_MEM_EVENTS", "no")  # read when mpi4py.MPI loads UCX (module docstring)
 
 
 def _distribution_names() -> list[str]:

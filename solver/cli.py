@@ -71,13 +71,16 @@ def sensor_option(help: str = "Sensor description (TOML; docs/howto/your-own-sen
 def _check_outputs(image_png: str | None, image_npy: str | None, vtx: str | None, sensor_path: str | None) -> None:
     """Every output location is checked before the solve starts."""
     from elastimap.errors import UserError
-    from elastimap.outputs import check_out_dir, check_out_file, figure_suffixes
 
     keep = {"--sensor": sensor_path}
 
     for flag, given in (("--image", image_png), ("--image-npy", image_npy), ("--vtx", vtx)):
         if given is not None and not str(given).strip():
             raise UserError(flag, "must be a path (got '')")
+    if not (image_png or image_npy or vtx):
+        return  # nothing to write: `elastimap.outputs` not imported (0.005 s; docs/forward-model.md, 'Speed')
+    from elastimap.outputs import check_out_dir, check_out_file, figure_suffixes
+
     if image_png:
         check_out_file(image_png, "--image", suffixes=figure_suffixes(), inputs=keep)
     if image_npy:
@@ -211,8 +214,8 @@ def cli(
     except SolverError as exc:  # a failed solve is a result to report, not a bug: one line, exit 1
         click.echo(f"error: {exc}", err=True)
         return 1
-    from elastimap.outputs import write_or_fallback
-
+    if image_npy or image_png:
+        from elastimap.outputs import write_or_fallback
     if image_npy:  # the array first: if the PNG then fails, the numbers are already safe
         import numpy as np
 

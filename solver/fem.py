@@ -50,7 +50,7 @@ from .interface import Friction, Interface, active_set
 from .materials import CellMaterials, psi_blended
 from .newton import Newton
 from .params import SolveParams
-from .reduction import CG_RTOL, LU, SINGLE_MIN_UNKNOWNS, Recycled, Reduction, Solution, ptap
+from .reduction import CG_RTOL, LU, SINGLE_MIN_UNKNOWNS, Recycled, Reduction, Solution
 from .sampler import ImageSampler
 from .space import Space, petsc_matrix
 
@@ -319,7 +319,7 @@ class Model:
             return A1
         if key not in reduced:
             reduced.clear()  # one active set at a time
-            reduced[key] = ptap(A1, Pm)
+            reduced[key] = self.reduction.restrict(A1, Pm)  # PᵀA₁P
         return reduced[key]
 
     def _assemble_unit_inclusion(self):

@@ -17,7 +17,7 @@ from . import _boot  # noqa: F401  (must precede dolfinx)
 # isort: split
 
 import numpy as np
-from dolfinx import fem, geometry
+from dolfinx import fem, geometry, graph
 
 from .errors import SolverError
 from .image import pixel_centres
@@ -37,9 +37,11 @@ class ImageSampler:
         pts = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, space.T)])
         msh = space.mesh
         tree = geometry.bb_tree(msh, 3, entities=space.probe_cells)
-        cand = geometry.compute_collisions_points(tree, pts)
+        cand = near_candidates(msh, geometry.compute_collisions_points(tree, pts), pts)
         cells = geometry.compute_colliding_cells(msh, cand, pts)
-        owner = np.array([cells.links(i)[0] if len(cells.links(i)) else -1 for i in range(len(pts))], dtype=np.int32)
+        found = np.diff(cells.offsets) > 0
+        owner = np.full(len(pts), -1, dtype=np.int32)
+        owner[found] = cells.array[cells.offsets[:-1][found]]  # the first colliding cell of each point
         if np.any(owner < 0):
             raise SolverError("image pixels fall outside the probe mesh")
         self.V = space.V
@@ -51,3 +53,32 @@ class ImageSampler:
         uf.x.array[: len(u)] = u
         vals = uf.eval(self.points, self.cells)[:, 2]
         return vals.reshape(self.shape) + delta
+
+
+def near_candidates(msh, cand: graph.AdjacencyList, pts: np.ndarray, margin: float = 1e-3) -> graph.AdjacencyList:
+    """``cand`` (the cells whose bounding box holds each point, DOLFINx's
+    ``compute_collisions_points``) without the cells certainly farther than ``margin`` (mm) from
+    their point, in the same order.
+
+    A point x lies at least max_i(−s_i) from a tetrahedron, s_i its signed distance to the plane of
+    face i (positive inside), so a cell with some s_i < −margin is farther than margin and fails
+    DOLFINx's exact test (``compute_colliding_cells``, a distance of about 1e-6 at most): the
+    colliding cells of the pruned list are those of the whole one, in the same order.  On the
+    probe bottom most candidates merely share the plane z = T; the exact test (GJK, 4 µs a pair)
+    then runs on about a fifth of them (0.016 → 0.004 s on `default`; docs/forward-model.md, 'Speed')."""
+    cells = cand.array
+    point = np.repeat(np.arange(len(pts)), np.diff(cand.offsets))
+    v = msh.geometry.x[msh.geometry.dofmaps[0][cells]]  # (pairs, 4 vertices, 3)
+    x = pts[point]
+    far = np.zeros(len(cells), dtype=bool)
+    with np.errstate(invalid="ignore", divide="ignore"):  # a degenerate face: NaN, the cell is kept
+        for i in range(4):
+            q0, q1, q2 = (v[:, j] for j in range(4) if j != i)
+            n = np.cross(q1 - q0, q2 - q0)
+            n *= np.sign(np.einsum("ij,ij->i", v[:, i] - q0, n))[:, None]  # towards vertex i: inward
+            s = np.einsum("ij,ij->i", x - q0, n) / np.linalg.norm(n, axis=1)
+            far |= s < -margin
+    keep = ~far
+    offsets = np.zeros(len(pts) + 1, dtype=np.int32)
+    np.cumsum(np.bincount(point[keep], minlength=len(pts)), out=offsets[1:])
+    return graph.adjacencylist(np.ascontiguousarray(cells[keep], dtype=np.int32), offsets)

@@ -65,7 +65,7 @@ class Space:
         self.probe_cell = self.markers >= PROBE_LAYER0
         self.probe_cells = np.flatnonzero(self.probe_cell).astype(np.int32)
         self.is_probe = np.zeros(self.nblocks, dtype=bool)
-        self.is_probe[np.unique(self.V.dofmap.list[self.probe_cell])] = True
+        self.is_probe[self.V.dofmap.list[self.probe_cell].ravel()] = True
 
         self.T, self.H, self.P = p.tissue.thickness, p.probe.height, p.probe.size
         self.tol = 1e-6 * max(self.T, self.P)

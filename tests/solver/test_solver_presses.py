@@ -252,3 +252,35 @@ def test_a_group_of_inclusion_moduli_keeps_its_reference_press(monkeypatch):
     batch.solve_group([ps[0], q])
     assert given == [False, False]
     assert batch.inclusion_modulus_only(ps[0], ps[2]) and not batch.inclusion_modulus_only(ps[0], q)
+
+
+@pytest.mark.parametrize("interface", ["tied", "bonded", "contact"])
+def test_restrict_is_ptap_bit_for_bit(interface, monkeypatch):
+    """``Reduction.restrict`` (PᵀA₁P by moving A₁'s entries) is the matrix ``ptap`` forms: pattern
+    and values; the whole A (tied pairs among its rows) goes to ``ptap`` itself."""
+    from elastimap.solver import reduction
+    from elastimap.solver.fem import Model
+    from elastimap.solver.geometry import build_mesh
+    from elastimap.solver.reduction import ptap
+
+    calls = []
+    monkeypatch.setattr(reduction, "ptap", lambda A, P: calls.append(A) or ptap(A, P))
+    p = dataclasses.replace(TINY, disc=Discretisation(mesh="tiny", interface=interface))
+    p = p.with_inclusion(d=8.0, h=7.0, E=50.0)
+    model = Model(build_mesh(p), p)
+    try:
+        model._assemble(p.tissue.E)
+        A1 = model._unit_inclusion()
+        active = model._all_closed()
+        if interface == "contact":
+            active[::3] = False  # some pairs open
+        Pm, _uD, _new = model.reduction.operator(3.0, active)
+        for M in (A1, model.A):
+            mine, ref = model.reduction.restrict(M, Pm), ptap(M, Pm)
+            for a, b in zip(mine.getValuesCSR(), ref.getValuesCSR()):
+                assert np.array_equal(a, b)
+            mine.destroy()
+            ref.destroy()
+        assert calls == [model.A]  # A₁ moved, A (tied rows) multiplied
+    finally:
+        model.destroy()

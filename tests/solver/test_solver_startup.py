@@ -49,10 +49,11 @@ def test_guard_still_refuses_a_petsc4py_distribution(tmp_path):
 
 
 def test_a_linear_solve_loads_neither_the_wheel_package_nor_dolfinx_fem_petsc():
+    """Nor scipy, nor numpy.ma (imported by the first plain ``np.unique``: 0.02 s)."""
     code = (
         "import sys\nfrom elastimap.solver import solve\nfrom elastimap.solver.params import Discretisation, SolveParams\n"
         "solve(SolveParams(disc=Discretisation(mesh='tiny')).with_inclusion(d=8.0, h=7.0, E=50.0))\n"
-        "print('LOADED', sorted(m for m in ('dolfinx_solver', 'dolfinx.fem.petsc', 'cffi.cparser', 'scipy')"
+        "print('LOADED', sorted(m for m in ('dolfinx_solver', 'dolfinx.fem.petsc', 'cffi.cparser', 'scipy', 'numpy.ma')"
         " if m in sys.modules))\n"
     )
     r = _python(code)
@@ -120,3 +121,61 @@ def test_the_solve_command_pins_blas_threads_before_numpy_loads():
     r = _python(code, drop=("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"))
     assert r.returncode == 0, r.stderr[-800:]
     assert "AT NUMPY 1 1" in r.stdout, r.stdout[-500:]
+
+
+def test_the_first_solve_imports_the_stack_with_the_collector_paused_then_freezes_it():
+    """``api._import_the_stack``: the import objects go to the collector's permanent generation, the
+    collector runs again afterwards (a cycle made later is collected), and a process that imported
+    ``solver.fem`` itself is left as it was."""
+    code = (
+        "import gc, sys\nfrom elastimap.solver import solve\nfrom elastimap.solver.params import Discretisation, SolveParams\n"
+        "FIRST\n"
+        "p = SolveParams(disc=Discretisation(mesh='tiny')).with_inclusion(d=8.0, h=7.0, E=50.0)\n"
+        "r = solve(p)\nfrozen = gc.get_freeze_count()\n"
+        "import weakref\nclass Node: pass\na = Node(); a.me = a; alive = weakref.ref(a); del a\ngc.collect()\n"
+        "print('STATE', gc.isenabled(), frozen > 10000, alive() is None, 'elastimap.solver.fem' in sys.modules, r.O2 > 0)\n"
+    )
+    r = _python(code.replace("FIRST\n", ""))
+    assert r.returncode == 0, r.stderr[-800:]
+    assert "STATE True True True True True" in r.stdout, r.stdout[-500:]
+    r = _python(code.replace("FIRST\n", "import elastimap.solver.fem\n"))
+    assert r.returncode == 0, r.stderr[-800:]
+    assert "STATE True False True True True" in r.stdout, r.stdout[-500:]
+
+
+def test_the_sampler_finds_the_cells_dolfinx_finds_from_all_candidates():
+    """``sampler.near_candidates`` drops only cells farther than its margin: the colliding cells of
+    every pixel (hence the cell each is evaluated in) are DOLFINx's from the whole candidate list."""
+    from elastimap.solver.geometry import build_mesh
+    from elastimap.solver.sampler import ImageSampler, near_candidates
+    from elastimap.solver.space import Space
+
+    # isort: split
+    from dolfinx import geometry  # after the solver's modules (solver/_boot.py)
+
+    cases = [("tiny", "quarter", 8.0, 7.0), ("coarse", "quarter", 3.0, 12.0), ("tiny", "full", 12.0, 9.0)]
+    for mesh, symmetry, d, h in cases:
+        p = SolveParams(disc=Discretisation(mesh=mesh, symmetry=symmetry)).with_inclusion(d=d, h=h, E=50.0)
+        space = Space(build_mesh(p), p)
+        sampler = ImageSampler(space, p)
+        tree = geometry.bb_tree(space.mesh, 3, entities=space.probe_cells)
+        every = geometry.compute_collisions_points(tree, sampler.points)
+        full = geometry.compute_colliding_cells(space.mesh, every, sampler.points)
+        assert len(every.array) > 2 * len(full.array)  # there is something to prune
+        pruned = geometry.compute_colliding_cells(
+            space.mesh, near_candidates(space.mesh, every, sampler.points), sampler.points
+        )
+        assert np.array_equal(pruned.array, full.array) and np.array_equal(pruned.offsets, full.offsets)
+        assert np.array_equal(sampler.cells, [full.links(i)[0] for i in range(len(sampler.points))])
+
+
+def test_ucx_memory_hooks_are_off_unless_the_environment_says_otherwise():
+    """``solver/_boot.py`` sets ``UCX_MEM_EVENTS=no`` before ``mpi4py.MPI`` loads UCX, where the
+    environment does not set it; a given value is kept."""
+    code = "import os\nimport elastimap.solver._boot\nprint('UCX', os.environ['UCX_MEM_EVENTS'])\n"
+    r = _python(code, drop=("UCX_MEM_EVENTS",))
+    assert r.returncode == 0, r.stderr[-800:]
+    assert "UCX no" in r.stdout, r.stdout[-500:]
+    r = _python(code, UCX_MEM_EVENTS="yes")
+    assert r.returncode == 0, r.stderr[-800:]
+    assert "UCX yes" in r.stdout, r.stdout[-500:]
