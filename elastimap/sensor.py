@@ -62,6 +62,10 @@ SCHEMA = 1
 MAX_NOISE_SCALE = 100.0
 #: probe-tissue interface models (solver/interface.py)
 INTERFACES = ("tied", "contact", "bonded")
+#: mm/kPa, the softest chest wall (``tissue.wall_compliance``; k_w = 0.1 kPa/mm): under the nominal
+#: 3 mm press the slab's bottom carries about 1 kPa (docs/forward-model.md, 'Chest wall'), so a softer
+#: wall would move more than the plate and the slab float on springs alone (a nearly singular press)
+WALL_COMPLIANCE_MAX = 10.0
 
 _POSITIVE_MM = Interval(float, 0, None, closed="neither", unit="mm")
 _POSITIVE_KPA = Interval(float, 0, None, closed="neither", unit="kPa")
@@ -118,7 +122,9 @@ class SlabSpec:
     """The tissue slab on a rigid chest wall: modulus (kPa), Poisson ratio, thickness and side (mm).
 
     ``skin_thickness`` > 0 adds a bonded skin layer of modulus ``skin_E``; ``nonlinearity`` in
-    [0, 1] blends in compressible neo-Hookean finite strain (0 = linear elastic).
+    [0, 1] blends in compressible neo-Hookean finite strain (0 = linear elastic);
+    ``wall_compliance`` (mm/kPa) > 0 makes the chest wall a soft (Winkler) foundation
+    (:class:`elastimap.solver.params.Tissue`; 0 = rigid, left out of the description and its hash).
     """
 
     E: float = 5.0
@@ -128,6 +134,7 @@ class SlabSpec:
     skin_thickness: float = 0.0
     skin_E: float = 5.0
     nonlinearity: float = 0.0
+    wall_compliance: float = 0.0
 
     def __post_init__(self):
         _as_floats(self)
@@ -245,6 +252,7 @@ FIELD_CONSTRAINTS = {
     "tissue.skin_thickness": [Interval(float, 0, None, unit="mm")],
     "tissue.skin_E": [_POSITIVE_KPA],
     "tissue.nonlinearity": [Interval(float, 0, 1)],
+    "tissue.wall_compliance": [Interval(float, 0, WALL_COMPLIANCE_MAX, unit="mm/kPa")],
     "loading.delta": [_POSITIVE_MM],
     "loading.force": [None, Interval(float, 0, None, closed="neither", unit="mN")],
     "loading.tilt": [Interval(float, -0.1, 0.1, unit="rad")],
@@ -317,6 +325,8 @@ class Sensor:
         d["camera"]["led_power"] = list(self.camera.led_power)
         del d["camera"]["footprint_mm"]  # one value: probe.footprint
         d["loading"] = {k: v for k, v in d["loading"].items() if v is not None}
+        if d["tissue"]["wall_compliance"] == 0:  # the rigid chest wall: descriptions and hashes as before
+            del d["tissue"]["wall_compliance"]
         return d
 
     @classmethod

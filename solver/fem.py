@@ -8,7 +8,8 @@ $$
 a(u, v) = \int_\Omega \sigma(u) : \varepsilon(v) \, {\rm d}x = 0 \quad \forall v,
 $$
 
-with u = 0 on the chest wall z = 0, u = (0, 0, −δ) on the probe top, u·n = 0 on
+with u = 0 on the chest wall z = 0 (or, for a compliant wall, the term of :func:`chest_wall_form`
+added to a), u = (0, 0, −δ) on the probe top, u·n = 0 on
 the symmetry planes of the quarter model, a traction-free tissue surface outside
 the probe, and the interface law on the footprint Γ.  Each part of the maths has
 its own module, with its equations next to its UFL:
@@ -128,10 +129,12 @@ class Model:
         self.mesh, self.V = space.mesh, space.V
         self.ndofs, self.ncells = space.ndofs, space.ncells
         self.materials = CellMaterials(space.mesh, space.markers, p)
-        self.a = fem.form(self.materials.stiffness_form(space.V))
+        a = self.materials.stiffness_form(space.V)
+        wall = chest_wall_form(space, p.tissue.wall_compliance)
+        self.a = fem.form(a if wall is None else a + wall)
         self.interface = Interface(space)
         bonded = p.disc.interface == "bonded"
-        self.reduction = Reduction(space, self.interface, (0, 1, 2) if bonded else (2,))
+        self.reduction = Reduction(space, self.interface, (0, 1, 2) if bonded else (2,), rigid_wall=wall is None)
         self.reduction.tilt = float(p.loading.tilt)
         kt = 0.0 if bonded else float(p.disc.friction_kt)
         self.friction = Friction(self.interface, kt, space.ndofs) if kt > 0 else None
@@ -213,7 +216,11 @@ class Model:
         psi = psi_blended(u_fun, m.E, m.nu, m.beta)
         # quadrature of degree 2(k-1): exact for the linear part (∇u of P_k is P_{k-1}), like a(u, v)
         dxq = ufl.dx(metadata={"quadrature_degree": max(2 * (self.p.disc.degree - 1), 1)})
-        R = ufl.derivative(psi * dxq, u_fun, ufl.TestFunction(V))
+        energy = psi * dxq
+        wall = chest_wall_form(self.space, self.p.tissue.wall_compliance, u_fun)
+        if wall is not None:  # the spring's energy ½ k_w |u|² on the chest wall (linear in u)
+            energy = energy + wall
+        R = ufl.derivative(energy, u_fun, ufl.TestFunction(V))
         J = ufl.derivative(R, u_fun, ufl.TrialFunction(V))
         return Newton(fem.form(R), fem.form(J), u_fun)
 
@@ -483,6 +490,42 @@ class Model:
         if self.A is not None:
             self.A.destroy()
             self.A = self._A_values = None
+
+
+#: the facet tag of the chest wall z = 0 in :func:`chest_wall_form`'s measure
+WALL_TAG = 1
+
+
+def chest_wall_form(space, compliance: float, u_energy=None):
+    r"""The compliant chest wall's term of the weak form; None for a rigid wall (``compliance`` 0).
+
+    A chest wall of compliance c_w (mm/kPa; ``Tissue.wall_compliance``) is an isotropic Winkler
+    foundation under the slab's bottom face Γ_w (z = 0): the traction there is t = −k_w u with
+    k_w = 1 / c_w (kPa/mm), which adds to a(u, v)
+
+    $$
+    a_w(u, v) = \int_{\Gamma_w} k_w \, u \cdot v \, {\rm d}s
+    $$
+
+    (kPa/mm · mm · mm · mm² = mN mm, like ∫ σ(u) : ε(v) dx), in place of the Dirichlet condition
+    u = 0 there (:class:`elastimap.solver.reduction.Reduction`, ``rigid_wall``).  With ``u_energy``
+    (a Function, the finite-strain path) it returns the spring's stored energy ½ ∫_Γw k_w |u|² ds
+    instead, whose derivatives are the same term.  The slab's outer faces stay traction-free; the
+    probe body has no face on z = 0.
+    """
+    if compliance == 0:
+        return None
+    from dolfinx import mesh as dmesh
+
+    msh = space.mesh
+    facets = dmesh.locate_entities_boundary(msh, 2, lambda x: np.abs(x[2]) < space.tol)
+    tags = dmesh.meshtags(msh, 2, facets.astype(np.int32), np.full(facets.size, WALL_TAG, dtype=np.int32))
+    ds = ufl.Measure("ds", domain=msh, subdomain_data=tags)(WALL_TAG)
+    k_w = fem.Constant(msh, PETSc.ScalarType(1.0 / compliance))  # kPa/mm
+    if u_energy is not None:
+        return 0.5 * k_w * ufl.inner(u_energy, u_energy) * ds
+    u, v = ufl.TrialFunction(space.V), ufl.TestFunction(space.V)
+    return k_w * ufl.inner(u, v) * ds
 
 
 def _mult(A: PETSc.Mat, x: np.ndarray) -> np.ndarray:

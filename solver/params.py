@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 from elastimap.constraints import Interval, Options, check_range, validate_params
 from elastimap.errors import UserError
-from elastimap.sensor import InterfaceSpec, Layer, LoadingSpec, ProbeSpec, SlabSpec
+from elastimap.sensor import WALL_COMPLIANCE_MAX, InterfaceSpec, Layer, LoadingSpec, ProbeSpec, SlabSpec
 
 if TYPE_CHECKING:  # numpy is not imported with the parameters (the `solve` command pins BLAS first)
     import numpy as np
@@ -70,6 +70,7 @@ PARAMETER_CONSTRAINTS = {
     "tissue.nu": [_POISSON],
     "tissue.skin_E": [_POSITIVE_KPA],
     "tissue.nonlinearity": [Interval(float, 0, 1)],
+    "tissue.wall_compliance": [Interval(float, 0, WALL_COMPLIANCE_MAX, unit="mm/kPa")],
     "d": [_INCLUSION_MM],
     "E": [_POSITIVE_KPA],
     "inclusion.nu": [_POISSON],
@@ -93,7 +94,14 @@ PARAMETER_CONSTRAINTS = {
 
 @dataclass(frozen=True)
 class Tissue:
-    """Tissue slab on a rigid chest wall (bottom face fixed)."""
+    r"""Tissue slab on the chest wall z = 0: rigid (bottom face fixed, the default) or compliant.
+
+    ``wall_compliance`` c_w (mm/kPa) > 0 puts the bottom face Γ_w on an elastic (Winkler)
+    foundation of stiffness k_w = 1 / c_w (kPa/mm) in every direction: the traction there is
+    t = −k_w u, and the weak form gains ∫_Γw k_w u·v ds (:mod:`elastimap.solver.fem`); a soft chest
+    wall (muscle over the ribs).  c_w = 0 is the rigid wall (u = 0 on Γ_w), exactly the model
+    before the switch (docs/forward-model.md, 'Chest wall').
+    """
 
     size: float = 120.0  # mm, square side length
     thickness: float = THICKNESS  # mm
@@ -104,6 +112,8 @@ class Tissue:
     # effect switch: 0 = linear elastic (default); 1 = compressible neo-Hookean finite strain for
     # the tissue, skin and inclusion; in between the stored energy is blended (solver/materials.py)
     nonlinearity: float = 0.0
+    # effect switch: chest-wall compliance c_w (mm/kPa); 0 = rigid chest wall (default)
+    wall_compliance: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -253,6 +263,7 @@ class SolveParams:
             "tissue.nu": t.nu,
             "tissue.skin_E": t.skin_E,
             "tissue.nonlinearity": t.nonlinearity,
+            "tissue.wall_compliance": t.wall_compliance,
             "d": inc.d,
             "E": inc.E,
             "inclusion.nu": inc.nu,
@@ -414,6 +425,7 @@ def delta_limit(params: SolveParams) -> float:
 # effect switches omitted from ``SolveParams.to_dict`` while at these defaults
 EFFECT_DEFAULTS = {
     ("tissue", "nonlinearity"): 0.0,
+    ("tissue", "wall_compliance"): 0.0,
     ("disc", "friction_kt"): 0.0,
     ("disc", "geometry"): "remesh",
     ("disc", "sizing"): "fixed",

@@ -1,6 +1,7 @@
 r"""Constraints by elimination: u = P ū + u_D, the reduced system PᵀAP ū = −PᵀA u_D, MUMPS LU.
 
-Dirichlet conditions (mm): u = 0 on the chest wall z = 0; u = (0, 0, −δ) (a tilted plate:
+Dirichlet conditions (mm): u = 0 on a rigid chest wall z = 0 (a compliant one,
+``Tissue.wall_compliance`` > 0, is a spring term of a(u, v) instead: :mod:`elastimap.solver.fem`); u = (0, 0, −δ) (a tilted plate:
 (0, 0, −(δ + θ x)), ``Loading.tilt`` θ in rad) on the
 probe top (bonded to the rigid plate, which moves down by δ); u·n = 0 on the
 symmetry planes x = 0, y = 0 of the quarter model.  The interface ties the
@@ -58,8 +59,9 @@ class Reduction:
     pattern with it, when the set changes.
     """
 
-    def __init__(self, space: Space, interface: Interface, tied_components: tuple[int, ...]):
+    def __init__(self, space: Space, interface: Interface, tied_components: tuple[int, ...], rigid_wall: bool = True):
         self.space, self.interface, self.tied = space, interface, tied_components
+        self.rigid_wall = rigid_wall  # u = 0 on the chest wall (False: the wall is a spring term of A)
         self.tilt = 0.0  # rad: a tilted plate, u_z = -(δ + tilt · x) on the probe top
         self._P = None
         self._Psp = None  # P as scipy CSR, made on first use (``P_csr``)
@@ -76,7 +78,8 @@ class Reduction:
         fixed = np.zeros(n, dtype=bool)
         uD = np.zeros(n)
         for comp in range(3):
-            fixed[3 * s.bottom + comp] = True
+            if self.rigid_wall:
+                fixed[3 * s.bottom + comp] = True
             fixed[3 * s.top + comp] = True
         uD[3 * s.top + 2] = -(delta + self.tilt * s.X[s.top, 0]) if self.tilt else -delta
         fixed[3 * s.sym_x + 0] = True

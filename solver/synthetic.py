@@ -19,7 +19,8 @@ with d, h in mm, E and the tissue modulus E_t in kPa and δ the indentation in m
 and profile sharpness depend on (d, h, E) differently, so the three features identify the three
 parameters.  The factors s_A, s_W and f react to every effect switch of ``SolveParams``
 (finite strain, interface stiffness k_t, a skin layer, the aspect ratio, the probe's first-layer
-modulus) so that the gap diagnosis can tell them apart.  The raw image adds a flat-punch-like
+modulus, the chest wall's compliance c_w: s_A = e^(−c_w (0.3 + 0.03 h)), s_W = 1 + 0.12 c_w, the force
+÷ (1 + 0.35 c_w), c_w in mm/kPa) so that the gap diagnosis can tell them apart.  The raw image adds a flat-punch-like
 probe compression with edge peaks; the force (mN) grows with √E_t.  Displacement loading only
 (``loading.force`` is ignored).
 
@@ -67,13 +68,16 @@ def synthetic_solve(p: SolveParams) -> SolveResult:
     amp = 0.03 * (delta / 3.0) * (inc.d / 8.0) ** 2.2 * (8.0 / inc.h) ** 1.6 * (max(inc.E - t.E, 0.0) / 45.0) ** 0.6
     amp *= (1 + 0.5 * beta * inc.d / 8.0) * (1 + 0.06 * fk) * np.exp(-0.12 * skin * 8.0 / inc.h)
     amp *= inc.aspect**0.9 * kprobe**-0.35
+    cw = t.wall_compliance  # mm/kPa: a soft chest wall takes part of the press, more so under deep inclusions
+    amp *= np.exp(-cw * (0.3 + 0.03 * inc.h))
     width = 0.35 * inc.d * (1.0 - 0.2 * np.log(inc.E / 50.0)) + 0.25 * inc.h
     width *= (1 - 0.04 * beta) * (1 + 0.2 * fk) * (1 + 0.1 * skin) * inc.aspect**0.25 * kprobe**0.3
+    width *= 1 + 0.12 * cw
     prof = (1.0 + 0.12 * inc.h) * (1 + 0.1 * fk)
     R = np.sqrt((X - inc.offset_x) ** 2 + (Y - inc.offset_y) ** 2)
     diff = amp * np.exp(-((R / width) ** prof))
     o1, o2, o3 = features(diff, pixel, p.image.threshold, p.image.supersample)
-    force = 1400.0 * (t.E / 5.0) ** 0.5 * (1 + 0.2 * beta) * (1 + 0.1 * fk)
+    force = 1400.0 * (t.E / 5.0) ** 0.5 * (1 + 0.2 * beta) * (1 + 0.1 * fk) / (1 + 0.35 * cw)
     return SolveResult(
         params=p,
         O1=o1,
