@@ -87,7 +87,7 @@ def effects_cmd():
     for e in fx.EFFECTS.values():
         click.echo(
             f"{e.name:14s} {e.stage:9s} nominal {e.nominal:g} {e.unit}; grid {list(e.grid)}; "
-            f"blind {list(e.blind)}  {e.description}"
+            f"blind {list(e.blind)}  {e.description}" + ("  [SYNTHETIC data only]" if e.name in fx.OUTSIDE_ONLY else "")
         )
     for f in fx.FAMILIES.values():
         click.echo(f"{f.name:14s} family    k = {f.n_params}: {', '.join(f.members)}  {f.description}")

@@ -157,10 +157,7 @@ def synthesize(
     for e, m in effects:
         if e.stage == "optics":
             true_sensor = e.apply_sensor(true_sensor, m)
-    table = np.asarray(dhe, float)
-    for e, m in effects:
-        if e.stage == "label":
-            table = e.apply_label(table, m, label_phantom)
+    table = _labelled(dhe, effects, label_phantom, sim.mesh, description)
     recs = sim.run(plist)
     rng = np.random.default_rng(seed)
     y, se, D, Dse = [], [], [], []
@@ -208,6 +205,23 @@ def synthesize(
         truth["label_phantom"] = ids[label_phantom]
         truth["true_dhe"] = [float(x) for x in np.asarray(dhe, float)[label_phantom]]
     return meas, truth
+
+
+def _labelled(dhe, effects, i: int, mesh: str, description) -> np.ndarray:
+    """The table the data are written with: ``dhe`` with the label effects applied to phantom ``i``
+    (checked to be a phantom a diagnosis accepts, before any solve)."""
+    table = np.asarray(dhe, float)
+    labels = [(e, m) for e, m in effects if e.stage == "label"]
+    for e, m in labels:
+        table = e.apply_label(table, m, i)
+    if labels:
+        try:
+            base_params(mesh, *table[i], sensor=description).validate()
+        except UserError as exc:
+            raise UserError(
+                "effect", f"the mislabelled phantom {i + 1} is no valid phantom ({exc.param}: {exc.message})"
+            ) from None
+    return table
 
 
 def seal(truth: dict, folder: str | Path) -> Path:

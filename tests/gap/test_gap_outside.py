@@ -69,6 +69,9 @@ def test_mislabelled_phantom_keeps_the_true_data(toy, dhe):
     assert truth["label_phantom"] == "P03" and truth["true_dhe"] == [float(x) for x in dhe[2]]
     with pytest.raises(UserError, match="label-phantom"):
         synth.synthesize(dhe, [(fx.get("mislabel_h"), -0.2)], toy, frames=3, label_phantom=6)
+    deep = int(np.argmax(dhe[:, 1]))  # a table no diagnosis would accept is refused before any solve
+    with pytest.raises(UserError, match="no valid phantom"):
+        synth.synthesize(dhe, [(fx.get("mislabel_h"), 0.45)], toy, frames=3, label_phantom=deep)
 
 
 def test_distorted_camera_changes_the_data_and_an_optics_effect_applies_once(toy, dhe):
