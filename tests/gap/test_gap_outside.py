@@ -121,3 +121,15 @@ def test_cli_refuses_outside_only_candidates_and_a_stray_label_phantom(tmp_path)
         r = subprocess.run(py + args, capture_output=True, text=True, cwd=ROOT)
         assert r.returncode == 2 and word in r.stderr and r.stderr.count("\n") == 1, r.stderr
         assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_a_fit_pinned_by_the_bounded_search_is_at_the_end_of_its_range():
+    """The bounded Brent search stops short of a bound it is pinned against by about its tolerance
+    (1e-7 of the range): a family's probe_E1 ended at 180.000024 for its grid end 180 on the
+    lens-distortion world L3 (docs/gap.md, 'Out-of-library checks'), which the end test of
+    before (1e-9 absolute) missed."""
+    from elastimap.gap.fit_models import END_RTOL, at_end
+
+    assert at_end(180.00002413380372, 180.0, 450.0) and at_end(450.0 - 1e-4, 180.0, 450.0)
+    assert not at_end(180.0 + 2 * END_RTOL * 270.0, 180.0, 450.0) and not at_end(300.0, 180.0, 450.0)
+    assert at_end(0.0, 0.0, 1.0) and not at_end(0.01, 0.0, 1.0)
