@@ -17,8 +17,8 @@ Model, per camera pixel (electrons, for one frame)::
 Two effect switches are off in the nominal camera: ``blur_mm`` convolves the light image
 (stray + scattered) with a Gaussian point-spread of that sigma (mm on the probe), and
 ``gamma`` != 1 makes the response a power law (FS = 2^bits - 1; gamma = 1 is the linear ADC).
-A third, ``lens_k1``, belongs to the synthetic camera only (:class:`SensorModel`, not the sensor
-description): radial lens distortion of the imaging (Brown-Conrady, first radial term),
+A third, ``lens_k1`` (0 in the nominal camera; a sensor description may give its lens's value),
+is radial lens distortion of the imaging (Brown-Conrady, first radial term),
 
     r_d = r_u * (1 + k1 * (r_u / R)^2),    R = footprint_mm / sqrt(2) (the footprint's half-diagonal)
 
@@ -72,7 +72,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from elastimap.constraints import check_range
 from elastimap.errors import UserError
 from elastimap.sensor import MAX_NOISE_SCALE, CameraSpec
 
@@ -83,20 +82,15 @@ __all__ = ["MAX_NOISE_SCALE", "SensorModel"]
 class SensorModel(CameraSpec):
     """The synthetic TIR camera (see the module docstring): the camera's parameters, declared and
     checked once in :class:`elastimap.sensor.CameraSpec` (the camera part of the sensor
-    description), with the optics that turn a deflection image into frames.
-
-    ``lens_k1`` (dimensionless; module docstring): radial lens distortion, the fractional radial
-    displacement of the footprint's corner; an effect switch of the synthetic camera only (a sensor
-    description has no such field: :meth:`of` and :meth:`spec` leave it at 0)."""
-
-    lens_k1: float = 0.0
+    description), with the optics that turn a deflection image into frames."""
 
     def validate(self) -> SensorModel:
-        """The sensor description's checks (:meth:`elastimap.sensor.CameraSpec.validate`) and
-        ``lens_k1`` in [-0.2, 0.5], with the distortion one-to-one over the whole frame
-        (dr_d/dr_u = 1 + 3 k1 (r_u/R)^2 > 0 out to the frame's corner); returns self."""
+        """The sensor description's checks (:meth:`elastimap.sensor.CameraSpec.validate`), and a
+        barrel distortion (``lens_k1`` < 0) one-to-one over the whole frame (dr_d/dr_u =
+        1 + 3 k1 (r_u/R)^2 > 0 out to the frame's corner); returns self."""
         super().validate()
-        check_range("lens_k1", self.lens_k1, -0.2, 0.5)
+        if self.lens_k1 >= 0.0:  # pincushion (or none) never folds
+            return self
         rho2 = self._frame_corner_mm() ** 2 / self._distortion_radius() ** 2
         if 1.0 + 3.0 * self.lens_k1 * rho2 <= 0.0:
             raise UserError(

@@ -625,6 +625,7 @@ def value_in(e: Effect, p, camera) -> float | None:
         "vignetting": lambda: camera.vignetting,
         "blur": lambda: camera.blur_mm,
         "gamma": lambda: camera.gamma,
+        "lens_distortion": lambda: camera.lens_k1,
         "stray_light": lambda: camera.stray,
     }
     return float(values[n]()) if n in values else e.nominal

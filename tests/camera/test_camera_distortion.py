@@ -1,5 +1,5 @@
-"""Radial lens distortion of the SYNTHETIC camera (``SensorModel.lens_k1``; docs/camera.md,
-'Optics model')."""
+"""Radial lens distortion of the SYNTHETIC camera (``lens_k1``; docs/camera.md, 'Synthetic TIR
+sensor model')."""
 
 import dataclasses
 
@@ -8,7 +8,7 @@ import pytest
 
 from elastimap.camera.optics import SensorModel
 from elastimap.errors import UserError
-from elastimap.sensor import CameraSpec, Sensor
+from elastimap.sensor import PAPER_HASH, CameraSpec, Sensor
 from elastimap.solver.synthetic import solve_dhe as toy_solve  # SYNTHETIC stand-in, not physics
 
 N = 200  # deflection image pixels across the 25 mm footprint
@@ -31,8 +31,9 @@ def _centroid(m: SensorModel, w: np.ndarray) -> tuple[float, float]:
 def test_zero_is_the_nominal_camera_bit_for_bit():
     m = SensorModel()
     assert m.lens_k1 == 0.0 and "lens_k1" not in m.to_dict()  # stable files and cache keys
-    assert set(m.to_dict()) == {f.name for f in dataclasses.fields(CameraSpec)} - {"blur_mm", "gamma"}
+    assert set(m.to_dict()) == {f.name for f in dataclasses.fields(CameraSpec)} - {"blur_mm", "gamma", "lens_k1"}
     assert SensorModel.of(Sensor()).lens_k1 == 0.0
+    assert "lens_k1" not in Sensor().to_dict()["camera"] and Sensor().hash() == PAPER_HASH  # descriptions of before
     toy = toy_solve(8.0, 8.0, 80.0)
     img = m.illumination()
     assert m.distort(img) is img
@@ -75,4 +76,7 @@ def test_bad_distortion_is_refused_and_dict_roundtrips():
             SensorModel(lens_k1=bad).validate()
     m = SensorModel(lens_k1=0.12)
     assert m.to_dict()["lens_k1"] == 0.12 and SensorModel.from_dict(m.to_dict()) == m
-    assert m.spec() == SensorModel().spec()  # not part of a sensor description
+    # a sensor description may hold its lens's distortion: another sensor, round-tripped
+    lab = Sensor(camera=CameraSpec(lens_k1=0.05)).validate()
+    assert lab.hash() != PAPER_HASH and Sensor.from_dict(lab.to_dict()) == lab
+    assert SensorModel.of(lab).lens_k1 == 0.05 and SensorModel.of(lab).spec() == lab.camera
