@@ -17,6 +17,18 @@ Model, per camera pixel (electrons, for one frame)::
 Two effect switches are off in the nominal camera: ``blur_mm`` convolves the light image
 (stray + scattered) with a Gaussian point-spread of that sigma (mm on the probe), and
 ``gamma`` != 1 makes the response a power law (FS = 2^bits - 1; gamma = 1 is the linear ADC).
+A third, ``lens_k1`` (0 in the nominal camera; a sensor description may give its lens's value),
+is radial lens distortion of the imaging (Brown-Conrady, first radial term),
+
+    r_d = r_u * (1 + k1 * (r_u / R)^2),    R = footprint_mm / sqrt(2) (the footprint's half-diagonal)
+
+r_u the distance (mm on the probe) of a probe point from the optical axis (the probe axis, the
+window's centre), r_d where the camera images it (in the same mm); so k1 is the fractional radial
+displacement of the footprint's corner (0.02: a point at the corner imaged 2 % farther out;
+k1 > 0 pincushion, k1 < 0 barrel).  The light image (stray + scattered, before the blur) is
+resampled at r_u(r_d) (Newton on the cubic; bilinear); k1 = 0 skips it (the nominal camera, bit
+for bit).  It is the effect ``lens_distortion`` of :mod:`elastimap.gap.effects` (outside-only:
+never a diagnosis candidate; docs/gap.md, 'Effects library').
 
 * ``w`` is the raw probe-bottom deflection of the FEM (``SolveResult.image_raw``,
   mm of probe compression *including* the flat-punch edge peaks), bilinearly
@@ -71,6 +83,20 @@ class SensorModel(CameraSpec):
     """The synthetic TIR camera (see the module docstring): the camera's parameters, declared and
     checked once in :class:`elastimap.sensor.CameraSpec` (the camera part of the sensor
     description), with the optics that turn a deflection image into frames."""
+
+    def validate(self) -> SensorModel:
+        """The sensor description's checks (:meth:`elastimap.sensor.CameraSpec.validate`), and a
+        barrel distortion (``lens_k1`` < 0) one-to-one over the whole frame (dr_d/dr_u =
+        1 + 3 k1 (r_u/R)^2 > 0 out to the frame's corner); returns self."""
+        super().validate()
+        if self.lens_k1 >= 0.0:  # pincushion (or none) never folds
+            return self
+        rho2 = self._frame_corner_mm() ** 2 / self._distortion_radius() ** 2
+        if 1.0 + 3.0 * self.lens_k1 * rho2 <= 0.0:
+            raise UserError(
+                "lens_k1", f"folds the image inside the frame (k1 {self.lens_k1:g} < {-1 / (3 * rho2):.3g})"
+            )
+        return self
 
     def replace(self, **changes) -> SensorModel:
         return dataclasses.replace(self, **changes)
@@ -139,15 +165,60 @@ class SensorModel(CameraSpec):
         n = self.window[2]
         return -self.footprint_mm / 2 + self.pixel_mm * (np.arange(n) + 0.5)
 
-    # --------------------------------------------------------------- optics
-    def illumination(self) -> np.ndarray:
-        """Relative illumination L over the full frame (mean 1 over the window)."""
+    def frame_coordinates(self) -> tuple[np.ndarray, np.ndarray]:
+        """(X, Y): mm on the probe of every frame pixel's centre (the probe axis at 0), each of
+        the frame's shape."""
         rows, cols = self.shape
-        r0, c0, n = self.window
+        r0, c0, _ = self.window
         p = self.pixel_mm
         y = -self.footprint_mm / 2 + p * (np.arange(rows) - r0 + 0.5)
         x = -self.footprint_mm / 2 + p * (np.arange(cols) - c0 + 0.5)
-        X, Y = np.meshgrid(x, y)
+        return np.meshgrid(x, y)
+
+    def _distortion_radius(self) -> float:
+        """R of the distortion (mm): the footprint's half-diagonal."""
+        return self.footprint_mm / math.sqrt(2.0)
+
+    def _frame_corner_mm(self) -> float:
+        X, Y = self.frame_coordinates()
+        return float(np.sqrt(X**2 + Y**2).max())
+
+    # --------------------------------------------------------------- optics
+    def undistorted_radius(self, r_d: np.ndarray) -> np.ndarray:
+        """r_u (mm) of the probe point the camera images at r_d (mm): the root of
+        r_u (1 + k1 (r_u/R)^2) = r_d (Newton from r_u = r_d; one-to-one where :meth:`validate`
+        allows k1, converged to 1e-12 mm)."""
+        r_d = np.asarray(r_d, dtype=float)
+        a = self.lens_k1 / self._distortion_radius() ** 2
+        r = r_d.copy()
+        for _ in range(50):
+            step = (r + a * r**3 - r_d) / (1.0 + 3.0 * a * r**2)
+            r -= step
+            if np.all(np.abs(step) < 1e-12):
+                break
+        return r
+
+    def distort(self, img: np.ndarray) -> np.ndarray:
+        """The frame-shaped light image ``img`` as the distorting lens images it: the camera pixel
+        at (x_d, y_d) sees the probe point (x_d, y_d) r_u/r_d (bilinear; edge values beyond the
+        frame).  k1 = 0: ``img`` itself."""
+        if self.lens_k1 == 0.0:
+            return img
+        X, Y = self.frame_coordinates()
+        r_d = np.sqrt(X**2 + Y**2)
+        scale = np.ones_like(r_d)
+        nz = r_d > 0
+        scale[nz] = self.undistorted_radius(r_d[nz]) / r_d[nz]
+        r0, c0, _ = self.window
+        p = self.pixel_mm
+        col = (X * scale + self.footprint_mm / 2) / p + c0 - 0.5
+        row = (Y * scale + self.footprint_mm / 2) / p + r0 - 0.5
+        return ndimage.map_coordinates(img, [row, col], order=1, mode="nearest")
+
+    def illumination(self) -> np.ndarray:
+        """Relative illumination L over the full frame (mean 1 over the window)."""
+        r0, c0, n = self.window
+        X, Y = self.frame_coordinates()
         a = self.footprint_mm / 2 + self.led_gap
         leds = ((-a, 0.0), (a, 0.0), (0.0, -a), (0.0, a))
         L = np.zeros_like(X)
@@ -186,6 +257,8 @@ class SensorModel(CameraSpec):
         inside[r0 : r0 + n, c0 : c0 + n] = True
         L = self.illumination()
         rel = self.stray * L + self.level * L * self.scatter(w) * inside
+        if self.lens_k1 != 0.0:  # radial lens distortion of the light image (module docstring)
+            rel = self.distort(rel)
         if self.blur_mm > 0:  # point-spread of the light image: Gaussian, sigma blur_mm on the probe
             rel = ndimage.gaussian_filter(rel, self.blur_mm / self.pixel_mm, mode="nearest")
         return self.binning**2 * self.full_well_e * rel
@@ -236,7 +309,7 @@ class SensorModel(CameraSpec):
 
 
 # effect switches of the camera left out of ``SensorModel.to_dict`` while at these defaults
-SWITCH_DEFAULTS = {"blur_mm": 0.0, "gamma": 1.0}
+SWITCH_DEFAULTS = {"blur_mm": 0.0, "gamma": 1.0, "lens_k1": 0.0}
 
 
 def background_deflection(image_raw: np.ndarray, image_diff: np.ndarray) -> np.ndarray:

@@ -188,6 +188,7 @@ class CameraSpec:
     # effect switches (the nominal camera has neither): optical point-spread and response gamma
     blur_mm: float = 0.0  # sigma (mm on the probe) of a Gaussian point-spread of the light image
     gamma: float = 1.0  # response exponent: DN = FS * (electrons / (b^2 FW))^gamma
+    lens_k1: float = 0.0  # radial lens distortion: fractional displacement of the footprint corner
     # sensor noise
     full_well_e: float = 9000.0  # electrons per native pixel at full scale
     read_noise_e: float = 10.0  # electrons rms per native pixel
@@ -232,6 +233,7 @@ class CameraSpec:
         check_range("vignetting", self.vignetting, 0, 0.9)
         check_range("blur_mm", self.blur_mm, 0, 5, unit="mm")
         check_range("gamma", self.gamma, 0.3, 3)
+        check_range("lens_k1", self.lens_k1, -0.2, 0.5)
         check_range("full_well_e", self.full_well_e, 1)
         check_range("read_noise_e", self.read_noise_e, 0)
         check_range("dark_e", self.dark_e, 0)
@@ -324,6 +326,8 @@ class Sensor:
         d["probe"]["layers"] = [dict(l) for l in d["probe"]["layers"]]
         d["camera"]["led_power"] = list(self.camera.led_power)
         del d["camera"]["footprint_mm"]  # one value: probe.footprint
+        if d["camera"]["lens_k1"] == 0.0:  # no distortion: the descriptions (and hashes) of before
+            del d["camera"]["lens_k1"]
         d["loading"] = {k: v for k, v in d["loading"].items() if v is not None}
         if d["tissue"]["wall_compliance"] == 0:  # the rigid chest wall: descriptions and hashes as before
             del d["tissue"]["wall_compliance"]

@@ -87,7 +87,7 @@ def effects_cmd():
     for e in fx.EFFECTS.values():
         click.echo(
             f"{e.name:14s} {e.stage:9s} nominal {e.nominal:g} {e.unit}; grid {list(e.grid)}; "
-            f"blind {list(e.blind)}  {e.description}"
+            f"blind {list(e.blind)}  {e.description}" + ("  [SYNTHETIC data only]" if e.name in fx.OUTSIDE_ONLY else "")
         )
     for f in fx.FAMILIES.values():
         click.echo(f"{f.name:14s} family    k = {f.n_params}: {', '.join(f.members)}  {f.description}")
@@ -139,6 +139,11 @@ def effects_cmd():
 @click.option(
     "--force-noise", type=float, default=None, help="Also 'measure' the plate force with this relative error."
 )
+@click.option(
+    "--label-phantom",
+    default=None,
+    help="Id of the phantom whose table entry a label effect (mislabel_d/h/E) changes [default: the first].",
+)
 @common
 def synth_cmd(
     out,
@@ -154,6 +159,7 @@ def synth_cmd(
     fmt,
     interface,
     force_noise,
+    label_phantom,
     cache,
     backend,
     jobs,
@@ -176,6 +182,11 @@ def synth_cmd(
         if n < 4:
             raise UserError("n", f"need at least 4 phantoms (got {n})")
         dhe = synth.phantom_design(n, seed)
+    names = ids or [f"P{i + 1:02d}" for i in range(len(dhe))]
+    if label_phantom is not None and label_phantom not in names:
+        raise UserError("label-phantom", f"{label_phantom!r} is not a phantom id (ids: {', '.join(names[:5])}, ...)")
+    if label_phantom is not None and not any(e.stage == "label" for e, _ in effs):
+        raise UserError("label-phantom", "needs a label effect in --effect (mislabel_d, mislabel_h, mislabel_E)")
     sim = _sim(cache or default_cache(), mesh, backend, jobs, no_progress)
     if force_noise is not None and not force_noise > 0:
         raise UserError("force-noise", "must be > 0")
@@ -190,6 +201,7 @@ def synth_cmd(
         disc={"interface": interface} if interface and interface != base_interface else None,
         force_noise=force_noise,
         description=sensor,
+        label_phantom=0 if label_phantom is None else names.index(label_phantom),
     )
 
     def _write(folder):
@@ -376,7 +388,7 @@ def error_mesh_sim(error_mesh, sim, cache, backend, jobs, no_progress):
     "--outside",
     default="aspect,skin,led_imbalance,stray_light",
     show_default=True,
-    help="Effects drawn for out-of-library trials (never candidates).",
+    help="Effects drawn for out-of-library trials (never candidates; also lens_distortion, mislabel_d/h/E).",
 )
 @click.option("--n-phantoms", type=int, default=12, show_default=True, help="Phantoms per trial.")
 @click.option("--frames", type=int, default=10, show_default=True, help="Camera frames per phantom.")
@@ -439,7 +451,7 @@ def selftest_cmd(
         check_out_dir(out, "out", allow_existing=True)
     if out and Path(out).exists() and any(Path(out).iterdir()):
         raise UserError("out", f"{out} exists and is not empty (not overwritten)")
-    outs = fx.parse_list(outside)
+    outs = fx.parse_list(outside, outside_only=True, flag="outside")
     cands = selftest.default_candidates([e.name for e in outs]) if effects is None else fx.parse_list(effects)
     if {e.name for e in cands} & {e.name for e in outs}:
         raise UserError("outside", "an outside effect is also a candidate")

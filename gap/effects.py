@@ -14,7 +14,6 @@ magnitudes for the fitting sweep and a "blind" range the self-test draws true ma
 | skin | mechanics | ``Tissue.skin_thickness`` = 1 mm, ``Tissue.skin_E`` | skin modulus (kPa) | none (5) |
 | aspect | mechanics | ``Inclusion.aspect`` | vertical/horizontal axis ratio (-) | 1 |
 | offaxis | mechanics | ``Inclusion.offset_x`` (full model, ~10x cost) | offset (mm) | 0 |
-| core_shell | mechanics | ``Inclusion.core`` = 0.6, ``Inclusion.core_ratio`` | core modulus / shell modulus (-) | 1 |
 | probe_moduli | mechanics | ``Probe.layers`` moduli x factor | factor (-) | 1 |
 | background_E | mechanics | ``Tissue.E`` | tissue modulus (kPa) | 5 |
 | probe_E1, probe_E2, probe_E3 | mechanics | ``Probe.layers[i]`` modulus | layer modulus (kPa) | 300, 150, 50 |
@@ -30,6 +29,21 @@ magnitudes for the fitting sweep and a "blind" range the self-test draws true ma
 | gamma | optics | ``SensorModel.gamma`` | response exponent (-) | 1 |
 | led_imbalance | optics | ``SensorModel.led_power[0]`` | left LED power (-) | 1 |
 | stray_light | optics | ``SensorModel.stray`` | stray light (fraction of full well) | 0.02 |
+
+**Outside-only effects** (:data:`OUTSIDE_ONLY`): they make SYNTHETIC data (``gap synth --effect``,
+``gap selftest --outside``) for the out-of-library checks and are never diagnosis candidates (the
+library holds no correction for them; :func:`parse_list` refuses them as candidates):
+
+| name | stage | switch | magnitude (unit) | nominal |
+|---|---|---|---|---|
+| core_shell | mechanics | ``Inclusion.core`` = 0.6, ``Inclusion.core_ratio`` | core modulus / shell modulus (-) | 1 |
+| lens_distortion | optics | ``SensorModel.lens_k1`` | radial displacement at the footprint corner (-) | 0 |
+| mislabel_d, mislabel_h, mislabel_E | label | one phantom's table entry x (1 + m) | relative error (-) | 0 |
+
+A **label** effect changes no solve and no camera: the data are those of the true phantom, and
+the table written beside them records that phantom's d, h or E (1 + m) times its true value (a
+phantom-labelling error; :meth:`Effect.apply_label`).  It acts on one phantom, the synthesizer's
+``label_phantom`` (``gap synth --label-phantom``, default the first; the self-test draws it).
 
 Multi-parameter **families** (:data:`FAMILIES`) combine single effects whose physics has several
 parameters: ``probe_layers_E`` (the three layer moduli, k = 3) and ``probe_layers_t`` (the three
@@ -62,18 +76,18 @@ REMESHING = frozenset(
 )
 #: effects whose discretisation error does not carry over from the baseline (``Effect.own_model_error``)
 OWN_ERROR = REMESHING | {"tissue_nu"}
+#: effects that only make SYNTHETIC data (out-of-library checks), never diagnosis candidates
+OUTSIDE_ONLY = frozenset({"core_shell", "lens_distortion", "mislabel_d", "mislabel_h", "mislabel_E"})
+#: the table column each label effect mislabels
+LABEL_COLUMN = {"mislabel_d": 0, "mislabel_h": 1, "mislabel_E": 2}
 SKIN_THICKNESS = 1.0  # mm, thickness of the skin layer switched on by the ``skin`` effect
 CORE_FRACTION = 0.6  # core diameter / inclusion diameter of the ``core_shell`` effect
-#: effects never among the default candidates: ``offaxis`` and ``tilt`` (full model, ~10x cost: name
-#: them with ``--effects``) and ``core_shell``, an effect of the lesions themselves kept to test the
-#: library's reach (``gap synth --effect``, ``gap selftest --outside``)
-NOT_DEFAULT = ("offaxis", "tilt", "core_shell")
 
 
 @dataclass(frozen=True)
 class Effect:
     name: str
-    stage: str  # "mechanics" or "optics"
+    stage: str  # "mechanics", "optics" or "label" (a phantom-labelling error, outside-only)
     unit: str
     nominal: float
     grid: tuple[float, ...]  # magnitudes of the fitting sweep (includes the nominal)
@@ -189,7 +203,20 @@ class Effect:
             return s.replace(led_power=(s.led_power[0] * float(m),) + tuple(s.led_power[1:]))
         if self.name == "stray_light":
             return s.replace(stray=float(m))
+        if self.name == "lens_distortion":
+            return s.replace(lens_k1=float(m))
         raise AssertionError(self.name)
+
+    def apply_label(self, dhe, m: float, i: int):
+        """The phantom table (n, 3: d mm, h mm, E kPa) as a labelling error ``m`` records it (label
+        effects): phantom ``i``'s d, h or E times (1 + m), every other entry as given (a copy)."""
+        import numpy as np
+
+        out = np.array(dhe, dtype=float, copy=True)
+        if self.stage != "label" or self.is_nominal(m):
+            return out
+        out[i, LABEL_COLUMN[self.name]] *= 1.0 + float(m)
+        return out
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -467,6 +494,32 @@ EFFECTS: dict[str, Effect] = {
             "stray light reaching the camera without deformation (fraction of full well)",
             limits=(0.0, 0.5),
         ),
+        # ---- outside-only (OUTSIDE_ONLY): SYNTHETIC data for the out-of-library checks
+        Effect(
+            "lens_distortion",
+            "optics",
+            "-",
+            0.0,
+            (-0.2, -0.1, 0.0, 0.1, 0.2, 0.3),
+            (0.1, 0.4),
+            "radial lens distortion (Brown-Conrady k1): fractional radial displacement at the "
+            "footprint corner (> 0 pincushion); outside-only",
+            limits=(-0.2, 0.5),
+        ),
+        *(
+            Effect(
+                f"mislabel_{q}",
+                "label",
+                "-",
+                0.0,
+                (-0.3, -0.15, 0.0, 0.15, 0.3),
+                (0.1, 0.25),
+                f"phantom-labelling error: one phantom's table {q} is (1 + m) times the true one, its "
+                "data the true phantom's; outside-only",
+                limits=(-0.5, None),
+            )
+            for q in ("d", "h", "E")
+        ),
     )
 }
 
@@ -504,7 +557,7 @@ FAMILIES: dict[str, Family] = {
 }
 
 #: every effect but those that need the full model (about ten quarter-model solves each)
-DEFAULT_CANDIDATES = tuple(n for n in EFFECTS if n not in NOT_DEFAULT)
+DEFAULT_CANDIDATES = tuple(n for n in EFFECTS if n not in ("offaxis", "tilt") and n not in OUTSIDE_ONLY)
 DEFAULT_FAMILIES = tuple(FAMILIES)
 
 
@@ -514,15 +567,28 @@ def get(name: str) -> Effect:
     return EFFECTS[name]
 
 
-def parse_list(text: str | None, default=DEFAULT_CANDIDATES, table: dict[str, Effect] | None = None) -> list[Effect]:
+def parse_list(
+    text: str | None,
+    default=DEFAULT_CANDIDATES,
+    table: dict[str, Effect] | None = None,
+    outside_only: bool = False,
+    flag: str = "effects",
+) -> list[Effect]:
     """The candidate effects named in ``text`` (default: ``default``), from ``table`` (the library
-    about another sensor, :func:`for_sensor`; default :data:`EFFECTS`)."""
+    about another sensor, :func:`for_sensor`; default :data:`EFFECTS`).  An outside-only effect
+    (:data:`OUTSIDE_ONLY`) is refused unless ``outside_only`` (the self-test's out-of-library
+    list); ``flag`` names the option in the error."""
     table = EFFECTS if table is None else table
     if text is None or text.strip() == "":
         return [table[n] for n in default if n in table]
     names = [t.strip() for t in text.split(",") if t.strip()]
     if len(set(names)) != len(names):
-        raise UserError("effects", "names an effect twice")
+        raise UserError(flag, "names an effect twice")
+    bad = [n for n in names if n in OUTSIDE_ONLY] if not outside_only else []
+    if bad:
+        raise UserError(
+            flag, f"{bad[0]} makes SYNTHETIC data only (gap synth --effect, gap selftest --outside), not a candidate"
+        )
     missing = [n for n in names if n in EFFECTS and n not in table]
     if missing:
         raise UserError("effects", f"{missing[0]} does not apply to this sensor (its probe has no such layer)")
@@ -596,6 +662,7 @@ def value_in(e: Effect, p, camera) -> float | None:
         "vignetting": lambda: camera.vignetting,
         "blur": lambda: camera.blur_mm,
         "gamma": lambda: camera.gamma,
+        "lens_distortion": lambda: camera.lens_k1,
         "stray_light": lambda: camera.stray,
     }
     return float(values[n]()) if n in values else e.nominal

@@ -27,6 +27,18 @@ from .views import cat
 
 #: points of the dense magnitude grid a fit starts from
 NDENSE = 401
+#: a fit within this fraction of its range from an end is at that end (:func:`at_end`)
+END_RTOL = 1e-6
+
+
+def at_end(m: float, lo: float, hi: float) -> bool:
+    """Whether the fit ``m`` sits at an end of the range [lo, hi] it was fitted over: within
+    ``END_RTOL`` of the range's width.  The fits end with a bounded Brent search (xatol 1e-7 of
+    the range), which stops short of a bound it is pinned against by about its tolerance (a
+    family's probe_E1 at 180.000024 for the grid end 180: docs/gap.md, 'Out-of-library checks');
+    the range extension uses the same 1e-6 of the range (:meth:`elastimap.gap.effects.Effect.beyond`)."""
+    tol = END_RTOL * max(hi - lo, 1e-300)
+    return abs(m - lo) <= tol or abs(m - hi) <= tol
 
 
 def _interp_error(g: np.ndarray, Y: np.ndarray) -> np.ndarray:
@@ -223,8 +235,7 @@ class Single:
         return [(out[0], out[1])]
 
     def at_edge(self, th) -> bool:
-        m = float(th[0])
-        return bool(len(self.grid) > 1 and (abs(m - self.lo) < 1e-9 or abs(m - self.hi) < 1e-9))
+        return bool(len(self.grid) > 1 and at_end(float(th[0]), self.lo, self.hi))
 
     def params_at(self, p, th):
         return self.effect.apply_params(p, float(th[0]))
@@ -325,10 +336,7 @@ class Composed:
         return [(float(max(a, t - 1.96 * s)), float(min(b, t + 1.96 * s))) for (a, b), t, s in zip(self.bounds, th, sd)]
 
     def at_edge(self, th) -> bool:
-        return any(
-            len(m.grid) > 1 and (abs(t - a) < 1e-9 or abs(t - b) < 1e-9)
-            for m, (a, b), t in zip(self.members, self.bounds, th)
-        )
+        return any(len(m.grid) > 1 and at_end(t, a, b) for m, (a, b), t in zip(self.members, self.bounds, th))
 
     def params_at(self, p, th):
         for m, t in zip(self.members, th):

@@ -18,7 +18,9 @@ three kinds:
   right when the reported set (the winner, or the ambiguity set) holds it; its fitted magnitude
   is scored against its 95 % interval;
 * **out** -- one effect that is *not* among the candidates (``outside``, default
-  aspect, skin, led_imbalance, stray_light): answering "explained" or "ambiguous" is a
+  aspect, skin, led_imbalance, stray_light; the outside-only ``lens_distortion`` and the
+  phantom-labelling errors ``mislabel_d``, ``mislabel_h``, ``mislabel_E`` may be named too, a
+  labelling error on one phantom drawn per trial): answering "explained" or "ambiguous" is a
   confident wrong attribution.
 
 The label is sealed (a SHA-256 commitment is visible; it opens only once the answer is
@@ -135,12 +137,22 @@ def run(
     for t in range(trials):
         kind = KINDS[t % len(KINDS)]
         truth, effs = _draw(kind, candidates, outside, order, n_out, rng)
+        if any(e.stage == "label" for e, _ in effs):  # its own stream: the other draws stay as they were
+            truth["label_phantom"] = int(np.random.default_rng([seed, t]).integers(n_phantoms))
         n_out += kind == "out"
         sealed = Sealed(truth, salt=f"{seed}-{t}-{rng.integers(1 << 30)}")
         if t < start:  # resumed run: the draws of the earlier trials are replayed, not their work
             continue
         try:
-            meas, _ = synthesize(dhe, effs, sim_data, frames=frames, seed=seed * 1000 + t, disc=data_disc)
+            meas, _ = synthesize(
+                dhe,
+                effs,
+                sim_data,
+                frames=frames,
+                seed=seed * 1000 + t,
+                disc=data_disc,
+                label_phantom=truth.get("label_phantom", 0),
+            )
         except UserError as exc:  # the data could not be made: the trial is void (not scored), the run goes on
             opened = sealed.open(prediction_recorded=True)
             void.append({"trial": t, **opened, "error": str(exc)})
@@ -169,6 +181,8 @@ def run(
         }
         truth = sealed.open(prediction_recorded=True)
         rec.update(kind=truth["kind"], true_effect=truth["effect"], true_magnitude=truth["magnitude"])
+        if "label_phantom" in truth:
+            rec["label_phantom"] = meas.ids[truth["label_phantom"]]
         _score(rec, truth, ev)
         out_trials.append(rec)
         if log:

@@ -4,7 +4,9 @@ camera model with noise.  Everything it writes says SYNTHETIC.
 ``synthesize(phantoms, effects, sim, ...)``: for every phantom (d, h, E) the mechanics effects
 switch the solver, the optics effects switch the camera (:class:`elastimap.camera.optics.SensorModel`),
 ``frames`` noisy lesion and background frames are rendered and the camera features (with their
-standard errors from the frame scatter) and the denoised difference image are kept.  The true
+standard errors from the frame scatter) and the denoised difference image are kept; a label effect
+(a phantom-labelling error, :meth:`elastimap.gap.effects.Effect.apply_label`) leaves the data of the
+true phantom and writes phantom ``label_phantom``'s d, h or E wrong in the table.  The true
 effects are returned separately (and written to ``SEALED_truth.json``, never read by the
 diagnosis).
 """
@@ -121,18 +123,23 @@ def synthesize(
     disc: dict | None = None,
     force_noise: float | None = None,
     description=None,
+    label_phantom: int = 0,
 ) -> tuple[Measured, dict]:
     """``disc`` overrides fields of the solver's ``Discretisation`` (e.g. ``{"interface": "contact"}``)
     so that the data come from another formulation than the diagnosis; ``force_noise`` (relative
     standard error) adds a measured plate force.  ``description``: the lab's sensor
     (:class:`elastimap.sensor.Sensor`; default the paper's), whose camera is ``sensor`` unless
-    given; ``effects`` come on top of it (take them from ``effects.for_sensor(description)``)."""
+    given; ``effects`` come on top of it (take them from ``effects.for_sensor(description)``).
+    ``label_phantom``: the index of the phantom whose table entry a label effect changes (the
+    solves and frames are of the true ``dhe``)."""
     validate_params(
         {"frames": frames, "seed": seed, "noise_scale": noise_scale, "force_noise": force_noise},
         _parameter_constraints,
     )
     for id_ in ids or ():
         check_name(id_, "ids", "id")
+    if not 0 <= label_phantom < len(dhe):
+        raise UserError("label-phantom", f"must name one of the {len(dhe)} phantoms (got index {label_phantom})")
     if sensor is None and description is not None:
         sensor = SensorModel.of(description)
     sensor = (sensor or SensorModel()).validate()
@@ -146,9 +153,11 @@ def synthesize(
         for e, m in effects:
             if e.stage == "mechanics":
                 p = e.apply_params(p, m)
-            else:
-                true_sensor = e.apply_sensor(true_sensor, m)
         plist.append(p)
+    for e, m in effects:
+        if e.stage == "optics":
+            true_sensor = e.apply_sensor(true_sensor, m)
+    table = _labelled(dhe, effects, label_phantom, sim.mesh, description)
     recs = sim.run(plist)
     rng = np.random.default_rng(seed)
     y, se, D, Dse = [], [], [], []
@@ -174,7 +183,7 @@ def synthesize(
     form = f"mesh {sim.mesh}" + "".join(f", {k} {v}" for k, v in (disc or {}).items())
     meas = Measured(
         ids,
-        np.asarray(dhe, float),
+        table,
         np.asarray(y),
         np.asarray(se),
         np.full(n, np.nan),
@@ -192,7 +201,27 @@ def synthesize(
         description,
     )
     truth = {"effects": [{"name": e.name, "magnitude": float(m), "unit": e.unit} for e, m in effects], "label": label}
+    if any(e.stage == "label" for e, _ in effects):
+        truth["label_phantom"] = ids[label_phantom]
+        truth["true_dhe"] = [float(x) for x in np.asarray(dhe, float)[label_phantom]]
     return meas, truth
+
+
+def _labelled(dhe, effects, i: int, mesh: str, description) -> np.ndarray:
+    """The table the data are written with: ``dhe`` with the label effects applied to phantom ``i``
+    (checked to be a phantom a diagnosis accepts, before any solve)."""
+    table = np.asarray(dhe, float)
+    labels = [(e, m) for e, m in effects if e.stage == "label"]
+    for e, m in labels:
+        table = e.apply_label(table, m, i)
+    if labels:
+        try:
+            base_params(mesh, *table[i], sensor=description).validate()
+        except UserError as exc:
+            raise UserError(
+                "effect", f"the mislabelled phantom {i + 1} is no valid phantom ({exc.param}: {exc.message})"
+            ) from None
+    return table
 
 
 def seal(truth: dict, folder: str | Path) -> Path:

@@ -9,7 +9,7 @@ from elastimap.solver.params import SolveParams
 
 def test_core_shell_is_an_outside_effect_of_the_lesion():
     e = fx.get("core_shell")
-    assert e.stage == "mechanics" and "core_shell" not in fx.DEFAULT_CANDIDATES
+    assert e.stage == "mechanics" and "core_shell" in fx.OUTSIDE_ONLY and "core_shell" not in fx.DEFAULT_CANDIDATES
     assert "core_shell" in fx.REMESHING and e.own_model_error  # a new mesh (the core's surface) each
     p = SolveParams()
     assert e.apply_params(p, e.nominal) == p
