@@ -22,11 +22,6 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
-def toy():
-    return Simulator(None, "tiny", "toy")
-
-
-@pytest.fixture(scope="module")
 def dhe():
     return synth.phantom_design(10, 0)
 

@@ -53,11 +53,6 @@ class FormToy:
 
 
 @pytest.fixture(scope="module")
-def toy():
-    return Simulator(None, "tiny", "toy")
-
-
-@pytest.fixture(scope="module")
 def dhe():
     return synth.phantom_design(10, 0)
 

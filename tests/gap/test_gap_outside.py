@@ -21,11 +21,6 @@ NEW = ("core_shell", "lens_distortion", "mislabel_d", "mislabel_h", "mislabel_E"
 
 
 @pytest.fixture(scope="module")
-def toy():
-    return Simulator(None, "tiny", "toy")
-
-
-@pytest.fixture(scope="module")
 def dhe():
     return synth.phantom_design(6, 0)
 
