@@ -286,17 +286,6 @@ EFFECTS: dict[str, Effect] = {
             limits=(0.0, None),
         ),
         Effect(
-            "core_shell",
-            "mechanics",
-            "-",
-            1.0,
-            (0.2, 0.5, 1.0, 2.0, 4.0, 10.0),
-            (2.0, 4.0),
-            f"core/shell inclusion: a concentric core of {CORE_FRACTION:g} d whose modulus is this factor "
-            "times the shell's (the phantom's E)",
-            limits=(0.05, None),
-        ),
-        Effect(
             "probe_moduli",
             "mechanics",
             "-",
@@ -495,6 +484,17 @@ EFFECTS: dict[str, Effect] = {
             limits=(0.0, 0.5),
         ),
         # ---- outside-only (OUTSIDE_ONLY): SYNTHETIC data for the out-of-library checks
+        Effect(
+            "core_shell",
+            "mechanics",
+            "-",
+            1.0,
+            (0.2, 0.5, 1.0, 2.0, 4.0, 10.0),
+            (2.0, 4.0),
+            f"core/shell inclusion: a concentric core of {CORE_FRACTION:g} d whose modulus is this factor "
+            "times the shell's (the phantom's E); outside-only",
+            limits=(0.05, None),
+        ),
         Effect(
             "lens_distortion",
             "optics",
