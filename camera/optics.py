@@ -257,8 +257,7 @@ class SensorModel(CameraSpec):
         inside[r0 : r0 + n, c0 : c0 + n] = True
         L = self.illumination()
         rel = self.stray * L + self.level * L * self.scatter(w) * inside
-        if self.lens_k1 != 0.0:  # radial lens distortion of the light image (module docstring)
-            rel = self.distort(rel)
+        rel = self.distort(rel)  # radial lens distortion of the light image (module docstring; none at k1 = 0)
         if self.blur_mm > 0:  # point-spread of the light image: Gaussian, sigma blur_mm on the probe
             rel = ndimage.gaussian_filter(rel, self.blur_mm / self.pixel_mm, mode="nearest")
         return self.binning**2 * self.full_well_e * rel
