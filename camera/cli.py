@@ -339,9 +339,7 @@ def calibrate(
     """Fit O_FEM = a O_cam + b per feature on the nine calibration phantoms (paper 3.3); solve the
     deflection calibration camera frames need (image models, --refine) and learn the model-form error
     the --refine fit carries (docs/model-form.md, 'How the fit carries it')."""
-    from elastimap.dataset.phantoms import read_phantoms
     from elastimap.dataset.schema import PHANTOMS_CSV
-    from elastimap.outputs import check_out_dir, check_out_file, figure_suffixes
     from elastimap.sensor import Sensor
 
     from . import calibration as C
@@ -350,24 +348,9 @@ def calibrate(
     desc = _description(sensor_json)
     delta = (desc or Sensor()).loading.delta if delta is None else delta
     settings = _settings(threshold, smooth_px, combine)
-    from .deflection import MAX_FRAMES, MIN_FRAMES
-
-    if not MIN_FRAMES <= frames <= MAX_FRAMES:  # the deflection calibration measures the noise from the frames' scatter
-        raise UserError("--frames", f"must be in [{MIN_FRAMES}, {MAX_FRAMES}] (got {frames})")
-    ph = read_phantoms(phantoms, min_rows=3, why="to fit a calibration line")
-    level = _refine_level(refine_level, mesh)
-    if report_loo and level is None:
-        raise UserError("--report-loo", "needs the model-form error (--refine-level not none)")
-    # every input read and every output location checked before anything is solved or written
-    fem_given = C.fem_features_from_csv(fem_features, ph) if fem_features else None
-    keep = {"--phantoms": phantoms, "--camera-csv": camera_csv, "--fem-features": fem_features, "--sensor": sensor_json}
-    check_out_file(out, "--out", inputs=keep)
-    png = plot or os.path.splitext(out)[0] + ".png"
-    if os.path.abspath(png) == os.path.abspath(out):
-        raise UserError("--plot", f"{png} is also --out; give the figure another name")
-    check_out_file(png, "--plot", suffixes=figure_suffixes(), inputs=keep)
-    if write_frames:
-        check_out_dir(write_frames, "--write-frames", allow_existing=True)
+    ph, level, fem_given, png = _calibrate_inputs(
+        phantoms, camera_csv, fem_features, sensor_json, frames, refine_level, mesh, report_loo, out, plot, write_frames
+    )
     synthetic = camera_csv is None
     fem_fn = C.default_fem(mesh, delta, desc)
     if synthetic:
@@ -378,34 +361,71 @@ def calibrate(
         fem = fem_given
     defl = C.deflection_calibration(results, pairs, model)
     if press_uncertainty:
-        from .deflection import PRESS_POWER, uninformed
-
-        click.echo("solving the press's alternatives (contact, neighbouring level) ...", err=True)
-        th0 = [float(ph.iloc[0][k]) for k in ("d", "h", "E")]
-        sd = C.press_uncertainty(th0, results[0], mesh, delta, desc)
-        defl["press_sd"] = uninformed(sd, [r.image for r in results], PRESS_POWER).tolist()
+        defl["press_sd"] = _press_sd(ph, results, mesh, delta, desc)
     disc = None if level is None else _learn_model_form(ph, pairs, defl, level, model, desc, report_loo)
-    cal = C.fit_calibration(
-        ph,
-        fem,
-        cam,
-        settings.to_dict(),
-        model.to_dict(),
-        synthetic,
-        {
-            "mesh": mesh,
-            "delta": delta,
-            "frames": frames,
-            "phantoms_file": str(phantoms or PHANTOMS_CSV),
-            "camera_csv": camera_csv,
-            "fem_features": fem_features,
-            "refine_level": level,
-            **({"sensor_description": desc.to_dict(), "sensor_hash": desc.hash()} if desc else {}),
-        },
-        defl,
-        disc,
-    )
+    run = {
+        "mesh": mesh,
+        "delta": delta,
+        "frames": frames,
+        "phantoms_file": str(phantoms or PHANTOMS_CSV),
+        "camera_csv": camera_csv,
+        "fem_features": fem_features,
+        "refine_level": level,
+        **({"sensor_description": desc.to_dict(), "sensor_hash": desc.hash()} if desc else {}),
+    }
+    cal = C.fit_calibration(ph, fem, cam, settings.to_dict(), model.to_dict(), synthetic, run, defl, disc)
+    _write_calibration(cal, out, png)
+
+
+def _calibrate_inputs(
+    phantoms, camera_csv, fem_features, sensor_json, frames, refine_level, mesh, report_loo, out, plot, write_frames
+):
+    """``calibrate``'s inputs read and every output location checked before anything is solved or
+    written: (the phantoms' table, the model-form error's mesh level or None, the FEM features of
+    --fem-features or None, the figure's path)."""
+    from elastimap.dataset.phantoms import read_phantoms
+    from elastimap.outputs import check_out_dir, check_out_file, figure_suffixes
+
+    from . import calibration as C
+    from .deflection import MAX_FRAMES, MIN_FRAMES
+
+    if not MIN_FRAMES <= frames <= MAX_FRAMES:  # the deflection calibration measures the noise from the frames' scatter
+        raise UserError("--frames", f"must be in [{MIN_FRAMES}, {MAX_FRAMES}] (got {frames})")
+    ph = read_phantoms(phantoms, min_rows=3, why="to fit a calibration line")
+    level = _refine_level(refine_level, mesh)
+    if report_loo and level is None:
+        raise UserError("--report-loo", "needs the model-form error (--refine-level not none)")
+    fem_given = C.fem_features_from_csv(fem_features, ph) if fem_features else None
+    keep = {"--phantoms": phantoms, "--camera-csv": camera_csv, "--fem-features": fem_features, "--sensor": sensor_json}
+    check_out_file(out, "--out", inputs=keep)
+    png = plot or os.path.splitext(out)[0] + ".png"
+    if os.path.abspath(png) == os.path.abspath(out):
+        raise UserError("--plot", f"{png} is also --out; give the figure another name")
+    check_out_file(png, "--plot", suffixes=figure_suffixes(), inputs=keep)
+    if write_frames:
+        check_out_dir(write_frames, "--write-frames", allow_existing=True)
+    return ph, level, fem_given, png
+
+
+def _press_sd(ph, results, mesh: str, delta: float, desc) -> list:
+    """The flat field's press uncertainty (docs/camera.md, 'The flat field's press uncertainty'):
+    the spread (mm) of elastimap's own models of the background press (contact interface,
+    neighbouring mesh level; two extra solves at the first phantom, ``delta`` mm) where the
+    phantoms' images do not see it (:func:`elastimap.camera.deflection.uninformed`)."""
+    from . import calibration as C
+    from .deflection import PRESS_POWER, uninformed
+
+    click.echo("solving the press's alternatives (contact, neighbouring level) ...", err=True)
+    th0 = [float(ph.iloc[0][k]) for k in ("d", "h", "E")]
+    sd = C.press_uncertainty(th0, results[0], mesh, delta, desc)
+    return uninformed(sd, [r.image for r in results], PRESS_POWER).tolist()
+
+
+def _write_calibration(cal, out: str, png: str) -> None:
+    """Write the calibration JSON (--out) and its figure (--plot), then report them."""
     from elastimap.outputs import write_or_fallback
+
+    from . import calibration as C
 
     write_or_fallback(cal.save, out, "--out")
     os.makedirs(os.path.dirname(os.path.abspath(png)), exist_ok=True)

@@ -466,12 +466,39 @@ def refine_estimates(
     model cannot reproduce the image at the stated noise), ``at_design_edge:q`` for each parameter
     the fit ended on the design box's edge with (then nothing is reportable); ``input`` gains
     ``+fem_refined``."""
-    from elastimap.identify.fit import fit_image
-    from elastimap.identify.forward_maps import check_correct, fit_maps
-
     if not 0 < image_noise < 1:
         raise UserError("image_noise", f"must be in (0, 1) (got {image_noise:g})")
     imgs = _images_to_refine(ests, images)
+    forward, forward_alt, forward_fine, intervals = _refine_maps(
+        mesh, correct, geometry, sensor, forward, forward_alt, forward_fine, intervals
+    )
+    fit_options = dict(
+        forward_alt=forward_alt,
+        forward_fine=forward_fine,
+        coords=coords,
+        max_passes=max_passes,
+        fine=fine,
+        intervals=intervals,
+        discrepancy=discrepancy,
+        pixel=pixel,
+        shared=press,
+    )
+    for i, (e, img) in enumerate(zip(ests, imgs)):
+        if "no_signal" not in e.flags:
+            _take_fit(e, _fit_estimate(e, img, image_noise, forward, fit_options), threshold, chi2_limit)
+        if progress:
+            progress(i + 1, len(ests))
+    return ests
+
+
+def _refine_maps(mesh, correct, geometry, sensor, forward, forward_alt, forward_fine, intervals):
+    """The fit's (forward, forward_alt, forward_fine, intervals) of :func:`refine_estimates`: the
+    maps given, the solver's (:func:`elastimap.identify.forward_maps.fit_maps` at ``mesh``, its
+    neighbouring level and ``correct``) where ``forward`` is not, and the intervals given, else
+    the calibrated ones only where all the maps are the solver's at the calibrated levels
+    ("gauss" when any map was given).  ``correct`` is checked first (a :class:`UserError`)."""
+    from elastimap.identify.forward_maps import check_correct, fit_maps
+
     check_correct(mesh, correct)
     given = forward is not None or forward_alt is not None or forward_fine is not None
     if forward is None:
@@ -481,31 +508,20 @@ def refine_estimates(
         forward_fine = maps.forward_fine if forward_fine is None else forward_fine
     if intervals is None:  # calibrated only for the solver's own maps at the calibrated levels
         intervals = "gauss" if given else maps.intervals
-    for i, (e, img) in enumerate(zip(ests, imgs)):
-        if "no_signal" not in e.flags:
-            n = int(round(math.sqrt(img.size)))
-            img2 = img.reshape(n, n) if n * n == img.size else img
-            pk = np.abs(img).max()
-            sig = np.asarray(e.sigma, float).reshape(img2.shape) if e.sigma is not None else image_noise * pk
-            r = fit_image(
-                img2,
-                sig,
-                e.mean,
-                forward,
-                forward_alt=forward_alt,
-                forward_fine=forward_fine,
-                coords=coords,
-                max_passes=max_passes,
-                fine=fine,
-                intervals=intervals,
-                discrepancy=discrepancy,
-                pixel=pixel,
-                shared=press,
-            )
-            _take_fit(e, r, threshold, chi2_limit)
-        if progress:
-            progress(i + 1, len(ests))
-    return ests
+    return forward, forward_alt, forward_fine, intervals
+
+
+def _fit_estimate(e: Estimate, img: np.ndarray, image_noise: float, forward, fit_options: dict):
+    """The fit (:func:`elastimap.identify.fit.fit_image`) of image ``img`` (mm; square images
+    as n x n) from estimate ``e``'s mean: the pixel noise is ``e.sigma`` where the frames
+    measured it (mm), else ``image_noise`` x the image's peak |img|."""
+    from elastimap.identify.fit import fit_image
+
+    n = int(round(math.sqrt(img.size)))
+    img2 = img.reshape(n, n) if n * n == img.size else img
+    pk = np.abs(img).max()
+    sig = np.asarray(e.sigma, float).reshape(img2.shape) if e.sigma is not None else image_noise * pk
+    return fit_image(img2, sig, e.mean, forward, **fit_options)
 
 
 def _images_to_refine(ests: list[Estimate], images) -> list[np.ndarray]:

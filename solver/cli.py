@@ -189,18 +189,41 @@ def cli(
 
     Example: elastimap solve --d 8 --h 7 --E 50 --json --image inclusion.png
     """
-    ctx = click.get_current_context()
-    given = lambda name: ctx.get_parameter_source(name) in (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)
     flags = dict(layers=layers, nu=nu, tissue_E=tissue_E, thickness=thickness, delta=delta, force=force)
-    sensor = sensor_with_flags(sensor_path, {**flags, "interface": interface}, given)
-    lesion_nu = nu if (given("nu") or not sensor_path) else sensor.tissue.nu
     disc = Discretisation(
         mesh=mesh, degree=degree, symmetry="full" if full else "quarter", geometry=geometry, sizing=sizing
     )
-    p = from_sensor(
-        sensor, Inclusion(d=d, h=h, E=E, nu=lesion_nu), disc, ImageSpec(pixel=pixel, threshold=threshold)
-    ).validate()
+    sensor, p = _solve_params(sensor_path, flags, interface, Inclusion(d=d, h=h, E=E), disc, pixel, threshold)
     _check_outputs(image_png, image_npy, vtx, sensor_path)  # before the solve, not after it
+    res = _run_solve(p, vtx)
+    if res is None:
+        return 1
+    _write_images(res, image_npy, image_png, f"difference image d={d:g} mm h={h:g} mm E={E:g} kPa")
+    if as_json:
+        from elastimap.provenance import stamp
+
+        click.echo(json.dumps({**res.summary(), **sensor.record(), **stamp()}))
+    else:
+        _print_summary(res, p, sensor, sensor_path, f"d = {d:g} mm, h = {h:g} mm, E = {E:g} kPa", mesh, full)
+    return 0
+
+
+def _solve_params(sensor_path, flags: dict, interface: str, lesion: Inclusion, disc, pixel: float, threshold: float):
+    """(sensor, validated parameters) of ``solve``: the ``--sensor`` description with the sensor
+    ``flags`` and ``--interface`` given applied (:func:`sensor_with_flags`), the lesion ``(d, h, E)``
+    with the ``--nu`` given (else the file's tissue ν), the discretisation and the image grid
+    (``pixel`` and ``threshold`` mm)."""
+    ctx = click.get_current_context()
+    given = lambda name: ctx.get_parameter_source(name) in (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT)
+    sensor = sensor_with_flags(sensor_path, {**flags, "interface": interface}, given)
+    lesion_nu = flags["nu"] if (given("nu") or not sensor_path) else sensor.tissue.nu
+    p = from_sensor(sensor, replace(lesion, nu=lesion_nu), disc, ImageSpec(pixel=pixel, threshold=threshold)).validate()
+    return sensor, p
+
+
+def _run_solve(p, vtx):
+    """The solve of ``p`` (with its displacement field written to ``vtx`` when given); a failed
+    solve is a result to report, not a bug: one line on stderr and None (the command exits 1)."""
     from .api import solve
     from .errors import SolverError
 
@@ -208,12 +231,16 @@ def cli(
         if vtx:
             from .api import solve_with_fields
 
-            res = solve_with_fields(p, vtx)
-        else:
-            res = solve(p)
-    except SolverError as exc:  # a failed solve is a result to report, not a bug: one line, exit 1
+            return solve_with_fields(p, vtx)
+        return solve(p)
+    except SolverError as exc:
         click.echo(f"error: {exc}", err=True)
-        return 1
+        return None
+
+
+def _write_images(res, image_npy, image_png, title: str) -> None:
+    """``--image-npy`` (the difference image, mm) and ``--image`` (its PNG with the raw
+    deflection, titled ``title`` and the features)."""
     if image_npy or image_png:
         from elastimap.outputs import write_or_fallback
     if image_npy:  # the array first: if the PNG then fails, the numbers are already safe
@@ -223,36 +250,33 @@ def cli(
     if image_png:
         from .plot import save_image_png
 
-        title = (
-            f"difference image d={d:g} mm h={h:g} mm E={E:g} kPa\n"
-            f"O1={res.O1:.4g} mm O2={res.O2:.4g} mm O3={res.O3:.4g} mm²"
-        )
+        title = f"{title}\nO1={res.O1:.4g} mm O2={res.O2:.4g} mm O3={res.O3:.4g} mm²"
         write_or_fallback(
             lambda f: save_image_png(f, res.image, res.pixel, title, raw=res.image_raw), image_png, "--image"
         )
-    if as_json:
-        from elastimap.provenance import stamp
 
-        click.echo(json.dumps({**res.summary(), **sensor.record(), **stamp()}))
-    else:
-        s = res.summary()
-        if sensor_path:
-            click.echo(f"sensor {sensor.name!r} ({sensor_path}, hash {sensor.hash()})")
-        click.echo(
-            f"d = {d:g} mm, h = {h:g} mm, E = {E:g} kPa  ({mesh} mesh, {p.disc.interface} interface, "
-            f"{'full' if full else 'quarter'} model, {res.ndofs} dofs)"
-        )
-        click.echo(f"O1 = {res.O1:.6g} mm   O2 = {res.O2:.6g} mm   O3 = {res.O3:.6g} mm^2")
-        click.echo(f"plate force = {res.force:.6g} mN (reference {res.force_ref:.6g} mN) at delta = {res.delta:.6g} mm")
-        click.echo(
-            f"interface: min patch tension fraction {s['interface_check']['tension_patch_fraction']:.3g}, "
-            f"open pairs {s['interface_check']['open_pair_fraction']:.3g}"
-        )
-        click.echo(
-            f"{res.seconds:.2f} s, peak memory {res.peak_memory_mb:.0f} MiB; "
-            + ", ".join(f"{k} {v:.2f}s" for k, v in res.timings.items())
-        )
-    return 0
+
+def _print_summary(res, p, sensor, sensor_path, lesion: str, mesh: str, full: bool) -> None:
+    """``solve``'s report: the sensor (with --sensor), the lesion, the ``--mesh`` level, the
+    interface and ``--full`` or not, the features O1 (mm), O2 (mm), O3 (mm²), the plate force
+    (mN), the interface check and the timings (s)."""
+    s = res.summary()
+    if sensor_path:
+        click.echo(f"sensor {sensor.name!r} ({sensor_path}, hash {sensor.hash()})")
+    click.echo(
+        f"{lesion}  ({mesh} mesh, {p.disc.interface} interface, "
+        f"{'full' if full else 'quarter'} model, {res.ndofs} dofs)"
+    )
+    click.echo(f"O1 = {res.O1:.6g} mm   O2 = {res.O2:.6g} mm   O3 = {res.O3:.6g} mm^2")
+    click.echo(f"plate force = {res.force:.6g} mN (reference {res.force_ref:.6g} mN) at delta = {res.delta:.6g} mm")
+    click.echo(
+        f"interface: min patch tension fraction {s['interface_check']['tension_patch_fraction']:.3g}, "
+        f"open pairs {s['interface_check']['open_pair_fraction']:.3g}"
+    )
+    click.echo(
+        f"{res.seconds:.2f} s, peak memory {res.peak_memory_mb:.0f} MiB; "
+        + ", ".join(f"{k} {v:.2f}s" for k, v in res.timings.items())
+    )
 
 
 def main(argv: list[str] | None = None) -> None:

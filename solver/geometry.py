@@ -143,103 +143,30 @@ def size_expression(T: float, half: float, centre, r: float, aspect: float, size
 
 
 def build_mesh(p: SolveParams) -> RawMesh:
-    """Mesh the geometry of ``p`` with gmsh and split the probe from the tissue."""
+    """Mesh the geometry of ``p`` with gmsh and split the probe from the tissue.
+
+    The steps: gmsh's options (:func:`_set_options`), the OCC volumes fragmented into one
+    conforming set (:func:`_add_volumes`), a marker per volume (:func:`_classify_volumes`), the
+    graded size field and the 3D mesh (:func:`_generate`), the tetrahedra as arrays
+    (:func:`_tetrahedra`), then the probe split off along its footprint (:func:`split_probe`).
+    Any gmsh failure is a :class:`MeshError`."""
     import time
 
     import gmsh
 
     t0 = time.perf_counter()
-    T, L = p.tissue.thickness, p.tissue.size
-    P = p.probe.size
-    inc = p.inclusion
-    quarter = p.disc.symmetry == "quarter"
-    x0 = 0.0 if quarter else -L / 2
-    px0 = 0.0 if quarter else -P / 2
-    cx, cy, cz = inc.offset_x, inc.offset_y, T - inc.h
-    r = inc.d / 2
-
     with _gmsh_lock:
         in_main = threading.current_thread() is threading.main_thread()
         gmsh.initialize(interruptible=in_main)
         try:
-            gmsh.option.setNumber("General.Terminal", 0)
-            gmsh.option.setNumber("General.NumThreads", 1)
-            gmsh.option.setNumber("Mesh.Algorithm3D", 1)  # Delaunay
+            _set_options(gmsh)
             gmsh.model.add("elastimap")
-            occ = gmsh.model.occ
-            tissue = occ.addBox(x0, x0, 0, L / 2 - x0, L / 2 - x0, T)
-            parts = [(3, tissue)]
-            if p.tissue.skin_thickness > 0:
-                s = p.tissue.skin_thickness
-                parts.append((3, occ.addBox(x0, x0, T - s, L / 2 - x0, L / 2 - x0, s)))
-            for radius in (r, inc.core * r) if inc.core > 0 else (r,):
-                sph = occ.addSphere(cx, cy, cz, radius)
-                if quarter:
-                    clip = occ.addBox(0, 0, 0, L / 2, L / 2, T)
-                    sph_parts, _ = occ.intersect([(3, sph)], [(3, clip)])
-                else:
-                    sph_parts = [(3, sph)]
-                if inc.aspect != 1.0:
-                    # dilate after clipping (the centre lies on the symmetry planes, so they are kept);
-                    # dilating the whole sphere first left an open seam loop that gmsh could not mesh
-                    occ.dilate(sph_parts, cx, cy, cz, 1.0, 1.0, inc.aspect)
-                parts += sph_parts
-            z = T
-            for th, _E in p.probe.layers:
-                parts.append((3, occ.addBox(px0, px0, z, P / 2 - px0, P / 2 - px0, th)))
-                z += th
-            occ.fragment(parts[:1], parts[1:])
-            occ.synchronize()
-
-            # classify volumes by their centre of mass
+            _add_volumes(gmsh.model.occ, p)
+            gmsh.model.occ.synchronize()
             vols = gmsh.model.getEntities(3)
-            layer_tops = np.cumsum([0.0] + [th for th, _ in p.probe.layers]) + T
-            vol_marker = {}
-            for dim, tag in vols:
-                c = np.array(occ.getCenterOfMass(dim, tag))
-                if c[2] > T:
-                    k = int(np.searchsorted(layer_tops, c[2]) - 1)
-                    vol_marker[tag] = PROBE_LAYER0 + k
-                else:
-                    rel = (c - np.array([cx, cy, cz])) / np.array([r, r, r * inc.aspect])
-                    if quarter:
-                        # the centre of mass of a quarter sphere is off-centre but inside it
-                        pass
-                    if (
-                        float(np.sum(rel**2)) < 1.0
-                        and occ.getMass(dim, tag) < 1.01 * (4 / 3) * math.pi * r**3 * inc.aspect
-                    ):
-                        vol_marker[tag] = CORE if _inside_core(occ.getBoundingBox(dim, tag), inc, cz) else INCLUSION
-                    elif p.tissue.skin_thickness > 0 and c[2] > T - p.tissue.skin_thickness:
-                        vol_marker[tag] = SKIN
-                    else:
-                        vol_marker[tag] = TISSUE
-            if INCLUSION not in vol_marker.values():
-                raise MeshError("the inclusion volume was lost in the boolean fragment")
-
-            field = gmsh.model.mesh.field.add("MathEval")
-            gmsh.model.mesh.field.setString(
-                field, "F", size_expression(T, P / 2, (cx, cy, cz), r, inc.aspect, _sizes(p))
-            )
-            gmsh.model.mesh.field.setAsBackgroundMesh(field)
-            gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
-            gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
-            gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
-            gmsh.model.mesh.generate(3)
-
-            node_tags, coords, _ = gmsh.model.mesh.getNodes()
-            x = coords.reshape(-1, 3)
-            index = np.zeros(int(node_tags.max()) + 1, dtype=np.int64)
-            index[node_tags.astype(np.int64)] = np.arange(node_tags.size)
-            cells, markers = [], []
-            for _dim, tag in vols:
-                etypes, _etags, enodes = gmsh.model.mesh.getElements(3, tag)
-                for et, en in zip(etypes, enodes):
-                    if et != 4:  # 4-node tetrahedron
-                        continue
-                    c = index[en.astype(np.int64)].reshape(-1, 4)
-                    cells.append(c)
-                    markers.append(np.full(len(c), vol_marker[tag], dtype=np.int32))
+            vol_marker = _classify_volumes(gmsh.model.occ, vols, p)
+            _generate(gmsh, p)
+            x, cells, markers = _tetrahedra(gmsh, vols, vol_marker)
         except MeshError:
             raise
         except Exception as exc:  # gmsh raises bare Exceptions
@@ -251,6 +178,125 @@ def build_mesh(p: SolveParams) -> RawMesh:
     markers = np.concatenate(markers)
     x, cells = split_probe(x, cells, markers >= PROBE_LAYER0)
     return RawMesh(x=x, cells=cells, markers=markers, seconds=time.perf_counter() - t0)
+
+
+def _centre(p: SolveParams) -> tuple[float, float, float]:
+    """The inclusion's centre (cx, cy, cz) in mm: its offsets, depth h below the surface z = T."""
+    inc = p.inclusion
+    return inc.offset_x, inc.offset_y, p.tissue.thickness - inc.h
+
+
+def _set_options(gmsh) -> None:
+    """gmsh's global options: quiet, one thread, the Delaunay 3D algorithm."""
+    gmsh.option.setNumber("General.Terminal", 0)
+    gmsh.option.setNumber("General.NumThreads", 1)
+    gmsh.option.setNumber("Mesh.Algorithm3D", 1)  # Delaunay
+
+
+def _add_volumes(occ, p: SolveParams) -> None:
+    """Add the OCC volumes and fragment them into one conforming set: the tissue box
+    [x0, L/2]² × [0, T] (x0 = 0 for the quarter model, −L/2 for the full one), the optional skin
+    box [T − s, T], the inclusion's sphere of radius r = d/2 (and its core's, radius core · r),
+    clipped to the quarter and stretched by ``aspect`` along z, and the probe's layer boxes
+    [px0, P/2]² stacked from z = T up (all mm)."""
+    T, L = p.tissue.thickness, p.tissue.size
+    P = p.probe.size
+    inc = p.inclusion
+    quarter = p.disc.symmetry == "quarter"
+    x0 = 0.0 if quarter else -L / 2
+    px0 = 0.0 if quarter else -P / 2
+    cx, cy, cz = _centre(p)
+    r = inc.d / 2
+    tissue = occ.addBox(x0, x0, 0, L / 2 - x0, L / 2 - x0, T)
+    parts = [(3, tissue)]
+    if p.tissue.skin_thickness > 0:
+        s = p.tissue.skin_thickness
+        parts.append((3, occ.addBox(x0, x0, T - s, L / 2 - x0, L / 2 - x0, s)))
+    for radius in (r, inc.core * r) if inc.core > 0 else (r,):
+        sph = occ.addSphere(cx, cy, cz, radius)
+        if quarter:
+            clip = occ.addBox(0, 0, 0, L / 2, L / 2, T)
+            sph_parts, _ = occ.intersect([(3, sph)], [(3, clip)])
+        else:
+            sph_parts = [(3, sph)]
+        if inc.aspect != 1.0:
+            # dilate after clipping (the centre lies on the symmetry planes, so they are kept);
+            # dilating the whole sphere first left an open seam loop that gmsh could not mesh
+            occ.dilate(sph_parts, cx, cy, cz, 1.0, 1.0, inc.aspect)
+        parts += sph_parts
+    z = T
+    for th, _E in p.probe.layers:
+        parts.append((3, occ.addBox(px0, px0, z, P / 2 - px0, P / 2 - px0, th)))
+        z += th
+    occ.fragment(parts[:1], parts[1:])
+
+
+def _classify_volumes(occ, vols, p: SolveParams) -> dict[int, int]:
+    """The cell marker of each fragmented volume (gmsh tag -> marker), by its centre of mass c:
+    above the surface (c_z > T) the probe layer it lies in; inside the inclusion's ellipsoid
+    (((c − centre) / (r, r, r · aspect))² < 1, volume below 1.01 · (4/3) π r³ · aspect) CORE or
+    INCLUSION (:func:`_inside_core`); in the skin (c_z > T − s) SKIN; else TISSUE.  The centre of
+    mass of a quarter sphere is off-centre but inside it.  A :class:`MeshError` if no volume is
+    the inclusion (it was lost in the boolean fragment)."""
+    T = p.tissue.thickness
+    inc = p.inclusion
+    cx, cy, cz = _centre(p)
+    r = inc.d / 2
+    layer_tops = np.cumsum([0.0] + [th for th, _ in p.probe.layers]) + T
+    vol_marker = {}
+    for dim, tag in vols:
+        c = np.array(occ.getCenterOfMass(dim, tag))
+        if c[2] > T:
+            k = int(np.searchsorted(layer_tops, c[2]) - 1)
+            vol_marker[tag] = PROBE_LAYER0 + k
+        else:
+            rel = (c - np.array([cx, cy, cz])) / np.array([r, r, r * inc.aspect])
+            if float(np.sum(rel**2)) < 1.0 and occ.getMass(dim, tag) < 1.01 * (4 / 3) * math.pi * r**3 * inc.aspect:
+                vol_marker[tag] = CORE if _inside_core(occ.getBoundingBox(dim, tag), inc, cz) else INCLUSION
+            elif p.tissue.skin_thickness > 0 and c[2] > T - p.tissue.skin_thickness:
+                vol_marker[tag] = SKIN
+            else:
+                vol_marker[tag] = TISSUE
+    if INCLUSION not in vol_marker.values():
+        raise MeshError("the inclusion volume was lost in the boolean fragment")
+    return vol_marker
+
+
+def _generate(gmsh, p: SolveParams) -> None:
+    """Generate the 3D mesh with the element size of :func:`size_expression` as the background
+    field (mm), nothing taken from the boundary, the points or the curvature."""
+    field = gmsh.model.mesh.field.add("MathEval")
+    gmsh.model.mesh.field.setString(
+        field,
+        "F",
+        size_expression(
+            p.tissue.thickness, p.probe.size / 2, _centre(p), p.inclusion.d / 2, p.inclusion.aspect, _sizes(p)
+        ),
+    )
+    gmsh.model.mesh.field.setAsBackgroundMesh(field)
+    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+    gmsh.model.mesh.generate(3)
+
+
+def _tetrahedra(gmsh, vols, vol_marker: dict[int, int]):
+    """The mesh as arrays: node coordinates x (N, 3) mm, and per volume its 4-node tetrahedra
+    (node indices into x) and their markers (lists of arrays, one per volume and element type)."""
+    node_tags, coords, _ = gmsh.model.mesh.getNodes()
+    x = coords.reshape(-1, 3)
+    index = np.zeros(int(node_tags.max()) + 1, dtype=np.int64)
+    index[node_tags.astype(np.int64)] = np.arange(node_tags.size)
+    cells, markers = [], []
+    for _dim, tag in vols:
+        etypes, _etags, enodes = gmsh.model.mesh.getElements(3, tag)
+        for et, en in zip(etypes, enodes):
+            if et != 4:  # 4-node tetrahedron
+                continue
+            c = index[en.astype(np.int64)].reshape(-1, 4)
+            cells.append(c)
+            markers.append(np.full(len(c), vol_marker[tag], dtype=np.int32))
+    return x, cells, markers
 
 
 def _inside_core(box, inc, cz: float) -> bool:

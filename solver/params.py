@@ -289,15 +289,32 @@ class SolveParams:
 
         What each parameter alone must be is declared in ``PARAMETER_CONSTRAINTS``; the rules
         that tie parameters together (depth range for the diameter, probe inside the slab,
-        pixel grid over the probe) follow as code.
+        pixel grid over the probe) follow as code, in this order: the moduli, the inclusion in
+        the slab, the probe and its travel, the symmetry and the pixel grid, the size of what
+        can be meshed.
         """
-        t, inc, p, ld, ds, im = self.tissue, self.inclusion, self.probe, self.loading, self.disc, self.image
         validate_params(self._named_values(), PARAMETER_CONSTRAINTS)
+        self._check_moduli()
+        self._check_inclusion()
+        self._check_probe_and_loading()
+        self._check_symmetry_and_grid()
+        self._check_resolvable()
+        return self
+
+    def _check_moduli(self) -> None:
+        """Every modulus (tissue, skin, inclusion, its core, each probe layer) in ``MODULUS_RANGE`` kPa."""
+        t, inc, p = self.tissue, self.inclusion, self.probe
         moduli = {"tissue.E": t.E, "tissue.skin_E": t.skin_E, "E": inc.E, "inclusion.core_E": inc.core_ratio * inc.E}
         moduli.update({f"probe.layer{i}.E": E for i, (_, E) in enumerate(p.layers, 1)})
         for name, value in moduli.items():
             check_range(name, value, *MODULUS_RANGE, unit="kPa")
-        # rules that tie parameters together
+
+    def _check_inclusion(self) -> None:
+        """The inclusion inside the slab: the skin at most T/2; the centre depth h in
+        :func:`depth_range` for d (1 mm cover, 2 mm above the chest wall); a core only with a
+        shell modulus unlike the tissue's and with geometry "remesh"; below the skin
+        (h − aspect · d/2 ≥ skin thickness); ≥ 5 mm inside the slab's sides (all mm)."""
+        t, inc, ds = self.tissue, self.inclusion, self.disc
         check_range("tissue.skin_thickness", t.skin_thickness, 0, t.thickness / 2, unit="mm")
         half_height = inc.aspect * inc.d / 2
         lo, hi = depth_range(inc.d, t.thickness, inc.aspect)
@@ -325,6 +342,13 @@ class SolveParams:
                 "inclusion.offset",
                 f"the inclusion must stay >= 5 mm inside the slab (|offset| + d/2 <= {t.size / 2 - 5:g} mm)",
             )
+
+    def _check_probe_and_loading(self) -> None:
+        """The probe no wider than the slab, at least one layer of positive thickness (mm) and
+        modulus (kPa); under travel control the plate travel δ in (0, :func:`delta_limit`] mm;
+        a tilted plate (full model, travel control) at most that far down at the probe's edge,
+        δ + |tilt| · P/2."""
+        t, p, ld, ds = self.tissue, self.probe, self.loading, self.disc
         check_range("probe.size", p.size, 0, t.size, lo_open=True, unit="mm")
         if len(p.layers) < 1:
             raise UserError("probe.layers", "at least one (thickness, E) layer is required")
@@ -346,6 +370,11 @@ class SolveParams:
                     "tilt",
                     f"the plate travels up to {reach:.3g} mm at the probe edge; at most {delta_limit(self):g} mm",
                 )
+
+    def _check_symmetry_and_grid(self) -> None:
+        """An on-axis inclusion for the quarter model; the pixel in (0, P/4] mm dividing the probe
+        size P into a whole number n = P / pixel of pixels, n even for the quarter model."""
+        inc, p, ds, im = self.inclusion, self.probe, self.disc, self.image
         if ds.symmetry == "quarter" and (inc.offset_x != 0 or inc.offset_y != 0):
             raise UserError("symmetry", "an off-axis inclusion breaks quarter symmetry: use the full model")
         check_range("pixel", im.pixel, 0, p.size / 4, lo_open=True, unit="mm")
@@ -356,7 +385,13 @@ class SolveParams:
             )
         if ds.symmetry == "quarter" and round(n) % 2:
             raise UserError("pixel", "the quarter model needs an even number of pixels across the probe")
-        # geometry the mesh and the image can resolve in reasonable time and memory
+
+    def _check_resolvable(self) -> None:
+        """Geometry the mesh and the image can resolve in reasonable time and memory: the slab no
+        thicker than wide, the probe no taller than half the slab size (mm), at most
+        ``MAX_PIXELS`` pixels across the probe."""
+        t, p, im = self.tissue, self.probe, self.image
+        n = p.size / im.pixel
         if t.thickness > t.size:
             raise UserError(
                 "tissue.thickness",
@@ -374,7 +409,6 @@ class SolveParams:
                 "pixel",
                 f"gives {round(n)} pixels across the probe; at most {MAX_PIXELS} (pixel >= {p.size / MAX_PIXELS:g} mm)",
             )
-        return self
 
 
 def from_sensor(sensor, inclusion: Inclusion | None = None, disc=None, image=None) -> SolveParams:

@@ -476,41 +476,68 @@ def validate_inputs(
     res = train_batch(algo, obj, batch.theta0, cfg, desc=f"{label or algo} {folds.validate}")
     wall = time.perf_counter() - t0
 
-    def physical(Xs_t: torch.Tensor):
-        Ys = predict_scaled(res.theta, Xs_t, cfg.arch)
-        Yp = mapminmax_reverse(Ys, batch.t_lo, batch.t_hi)
-        return Ys, (Yp if to_physical is None else to_physical(Yp))
+    Ys, Yp, Ts, Tp = _scored_outputs(res.theta, obj, batch, cfg, T, to_physical)
+    shp = (R, nf, n)
+    per, cnt, train_mse = _metrics(Ts, Ys, Yp, Tp, test, batch.train, shp)
+    extra = {"pred": _held_out(Yp, test, shp), "test": folds.held_out}
+    if X_eval is not None:
+        Xe = mapminmax_apply(
+            np.broadcast_to(np.asarray(X_eval, np.float64), (test.shape[0], *np.shape(X_eval))), batch.x_lo, batch.x_hi
+        )
+        Xe_t = torch.as_tensor(Xe, dtype=obj.X.dtype, device=obj.X.device)
+        extra["pred_eval"] = _held_out(_physical_outputs(res.theta, Xe_t, batch, cfg, to_physical)[1], test, shp)
+    row = _validation_row(label or algo, folds, n, int(cnt[0, 0]), batch, cfg, row_extra, res, wall)
+    stops = _summarise_into(row, per, train_mse, res.stop)
+    curves = {k: v.numpy() for k, v in res.history.items() if k in ("train", "test", "val")}
+    return ValidationResult(label or algo, folds.validate, R, row, per, curves, stops, wall, extra)
 
-    Ys, Yp = physical(obj.X)
+
+def _physical_outputs(theta: torch.Tensor, Xs_t: torch.Tensor, batch: Batch, cfg: TrainConfig, to_physical):
+    """The networks' outputs on the scaled inputs ``Xs_t``: (scaled Ys, physical Yp), Yp the
+    mapminmax inverse of Ys over each network's training targets, then ``to_physical`` (if any;
+    d mm, h mm, E kPa)."""
+    Ys = predict_scaled(theta, Xs_t, cfg.arch)
+    Yp = mapminmax_reverse(Ys, batch.t_lo, batch.t_hi)
+    return Ys, (Yp if to_physical is None else to_physical(Yp))
+
+
+def _scored_outputs(theta: torch.Tensor, obj: NetObjective, batch: Batch, cfg: TrainConfig, T, to_physical):
+    """(Ys, Yp, Ts, Tp) the metrics compare: the outputs on the batch's own inputs, scaled and
+    physical (:func:`_physical_outputs`), and the targets, scaled and physical (T broadcast per
+    network).  With ``to_physical`` both are scored on the linear [-1, 1] mapminmax scaling of
+    (d, h, E) over each training fold instead of the transformed one the networks learnt."""
+    Ys, Yp = _physical_outputs(theta, obj.X, batch, cfg, to_physical)
     Ts = obj.T.cpu().numpy()
     Tp = np.broadcast_to(T, Yp.shape)
     if to_physical is not None:  # score on the linear scaling of (d, h, E) over each training fold
         lo, hi = mapminmax_fit(Tp, batch.train)
         Ys, Ts = mapminmax_apply(Yp, lo, hi), mapminmax_apply(Tp, lo, hi)
-    shp = (R, nf, n)
-    per, cnt, train_mse = _metrics(Ts, Ys, Yp, Tp, test, batch.train, shp)
+    return Ys, Yp, Ts, Tp
+
+
+def _held_out(Y: np.ndarray, test: np.ndarray, shp: tuple) -> np.ndarray:
+    """Each repeat's held-out predictions (R, n, 3) from the networks' outputs ``Y`` (B, n, 3),
+    B = R x folds (``shp`` = (R, folds, n)): each row's from the network it was a test row of,
+    NaN where it was none's in that repeat."""
     tm = test.reshape(shp)[..., None]
     tested = test.reshape(shp).any(axis=1)  # (R, n)
+    pred = np.where(tm, Y.reshape(*shp, 3), 0.0).sum(axis=1)  # (R, n, 3)
+    pred[~tested] = np.nan
+    return pred
 
-    def held_out(Y: np.ndarray) -> np.ndarray:
-        pred = np.where(tm, Y.reshape(*shp, 3), 0.0).sum(axis=1)  # (R, n, 3)
-        pred[~tested] = np.nan
-        return pred
 
-    extra = {"pred": held_out(Yp), "test": folds.held_out}
-    if X_eval is not None:
-        Xe = mapminmax_apply(
-            np.broadcast_to(np.asarray(X_eval, np.float64), (test.shape[0], *np.shape(X_eval))), batch.x_lo, batch.x_hi
-        )
-        extra["pred_eval"] = held_out(physical(torch.as_tensor(Xe, dtype=obj.X.dtype, device=obj.X.device))[1])
-    B = test.shape[0]
-    row = {
-        "algo": label or algo,
+def _validation_row(
+    label: str, folds: Folds, n: int, n_test: int, batch: Batch, cfg: TrainConfig, row_extra, res, wall: float
+) -> dict:
+    """The run's table row before its metrics: what was trained, on what, how long it took (s)."""
+    B = folds.test.shape[0]
+    return {
+        "algo": label,
         "validate": folds.validate,
-        "repeats": R,
+        "repeats": folds.repeats,
         "n_samples": n,
         "n_train": int(batch.train[0].sum()),
-        "n_test_per_repeat": int(cnt[0, 0]),
+        "n_test_per_repeat": n_test,
         "trainings": B,
         "hidden": ",".join(f"{s}" if a == "tansig" else f"{s}:{a}" for s, a in cfg.hidden),
         "epochs": cfg.epochs,
@@ -524,9 +551,6 @@ def validate_inputs(
         "dtype": str(cfg.dtype).replace("torch.", ""),
         "workers": res.workers,
     }
-    stops = _summarise_into(row, per, train_mse, res.stop)
-    curves = {k: v.numpy() for k, v in res.history.items() if k in ("train", "test", "val")}
-    return ValidationResult(label or algo, folds.validate, R, row, per, curves, stops, wall, extra)
 
 
 def _with_inputs(batch: Batch, cfg: TrainConfig, X_b: np.ndarray | None) -> NetObjective:

@@ -79,6 +79,36 @@ def _apply_stops(reasons, act_cpu, stop: list, ep_run, epoch: int) -> torch.Tens
     return ~done
 
 
+class _Bookkeeping:
+    """What both optimisers keep per problem across epochs: the history (name -> (B, epochs+1)),
+    the validation's best parameters and failure count (when the objective validates), each
+    problem's stopping reason and its last epoch."""
+
+    def __init__(self, obj, theta: torch.Tensor, names, epochs: int):
+        B = theta.shape[0]
+        self.val = _Validation(theta) if obj.has_val else None
+        self.stop = [""] * B
+        self.ep_run = torch.zeros(B, dtype=torch.long)
+        self.hist = _new_history(names, B, epochs, theta.dtype)
+
+    def check(self, active, th, epoch: int, values: dict, reasons: list, max_fail: int) -> torch.Tensor:
+        """Record this epoch's ``values`` (``"val"`` among them when validating) of the ``active``
+        problems at parameters ``th``, update the validation's best, and apply the stopping
+        ``reasons`` (mask, name) in order, the validation failures (>= ``max_fail``) last;
+        returns the mask of the problems that go on."""
+        act_cpu = active.cpu()
+        _record(self.hist, act_cpu, epoch, values)
+        if self.val is not None:
+            self.val.update(active, th, values["val"])
+            reasons = reasons + [(self.val.fails[active] >= max_fail, "val_fail")]
+        return _apply_stops(reasons, act_cpu, self.stop, self.ep_run, epoch)
+
+    def result(self, theta: torch.Tensor) -> TrainResult:
+        """The result: the best-validation parameters when validating, else ``theta``."""
+        final = self.val.best_theta if self.val is not None else theta
+        return TrainResult(final, self.ep_run, self.stop, self.hist)
+
+
 def lm_step(jj: torch.Tensor, je: torch.Tensor, mu: torch.Tensor, idx: torch.Tensor | None = None):
     """Levenberg–Marquardt steps ``Δθ = -(JᵀJ + μ I)⁻¹ Jᵀr`` by Cholesky factorisation.
 
@@ -184,10 +214,7 @@ def train_lm(
     B, P = theta.shape
     dev, dt = theta.device, theta.dtype
     mu_t = torch.full((B,), float(mu), dtype=dt, device=dev)
-    val = _Validation(theta) if obj.has_val else None
-    stop = [""] * B
-    ep_run = torch.zeros(B, dtype=torch.long)
-    hist = _new_history(["train", "val", "test", "mu"], B, epochs, dt)
+    book = _Bookkeeping(obj, theta, ["train", "val", "test", "mu"], epochs)
     active = torch.arange(B, device=dev)
 
     for epoch in range(epochs + 1):
@@ -198,20 +225,13 @@ def train_lm(
         E, jj, je = o.sse_jj_je(th)
         perf = E / o.n_elem
         grad = 2.0 * je.norm(dim=1)
-        mon = o.monitor(th)
-        act_cpu = active.cpu()
-        _record(hist, act_cpu, epoch, {"train": perf, "mu": mu_t[active], **mon})
-        if val is not None:
-            val.update(active, th, mon["val"])
         reasons = [
             (perf <= goal, "goal"),
             (torch.full_like(perf, epoch == epochs, dtype=torch.bool), "epochs"),
             (mu_t[active] > mu_max, "mu_max"),
             (grad < min_grad, "min_grad"),
         ]
-        if val is not None:
-            reasons.append((val.fails[active] >= max_fail, "val_fail"))
-        keep = _apply_stops(reasons, act_cpu, stop, ep_run, epoch)
+        keep = book.check(active, th, epoch, {"train": perf, "mu": mu_t[active], **o.monitor(th)}, reasons, max_fail)
         if not keep.any():
             active = active[keep]
             break
@@ -224,8 +244,7 @@ def train_lm(
         active = active[keep]
         if progress is not None:
             progress(epoch)
-    final = val.best_theta if val is not None else theta
-    return TrainResult(final, ep_run, stop, hist)
+    return book.result(theta)
 
 
 def train_scg(
@@ -263,63 +282,100 @@ def train_scg(
     validation failures).  ``E`` is the objective's ``perf`` (the training MSE
     for networks, as in MATLAB).
     """
-    theta = theta0.clone()
-    B, P = theta.shape
-    dev, dt = theta.device, theta.dtype
-    perf, g = obj.perf_grad(theta)
-    gX = -g
-    dX = gX.clone()
-    nrm = (dX * dX).sum(1)
-    success = torch.ones(B, dtype=torch.bool, device=dev)
-    lam = torch.full((B,), float(lambda_), dtype=dt, device=dev)
-    lamb = torch.zeros(B, dtype=dt, device=dev)
-    delta = torch.zeros(B, dtype=dt, device=dev)
-    k_iter = torch.zeros(B, dtype=torch.long, device=dev)
-    val = _Validation(theta) if obj.has_val else None
-    stop = [""] * B
-    ep_run = torch.zeros(B, dtype=torch.long)
-    hist = _new_history(["train", "val", "test"], B, epochs, dt)
-    active = torch.arange(B, device=dev)
+    state = _ScgState.start(obj, theta0, lambda_)
+    B, P = state.theta.shape
+    book = _Bookkeeping(obj, state.theta, ["train", "val", "test"], epochs)
+    active = torch.arange(B, device=state.theta.device)
 
     for epoch in range(epochs + 1):
         if active.numel() == 0:
             break
         o = obj.subset(active)
-        th = theta[active]
-        pa, ga = perf[active], gX[active]
-        mon = o.monitor(th)
-        act_cpu = active.cpu()
-        _record(hist, act_cpu, epoch, {"train": pa, **mon})
-        if val is not None:
-            val.update(active, th, mon["val"])
+        th = state.theta[active]
+        pa, ga = state.perf[active], state.r[active]
         reasons = [
             (pa <= goal, "goal"),
             (torch.full_like(pa, epoch == epochs, dtype=torch.bool), "epochs"),
             (ga.norm(dim=1) < min_grad, "min_grad"),
         ]
-        if val is not None:
-            reasons.append((val.fails[active] >= max_fail, "val_fail"))
-        keep = _apply_stops(reasons, act_cpu, stop, ep_run, epoch)
+        keep = book.check(active, th, epoch, {"train": pa, **o.monitor(th)}, reasons, max_fail)
         loc = keep.nonzero().squeeze(1)
         active = active[keep]
         if active.numel() == 0:
             break
-        o = o.subset(loc)
-        a = active
-        th, pa, ga = th[loc], pa[loc], ga[loc]
-        st = _scg_step(o, th, pa, ga, dX[a], nrm[a], lam[a], lamb[a], delta[a], success[a], k_iter[a], sigma, P)
-        ok, okc = st["ok"], st["ok"][:, None]
-        theta[a] = torch.where(okc, st["theta"], th)
-        perf[a] = torch.where(ok, st["perf"], pa)
-        gX[a] = torch.where(okc, st["r"], ga)
-        dX[a] = torch.where(okc, st["p"], dX[a])
-        nrm[a] = torch.where(ok, (st["p"] * st["p"]).sum(1), nrm[a])
-        k_iter[a], success[a] = st["k"], ok
-        lam[a], lamb[a], delta[a] = st["lam"], st["lamb"], st["delta"]
+        state.step(o.subset(loc), active, th[loc], pa[loc], ga[loc], sigma, P)
         if progress is not None:
             progress(epoch)
-    final = val.best_theta if val is not None else theta
-    return TrainResult(final, ep_run, stop, hist)
+    return book.result(state.theta)
+
+
+@dataclass
+class _ScgState:
+    """The per-problem state of :func:`train_scg` (B problems, P parameters): ``theta`` θ (B, P),
+    ``perf`` E(θ), ``r`` = −∇E(θ) and the search direction ``p`` (B, P), ``nrm`` = |p|², ``success``
+    whether the last step was accepted, ``lam``/``lamb``/``delta`` λ, λ̄, δ, ``k`` the accepted
+    steps so far."""
+
+    theta: torch.Tensor
+    perf: torch.Tensor
+    r: torch.Tensor
+    p: torch.Tensor
+    nrm: torch.Tensor
+    success: torch.Tensor
+    lam: torch.Tensor
+    lamb: torch.Tensor
+    delta: torch.Tensor
+    k: torch.Tensor
+
+    @classmethod
+    def start(cls, obj, theta0: torch.Tensor, lambda_: float) -> _ScgState:
+        """The state at θ₀: ``p = r = −∇E(θ₀)``, λ = ``lambda_``, λ̄ = δ = 0, every last step a success."""
+        theta = theta0.clone()
+        B = theta.shape[0]
+        dev, dt = theta.device, theta.dtype
+        perf, g = obj.perf_grad(theta)
+        r = -g
+        p = r.clone()
+        return cls(
+            theta=theta,
+            perf=perf,
+            r=r,
+            p=p,
+            nrm=(p * p).sum(1),
+            success=torch.ones(B, dtype=torch.bool, device=dev),
+            lam=torch.full((B,), float(lambda_), dtype=dt, device=dev),
+            lamb=torch.zeros(B, dtype=dt, device=dev),
+            delta=torch.zeros(B, dtype=dt, device=dev),
+            k=torch.zeros(B, dtype=torch.long, device=dev),
+        )
+
+    def step(self, o, a, th, pa, ga, sigma: float, P: int) -> None:
+        """One SCG iteration (:func:`_scg_step`) of the problems ``a`` (global indices; ``o`` their
+        objective, ``th``/``pa``/``ga`` their θ, E, r): θ, E, r and p change where the step is
+        accepted, |p|² with p, and k, success, λ, λ̄, δ everywhere."""
+        st = _scg_step(
+            o,
+            th,
+            pa,
+            ga,
+            self.p[a],
+            self.nrm[a],
+            self.lam[a],
+            self.lamb[a],
+            self.delta[a],
+            self.success[a],
+            self.k[a],
+            sigma,
+            P,
+        )
+        ok, okc = st["ok"], st["ok"][:, None]
+        self.theta[a] = torch.where(okc, st["theta"], th)
+        self.perf[a] = torch.where(ok, st["perf"], pa)
+        self.r[a] = torch.where(okc, st["r"], ga)
+        self.p[a] = torch.where(okc, st["p"], self.p[a])
+        self.nrm[a] = torch.where(ok, (st["p"] * st["p"]).sum(1), self.nrm[a])
+        self.k[a], self.success[a] = st["k"], ok
+        self.lam[a], self.lamb[a], self.delta[a] = st["lam"], st["lamb"], st["delta"]
 
 
 def _scg_step(o, th, pa, ga, p, nr, lk, lb, dk, succ, k, sigma: float, P: int) -> dict:
