@@ -204,7 +204,7 @@ def cli(
 
         click.echo(json.dumps({**res.summary(), **sensor.record(), **stamp()}))
     else:
-        _print_summary(res, p, sensor, sensor_path, f"d = {d:g} mm, h = {h:g} mm, E = {E:g} kPa", mesh, full)
+        _print_summary(res, p, sensor, sensor_path, f"d = {d:g} mm, h = {h:g} mm, E = {E:g} kPa", mesh)
     return 0
 
 
@@ -256,17 +256,15 @@ def _write_images(res, image_npy, image_png, title: str) -> None:
         )
 
 
-def _print_summary(res, p, sensor, sensor_path, lesion: str, mesh: str, full: bool) -> None:
+def _print_summary(res, p, sensor, sensor_path, lesion: str, mesh: str) -> None:
     """``solve``'s report: the sensor (with --sensor), the lesion, the ``--mesh`` level, the
-    interface and ``--full`` or not, the features O1 (mm), O2 (mm), O3 (mm²), the plate force
+    interface and the symmetry solved (``--full``, or a tilted ``--sensor`` that needs the full
+    model), the features O1 (mm), O2 (mm), O3 (mm²), the plate force
     (mN), the interface check and the timings (s)."""
     s = res.summary()
     if sensor_path:
         click.echo(f"sensor {sensor.name!r} ({sensor_path}, hash {sensor.hash()})")
-    click.echo(
-        f"{lesion}  ({mesh} mesh, {p.disc.interface} interface, "
-        f"{'full' if full else 'quarter'} model, {res.ndofs} dofs)"
-    )
+    click.echo(f"{lesion}  ({mesh} mesh, {p.disc.interface} interface, {p.disc.symmetry} model, {res.ndofs} dofs)")
     click.echo(f"O1 = {res.O1:.6g} mm   O2 = {res.O2:.6g} mm   O3 = {res.O3:.6g} mm^2")
     click.echo(f"plate force = {res.force:.6g} mN (reference {res.force_ref:.6g} mN) at delta = {res.delta:.6g} mm")
     click.echo(

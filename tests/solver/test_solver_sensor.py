@@ -125,3 +125,19 @@ def test_non_default_footprint_matches_the_api_and_flags_override_the_file(tmp_p
     over = _solve("--sensor", str(p), "--delta", "2")
     assert over["delta"] == 2.0 and over["sensor"]["loading"]["delta"] == 2.0
     assert over["sensor"]["probe"]["footprint"] == 20.0 and over["sensor_hash"] != out["sensor_hash"]
+
+
+def test_text_summary_names_the_model_solved_for_a_tilted_sensor(tmp_path):
+    """A tilted plate needs the full model (``from_sensor``); the text summary says which model
+    was solved, not whether ``--full`` was given."""
+    p = tmp_path / "tilted.toml"
+    p.write_text("[loading]\ndelta = 3.0\ntilt = 0.01\n")
+    r = subprocess.run(
+        [sys.executable, "-m", "elastimap.solver.cli", "--mesh", "tiny", "--d", "6", "--h", "6", "--E", "40"]
+        + ["--sensor", str(p)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "full model" in r.stdout and "quarter model" not in r.stdout
