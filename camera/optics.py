@@ -27,8 +27,8 @@ window's centre), r_d where the camera images it (in the same mm); so k1 is the 
 displacement of the footprint's corner (0.02: a point at the corner imaged 2 % farther out;
 k1 > 0 pincushion, k1 < 0 barrel).  The light image (stray + scattered, before the blur) is
 resampled at r_u(r_d) (Newton on the cubic; bilinear); k1 = 0 skips it (the nominal camera, bit
-for bit).  It is the effect ``lens_distortion`` of :mod:`elastimap.gap.effects` (outside-only:
-never a diagnosis candidate; docs/gap.md, 'Effects library').
+for bit).  It is the effect ``lens_distortion`` of :mod:`elastimap.gap.effects` (a default
+candidate of the diagnosis; docs/gap.md, 'Effects library').
 
 * ``w`` is the raw probe-bottom deflection of the FEM (``SolveResult.image_raw``,
   mm of probe compression *including* the flat-punch edge peaks), bilinearly

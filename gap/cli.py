@@ -388,7 +388,7 @@ def error_mesh_sim(error_mesh, sim, cache, backend, jobs, no_progress):
     "--outside",
     default="aspect,skin,led_imbalance,stray_light",
     show_default=True,
-    help="Effects drawn for out-of-library trials (never candidates; also lens_distortion, mislabel_d/h/E).",
+    help="Effects drawn for out-of-library trials (never candidates; also core_shell, mislabel_d/h/E).",
 )
 @click.option("--n-phantoms", type=int, default=12, show_default=True, help="Phantoms per trial.")
 @click.option("--frames", type=int, default=10, show_default=True, help="Camera frames per phantom.")

@@ -29,6 +29,7 @@ magnitudes for the fitting sweep and a "blind" range the self-test draws true ma
 | gamma | optics | ``SensorModel.gamma`` | response exponent (-) | 1 |
 | led_imbalance | optics | ``SensorModel.led_power[0]`` | left LED power (-) | 1 |
 | stray_light | optics | ``SensorModel.stray`` | stray light (fraction of full well) | 0.02 |
+| lens_distortion | optics | ``SensorModel.lens_k1`` | radial displacement at the footprint corner, k1 (-) | 0 |
 
 **Outside-only effects** (:data:`OUTSIDE_ONLY`): they make SYNTHETIC data (``gap synth --effect``,
 ``gap selftest --outside``) for the out-of-library checks and are never diagnosis candidates (the
@@ -37,7 +38,6 @@ library holds no correction for them; :func:`parse_list` refuses them as candida
 | name | stage | switch | magnitude (unit) | nominal |
 |---|---|---|---|---|
 | core_shell | mechanics | ``Inclusion.core`` = 0.6, ``Inclusion.core_ratio`` | core modulus / shell modulus (-) | 1 |
-| lens_distortion | optics | ``SensorModel.lens_k1`` | radial displacement at the footprint corner (-) | 0 |
 | mislabel_d, mislabel_h, mislabel_E | label | one phantom's table entry x (1 + m) | relative error (-) | 0 |
 
 A **label** effect changes no solve and no camera: the data are those of the true phantom, and
@@ -77,7 +77,7 @@ REMESHING = frozenset(
 #: effects whose discretisation error does not carry over from the baseline (``Effect.own_model_error``)
 OWN_ERROR = REMESHING | {"tissue_nu"}
 #: effects that only make SYNTHETIC data (out-of-library checks), never diagnosis candidates
-OUTSIDE_ONLY = frozenset({"core_shell", "lens_distortion", "mislabel_d", "mislabel_h", "mislabel_E"})
+OUTSIDE_ONLY = frozenset({"core_shell", "mislabel_d", "mislabel_h", "mislabel_E"})
 #: the table column each label effect mislabels
 LABEL_COLUMN = {"mislabel_d": 0, "mislabel_h": 1, "mislabel_E": 2}
 SKIN_THICKNESS = 1.0  # mm, thickness of the skin layer switched on by the ``skin`` effect
@@ -483,6 +483,23 @@ EFFECTS: dict[str, Effect] = {
             "stray light reaching the camera without deformation (fraction of full well)",
             limits=(0.0, 0.5),
         ),
+        Effect(
+            "lens_distortion",
+            "optics",
+            "-",
+            0.0,
+            (-0.2, -0.15, -0.1, -0.05, 0.0, 0.05, 0.1, 0.15, 0.2, 0.3),
+            (-0.2, -0.1),
+            "radial lens distortion (Brown-Conrady k1): fractional radial displacement at the "
+            "footprint corner (> 0 pincushion, < 0 barrel)",
+            # the footprint's corner lies at 0.81 of the sensor's half-diagonal (707 of 869 pixels),
+            # so k1 = 0.66 x a lens's corner distortion: machine-vision lenses (0.1-2 %) give |k1| <
+            # 0.015, below what the diagnosis resolves (|k1| 0.05 is "no gap"); short-throw wide-angle
+            # board lenses are barrel, 5-30 % (k1 -0.03 to -0.2); the blind range is the resolvable
+            # barrel part; below -0.22 the default frame folds (SensorModel.validate)
+            # (docs/gap.md, 'Effects library')
+            limits=(-0.2, 0.5),
+        ),
         # ---- outside-only (OUTSIDE_ONLY): SYNTHETIC data for the out-of-library checks
         Effect(
             "core_shell",
@@ -494,17 +511,6 @@ EFFECTS: dict[str, Effect] = {
             f"core/shell inclusion: a concentric core of {CORE_FRACTION:g} d whose modulus is this factor "
             "times the shell's (the phantom's E); outside-only",
             limits=(0.05, None),
-        ),
-        Effect(
-            "lens_distortion",
-            "optics",
-            "-",
-            0.0,
-            (-0.2, -0.1, 0.0, 0.1, 0.2, 0.3),
-            (0.1, 0.4),
-            "radial lens distortion (Brown-Conrady k1): fractional radial displacement at the "
-            "footprint corner (> 0 pincushion); outside-only",
-            limits=(-0.2, 0.5),
         ),
         *(
             Effect(

@@ -18,9 +18,10 @@ three kinds:
   right when the reported set (the winner, or the ambiguity set) holds it; its fitted magnitude
   is scored against its 95 % interval;
 * **out** -- one effect that is *not* among the candidates (``outside``, default
-  aspect, skin, led_imbalance, stray_light; the outside-only ``lens_distortion`` and the
+  aspect, skin, led_imbalance, stray_light; the outside-only ``core_shell`` and the
   phantom-labelling errors ``mislabel_d``, ``mislabel_h``, ``mislabel_E`` may be named too, a
-  labelling error on one phantom drawn per trial): answering "explained" or "ambiguous" is a
+  labelling error on one phantom drawn per trial; a candidate named here, ``lens_distortion``
+  say, leaves the candidates): answering "explained" or "ambiguous" is a
   confident wrong attribution.
 
 The label is sealed (a SHA-256 commitment is visible; it opens only once the answer is

@@ -1,6 +1,7 @@
-"""Outside-only effects (docs/gap.md, 'Effects library'): the lens distortion and the
+"""Outside-only effects (docs/gap.md, 'Effects library'): the core/shell inclusion and the
 phantom-labelling errors make SYNTHETIC data for the out-of-library checks and are never
-candidates.  TOY backend (not physics): it only exercises the data and the selftest's draws."""
+candidates (the lens distortion, once outside-only, is a candidate: tests/gap/test_gap_lens.py).
+TOY backend (not physics): it only exercises the data and the selftest's draws."""
 
 import subprocess
 import sys
@@ -17,7 +18,7 @@ from elastimap.gap.settings import Settings
 from elastimap.gap.simulate import Simulator
 
 ROOT = Path(__file__).resolve().parents[2]
-NEW = ("core_shell", "lens_distortion", "mislabel_d", "mislabel_h", "mislabel_E")
+NEW = ("core_shell", "mislabel_d", "mislabel_h", "mislabel_E")
 
 
 @pytest.fixture(scope="module")
@@ -111,7 +112,7 @@ def test_cli_refuses_outside_only_candidates_and_a_stray_label_phantom(tmp_path)
             ["synth", "--out", str(tmp_path / "b"), "--effect", "mislabel_d=0.1", "--label-phantom", "X"],
             "not a phantom",
         ),
-        (["diagnose", "--measured", str(m), "--out", str(tmp_path / "d"), "--effects", "lens_distortion"], "candidate"),
+        (["diagnose", "--measured", str(m), "--out", str(tmp_path / "d"), "--effects", "core_shell"], "candidate"),
     ):
         r = subprocess.run(py + args, capture_output=True, text=True, cwd=ROOT)
         assert r.returncode == 2 and word in r.stderr and r.stderr.count("\n") == 1, r.stderr
