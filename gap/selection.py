@@ -97,12 +97,27 @@ def both_needed(row: dict) -> bool:
     return all(not (lo <= nom <= hi) for (lo, hi), nom in zip(row["magnitude_ci"], row["nominal"]))
 
 
+def inside_grids(row: dict) -> bool:
+    """Whether every member's 95 % interval lies inside its effect's grid (``design_range``), short of
+    both ends by more than 10⁻⁶ of the grid's width.  A pair's members are held inside their grids
+    (``Composed.bounds``, never extended), so an interval that reaches a grid's end is one the
+    library cut short: the data may ask for more of it than the library holds -- what a pair of
+    look-alikes does when it stands in for an effect outside the library (chosen on the seed-10
+    draws: docs/gap.md, 'Two effects at once (SYNTHETIC)')."""
+    return all(
+        lo > a + 1e-6 * (b - a) and hi < b - 1e-6 * (b - a)
+        for (lo, hi), (a, b) in zip(row["magnitude_ci"], row["design_range"])
+    )
+
+
 def _pair_charge(row: dict, st: Settings) -> float:
     """What a pair row is charged in the ordering beyond its score: the ambiguity margin when both
-    its effects are needed, else infinity (a pair with a member at its nominal is that member's single
-    effect, whose own row stands for it; its larger interpolation error would flatter it)."""
+    its effects are needed and its intervals lie inside its members' grids (:func:`inside_grids`),
+    else infinity (a pair with a member at its nominal is that member's single effect, whose own row
+    stands for it; its larger interpolation error would flatter it)."""
     row["both_needed"] = both_needed(row)
-    return st.ambiguity_margin if row["both_needed"] else math.inf
+    row["inside_grids"] = inside_grids(row)
+    return st.ambiguity_margin if row["both_needed"] and row["inside_grids"] else math.inf
 
 
 def needed(row: dict) -> bool:
@@ -268,7 +283,11 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
         kind = bool(best.get("pair"))
         # pairs of the best's kind: only those whose both effects are needed (one with a member at its
         # nominal is that member's single effect)
-        same = [r for r in rows[1:] if bool(r.get("pair")) == kind and (not kind or r["both_needed"])]
+        same = [
+            r
+            for r in rows[1:]
+            if bool(r.get("pair")) == kind and (not kind or (r["both_needed"] and r["inside_grids"]))
+        ]
         for r in same:
             r["vs_best"] = told_apart(best, r, S0, st, mf is not None)
         shadows = [r["effect"] for r in same if r["vs_best"]["shadow"]]

@@ -2,12 +2,13 @@
 docs/gap.md, 'Two effects at once').  Hand-made SYNTHETIC linear sweeps only (not physics)."""
 
 import numpy as np
+import pytest
 
 from elastimap.gap import effects as fx
 from elastimap.gap.candidates import Candidate
 from elastimap.gap.fit_models import Single
 from elastimap.gap.report import verdict_line
-from elastimap.gap.selection import evaluate, pairs, second_effect
+from elastimap.gap.selection import evaluate, inside_grids, pairs, second_effect
 from elastimap.gap.settings import Settings
 
 
@@ -141,3 +142,25 @@ def test_the_verdict_line_names_the_second_effect():
     assert line.startswith("outcome: unexplained") and f"best {top['effect']}" in line
     assert "a second effect may be present: friction+gamma" in line and "7.5" in line
     assert "gamma 1.1 [0.95, 1.25] (its interval holding its nominal)" in line
+
+
+def test_a_pair_whose_interval_reaches_a_grid_end_does_not_lead():
+    """A pair's members are held inside their grids; a pair whose interval reaches a grid's end is a
+    fit the library cut short (a look-alike pair standing in for an effect outside it), no answer."""
+    rng, y0, dirs, models = _world(seed=2)
+    y = y0 + 0.5 * dirs["friction"] + 0.6 * dirs["indentation"] + rng.standard_normal(y0.shape)  # 0.6: its grid's end
+    ev = _eval(y, y0, models)
+    pr = next(r for r in ev["ranking"] if set(r["members"]) == {"friction", "indentation"})
+    assert pr["passes"] and pr["both_needed"] and not pr["inside_grids"]
+    assert pr["magnitude_ci"][pr["members"].index("indentation")][1] == pytest.approx(0.6)  # held at the grid's end
+    assert not any(r["passes"] for r in ev["ranking"] if not r["pair"])  # no single effect is enough
+    assert ev["outcome"] == "unexplained" and not ev["ranking"][0]["pair"]
+    y2 = y0 + 0.5 * dirs["friction"] + 0.3 * dirs["indentation"] + rng.standard_normal(y0.shape)  # inside
+    assert set(_eval(y2, y0, models)["winner"].split("+")) == {"friction", "indentation"}
+
+
+def test_inside_grids():
+    row = {"magnitude_ci": [[0.4, 0.6], [1.0, 1.2]], "design_range": [[0.0, 1.0], [0.7, 1.4]]}
+    assert inside_grids(row)
+    assert not inside_grids(dict(row, magnitude_ci=[[0.0, 0.6], [1.0, 1.2]]))
+    assert not inside_grids(dict(row, magnitude_ci=[[0.4, 0.6], [1.0, 1.4]]))
