@@ -257,7 +257,7 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
     rows.sort(key=lambda r: r["score"])
     significant = chi0 > thr
     if significant:  # two effects at once, weighed beside the single effects and families
-        lead = rows[0]["score"]
+        lead, alone = rows[0]["score"], rows[0]["passes"]
         rows += [
             _row(p, y, S0, F, chi0, thr, sl, sys, spread, coherent)
             for p in pairs(models, rows, st, y0)
@@ -265,7 +265,11 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
         ]
         # a pair leads only when both its effects are needed (each member's interval excludes its
         # nominal) and it beats every single effect and family by more than the margin
-        rows.sort(key=lambda r: r["score"] + (_pair_charge(r, st) if r.get("pair") else 0.0))
+        # (beside a passing single effect or family only with ``st.pair_beside_single``)
+        held = alone and not st.pair_beside_single
+        rows.sort(
+            key=lambda r: r["score"] + (_pair_charge(r, st) + (math.inf if held else 0.0) if r.get("pair") else 0.0)
+        )
     best = rows[0] if rows else None
     ambiguity, reported, level, shadows, second = [], {}, None, [], None
     if best is not None and mf is not None:  # what the best leaves (no gap: what the baseline leaves)

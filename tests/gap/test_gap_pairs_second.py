@@ -51,6 +51,9 @@ def test_a_pair_leads_beside_a_passing_single_when_the_data_ask_for_two():
     assert lo_f <= 0.6 <= hi_f and lo_i <= 0.07 <= hi_i and lo_i > 0.0  # both covered, both needed
     assert singles[0]["score"] - ev["ranking"][0]["score"] > Settings().ambiguity_margin
     assert ev["second_effect"] is None  # a leading pair is the answer, not a caveat on a single
+    # with pair_beside_single off, the pair leads only where no single passes: here the single stands
+    ev1 = _eval(y, y0, models, Settings(pair_beside_single=False))
+    assert ev1["winner"] == "friction" and any(r["pair"] for r in ev1["ranking"])
 
 
 def test_one_effect_stays_one_effect_with_pairs_weighed():
