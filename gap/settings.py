@@ -42,9 +42,7 @@ class Settings:
     refine_tol: float = 0.03  # a fit within this fraction of the effect's range of a solved magnitude is not re-solved
     model_form: bool = True  # the model-form level in the decision (gap/model_form.py; False: the closed world)
     pair_top: int = 5  # pairs: each of the best this many single effects with every other one (< 1: none)
-    pair_beside_single: bool = (
-        True  # a pair may lead beside a passing single effect or family (False: only when none passes)
-    )
+    pair_beside_single: bool = False  # a pair may lead beside a passing single (default: only when none passes)
     inverse: bool = True
     n_train: int = 40
     train_repeats: int = 4

@@ -39,11 +39,11 @@ def _eval(y, y0, models, st=None):
 
 
 def test_a_pair_leads_beside_a_passing_single_when_the_data_ask_for_two():
-    """A small second effect leaves the first one's single fit passing; the pair still beats it by
-    more than the margin with both effects needed, so the pair is the answer (before: the single)."""
+    """With ``pair_beside_single``: a small second effect leaves the first one's single fit passing; the
+    pair still beats it by more than the margin with both effects needed, so the pair is the answer."""
     rng, y0, dirs, models = _world()
     y = y0 + 0.6 * dirs["friction"] + 0.07 * dirs["indentation"] + rng.standard_normal(y0.shape)
-    ev = _eval(y, y0, models)
+    ev = _eval(y, y0, models, Settings(pair_beside_single=True))
     singles = [r for r in ev["ranking"] if not r["pair"]]
     assert singles[0]["effect"] == "friction" and singles[0]["passes"]  # one effect alone would pass
     assert ev["outcome"] == "explained" and ev["winner"] == "friction+indentation", ev["ranking"][0]["effect"]
@@ -51,8 +51,8 @@ def test_a_pair_leads_beside_a_passing_single_when_the_data_ask_for_two():
     assert lo_f <= 0.6 <= hi_f and lo_i <= 0.07 <= hi_i and lo_i > 0.0  # both covered, both needed
     assert singles[0]["score"] - ev["ranking"][0]["score"] > Settings().ambiguity_margin
     assert ev["second_effect"] is None  # a leading pair is the answer, not a caveat on a single
-    # with pair_beside_single off, the pair leads only where no single passes: here the single stands
-    ev1 = _eval(y, y0, models, Settings(pair_beside_single=False))
+    # with pair_beside_single off (the default), the pair leads only where no single passes: the single stands
+    ev1 = _eval(y, y0, models)
     assert ev1["winner"] == "friction" and any(r["pair"] for r in ev1["ranking"])
 
 
