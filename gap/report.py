@@ -240,7 +240,7 @@ def markdown(res: dict, figs: list[str]) -> str:
         f"candidates within Δscore ≤ {res['settings']['ambiguity_margin']:g} of a passing best cannot be told apart, "
         f"nor (with the model-form level) a passing candidate whose deficit is within the noise of a χ² difference "
         f"between the two fitted predictions, z_(1−α) · 2 √D_ab (docs/gap.md, 'Look-alikes'); "
-        f"a pair of effects leads only when both its effects are needed and it beats every single effect "
+        f"a pair of effects leads only when no single effect passes, both its effects are needed and it beats every single effect "
         f"by more than that, and a single best is no confident answer when a pair holding it beats it by "
         f"more than the margin with its magnitude outside its interval (docs/gap.md, 'Two effects at once').  "
         f"Error budget: noise, the measured discretisation error and the model-form level -- "

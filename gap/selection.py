@@ -6,8 +6,9 @@ covariance: noise, the measured discretisation error and the model-form level
 (:mod:`elastimap.gap.model_form`).  The gap is **significant** when the baseline's
 χ²_0 > χ²_N(1 − α); a candidate **passes** when its held-out (leave-one-phantom-out, or 10-fold
 for n > 15) χ² ≤ χ²_N(1 − α).  score_c = held-out χ²_c + k_c ln N.  When the gap is significant,
-pairs of single effects (two effects at once, k = 2) are ranked beside them and lead only when both
-their effects are needed and they beat every single effect and family by more than
+pairs of single effects (two effects at once, k = 2) are ranked beside them and lead only when no
+single effect or family passes (``Settings.pair_beside_single``), both their effects are needed, their
+intervals lie inside their grids and they beat every single effect and family by more than
 ``Settings.ambiguity_margin`` (sparse: one effect unless the data ask for two); a single best is no
 confident answer when a pair holding it beats it by that margin and moves its magnitude outside its
 interval (:func:`second_effect`: a second effect may be present).  Every candidate of the leader's kind
