@@ -142,6 +142,17 @@ def verdict_line(res: dict) -> str:
             f"not told apart from {', '.join(ev['shadowed_by'])}, {held} members' grid ends "
             "(the data may ask for more than the library holds)"
         )
+    elif ev.get("second_effect"):
+        s = ev["second_effect"]
+        lo, hi = s["magnitude_ci_in_pair"]
+        b_lo, b_hi = s["second_magnitude_ci"]
+        held = "needed" if s["second_needed"] else "its interval holding its nominal"
+        why = (
+            f"{_mag(top)}, but a second effect may be present: {s['pair']} fits better by Δscore "
+            f"{s['delta_score']:.3g} (charged for its parameter) with {s['effect']} at "
+            f"{s['magnitude_in_pair']:.4g} [{lo:.4g}, {hi:.4g}], outside its own interval, and "
+            f"{s['second']} {s['second_magnitude']:.4g} [{b_lo:.4g}, {b_hi:.4g}] ({held})"
+        )
     elif ev.get("residual_level") and ev["residual_level"]["beyond"] and top["passes"]:
         why = f"its residual's {', '.join(ev['residual_level']['beyond'])} beyond 3 × the prior scale"
     elif top["passes"] and top["at_grid_edge"]:
@@ -229,7 +240,9 @@ def markdown(res: dict, figs: list[str]) -> str:
         f"candidates within Δscore ≤ {res['settings']['ambiguity_margin']:g} of a passing best cannot be told apart, "
         f"nor (with the model-form level) a passing candidate whose deficit is within the noise of a χ² difference "
         f"between the two fitted predictions, z_(1−α) · 2 √D_ab (docs/gap.md, 'Look-alikes'); "
-        f"a pair of effects leads only when it beats every single effect by more than that.  "
+        f"a pair of effects leads only when no single effect passes, both its effects are needed and it beats every single effect "
+        f"by more than that, and a single best is no confident answer when a pair holding it beats it by "
+        f"more than the margin with its magnitude outside its interval (docs/gap.md, 'Two effects at once').  "
         f"Error budget: noise, the measured discretisation error and the model-form level -- "
         f"{ev.get('model_form_note', 'none')}."
     )

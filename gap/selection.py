@@ -5,10 +5,13 @@
 covariance: noise, the measured discretisation error and the model-form level
 (:mod:`elastimap.gap.model_form`).  The gap is **significant** when the baseline's
 χ²_0 > χ²_N(1 − α); a candidate **passes** when its held-out (leave-one-phantom-out, or 10-fold
-for n > 15) χ² ≤ χ²_N(1 − α).  score_c = held-out χ²_c + k_c ln N.  When no single effect or
-family passes, pairs of single effects (two effects at once, k = 2) are ranked beside them and
-lead only when both their effects are needed and they beat every single effect and family by more
-than ``Settings.ambiguity_margin`` (sparse: one effect unless the data ask for two).  Every candidate of the leader's kind
+for n > 15) χ² ≤ χ²_N(1 − α).  score_c = held-out χ²_c + k_c ln N.  When the gap is significant,
+pairs of single effects (two effects at once, k = 2) are ranked beside them and lead only when no
+single effect or family passes (``Settings.pair_beside_single``), both their effects are needed, their
+intervals lie inside their grids and they beat every single effect and family by more than
+``Settings.ambiguity_margin`` (sparse: one effect unless the data ask for two); a single best is no
+confident answer when a pair holding it beats it by that margin and moves its magnitude outside its
+interval (:func:`second_effect`: a second effect may be present).  Every candidate of the leader's kind
 the phantoms do not tell from a passing best (:func:`told_apart`: within the margin, or -- with the model-form
 level -- a passing candidate whose deficit is within the noise z_{1−α} 2 √D_ab of the χ² difference of the two
 fits) is reported with it (one: **explained**, several: **ambiguous**), provided what the best leaves is at
@@ -16,7 +19,8 @@ the model-form level (its modes' mean within :data:`~elastimap.identify.discrepa
 and, with the model-form level, its fit is neither pinned at the end of its range nor holding its
 nominal within its interval (:func:`_unsure`), nor within that noise of a passing family held at its
 members' grid ends (a shadow, :func:`held_at_grid_ends`), nor with its whole interval beyond the
-magnitudes the library was built for (:func:`beyond_design`); otherwise, or when nothing passes: **unexplained**.  The three verdicts a user acts on
+magnitudes the library was built for (:func:`beyond_design`), nor moved by a second effect
+(:func:`second_effect`); otherwise, or when nothing passes: **unexplained**.  The three verdicts a user acts on
 (:func:`verdict`): "no gap beyond the model-form level", "explained", "unexplained".
 """
 
@@ -59,21 +63,34 @@ def folds(n: int, seed: int) -> list[np.ndarray]:
 
 
 def pairs(models: list, rows: list[dict], st: Settings, y0: np.ndarray) -> list:
-    """Two effects at once: a :class:`~elastimap.gap.fit_models.Pair` of every two of the best
-    ``st.pair_top`` single effects by score (not two members of one family, which the family holds)."""
-    if st.pair_top < 2:
+    """Two effects at once: a :class:`~elastimap.gap.fit_models.Pair` of each of the best
+    ``st.pair_top`` single effects by score with every other single effect (not two members of one
+    family, which the family holds).  The second effect need not rank high alone: a softer
+    background beside a softer probe layer fits badly alone and is found only beside it."""
+    if st.pair_top < 1:
         return []
     byname = {m.name: m for m in models if isinstance(m, Single)}
-    top = [r["effect"] for r in rows if r["effect"] in byname][: st.pair_top]
+    order = [r["effect"] for r in rows if r["effect"] in byname]
     fam_of = {n: f.name for f in fx.FAMILIES.values() for n in f.members}
-    out = []
-    for a in range(len(top)):
-        for b in range(a + 1, len(top)):
-            na, nb = top[a], top[b]
-            if fam_of.get(na) is not None and fam_of.get(na) == fam_of.get(nb):
+    out, seen = [], set()
+    for na in order[: st.pair_top]:
+        for nb in order:
+            key = frozenset((na, nb))
+            if na == nb or key in seen or (fam_of.get(na) is not None and fam_of.get(na) == fam_of.get(nb)):
                 continue
+            seen.add(key)
             out.append(Pair(byname[na], byname[nb], y0))
     return out
+
+
+def _may_beat(pair, y: np.ndarray, S0: Metric, lead: float) -> bool:
+    """Whether a pair is worth its held-out fit: its fit on every phantom, charged k ln N, scores
+    below the best single effect or family ``lead`` (a held-out χ² is not below the fit's own, so a
+    pair that fails this can neither lead nor move the best; it saves the folds' fits of the many
+    pairs formed)."""
+    S = S0.plus(pair.interp)
+    th = pair.fit(y, S, np.arange(y.shape[0]))
+    return float(chi2(y, pair.predict(th), S).sum()) + pair.k * math.log(y.size) < lead
 
 
 def both_needed(row: dict) -> bool:
@@ -81,12 +98,27 @@ def both_needed(row: dict) -> bool:
     return all(not (lo <= nom <= hi) for (lo, hi), nom in zip(row["magnitude_ci"], row["nominal"]))
 
 
+def inside_grids(row: dict) -> bool:
+    """Whether every member's 95 % interval lies inside its effect's grid (``design_range``), short of
+    both ends by more than 10⁻⁶ of the grid's width.  A pair's members are held inside their grids
+    (``Composed.bounds``, never extended), so an interval that reaches a grid's end is one the
+    library cut short: the data may ask for more of it than the library holds -- what a pair of
+    look-alikes does when it stands in for an effect outside the library (chosen on the seed-10
+    draws: docs/gap.md, 'Two effects at once (SYNTHETIC)')."""
+    return all(
+        lo > a + 1e-6 * (b - a) and hi < b - 1e-6 * (b - a)
+        for (lo, hi), (a, b) in zip(row["magnitude_ci"], row["design_range"])
+    )
+
+
 def _pair_charge(row: dict, st: Settings) -> float:
     """What a pair row is charged in the ordering beyond its score: the ambiguity margin when both
-    its effects are needed, else infinity (a pair with a member at its nominal is that member's single
-    effect, whose own row stands for it; its larger interpolation error would flatter it)."""
+    its effects are needed and its intervals lie inside its members' grids (:func:`inside_grids`),
+    else infinity (a pair with a member at its nominal is that member's single effect, whose own row
+    stands for it; its larger interpolation error would flatter it)."""
     row["both_needed"] = both_needed(row)
-    return st.ambiguity_margin if row["both_needed"] else math.inf
+    row["inside_grids"] = inside_grids(row)
+    return st.ambiguity_margin if row["both_needed"] and row["inside_grids"] else math.inf
 
 
 def needed(row: dict) -> bool:
@@ -120,6 +152,51 @@ def beyond_design(row: dict) -> bool:
     expect -- what a look-alike does when it stands in for an effect the library does not hold,
     by moving further than the real effect would."""
     return any(hi < a or lo > b for (lo, hi), (a, b) in zip(row["magnitude_ci"], row["design_range"]))
+
+
+def second_effect(best: dict, rows: list[dict], st: Settings) -> dict | None:
+    """The pair row that says a second effect may be present beside a single best ``best`` (None when
+    none does): a pair holding the best's effect that passes, is not pinned at the end of its range,
+    beats the best's score by more than ``st.ambiguity_margin`` (its score already charged for the
+    second effect's parameter, ln N) and fits the best's effect at a magnitude **outside the best's
+    own 95 % interval**.  The single answer's magnitude is then no confident statement: the data fit
+    clearly better with a second effect beside it, and that moves it (docs/gap.md, 'Two effects at
+    once').  Of several such pairs, the best-scored."""
+    if best.get("pair") or len(best["members"]) != 1:
+        return None
+    name, (lo, hi) = best["effect"], best["magnitude_ci"][0]
+    found = [
+        r
+        for r in rows
+        if r.get("pair")
+        and name in r["members"]
+        and r["passes"]
+        and not r["at_grid_edge"]
+        and best["score"] - r["score"] > st.ambiguity_margin
+        and not (lo <= r["magnitude"][r["members"].index(name)] <= hi)
+    ]
+    return min(found, key=lambda r: r["score"]) if found else None
+
+
+def _second_summary(best: dict | None, pair: dict | None) -> dict | None:
+    """What ``evaluation.second_effect`` records: the pair, its Δscore to the best, the best's
+    magnitude in the pair and its interval there, and the second effect's."""
+    if best is None or pair is None:
+        return None
+    i = pair["members"].index(best["effect"])
+    return {
+        "pair": pair["effect"],
+        "delta_score": float(best["score"] - pair["score"]),
+        "effect": best["effect"],
+        "magnitude_in_pair": pair["magnitude"][i],
+        "magnitude_ci_in_pair": list(pair["magnitude_ci"][i]),
+        "second": pair["members"][1 - i],
+        "second_magnitude": pair["magnitude"][1 - i],
+        "second_magnitude_ci": list(pair["magnitude_ci"][1 - i]),
+        "second_needed": bool(
+            needed({"magnitude_ci": [pair["magnitude_ci"][1 - i]], "nominal": [pair["nominal"][1 - i]]})
+        ),
+    }
 
 
 def told_apart(a: dict, b: dict, S: Metric, st: Settings, model_form: bool = True) -> dict:
@@ -180,13 +257,22 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
     rows = [_row(mdl, y, S0, F, chi0, thr, sl, sys, spread, coherent) for mdl in models]
     rows.sort(key=lambda r: r["score"])
     significant = chi0 > thr
-    if significant and not rows[0]["passes"]:  # two effects only where one is not enough
-        rows += [_row(p, y, S0, F, chi0, thr, sl, sys, spread, coherent) for p in pairs(models, rows, st, y0)]
+    if significant:  # two effects at once, weighed beside the single effects and families
+        lead, alone = rows[0]["score"], rows[0]["passes"]
+        rows += [
+            _row(p, y, S0, F, chi0, thr, sl, sys, spread, coherent)
+            for p in pairs(models, rows, st, y0)
+            if _may_beat(p, y, S0, lead)
+        ]
         # a pair leads only when both its effects are needed (each member's interval excludes its
         # nominal) and it beats every single effect and family by more than the margin
-        rows.sort(key=lambda r: r["score"] + (_pair_charge(r, st) if r.get("pair") else 0.0))
+        # (beside a passing single effect or family only with ``st.pair_beside_single``)
+        held = alone and not st.pair_beside_single
+        rows.sort(
+            key=lambda r: r["score"] + (_pair_charge(r, st) + (math.inf if held else 0.0) if r.get("pair") else 0.0)
+        )
     best = rows[0] if rows else None
-    ambiguity, reported, level, shadows = [], {}, None, []
+    ambiguity, reported, level, shadows, second = [], {}, None, [], None
     if best is not None and mf is not None:  # what the best leaves (no gap: what the baseline leaves)
         f, Sb = (best["_model"].predict(best["_theta"]), best["_S"]) if significant else (y0, S0)
         level = residual_level(y, f, Sb, mf["phi"], mf["disc"])
@@ -200,12 +286,19 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
         and not (mf is not None and (_unsure(best) or beyond_design(best)))
     ):
         kind = bool(best.get("pair"))
-        same = [r for r in rows[1:] if bool(r.get("pair")) == kind]
+        # pairs of the best's kind: only those whose both effects are needed (one with a member at its
+        # nominal is that member's single effect)
+        same = [
+            r
+            for r in rows[1:]
+            if bool(r.get("pair")) == kind and (not kind or (r["both_needed"] and r["inside_grids"]))
+        ]
         for r in same:
             r["vs_best"] = told_apart(best, r, S0, st, mf is not None)
         shadows = [r["effect"] for r in same if r["vs_best"]["shadow"]]
-        if shadows:  # the best is not told apart from an answer beyond the library's grids
-            outcome = "unexplained"
+        second = second_effect(best, rows, st)
+        if shadows or second:  # not told apart from an answer beyond the library's grids, or a
+            outcome = "unexplained"  # second effect beside the best moves the best's magnitude
         else:
             close = [best] + [r for r in same if not r["vs_best"]["told_apart"]]
             reported = reported_set(close, rows)
@@ -234,6 +327,7 @@ def evaluate(y, S0, y0, models, n: int, st: Settings, sl: dict, sys=None, spread
         "reported": reported,
         "best": best["effect"] if best else None,
         "shadowed_by": shadows,
+        "second_effect": _second_summary(best, second),
         "beyond_design": bool(significant and mf is not None and best is not None and beyond_design(best)),
         "runner_up": rows[1]["effect"] if len(rows) > 1 else None,
     }

@@ -41,7 +41,8 @@ class Settings:
     refine_extrapolated: int = 2  # ... and the best this many whose fit is extrapolated (beyond the solved magnitudes)
     refine_tol: float = 0.03  # a fit within this fraction of the effect's range of a solved magnitude is not re-solved
     model_form: bool = True  # the model-form level in the decision (gap/model_form.py; False: the closed world)
-    pair_top: int = 5  # pairs of two effects are formed from the best this many single effects (< 2: none)
+    pair_top: int = 5  # pairs: each of the best this many single effects with every other one (< 1: none)
+    pair_beside_single: bool = False  # a pair may lead beside a passing single (default: only when none passes)
     inverse: bool = True
     n_train: int = 40
     train_repeats: int = 4
