@@ -8,9 +8,7 @@ from scipy import ndimage
 
 from elastimap.gap import effects as fx
 from elastimap.gap import synth
-from elastimap.gap.candidates import Candidate
 from elastimap.gap.diagnose import diagnose
-from elastimap.gap.fit_models import Single
 from elastimap.gap.model_form import Metric, level
 from elastimap.gap.selection import evaluate
 from elastimap.gap.settings import Settings
@@ -93,29 +91,8 @@ def test_profile_level_is_the_pixel_discrepancy_averaged_over_the_annuli():
     assert len(lv["coherent"]) == 2 and np.allclose(lv["coherent"][0], 1.96 * 0.02 * V0["profile"], rtol=1e-3)
 
 
-def _sweep(name, grid, y0, direction):
-    """A SYNTHETIC linear effect: f(θ) = y0 + (θ − nominal) · direction on every phantom."""
-    e = fx.get(name)
-    g = np.asarray(grid, float)
-    V = {"profile": y0[None] + (g - e.nominal)[:, None, None] * direction[None]}
-    return Candidate(e, g, V, None)
-
-
-def _world(seed=0, n=10, Q=8):
-    rng = np.random.default_rng(seed)
-    y0 = rng.uniform(50, 100, (n, Q))
-    dirs = {k: rng.standard_normal((n, Q)) * 8 for k in ("friction", "nonlinearity", "indentation")}
-    grids = {
-        "friction": np.linspace(0, 1, 5),
-        "nonlinearity": np.linspace(0, 1, 5),
-        "indentation": np.linspace(-0.6, 0.6, 7),
-    }
-    models = [Single(_sweep(k, grids[k], y0, d), ["profile"]) for k, d in dirs.items()]
-    return rng, y0, dirs, models
-
-
-def test_a_pair_is_selected_when_the_data_hold_two_effects_and_only_then():
-    rng, y0, dirs, models = _world()
+def test_a_pair_is_selected_when_the_data_hold_two_effects_and_only_then(linear_world):
+    rng, y0, dirs, models = linear_world()
     S = np.ones_like(y0)
     st = Settings()
     sl = {"profile": slice(0, y0.shape[1])}
@@ -154,12 +131,12 @@ def test_an_effect_beyond_the_level_is_explained(toy, dhe):
     assert ev["residual_level"]["beyond"] == [] and "where" in ev["residual_level"]
 
 
-def test_a_winner_pinned_at_the_end_of_its_range_is_no_confident_answer():
+def test_a_winner_pinned_at_the_end_of_its_range_is_no_confident_answer(linear_world):
     """SYNTHETIC sweeps: the data ask for friction a little beyond its grid (1.05 where the grid ends
     at 1), so the fit is pinned at the end and still passes.  With the model-form level that is no
     confident answer ("unexplained", the pinned fit first in the ranking); the closed-world budget
     keeps its old rule (explained, "end of its range")."""
-    rng, y0, dirs, models = _world(seed=1)
+    rng, y0, dirs, models = linear_world(seed=1)
     y = y0 + 1.05 * dirs["friction"] + 0.3 * rng.standard_normal(y0.shape)
     S = np.ones_like(y0)
     sl = {"profile": slice(0, y0.shape[1])}

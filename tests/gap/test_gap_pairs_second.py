@@ -4,44 +4,22 @@ docs/gap.md, 'Two effects at once').  Hand-made SYNTHETIC linear sweeps only (no
 import numpy as np
 import pytest
 
-from elastimap.gap import effects as fx
-from elastimap.gap.candidates import Candidate
-from elastimap.gap.fit_models import Single
 from elastimap.gap.report import verdict_line
 from elastimap.gap.selection import evaluate, inside_grids, pairs, second_effect
 from elastimap.gap.settings import Settings
 
-
-def _sweep(name, grid, y0, direction):
-    """A SYNTHETIC linear effect: f(θ) = y0 + (θ − nominal) · direction on every phantom."""
-    e = fx.get(name)
-    g = np.asarray(grid, float)
-    V = {"profile": y0[None] + (g - e.nominal)[:, None, None] * direction[None]}
-    return Candidate(e, g, V, None)
-
-
-def _world(seed=0, n=10, Q=8):
-    rng = np.random.default_rng(seed)
-    y0 = rng.uniform(50, 100, (n, Q))
-    dirs = {k: rng.standard_normal((n, Q)) * 8 for k in ("friction", "nonlinearity", "indentation", "gamma")}
-    grids = {
-        "friction": np.linspace(0, 1, 5),
-        "nonlinearity": np.linspace(0, 1, 5),
-        "indentation": np.linspace(-0.6, 0.6, 7),
-        "gamma": np.linspace(0.7, 1.4, 8),
-    }
-    models = [Single(_sweep(k, grids[k], y0, d), ["profile"]) for k, d in dirs.items()]
-    return rng, y0, dirs, models
+#: the four SYNTHETIC linear effects of these worlds (tests/gap/conftest.py, `linear_world`)
+FOUR = ("friction", "nonlinearity", "indentation", "gamma")
 
 
 def _eval(y, y0, models, st=None):
     return evaluate(y, np.ones_like(y0), y0, models, y0.shape[0], st or Settings(), {"profile": slice(0, y0.shape[1])})
 
 
-def test_a_pair_leads_beside_a_passing_single_when_the_data_ask_for_two():
+def test_a_pair_leads_beside_a_passing_single_when_the_data_ask_for_two(linear_world):
     """With ``pair_beside_single``: a small second effect leaves the first one's single fit passing; the
     pair still beats it by more than the margin with both effects needed, so the pair is the answer."""
-    rng, y0, dirs, models = _world()
+    rng, y0, dirs, models = linear_world(effects=FOUR)
     y = y0 + 0.6 * dirs["friction"] + 0.07 * dirs["indentation"] + rng.standard_normal(y0.shape)
     ev = _eval(y, y0, models, Settings(pair_beside_single=True))
     singles = [r for r in ev["ranking"] if not r["pair"]]
@@ -56,10 +34,10 @@ def test_a_pair_leads_beside_a_passing_single_when_the_data_ask_for_two():
     assert ev1["winner"] == "friction" and any(r["pair"] for r in ev1["ranking"])
 
 
-def test_one_effect_stays_one_effect_with_pairs_weighed():
+def test_one_effect_stays_one_effect_with_pairs_weighed(linear_world):
     """Sparse: with one effect in the data the pairs are weighed (listed) but none leads and none
     moves the single's magnitude out of its interval."""
-    rng, y0, dirs, models = _world(seed=1)
+    rng, y0, dirs, models = linear_world(seed=1, effects=FOUR)
     y = y0 + 0.6 * dirs["friction"] + rng.standard_normal(y0.shape)
     ev = _eval(y, y0, models)
     assert ev["outcome"] == "explained" and ev["winner"] == "friction"
@@ -70,10 +48,10 @@ def test_one_effect_stays_one_effect_with_pairs_weighed():
     assert ev0["winner"] == "friction" and not any(r["pair"] for r in ev0["ranking"])
 
 
-def test_pairs_hold_each_of_the_best_with_every_other_single_effect():
+def test_pairs_hold_each_of_the_best_with_every_other_single_effect(linear_world):
     """The second effect need not rank among the best alone: each of the best ``pair_top`` single
     effects is paired with every other one, once per pair."""
-    _, y0, dirs, models = _world()
+    _, y0, dirs, models = linear_world(effects=FOUR)
     rows = [{"effect": n} for n in ("gamma", "friction", "nonlinearity", "indentation")]
     got = [p.name for p in pairs(models, rows, Settings(pair_top=1), y0)]
     assert got == ["gamma+friction", "gamma+nonlinearity", "gamma+indentation"]
@@ -121,9 +99,9 @@ def test_a_second_effect_that_moves_the_single_out_of_its_interval_withdraws_the
     assert second_effect(pair, [pair, best], st) is None  # a pair as the best: nothing to withdraw
 
 
-def test_the_verdict_line_names_the_second_effect():
+def test_the_verdict_line_names_the_second_effect(linear_world):
     """The unexplained line says why: the pair, its lead, and both magnitudes."""
-    rng, y0, dirs, models = _world()
+    rng, y0, dirs, models = linear_world(effects=FOUR)
     y = y0 + 0.6 * dirs["friction"] + rng.standard_normal(y0.shape)
     ev = _eval(y, y0, models)
     top = ev["ranking"][0]
@@ -147,10 +125,10 @@ def test_the_verdict_line_names_the_second_effect():
     assert "gamma 1.1 [0.95, 1.25] (its interval holding its nominal)" in line
 
 
-def test_a_pair_whose_interval_reaches_a_grid_end_does_not_lead():
+def test_a_pair_whose_interval_reaches_a_grid_end_does_not_lead(linear_world):
     """A pair's members are held inside their grids; a pair whose interval reaches a grid's end is a
     fit the library cut short (a look-alike pair standing in for an effect outside it), no answer."""
-    rng, y0, dirs, models = _world(seed=2)
+    rng, y0, dirs, models = linear_world(seed=2, effects=FOUR)
     y = y0 + 0.5 * dirs["friction"] + 0.6 * dirs["indentation"] + rng.standard_normal(y0.shape)  # 0.6: its grid's end
     ev = _eval(y, y0, models)
     pr = next(r for r in ev["ranking"] if set(r["members"]) == {"friction", "indentation"})
