@@ -165,6 +165,8 @@ def difference_image(
     fs, dark = float(s.full_scale), s.binning**2 * s.dark_e / s.e_per_dn
     mF, vF = _mean_and_var(F, var_smooth_px)
     mB, vB = _mean_and_var(B, var_smooth_px)
+    # a distorting lens (``lens_k1``): back to the probe's coordinates first (none at k1 = 0)
+    mF, vF, mB, vB = (s.undistort(a) for a in (mF, vF, mB, vB))
     uF, uB = (mF[win] - dark) / fs, (mB[win] - dark) / fs
     vF, vB = vF[win] / fs**2, vB[win] / fs**2
     if np.any(uB <= 0):

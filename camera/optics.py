@@ -215,6 +215,20 @@ class SensorModel(CameraSpec):
         row = (Y * scale + self.footprint_mm / 2) / p + r0 - 0.5
         return ndimage.map_coordinates(img, [row, col], order=1, mode="nearest")
 
+    def undistort(self, img: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`distort` for a frame-shaped camera image ``img``: the value at the
+        probe point (x_u, y_u) is read at the camera pixel that images it, (x_u, y_u) (1 + k1 (r_u/R)²)
+        (bilinear; edge values beyond the frame).  k1 = 0: ``img`` itself."""
+        if self.lens_k1 == 0.0:
+            return img
+        X, Y = self.frame_coordinates()
+        scale = 1.0 + self.lens_k1 * (X**2 + Y**2) / self._distortion_radius() ** 2
+        r0, c0, _ = self.window
+        p = self.pixel_mm
+        col = (X * scale + self.footprint_mm / 2) / p + c0 - 0.5
+        row = (Y * scale + self.footprint_mm / 2) / p + r0 - 0.5
+        return ndimage.map_coordinates(img, [row, col], order=1, mode="nearest")
+
     def illumination(self) -> np.ndarray:
         """Relative illumination L over the full frame (mean 1 over the window)."""
         r0, c0, n = self.window
