@@ -209,11 +209,7 @@ class SensorModel(CameraSpec):
         scale = np.ones_like(r_d)
         nz = r_d > 0
         scale[nz] = self.undistorted_radius(r_d[nz]) / r_d[nz]
-        r0, c0, _ = self.window
-        p = self.pixel_mm
-        col = (X * scale + self.footprint_mm / 2) / p + c0 - 0.5
-        row = (Y * scale + self.footprint_mm / 2) / p + r0 - 0.5
-        return ndimage.map_coordinates(img, [row, col], order=1, mode="nearest")
+        return self._read_radially_scaled(img, X, Y, scale)
 
     def undistort(self, img: np.ndarray) -> np.ndarray:
         """The inverse of :meth:`distort` for a frame-shaped camera image ``img``: the value at the
@@ -223,6 +219,11 @@ class SensorModel(CameraSpec):
             return img
         X, Y = self.frame_coordinates()
         scale = 1.0 + self.lens_k1 * (X**2 + Y**2) / self._distortion_radius() ** 2
+        return self._read_radially_scaled(img, X, Y, scale)
+
+    def _read_radially_scaled(self, img: np.ndarray, X: np.ndarray, Y: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        """The frame-shaped ``img`` read (bilinear; edge values beyond the frame) at the frame points
+        (X, Y) · scale, mm on the probe from its axis."""
         r0, c0, _ = self.window
         p = self.pixel_mm
         col = (X * scale + self.footprint_mm / 2) / p + c0 - 0.5
