@@ -53,12 +53,13 @@ def _write_csv(path: Path, header: list[str], rows: list[list]) -> None:
         w.writerows(rows)
 
 
-def render_set(world: Path, rows: list[dict], out: Path, frames: int, seed: int) -> None:
-    """Render one set's phantoms into ``out`` (a new folder) with the four tables."""
+def render_set(world: Path, rows: list[dict], out: Path, frames: int, seed: int, lens_k1: float = 0.0) -> None:
+    """Render one set's phantoms into ``out`` (a new folder) with the four tables; ``lens_k1``: the
+    camera's radial lens distortion (``SensorModel.lens_k1``; 0, the nominal camera)."""
     from elastimap.camera.frames import write_frames
     from elastimap.camera.optics import SensorModel, render_pair
 
-    model = SensorModel().validate()
+    model = SensorModel(lens_k1=lens_k1).validate()
     rng = np.random.default_rng(seed)
     (out / "frames").mkdir(parents=True)
     table = []
@@ -83,8 +84,16 @@ def render_set(world: Path, rows: list[dict], out: Path, frames: int, seed: int)
 @click.option("--sets", default=None, help="Comma-separated set names (default: all in sets.csv).")
 @click.option("--frames", default=10, show_default=True, type=click.IntRange(1, 200), help="Frames per press.")
 @click.option("--seed", default=0, show_default=True, type=click.IntRange(0, 2**32 - 1), help="Noise seed.")
+@click.option(
+    "--lens-k1",
+    default=0.0,
+    show_default=True,
+    type=click.FloatRange(-0.2, 0.5),
+    help="The camera's radial lens distortion k1 (fractional shift of the footprint corner; 0: the nominal "
+    "camera; docs/camera.md, 'Synthetic TIR sensor model (`elastimap.camera.optics.SensorModel`)').",
+)
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="New folder for the rendered sets.")
-def cli(world, sets, frames, seed, out):
+def cli(world, sets, frames, seed, lens_k1, out):
     """Render a world's presses through elastimap's nominal camera as lab-style measured sets."""
     world, out = Path(world), Path(out)
     if out.exists():
@@ -97,7 +106,7 @@ def cli(world, sets, frames, seed, out):
     out.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     for i, n in enumerate(names):
-        render_set(world, groups[n], stage / n, frames, seed + i)
+        render_set(world, groups[n], stage / n, frames, seed + i, lens_k1)
         click.echo(f"{n}: {len(groups[n])} phantoms, {frames} frames each")
     os.chmod(stage, 0o777 & ~_umask())
     stage.rename(out)

@@ -59,3 +59,30 @@ def test_refuses_existing_out_and_unknown_set(tmp_path):
     r = CliRunner().invoke(render_world.cli, ["--world", str(w), "--sets", "nope", "--out", str(tmp_path / "o2")])
     assert r.exit_code == 2 and "--sets" in r.output
     assert not (tmp_path / "o2").exists() and list(out.iterdir()) == []
+
+
+def test_lens_k1_renders_through_a_distorting_camera(tmp_path):
+    """``--lens-k1`` images the presses through that lens: the same noise, other frames; 0 is the
+    nominal camera's frames bit for bit; beyond the allowed range a one-line error (exit 2)."""
+    from elastimap.camera.frames import read_stack
+
+    w = _world(tmp_path)
+    outs = {}
+    for k in ("0", "-0.15"):
+        outs[k] = tmp_path / f"out{k}"
+        r = CliRunner().invoke(
+            render_world.cli, ["--world", str(w), "--frames", "2", "--lens-k1", k, "--out", str(outs[k])]
+        )
+        assert r.exit_code == 0, r.output
+    plain = tmp_path / "plain"
+    assert (
+        CliRunner().invoke(render_world.cli, ["--world", str(w), "--frames", "2", "--out", str(plain)]).exit_code == 0
+    )
+    pattern = "synthetic_P02_lesion_f*.png"
+    a, b, c = (
+        read_stack([str(p) for p in sorted((o / "none" / "frames").glob(pattern))])[0]
+        for o in (plain, outs["0"], outs["-0.15"])
+    )
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    r = CliRunner().invoke(render_world.cli, ["--world", str(w), "--lens-k1", "-0.3", "--out", str(tmp_path / "o3")])
+    assert r.exit_code == 2 and "--lens-k1" in r.output
